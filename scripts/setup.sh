@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Installs what gs4city needs on Debian 12 (run as root, or with sudo available):
+# Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
+# and the Python packages of the reference scripts (numpy, cgal, open3d).
+# Idempotent: skips what is already there.
+set -euo pipefail
+SUDO=""
+if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
+pkgs=(build-essential pkg-config libembree-dev libclang-dev clang libopencv-dev libcgal-dev libgmp-dev libmpfr-dev
+      libusb-1.0-0 libgl1 libegl1 libgomp1)
+missing=()
+for p in "${pkgs[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  echo "setup: installing ${missing[*]}"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 "${missing[@]}" >/dev/null
+fi
+if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
+  py=(numpy cgal open3d)
+  need=()
+  for m in numpy CGAL open3d; do python3 -c "import $m" 2>/dev/null || need+=("$m"); done
+  if [ ${#need[@]} -gt 0 ]; then
+    echo "setup: pip install ${py[*]}"
+    python3 -m pip install -q --disable-pip-version-check "${py[@]}"
+  fi
+fi
+echo "setup: done"
