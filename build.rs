@@ -12,7 +12,11 @@ fn main() {
     println!("cargo:rerun-if-changed=build.rs");
 
     let embree4 = env::var_os("CARGO_FEATURE_EMBREE4").is_some();
-    let (version, lib) = if embree4 { ("embree4", "embree4") } else { ("embree3", "embree3") };
+    let (version, lib) = if embree4 {
+        ("embree4", "embree4")
+    } else {
+        ("embree3", "embree3")
+    };
 
     let mut include_dirs: Vec<PathBuf> = Vec::new();
     let mut lib_dirs: Vec<PathBuf> = Vec::new();
@@ -24,8 +28,13 @@ fn main() {
     }
     include_dirs.extend(["/usr/include", "/usr/local/include"].map(PathBuf::from));
     lib_dirs.extend(
-        ["/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib", "/usr/local/lib"]
-            .map(PathBuf::from),
+        [
+            "/usr/lib/x86_64-linux-gnu",
+            "/usr/lib/aarch64-linux-gnu",
+            "/usr/lib",
+            "/usr/local/lib",
+        ]
+        .map(PathBuf::from),
     );
 
     let header = format!("{version}/rtcore.h");
@@ -33,7 +42,11 @@ fn main() {
         panic!(
             "Embree not found: no {header} under {}. Install it (Debian 12: `apt-get install libembree-dev`, \
              or run scripts/setup.sh) or set EMBREE_DIR to an Embree install prefix with include/ and lib/.",
-            include_dirs.iter().map(|d| d.display().to_string()).collect::<Vec<_>>().join(", ")
+            include_dirs
+                .iter()
+                .map(|d| d.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
         );
     };
     let lib_found = lib_dirs.iter().find(|d| has_lib(d, lib));
@@ -42,7 +55,11 @@ fn main() {
         None => panic!(
             "Embree header found in {} but no lib{lib}.so in {}; set EMBREE_DIR to the Embree install prefix.",
             include.display(),
-            lib_dirs.iter().map(|d| d.display().to_string()).collect::<Vec<_>>().join(", ")
+            lib_dirs
+                .iter()
+                .map(|d| d.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
         ),
     }
     println!("cargo:rustc-link-lib=dylib={lib}");
@@ -67,11 +84,15 @@ fn main() {
         )
     });
     let out = PathBuf::from(env::var("OUT_DIR").expect("cargo sets OUT_DIR"));
-    bindings.write_to_file(out.join("embree_sys.rs")).expect("write embree_sys.rs into OUT_DIR");
+    bindings
+        .write_to_file(out.join("embree_sys.rs"))
+        .expect("write embree_sys.rs into OUT_DIR");
 }
 
 fn has_lib(dir: &Path, lib: &str) -> bool {
-    let Ok(entries) = std::fs::read_dir(dir) else { return false };
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return false;
+    };
     entries.flatten().any(|e| {
         let name = e.file_name();
         let name = name.to_string_lossy();

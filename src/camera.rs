@@ -46,18 +46,24 @@ impl Pose {
             return None;
         }
         let quat = DQuat::from_xyzw(q[1] / norm, q[2] / norm, q[3] / norm, q[0] / norm);
-        Some(Pose { rotation: DMat3::from_quat(quat), translation: DVec3::from_array(t) })
+        Some(Pose {
+            rotation: DMat3::from_quat(quat),
+            translation: DVec3::from_array(t),
+        })
     }
 
     /// A camera at `eye` looking at `target`, with image "up" as close to `up` as possible.
     /// Returns `None` when `eye == target` or the view direction is parallel to `up`.
     pub fn look_at(eye: DVec3, target: DVec3, up: DVec3) -> Option<Pose> {
         let z = (target - eye).try_normalize()?;
-        let x = z.cross(-up).try_normalize()?; // image +x right when image −y is `up`
+        let x = (-up).cross(z).try_normalize()?; // image +x right, image −y towards `up`
         let y = z.cross(x);
         // Rows of R are the camera axes in world coordinates.
         let rotation = DMat3::from_cols(x, y, z).transpose();
-        Some(Pose { rotation, translation: -(rotation * eye) })
+        Some(Pose {
+            rotation,
+            translation: -(rotation * eye),
+        })
     }
 
     /// Camera centre in world coordinates, `−Rᵀ t`.
@@ -93,7 +99,10 @@ impl Camera {
             return None;
         }
         let k = &self.intrinsics;
-        Some(DVec2::new(k.fx * p_cam.x / p_cam.z + k.cx, k.fy * p_cam.y / p_cam.z + k.cy))
+        Some(DVec2::new(
+            k.fx * p_cam.x / p_cam.z + k.cx,
+            k.fy * p_cam.y / p_cam.z + k.cy,
+        ))
     }
 
     /// The camera-frame direction (z = 1) of an undistorted pixel position.
@@ -147,7 +156,12 @@ mod tests {
         let pose = Pose::look_at(DVec3::new(3.0, 4.0, 5.0), DVec3::ZERO, DVec3::Z).unwrap();
         let q = pose.colmap_qvec();
         let back = Pose::from_colmap(q, pose.translation.to_array()).unwrap();
-        assert!((back.rotation - pose.rotation).to_cols_array().iter().all(|d| d.abs() < 1e-12));
+        assert!(
+            (back.rotation - pose.rotation)
+                .to_cols_array()
+                .iter()
+                .all(|d| d.abs() < 1e-12)
+        );
         assert!(Pose::from_colmap([0.0; 4], [0.0; 3]).is_none());
         assert!(Pose::from_colmap([f64::NAN, 0.0, 0.0, 0.0], [0.0; 3]).is_none());
         assert!(Pose::from_colmap([1.0, 0.0, 0.0, 0.0], [f64::INFINITY, 0.0, 0.0]).is_none());
@@ -156,10 +170,23 @@ mod tests {
     #[test]
     fn stem_drops_directories_and_extension() {
         let cam = Camera {
-            intrinsics: Intrinsics { width: 2, height: 2, fx: 1.0, fy: 1.0, cx: 1.0, cy: 1.0, distortion: Distortion::None },
+            intrinsics: Intrinsics {
+                width: 2,
+                height: 2,
+                fx: 1.0,
+                fy: 1.0,
+                cx: 1.0,
+                cy: 1.0,
+                distortion: Distortion::None,
+            },
             pose: Pose::look_at(DVec3::ZERO, DVec3::X, DVec3::Z).unwrap(),
         };
-        let v = View { image_id: 1, camera_id: 1, name: "a/b/DJI_0001.JPG".into(), camera: cam };
+        let v = View {
+            image_id: 1,
+            camera_id: 1,
+            name: "a/b/DJI_0001.JPG".into(),
+            camera: cam,
+        };
         assert_eq!(v.stem(), "DJI_0001");
     }
 }

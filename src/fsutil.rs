@@ -14,11 +14,17 @@ pub enum FsError {
     #[error("cannot create directory {path}: {source}")]
     CreateDir { path: PathBuf, source: io::Error },
     #[error("cannot serialise JSON for {path}: {source}")]
-    Json { path: PathBuf, source: serde_json::Error },
+    Json {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
 }
 
 fn tmp_path(path: &Path) -> PathBuf {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     path.with_file_name(format!(".{name}.tmp{}", std::process::id()))
 }
 
@@ -30,12 +36,21 @@ where
     F: FnOnce(&mut BufWriter<File>) -> Result<(), E>,
 {
     let tmp = tmp_path(path);
-    let wrap = |source| FsError::Write { path: path.to_path_buf(), source };
+    let wrap = |source| FsError::Write {
+        path: path.to_path_buf(),
+        source,
+    };
     let file = File::create(&tmp).map_err(wrap)?;
     let mut writer = BufWriter::with_capacity(1 << 20, file);
     let result = fill(&mut writer).and_then(|()| {
         writer.flush().map_err(wrap)?;
-        fs::rename(&tmp, path).map_err(|source| FsError::Write { path: path.to_path_buf(), source }.into())
+        fs::rename(&tmp, path).map_err(|source| {
+            FsError::Write {
+                path: path.to_path_buf(),
+                source,
+            }
+            .into()
+        })
     });
     if result.is_err() {
         let _ = fs::remove_file(&tmp);
@@ -46,21 +61,29 @@ where
 /// Writes raw bytes atomically.
 pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<(), FsError> {
     atomic_write(path, |w| {
-        w.write_all(bytes).map_err(|source| FsError::Write { path: path.to_path_buf(), source })
+        w.write_all(bytes).map_err(|source| FsError::Write {
+            path: path.to_path_buf(),
+            source,
+        })
     })
 }
 
 /// Writes pretty JSON atomically.
 pub fn write_json<T: Serialize + ?Sized>(path: &Path, value: &T) -> Result<(), FsError> {
-    let mut text = serde_json::to_vec_pretty(value)
-        .map_err(|source| FsError::Json { path: path.to_path_buf(), source })?;
+    let mut text = serde_json::to_vec_pretty(value).map_err(|source| FsError::Json {
+        path: path.to_path_buf(),
+        source,
+    })?;
     text.push(b'\n');
     write_bytes(path, &text)
 }
 
 /// Creates `dir` and its parents.
 pub fn create_dir(dir: &Path) -> Result<(), FsError> {
-    fs::create_dir_all(dir).map_err(|source| FsError::CreateDir { path: dir.to_path_buf(), source })
+    fs::create_dir_all(dir).map_err(|source| FsError::CreateDir {
+        path: dir.to_path_buf(),
+        source,
+    })
 }
 
 #[cfg(test)]
@@ -74,11 +97,18 @@ mod tests {
         let target = dir.join("out.bin");
         let r: Result<(), FsError> = atomic_write(&target, |w| {
             w.write_all(b"partial").unwrap();
-            Err(FsError::Write { path: target.clone(), source: io::Error::other("boom") })
+            Err(FsError::Write {
+                path: target.clone(),
+                source: io::Error::other("boom"),
+            })
         });
         assert!(r.is_err());
         assert!(!target.exists());
-        assert_eq!(fs::read_dir(&dir).unwrap().count(), 0, "temporary file must be removed");
+        assert_eq!(
+            fs::read_dir(&dir).unwrap().count(),
+            0,
+            "temporary file must be removed"
+        );
         write_bytes(&target, b"ok").unwrap();
         assert_eq!(fs::read(&target).unwrap(), b"ok");
         fs::remove_dir_all(&dir).unwrap();

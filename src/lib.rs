@@ -11,5 +11,6 @@ pub mod citygml;
 pub mod cli;
 pub(crate) mod embree;
 pub mod fsutil;
+pub mod imageio;
 pub mod mesh;
 pub mod npy;

@@ -16,7 +16,11 @@ pub struct FaceLabel {
 
 impl FaceLabel {
     /// No entity at any level.
-    pub const NONE: FaceLabel = FaceLabel { feature: -1, surface: -1, part: -1 };
+    pub const NONE: FaceLabel = FaceLabel {
+        feature: -1,
+        surface: -1,
+        part: -1,
+    };
 }
 
 /// A triangle mesh in the scene frame (f32) with one [`FaceLabel`] per face.
@@ -33,7 +37,10 @@ pub enum MeshError {
     #[error(transparent)]
     Fs(#[from] FsError),
     #[error("cannot read {path}: {source}")]
-    Read { path: PathBuf, source: std::io::Error },
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}: {why}")]
     Format { path: PathBuf, why: String },
 }
@@ -45,13 +52,29 @@ impl TriMesh {
     /// Checks the invariants: one label per face, every index in range, finite vertices.
     pub fn validate(&self) -> Result<(), String> {
         if self.labels.len() != self.faces.len() {
-            return Err(format!("{} faces but {} labels", self.faces.len(), self.labels.len()));
+            return Err(format!(
+                "{} faces but {} labels",
+                self.faces.len(),
+                self.labels.len()
+            ));
         }
         let n = self.vertices.len() as u32;
-        if let Some((i, f)) = self.faces.iter().enumerate().find(|(_, f)| f.iter().any(|&v| v >= n)) {
-            return Err(format!("face {i} references vertex {:?} but there are {n} vertices", f));
+        if let Some((i, f)) = self
+            .faces
+            .iter()
+            .enumerate()
+            .find(|(_, f)| f.iter().any(|&v| v >= n))
+        {
+            return Err(format!(
+                "face {i} references vertex {:?} but there are {n} vertices",
+                f
+            ));
         }
-        if let Some(i) = self.vertices.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
+        if let Some(i) = self
+            .vertices
+            .iter()
+            .position(|v| v.iter().any(|c| !c.is_finite()))
+        {
             return Err(format!("vertex {i} is not finite"));
         }
         Ok(())
@@ -89,22 +112,33 @@ impl TriMesh {
     pub fn write_ply(&self, path: &Path) -> Result<(), MeshError> {
         let bytes = self.to_ply_bytes();
         fsutil::atomic_write(path, |w| {
-            w.write_all(&bytes)
-                .map_err(|source| MeshError::Fs(FsError::Write { path: path.to_path_buf(), source }))
+            w.write_all(&bytes).map_err(|source| {
+                MeshError::Fs(FsError::Write {
+                    path: path.to_path_buf(),
+                    source,
+                })
+            })
         })
     }
 
     /// Reads a `mesh.ply` written by [`TriMesh::write_ply`] (the layout DESIGN.md fixes).
     pub fn read_ply(path: &Path) -> Result<TriMesh, MeshError> {
-        let bytes = std::fs::read(path).map_err(|source| MeshError::Read { path: path.to_path_buf(), source })?;
+        let bytes = std::fs::read(path).map_err(|source| MeshError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Self::from_ply_bytes(path, &bytes)
     }
 
     /// Decodes `mesh.ply` bytes; `path` names the source in errors.
     pub fn from_ply_bytes(path: &Path, bytes: &[u8]) -> Result<TriMesh, MeshError> {
-        let err = |why: String| MeshError::Format { path: path.to_path_buf(), why };
+        let err = |why: String| MeshError::Format {
+            path: path.to_path_buf(),
+            why,
+        };
         let end = find(bytes, b"end_header\n").ok_or_else(|| err("no PLY end_header".into()))? + 11;
-        let header = std::str::from_utf8(&bytes[..end]).map_err(|_| err("header is not text".into()))?;
+        let header =
+            std::str::from_utf8(&bytes[..end]).map_err(|_| err("header is not text".into()))?;
         if !header.starts_with("ply\n") || !header.contains("format binary_little_endian 1.0\n") {
             return Err(err("not a binary little-endian PLY".into()));
         }
@@ -122,33 +156,53 @@ impl TriMesh {
         let body = &bytes[end..];
         let need = nv * 12 + nf * 25;
         if body.len() != need {
-            return Err(err(format!("payload has {} bytes, header announces {need}", body.len())));
+            return Err(err(format!(
+                "payload has {} bytes, header announces {need}",
+                body.len()
+            )));
         }
         let f32_at = |o: usize| f32::from_le_bytes(body[o..o + 4].try_into().expect("4 bytes"));
         let i32_at = |o: usize| i32::from_le_bytes(body[o..o + 4].try_into().expect("4 bytes"));
-        let vertices = (0..nv).map(|i| [f32_at(i * 12), f32_at(i * 12 + 4), f32_at(i * 12 + 8)]).collect();
+        let vertices = (0..nv)
+            .map(|i| [f32_at(i * 12), f32_at(i * 12 + 4), f32_at(i * 12 + 8)])
+            .collect();
         let mut faces = Vec::with_capacity(nf);
         let mut labels = Vec::with_capacity(nf);
         for i in 0..nf {
             let o = nv * 12 + i * 25;
             if body[o] != 3 {
-                return Err(err(format!("face {i} has {} vertices, expected 3", body[o])));
+                return Err(err(format!(
+                    "face {i} has {} vertices, expected 3",
+                    body[o]
+                )));
             }
             let idx = [i32_at(o + 1), i32_at(o + 5), i32_at(o + 9)];
             if idx.iter().any(|&v| v < 0 || v as usize >= nv) {
-                return Err(err(format!("face {i} has vertex indices {idx:?} outside 0..{nv}")));
+                return Err(err(format!(
+                    "face {i} has vertex indices {idx:?} outside 0..{nv}"
+                )));
             }
             faces.push(idx.map(|v| v as u32));
-            labels.push(FaceLabel { feature: i32_at(o + 13), surface: i32_at(o + 17), part: i32_at(o + 21) });
+            labels.push(FaceLabel {
+                feature: i32_at(o + 13),
+                surface: i32_at(o + 17),
+                part: i32_at(o + 21),
+            });
         }
-        let mesh = TriMesh { vertices, faces, labels };
+        let mesh = TriMesh {
+            vertices,
+            faces,
+            labels,
+        };
         mesh.validate().map_err(err)?;
         Ok(mesh)
     }
 }
 
 fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
-    hay.windows(needle.len()).take(1 << 16).position(|w| w == needle)
+    hay.windows(needle.len())
+        .take(1 << 16)
+        .position(|w| w == needle)
 }
 
 #[cfg(test)]
@@ -157,9 +211,25 @@ mod tests {
 
     fn quad() -> TriMesh {
         TriMesh {
-            vertices: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.5]],
+            vertices: vec![
+                [0.0, 0.0, 0.0],
+                [1.0, 0.0, 0.0],
+                [1.0, 1.0, 0.0],
+                [0.0, 1.0, 0.5],
+            ],
             faces: vec![[0, 1, 2], [0, 2, 3]],
-            labels: vec![FaceLabel { feature: 0, surface: 1, part: -1 }, FaceLabel { feature: 0, surface: 1, part: 2 }],
+            labels: vec![
+                FaceLabel {
+                    feature: 0,
+                    surface: 1,
+                    part: -1,
+                },
+                FaceLabel {
+                    feature: 0,
+                    surface: 1,
+                    part: 2,
+                },
+            ],
         }
     }
 

@@ -11,13 +11,25 @@ pub enum NpyError {
     #[error(transparent)]
     Fs(#[from] FsError),
     #[error("cannot read {path}: {source}")]
-    Read { path: PathBuf, source: std::io::Error },
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}: not a .npy file ({why})")]
     Format { path: PathBuf, why: String },
     #[error("{path}: holds dtype {found}, expected {expected}")]
-    Dtype { path: PathBuf, found: String, expected: &'static str },
+    Dtype {
+        path: PathBuf,
+        found: String,
+        expected: &'static str,
+    },
     #[error("{path}: shape {shape:?} holds {expected} values but the payload has {found}")]
-    Size { path: PathBuf, shape: Vec<usize>, expected: usize, found: usize },
+    Size {
+        path: PathBuf,
+        shape: Vec<usize>,
+        expected: usize,
+        found: usize,
+    },
 }
 
 /// An element type that `.npy` can hold, stored little-endian.
@@ -56,13 +68,27 @@ npy_element!(u16, "<u2");
 
 /// Encodes `data` with `shape` (C order) as `.npy` bytes.
 pub fn encode<T: NpyElement>(shape: &[usize], data: &[T]) -> Vec<u8> {
-    assert_eq!(shape.iter().product::<usize>(), data.len(), "npy::encode: shape does not match data");
+    assert_eq!(
+        shape.iter().product::<usize>(),
+        data.len(),
+        "npy::encode: shape does not match data"
+    );
     let shape_txt = match shape {
         [n] => format!("({n},)"),
-        _ => format!("({})", shape.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ")),
+        _ => format!(
+            "({})",
+            shape
+                .iter()
+                .map(|d| d.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
     };
-    let mut header =
-        format!("{{'descr': '{}', 'fortran_order': False, 'shape': {}, }}", T::DESCR, shape_txt);
+    let mut header = format!(
+        "{{'descr': '{}', 'fortran_order': False, 'shape': {}, }}",
+        T::DESCR,
+        shape_txt
+    );
     // magic(6) + version(2) + len(2) + header + '\n' must be a multiple of 64.
     let total = 10 + header.len() + 1;
     header.push_str(&" ".repeat((64 - total % 64) % 64));
@@ -81,37 +107,59 @@ pub fn encode<T: NpyElement>(shape: &[usize], data: &[T]) -> Vec<u8> {
 pub fn write<T: NpyElement>(path: &Path, shape: &[usize], data: &[T]) -> Result<(), NpyError> {
     let bytes = encode(shape, data);
     fsutil::atomic_write(path, |w| {
-        w.write_all(&bytes)
-            .map_err(|source| NpyError::Fs(FsError::Write { path: path.to_path_buf(), source }))
+        w.write_all(&bytes).map_err(|source| {
+            NpyError::Fs(FsError::Write {
+                path: path.to_path_buf(),
+                source,
+            })
+        })
     })
 }
 
 /// Reads a `.npy` file of element type `T`; returns `(shape, data)` in C order.
 pub fn read<T: NpyElement>(path: &Path) -> Result<(Vec<usize>, Vec<T>), NpyError> {
-    let bytes = std::fs::read(path).map_err(|source| NpyError::Read { path: path.to_path_buf(), source })?;
+    let bytes = std::fs::read(path).map_err(|source| NpyError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
     decode(path, &bytes)
 }
 
 /// Decodes `.npy` bytes (`path` only names the source in errors).
 pub fn decode<T: NpyElement>(path: &Path, bytes: &[u8]) -> Result<(Vec<usize>, Vec<T>), NpyError> {
-    let fmt = |why: &str| NpyError::Format { path: path.to_path_buf(), why: why.to_string() };
+    let fmt = |why: &str| NpyError::Format {
+        path: path.to_path_buf(),
+        why: why.to_string(),
+    };
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err(fmt("missing magic"));
     }
     let (hlen, start) = match bytes[6] {
         1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-        2 | 3 if bytes.len() >= 12 => {
-            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
-        }
+        2 | 3 if bytes.len() >= 12 => (
+            u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+            12,
+        ),
         _ => return Err(fmt("unsupported version")),
     };
-    let header = bytes.get(start..start + hlen).ok_or_else(|| fmt("truncated header"))?;
+    let header = bytes
+        .get(start..start + hlen)
+        .ok_or_else(|| fmt("truncated header"))?;
     let header = std::str::from_utf8(header).map_err(|_| fmt("header is not text"))?;
     let descr = dict_value(header, "descr").ok_or_else(|| fmt("no descr"))?;
-    let descr = descr.trim_matches(|c| c == '\'' || c == '"');
+    let descr = descr
+        .strip_prefix(['\'', '"'])
+        .ok_or_else(|| fmt("descr is not a string"))?;
+    let descr = &descr[..descr
+        .find(['\'', '"'])
+        .ok_or_else(|| fmt("descr is not a string"))?];
     let descr_norm = descr.replace('=', "<");
     if descr_norm != T::DESCR && !(T::SIZE == 1 && descr_norm.ends_with(&T::DESCR[1..])) {
-        return Err(NpyError::Dtype { path: path.to_path_buf(), found: descr.to_string(), expected: T::DESCR });
+        return Err(NpyError::Dtype {
+            path: path.to_path_buf(),
+            found: descr.to_string(),
+            expected: T::DESCR,
+        });
     }
     if dict_value(header, "fortran_order").is_some_and(|v| v.starts_with("True")) {
         return Err(fmt("Fortran order is not supported"));
@@ -140,7 +188,9 @@ pub fn decode<T: NpyElement>(path: &Path, bytes: &[u8]) -> Result<(Vec<usize>, V
 }
 
 fn dict_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
-    let at = header.find(&format!("'{key}'")).or_else(|| header.find(&format!("\"{key}\"")))?;
+    let at = header
+        .find(&format!("'{key}'"))
+        .or_else(|| header.find(&format!("\"{key}\"")))?;
     let rest = &header[at + key.len() + 2..];
     let colon = rest.find(':')?;
     Some(rest[colon + 1..].trim_start())
@@ -164,17 +214,28 @@ mod tests {
         assert_eq!(g[0], 1.5);
         assert!(g[1].is_nan());
         let one = encode(&[1], &[7u8]);
-        assert!(std::str::from_utf8(&one[10..]).unwrap_or("").contains("(1,)") || one.len() > 10);
+        assert!(
+            std::str::from_utf8(&one[10..])
+                .unwrap_or("")
+                .contains("(1,)")
+                || one.len() > 10
+        );
     }
 
     #[test]
     fn wrong_dtype_and_truncation_are_errors() {
         let bytes = encode(&[2, 2], &[1i32, 2, 3, 4]);
-        assert!(matches!(decode::<f32>(Path::new("x.npy"), &bytes), Err(NpyError::Dtype { .. })));
+        assert!(matches!(
+            decode::<f32>(Path::new("x.npy"), &bytes),
+            Err(NpyError::Dtype { .. })
+        ));
         assert!(matches!(
             decode::<i32>(Path::new("x.npy"), &bytes[..bytes.len() - 1]),
             Err(NpyError::Size { .. })
         ));
-        assert!(matches!(decode::<i32>(Path::new("x.npy"), b"nope"), Err(NpyError::Format { .. })));
+        assert!(matches!(
+            decode::<i32>(Path::new("x.npy"), b"nope"),
+            Err(NpyError::Format { .. })
+        ));
     }
 }

@@ -16,13 +16,35 @@ pub use reader::{read, read_bytes};
 #[derive(Debug, thiserror::Error)]
 pub enum CityGmlError {
     #[error("cannot open {path}: {source}")]
-    Open { path: PathBuf, source: std::io::Error },
+    Open {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}:{line}: malformed XML: {message}")]
-    Xml { path: PathBuf, line: u64, message: String },
+    Xml {
+        path: PathBuf,
+        line: u64,
+        message: String,
+    },
     #[error("{path}:{line}: file ends inside {open} open element(s): truncated?")]
-    Truncated { path: PathBuf, line: u64, open: usize },
-    #[error("{path}:{line}: not a CityGML file (root element {root}, expected a CityGML 1.0/2.0/3.0 core:CityModel)")]
-    NotCityGml { path: PathBuf, line: u64, root: String },
+    Truncated {
+        path: PathBuf,
+        line: u64,
+        open: usize,
+    },
+    #[error(
+        "{path}:{line}: not a CityGML file (root element {root}, expected a CityGML 1.0/2.0/3.0 core:CityModel)"
+    )]
+    NotCityGml {
+        path: PathBuf,
+        line: u64,
+        root: String,
+    },
     #[error("{path}:{line}: {}{message}", id.as_ref().map(|i| format!("polygon {i}: ")).unwrap_or_default())]
-    Geometry { path: PathBuf, line: u64, id: Option<String>, message: String },
+    Geometry {
+        path: PathBuf,
+        line: u64,
+        id: Option<String>,
+        message: String,
+    },
 }

@@ -120,7 +120,10 @@ impl Class {
 
     /// Installation-like (2.0 BuildingInstallation, 3.0 BuildingConstructiveElement).
     pub fn is_installation(self) -> bool {
-        matches!(self, Class::BuildingInstallation | Class::BuildingConstructiveElement)
+        matches!(
+            self,
+            Class::BuildingInstallation | Class::BuildingConstructiveElement
+        )
     }
 }
 
@@ -258,10 +261,12 @@ pub struct CityModel {
 impl CityModel {
     /// Polygons used for the mesh: owned by an object, of the LoD chosen for it.
     pub fn used_polygons(&self) -> impl Iterator<Item = &Polygon> {
-        self.polygons.iter().filter(move |p| match (p.owner, p.lod) {
-            (Some(o), Some(l)) => self.objects[o].lod_used == Some(l),
-            _ => false,
-        })
+        self.polygons
+            .iter()
+            .filter(move |p| match (p.owner, p.lod) {
+                (Some(o), Some(l)) => self.objects[o].lod_used == Some(l),
+                _ => false,
+            })
     }
 
     /// Number of objects of a class.

@@ -87,7 +87,11 @@ fn classify_ns(s: &str) -> (Ns, Option<Version>) {
             _ => Module::Other,
         };
         // `citygml/profiles/base/1.0` is a profile namespace, not core.
-        let module = if rest.starts_with("profiles") { Module::Other } else { module };
+        let module = if rest.starts_with("profiles") {
+            Module::Other
+        } else {
+            module
+        };
         return (Ns::City(module), version);
     }
     (Ns::Other, None)
@@ -276,15 +280,26 @@ struct Parser {
 
 /// Reads one CityGML file (1.0, 2.0 or 3.0).
 pub fn read(path: &Path) -> Result<CityModel, CityGmlError> {
-    let file = File::open(path).map_err(|source| CityGmlError::Open { path: path.to_path_buf(), source })?;
-    let counter = LineCounter { inner: file, pos: 0, newlines: Vec::new() };
+    let file = File::open(path).map_err(|source| CityGmlError::Open {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let counter = LineCounter {
+        inner: file,
+        pos: 0,
+        newlines: Vec::new(),
+    };
     let reader = NsReader::from_reader(BufReader::with_capacity(1 << 16, counter));
     parse(path, reader)
 }
 
 /// Reads CityGML from bytes (`path` names the source in messages).
 pub fn read_bytes(path: &Path, bytes: &[u8]) -> Result<CityModel, CityGmlError> {
-    let counter = LineCounter { inner: bytes, pos: 0, newlines: Vec::new() };
+    let counter = LineCounter {
+        inner: bytes,
+        pos: 0,
+        newlines: Vec::new(),
+    };
     let reader = NsReader::from_reader(BufReader::new(counter));
     parse(path, reader)
 }
@@ -339,7 +354,11 @@ fn parse<R: Read>(
             Err(e) => {
                 let pos = reader.error_position();
                 let line = reader.get_ref().get_ref().line_of(pos);
-                return Err(CityGmlError::Xml { path: p.path.clone(), line, message: e.to_string() });
+                return Err(CityGmlError::Xml {
+                    path: p.path.clone(),
+                    line,
+                    message: e.to_string(),
+                });
             }
         };
         let ns = match ns {
@@ -387,7 +406,11 @@ fn parse<R: Read>(
                 let open = p.stack.len();
                 if open > 0 {
                     let line = reader.get_ref().get_ref().line_of(offset);
-                    return Err(CityGmlError::Truncated { path: p.path.clone(), line, open });
+                    return Err(CityGmlError::Truncated {
+                        path: p.path.clone(),
+                        line,
+                        open,
+                    });
                 }
                 break;
             }
@@ -420,10 +443,13 @@ impl Attrs {
         let mut a = Attrs::default();
         for attr in e.attributes().with_checks(false).flatten() {
             let (ns, local) = reader.resolver().resolve_attribute(attr.key);
-            let value = || attr.normalized_value(XmlVersion::Implicit1_0).map(|v| v.into_owned()).ok();
+            let value = || {
+                attr.normalized_value(XmlVersion::Implicit1_0)
+                    .map(|v| v.into_owned())
+                    .ok()
+            };
             let is_gml = matches!(&ns, ResolveResult::Bound(n) if n.as_ref().starts_with("http://www.opengis.net/gml"));
-            let is_xlink =
-                matches!(&ns, ResolveResult::Bound(n) if n.as_ref() == "http://www.w3.org/1999/xlink");
+            let is_xlink = matches!(&ns, ResolveResult::Bound(n) if n.as_ref() == "http://www.w3.org/1999/xlink");
             match local.as_ref() {
                 "id" if is_gml || matches!(ns, ResolveResult::Unbound) => a.gml_id = value(),
                 "href" if is_xlink => a.href = value(),
@@ -455,25 +481,44 @@ fn lod_property(local: &str) -> Option<u8> {
 
 impl Parser {
     fn warn(&mut self, line: u64, id: Option<String>, message: String) {
-        self.warnings.push(Warning { file: self.file.clone(), line, id, message });
+        self.warnings.push(Warning {
+            file: self.file.clone(),
+            line,
+            id,
+            message,
+        });
     }
 
     fn current_object(&self) -> Option<usize> {
         self.object_stack.last().copied()
     }
 
-    fn start(&mut self, (ns, version): (Ns, Option<Version>), e: &BytesStart, a: Attrs, line: u64) -> Result<(), CityGmlError> {
+    fn start(
+        &mut self,
+        (ns, version): (Ns, Option<Version>),
+        e: &BytesStart,
+        a: Attrs,
+        line: u64,
+    ) -> Result<(), CityGmlError> {
         let local_bytes = e.local_name();
         let local: &str = local_bytes.as_ref();
         if !self.root_seen {
             self.root_seen = true;
             if !(matches!(ns, Ns::City(Module::Core)) && local == "CityModel") {
                 let qname = e.name().as_ref().to_string();
-                return Err(CityGmlError::NotCityGml { path: self.path.clone(), line, root: qname });
+                return Err(CityGmlError::NotCityGml {
+                    path: self.path.clone(),
+                    line,
+                    root: qname,
+                });
             }
             self.version = version;
         }
-        if let Some(d) = a.srs_dimension.as_deref().and_then(|d| d.trim().parse::<usize>().ok()) {
+        if let Some(d) = a
+            .srs_dimension
+            .as_deref()
+            .and_then(|d| d.trim().parse::<usize>().ok())
+        {
             self.dim_stack.push((self.stack.len(), d));
         }
         if self.srs_name.is_none() {
@@ -490,7 +535,11 @@ impl Parser {
                     Ns::Other => "other:",
                     Ns::None => "",
                 };
-                *self.stats.unknown_elements.entry(format!("{prefix}{local}")).or_default() += 1;
+                *self
+                    .stats
+                    .unknown_elements
+                    .entry(format!("{prefix}{local}"))
+                    .or_default() += 1;
             }
             self.unknown_depth += 1;
         }
@@ -498,14 +547,23 @@ impl Parser {
         Ok(())
     }
 
-    fn classify(&mut self, ns: Ns, local: &str, a: &Attrs, parent_is_object: bool, line: u64) -> Result<Tag, CityGmlError> {
+    fn classify(
+        &mut self,
+        ns: Ns,
+        local: &str,
+        a: &Attrs,
+        parent_is_object: bool,
+        line: u64,
+    ) -> Result<Tag, CityGmlError> {
         // Appearance (CityGML app: module), anywhere.
         if let Ns::City(Module::Appearance) = ns {
             return Ok(self.appearance_start(local, a));
         }
         if let Ns::City(module) = ns {
-            if matches!(module, Module::Building | Module::Construction | Module::Core)
-                && let Some(class) = Class::from_local_name(local)
+            if matches!(
+                module,
+                Module::Building | Module::Construction | Module::Core
+            ) && let Some(class) = Class::from_local_name(local)
             {
                 let parent = self.current_object();
                 let idx = self.objects.len();
@@ -524,7 +582,12 @@ impl Parser {
             if let Some(lod) = lod_property(local) {
                 if local.contains("Implicit") {
                     self.stats.implicit_skipped += 1;
-                    self.warn(line, self.current_object().map(|o| self.objects[o].object_id.clone()), format!("{local}: implicit geometry is not supported, skipped"));
+                    self.warn(
+                        line,
+                        self.current_object()
+                            .map(|o| self.objects[o].object_id.clone()),
+                        format!("{local}: implicit geometry is not supported, skipped"),
+                    );
                     return Ok(Tag::Implicit);
                 }
                 let prev = self.lod;
@@ -538,7 +601,9 @@ impl Parser {
                 if SIMPLE_ATTRS.contains(&local) {
                     self.begin_text();
                     if let (Some(uom), Some(o)) = (&a.uom, self.current_object()) {
-                        self.objects[o].attributes.insert(format!("{local}.uom"), uom.clone().into());
+                        self.objects[o]
+                            .attributes
+                            .insert(format!("{local}.uom"), uom.clone().into());
                     }
                     return Ok(Tag::Attr(local.to_string()));
                 }
@@ -549,7 +614,9 @@ impl Parser {
             if module == Module::Generics || (module == Module::Construction && local == "Height") {
                 return Ok(self.generic_start(local, a));
             }
-            if matches!(local, "value" | "highReference" | "lowReference" | "status") && !self.gen_attrs.is_empty() {
+            if matches!(local, "value" | "highReference" | "lowReference" | "status")
+                && !self.gen_attrs.is_empty()
+            {
                 return Ok(self.generic_start(local, a));
             }
             if CONTAINMENT.contains(&local) || local == "CityModel" {
@@ -572,7 +639,11 @@ impl Parser {
         }
         if PATCHES.contains(&local) {
             if self.poly.is_some() {
-                self.warn(line, a.gml_id.clone(), format!("nested gml:{local} inside a polygon ignored"));
+                self.warn(
+                    line,
+                    a.gml_id.clone(),
+                    format!("nested gml:{local} inside a polygon ignored"),
+                );
                 return Tag::Unknown;
             }
             self.stats.polygons += 1;
@@ -581,7 +652,11 @@ impl Parser {
                 exterior: None,
                 interiors: Vec::new(),
                 line,
-                owner: if self.lod.is_some() { self.current_object() } else { None },
+                owner: if self.lod.is_some() {
+                    self.current_object()
+                } else {
+                    None
+                },
                 lod: self.lod,
                 reversed: self.reversed_depth % 2 == 1,
                 bad: None,
@@ -600,7 +675,10 @@ impl Parser {
                     return Tag::RingRole;
                 }
                 "LinearRing" => {
-                    self.ring = Some(Ring { id: a.gml_id.clone(), points: Vec::new() });
+                    self.ring = Some(Ring {
+                        id: a.gml_id.clone(),
+                        points: Vec::new(),
+                    });
                     return Tag::Ring;
                 }
                 "pos" | "posList" | "coordinates" if self.ring.is_some() => {
@@ -654,7 +732,9 @@ impl Parser {
             return Tag::Attr(local.to_string());
         }
         match local {
-            "boundedBy" | "Envelope" | "lowerCorner" | "upperCorner" | "featureMember" => Tag::Plain,
+            "boundedBy" | "Envelope" | "lowerCorner" | "upperCorner" | "featureMember" => {
+                Tag::Plain
+            }
             _ => Tag::Unknown,
         }
     }
@@ -663,7 +743,10 @@ impl Parser {
         match local {
             "ParameterizedTexture" => {
                 self.in_material = false;
-                self.textures.push(Texture { theme: self.app_theme.clone(), ..Default::default() });
+                self.textures.push(Texture {
+                    theme: self.app_theme.clone(),
+                    ..Default::default()
+                });
                 Tag::Texture
             }
             "X3DMaterial" => {
@@ -688,7 +771,10 @@ impl Parser {
                 Tag::AppText(AppField::Transparency)
             }
             "textureCoordinates" => {
-                self.tex_ring = a.ring.as_ref().map(|r| r.trim_start_matches('#').to_string());
+                self.tex_ring = a
+                    .ring
+                    .as_ref()
+                    .map(|r| r.trim_start_matches('#').to_string());
                 self.begin_text();
                 Tag::TexCoords
             }
@@ -719,11 +805,24 @@ impl Parser {
                     g.uom = a.uom.clone();
                 }
                 self.begin_text();
-                if local == "value" { Tag::GenValue } else { Tag::Attr(format!("height.{local}")) }
+                if local == "value" {
+                    Tag::GenValue
+                } else {
+                    Tag::Attr(format!("height.{local}"))
+                }
             }
             _ if local.ends_with("Attribute") || local == "Height" => {
-                let name = if local == "Height" { Some("height".to_string()) } else { a.name.clone() };
-                self.gen_attrs.push(GenAttrBuilder { kind: local.to_string(), name, value: None, uom: a.uom.clone() });
+                let name = if local == "Height" {
+                    Some("height".to_string())
+                } else {
+                    a.name.clone()
+                };
+                self.gen_attrs.push(GenAttrBuilder {
+                    kind: local.to_string(),
+                    name,
+                    value: None,
+                    uom: a.uom.clone(),
+                });
                 Tag::GenAttr
             }
             _ => Tag::Unknown,
@@ -751,7 +850,9 @@ impl Parser {
     }
 
     fn set_attr(&mut self, key: String, value: serde_json::Value) {
-        let Some(o) = self.current_object() else { return };
+        let Some(o) = self.current_object() else {
+            return;
+        };
         let attrs = &mut self.objects[o].attributes;
         match attrs.get_mut(&key) {
             None => {
@@ -767,7 +868,9 @@ impl Parser {
 
     fn end(&mut self, line: u64) -> Result<(), CityGmlError> {
         let depth = self.stack.len();
-        let Some(tag) = self.stack.pop() else { return Ok(()) };
+        let Some(tag) = self.stack.pop() else {
+            return Ok(());
+        };
         while self.dim_stack.last().is_some_and(|&(d, _)| d + 1 >= depth) {
             self.dim_stack.pop();
         }
@@ -827,13 +930,28 @@ impl Parser {
                 if let Some(g) = self.gen_attrs.pop()
                     && let (Some(name), Some(value)) = (g.name, g.value)
                 {
-                    let mut key = self.gen_set.iter().map(|s| format!("{s}/")).collect::<String>();
+                    let mut key = self
+                        .gen_set
+                        .iter()
+                        .map(|s| format!("{s}/"))
+                        .collect::<String>();
                     key.push_str(&name);
                     let kind = g.kind.to_ascii_lowercase();
                     let v = if kind.starts_with("int") {
-                        value.parse::<i64>().map(Into::into).unwrap_or_else(|_| value.clone().into())
-                    } else if kind.starts_with("double") || kind.starts_with("measure") || kind == "height" {
-                        value.parse::<f64>().ok().and_then(serde_json::Number::from_f64).map(Into::into).unwrap_or_else(|| value.clone().into())
+                        value
+                            .parse::<i64>()
+                            .map(Into::into)
+                            .unwrap_or_else(|_| value.clone().into())
+                    } else if kind.starts_with("double")
+                        || kind.starts_with("measure")
+                        || kind == "height"
+                    {
+                        value
+                            .parse::<f64>()
+                            .ok()
+                            .and_then(serde_json::Number::from_f64)
+                            .map(Into::into)
+                            .unwrap_or_else(|| value.clone().into())
                     } else {
                         value.clone().into()
                     };
@@ -855,7 +973,10 @@ impl Parser {
                     }
                     AppField::Theme => self.app_theme = Some(t.to_string()),
                     AppField::Diffuse => {
-                        let v: Vec<f64> = t.split_whitespace().filter_map(|x| x.parse().ok()).collect();
+                        let v: Vec<f64> = t
+                            .split_whitespace()
+                            .filter_map(|x| x.parse().ok())
+                            .collect();
                         if let (Some(m), [r, g, b]) = (self.materials.last_mut(), v.as_slice()) {
                             m.diffuse = Some([*r, *g, *b]);
                         }
@@ -879,7 +1000,10 @@ impl Parser {
             }
             Tag::TexCoords => {
                 let t = self.take_text();
-                let vals: Vec<f64> = t.split_whitespace().filter_map(|x| x.parse().ok()).collect();
+                let vals: Vec<f64> = t
+                    .split_whitespace()
+                    .filter_map(|x| x.parse().ok())
+                    .collect();
                 let mut uv: Vec<[f64; 2]> = vals.chunks_exact(2).map(|c| [c[0], c[1]]).collect();
                 if uv.len() > 1 && uv.first() == uv.last() {
                     uv.pop();
@@ -924,7 +1048,9 @@ impl Parser {
                 let tuples: Vec<&str> = if ts.trim().is_empty() {
                     text.split_ascii_whitespace().collect()
                 } else {
-                    text.split(ts.as_str()).filter(|s| !s.trim().is_empty()).collect()
+                    text.split(ts.as_str())
+                        .filter(|s| !s.trim().is_empty())
+                        .collect()
                 };
                 for tuple in tuples {
                     let parts: Vec<&str> = tuple.split(cs.as_str()).map(str::trim).collect();
@@ -933,7 +1059,9 @@ impl Parser {
                             path: self.path.clone(),
                             line,
                             id: self.poly.as_ref().and_then(|p| p.id.clone()),
-                            message: format!("coordinate tuple '{tuple}' does not have {dim} values"),
+                            message: format!(
+                                "coordinate tuple '{tuple}' does not have {dim} values"
+                            ),
                         });
                     }
                     for t in parts {
@@ -947,7 +1075,10 @@ impl Parser {
                 path: self.path.clone(),
                 line,
                 id: self.poly.as_ref().and_then(|p| p.id.clone()),
-                message: format!("{} coordinate values are not a multiple of srsDimension {dim}", values.len()),
+                message: format!(
+                    "{} coordinate values are not a multiple of srsDimension {dim}",
+                    values.len()
+                ),
             });
         }
         if let Some(ring) = self.ring.as_mut() {
@@ -960,7 +1091,9 @@ impl Parser {
     }
 
     fn finish_polygon(&mut self) {
-        let Some(mut pb) = self.poly.take() else { return };
+        let Some(mut pb) = self.poly.take() else {
+            return;
+        };
         let ordinal = self.polygons.len();
         let exterior = pb.exterior.take().unwrap_or_default();
         if pb.bad.is_none() && exterior.points.is_empty() {
@@ -987,10 +1120,16 @@ impl Parser {
             poly.owner = None;
         }
         if let Some(id) = &poly.id {
-            self.geometry_ids.entry(id.clone()).or_default().push(ordinal);
+            self.geometry_ids
+                .entry(id.clone())
+                .or_default()
+                .push(ordinal);
         }
         for cid in &self.container_ids {
-            self.geometry_ids.entry(cid.clone()).or_default().push(ordinal);
+            self.geometry_ids
+                .entry(cid.clone())
+                .or_default()
+                .push(ordinal);
         }
         self.polygons.push(poly);
     }
@@ -1052,9 +1191,17 @@ impl Parser {
     /// Objects without gml:id get `<parent id>/<Class>[k]` (k counts siblings of that class
     /// in document order), or `<file stem>/<Class>[k]` at top level; made unique if needed.
     fn derive_ids(&mut self) {
-        let stem = self.path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        let mut taken: std::collections::HashSet<String> =
-            self.objects.iter().filter(|o| o.has_gml_id).map(|o| o.object_id.clone()).collect();
+        let stem = self
+            .path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let mut taken: std::collections::HashSet<String> = self
+            .objects
+            .iter()
+            .filter(|o| o.has_gml_id)
+            .map(|o| o.object_id.clone())
+            .collect();
         let mut sibling: HashMap<(Option<usize>, Class), usize> = HashMap::new();
         for i in 0..self.objects.len() {
             let (parent, class) = (self.objects[i].parent, self.objects[i].class);
@@ -1108,7 +1255,11 @@ impl Parser {
             } else {
                 let id = self.objects[r].object_id.clone();
                 let line = self.objects[r].line;
-                self.warn(line, Some(id), "no LoD1–3 geometry (only LoD0/LoD4): nothing to triangulate".into());
+                self.warn(
+                    line,
+                    Some(id),
+                    "no LoD1–3 geometry (only LoD0/LoD4): nothing to triangulate".into(),
+                );
             }
         }
         for i in 0..n {
@@ -1121,13 +1272,21 @@ impl Parser {
 fn typed_value(key: &str, text: &str) -> serde_json::Value {
     let numeric = matches!(
         key,
-        "measuredHeight" | "storeysAboveGround" | "storeysBelowGround" | "yearOfConstruction" | "yearOfDemolition"
+        "measuredHeight"
+            | "storeysAboveGround"
+            | "storeysBelowGround"
+            | "yearOfConstruction"
+            | "yearOfDemolition"
     );
     if numeric {
         if let Ok(i) = text.parse::<i64>() {
             return i.into();
         }
-        if let Some(n) = text.parse::<f64>().ok().and_then(serde_json::Number::from_f64) {
+        if let Some(n) = text
+            .parse::<f64>()
+            .ok()
+            .and_then(serde_json::Number::from_f64)
+        {
             return n.into();
         }
     }

@@ -1,0 +1,144 @@
+//! Image files through OpenCV (the only module that imports `opencv`): 8-bit RGB images as
+//! `ndarray` `H×W×3` arrays, PNG writing, and OpenCV's connected components on label masks.
+use std::path::{Path, PathBuf};
+
+use ndarray::Array3;
+use opencv::core::{Mat, Vector};
+use opencv::prelude::*;
+use opencv::{imgcodecs, imgproc};
+
+use crate::fsutil::FsError;
+
+/// Errors of image reading and writing.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    #[error("cannot read image {path}: {why}")]
+    Read { path: PathBuf, why: String },
+    #[error("cannot write image {path}: {why}")]
+    Write { path: PathBuf, why: String },
+    #[error(transparent)]
+    Fs(#[from] FsError),
+}
+
+/// Reads an image file (PNG, JPEG, …) as 8-bit RGB, `H×W×3`.
+pub fn read_rgb(path: &Path) -> Result<Array3<u8>, ImageError> {
+    let err = |why: String| ImageError::Read {
+        path: path.to_path_buf(),
+        why,
+    };
+    let name = path
+        .to_str()
+        .ok_or_else(|| err("path is not UTF-8".into()))?;
+    if !path.is_file() {
+        return Err(err("no such file".into()));
+    }
+    let bgr = imgcodecs::imread(name, imgcodecs::IMREAD_COLOR).map_err(|e| err(e.to_string()))?;
+    if bgr.empty() {
+        return Err(err("OpenCV could not decode it".into()));
+    }
+    let (h, w) = (bgr.rows() as usize, bgr.cols() as usize);
+    let mut rgb = Mat::default();
+    imgproc::cvt_color_def(&bgr, &mut rgb, imgproc::COLOR_BGR2RGB)
+        .map_err(|e| err(e.to_string()))?;
+    let rgb = if rgb.is_continuous() {
+        rgb
+    } else {
+        rgb.try_clone().map_err(|e| err(e.to_string()))?
+    };
+    let bytes = rgb.data_bytes().map_err(|e| err(e.to_string()))?;
+    Array3::from_shape_vec((h, w, 3), bytes.to_vec()).map_err(|e| err(e.to_string()))
+}
+
+/// Writes an 8-bit RGB `H×W×3` array as PNG, atomically (temporary file, then rename).
+pub fn write_png(path: &Path, rgb: &Array3<u8>) -> Result<(), ImageError> {
+    let err = |why: String| ImageError::Write {
+        path: path.to_path_buf(),
+        why,
+    };
+    let (h, w, c) = rgb.dim();
+    if c != 3 {
+        return Err(err(format!("expected 3 channels, got {c}")));
+    }
+    let data: Vec<u8> = rgb.iter().copied().collect();
+    let flat = Mat::from_slice(&data).map_err(|e| err(e.to_string()))?;
+    let img = flat.reshape(3, h as i32).map_err(|e| err(e.to_string()))?;
+    let mut bgr = Mat::default();
+    imgproc::cvt_color_def(&img, &mut bgr, imgproc::COLOR_RGB2BGR)
+        .map_err(|e| err(e.to_string()))?;
+    debug_assert_eq!(bgr.cols() as usize, w);
+    let mut buf = Vector::<u8>::new();
+    imgcodecs::imencode(".png", &bgr, &mut buf, &Vector::new()).map_err(|e| err(e.to_string()))?;
+    crate::fsutil::write_bytes(path, buf.as_slice())?;
+    Ok(())
+}
+
+/// 8-connected components of a binary mask (`H×W`, nonzero = foreground) by OpenCV.
+/// Returns the label image (0 = background, 1..n) and the pixel count of each label.
+pub fn connected_components(
+    mask: &ndarray::Array2<u8>,
+) -> Result<(ndarray::Array2<i32>, Vec<usize>), ImageError> {
+    let err = |why: String| ImageError::Read {
+        path: PathBuf::from("<mask>"),
+        why,
+    };
+    let (h, w) = mask.dim();
+    let data: Vec<u8> = mask.iter().map(|&v| u8::from(v != 0)).collect();
+    let flat = Mat::from_slice(&data).map_err(|e| err(e.to_string()))?;
+    let img = flat.reshape(1, h as i32).map_err(|e| err(e.to_string()))?;
+    let (mut labels, mut stats, mut centroids) = (Mat::default(), Mat::default(), Mat::default());
+    let n = imgproc::connected_components_with_stats(
+        &img,
+        &mut labels,
+        &mut stats,
+        &mut centroids,
+        8,
+        opencv::core::CV_32S,
+    )
+    .map_err(|e| err(e.to_string()))?;
+    let lab: Vec<i32> = labels
+        .data_typed::<i32>()
+        .map_err(|e| err(e.to_string()))?
+        .to_vec();
+    let mut areas = Vec::with_capacity(n as usize);
+    for i in 0..n {
+        areas.push(
+            *stats
+                .at_2d::<i32>(i, imgproc::CC_STAT_AREA)
+                .map_err(|e| err(e.to_string()))? as usize,
+        );
+    }
+    let labels = ndarray::Array2::from_shape_vec((h, w), lab).map_err(|e| err(e.to_string()))?;
+    Ok((labels, areas))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn png_round_trip_is_lossless() {
+        let dir = std::env::temp_dir().join(format!("gs4city-imageio-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let img = Array3::from_shape_fn((5, 7, 3), |(y, x, c)| (y * 40 + x * 7 + c * 90) as u8);
+        let p = dir.join("a.png");
+        write_png(&p, &img).unwrap();
+        assert_eq!(read_rgb(&p).unwrap(), img);
+        let e = read_rgb(&dir.join("missing.png")).unwrap_err();
+        assert!(e.to_string().contains("missing.png"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn components_count_blobs() {
+        let mut m = ndarray::Array2::<u8>::zeros((6, 6));
+        m[[0, 0]] = 1;
+        m[[1, 1]] = 1; // diagonal neighbour: same 8-connected component
+        m[[4, 4]] = 1;
+        m[[4, 5]] = 1;
+        let (labels, areas) = connected_components(&m).unwrap();
+        assert_eq!(areas.len(), 3);
+        assert_eq!(labels[[0, 0]], labels[[1, 1]]);
+        assert_ne!(labels[[0, 0]], labels[[4, 4]]);
+        assert_eq!(areas[labels[[4, 4]] as usize], 2);
+    }
+}
