@@ -16,6 +16,104 @@ pub enum Distortion {
     FullOpenCv { k: [f64; 6], p1: f64, p2: f64 },
 }
 
+/// Newton iterations allowed in [`Distortion::undistort`].
+const UNDISTORT_MAX_ITERS: usize = 100;
+/// Convergence threshold of [`Distortion::undistort`] on the residual in normalised
+/// image coordinates (≈ 1e-9 px at a focal length of 10⁴ px).
+const UNDISTORT_TOL: f64 = 1e-13;
+
+impl Distortion {
+    /// Applies the lens model to an undistorted normalised point `(x/z, y/z)`, as COLMAP does.
+    pub fn distort(&self, p: DVec2) -> DVec2 {
+        let (u, v) = (p.x, p.y);
+        let (u2, v2, uv) = (u * u, v * v, u * v);
+        let r2 = u2 + v2;
+        match *self {
+            Distortion::None => p,
+            Distortion::Radial { k1, k2 } => {
+                let radial = 1.0 + k1 * r2 + k2 * r2 * r2;
+                p * radial
+            }
+            Distortion::OpenCv { k1, k2, p1, p2 } => {
+                let radial = 1.0 + k1 * r2 + k2 * r2 * r2;
+                DVec2::new(
+                    u * radial + 2.0 * p1 * uv + p2 * (r2 + 2.0 * u2),
+                    v * radial + 2.0 * p2 * uv + p1 * (r2 + 2.0 * v2),
+                )
+            }
+            Distortion::FullOpenCv { k, p1, p2 } => {
+                let (r4, r6) = (r2 * r2, r2 * r2 * r2);
+                let radial = (1.0 + k[0] * r2 + k[1] * r4 + k[2] * r6)
+                    / (1.0 + k[3] * r2 + k[4] * r4 + k[5] * r6);
+                DVec2::new(
+                    u * radial + 2.0 * p1 * uv + p2 * (r2 + 2.0 * u2),
+                    v * radial + 2.0 * p2 * uv + p1 * (r2 + 2.0 * v2),
+                )
+            }
+        }
+    }
+
+    /// Inverts [`Distortion::distort`] by Newton's method (numerical Jacobian, as COLMAP),
+    /// starting from the distorted point. Returns the best estimate and whether the
+    /// residual `|distort(x) − p|` fell below 1e-13 (normalised units) within 100 iterations.
+    pub fn undistort_checked(&self, p: DVec2) -> (DVec2, bool) {
+        if matches!(self, Distortion::None) {
+            return (p, true);
+        }
+        if !p.is_finite() {
+            return (p, false);
+        }
+        let mut x = p;
+        for _ in 0..UNDISTORT_MAX_ITERS {
+            let r = self.distort(x) - p;
+            let (dx, dy) = self.jacobian(x);
+            let det = dx.x * dy.y - dy.x * dx.y;
+            if r.abs().max_element() < UNDISTORT_TOL {
+                // A root on a folded-over branch (negative Jacobian, or pointing away
+                // from the distorted point) is not the physical preimage.
+                return (x, det > 0.0 && x.dot(p) >= 0.0);
+            }
+            if !det.is_finite() || det.abs() < 1e-300 {
+                return (x, false);
+            }
+            // Solve J · step = r with J = [dx dy] (columns).
+            let step = DVec2::new(
+                (r.x * dy.y - dy.x * r.y) / det,
+                (dx.x * r.y - r.x * dx.y) / det,
+            );
+            let next = x - step;
+            if !next.is_finite() {
+                return (x, false);
+            }
+            x = next;
+        }
+        let (dx, dy) = self.jacobian(x);
+        let ok = (self.distort(x) - p).abs().max_element() < UNDISTORT_TOL
+            && dx.x * dy.y - dy.x * dx.y > 0.0
+            && x.dot(p) >= 0.0;
+        (x, ok)
+    }
+
+    /// Central-difference Jacobian columns `(∂d/∂x, ∂d/∂y)` of [`Distortion::distort`].
+    fn jacobian(&self, x: DVec2) -> (DVec2, DVec2) {
+        let h = 1e-7 * (1.0 + x.abs().max_element());
+        let dx = (self.distort(x + DVec2::new(h, 0.0)) - self.distort(x - DVec2::new(h, 0.0)))
+            / (2.0 * h);
+        let dy = (self.distort(x + DVec2::new(0.0, h)) - self.distort(x - DVec2::new(0.0, h)))
+            / (2.0 * h);
+        (dx, dy)
+    }
+
+    /// Inverts [`Distortion::distort`]; `None` where Newton's method does not converge
+    /// (outside the invertible region of a strongly distorting model).
+    pub fn undistort(&self, p: DVec2) -> Option<DVec2> {
+        match self.undistort_checked(p) {
+            (x, true) => Some(x),
+            _ => None,
+        }
+    }
+}
+
 /// Image size and projection parameters.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Intrinsics {
@@ -110,6 +208,43 @@ impl Camera {
         let k = &self.intrinsics;
         DVec3::new((pixel.x - k.cx) / k.fx, (pixel.y - k.cy) / k.fy, 1.0)
     }
+
+    /// Projects a camera-frame point through the full lens model to a (distorted) pixel
+    /// position; `None` behind or on the camera plane.
+    pub fn project(&self, p_cam: DVec3) -> Option<DVec2> {
+        if p_cam.z <= 0.0 {
+            return None;
+        }
+        let k = &self.intrinsics;
+        let d = k
+            .distortion
+            .distort(DVec2::new(p_cam.x / p_cam.z, p_cam.y / p_cam.z));
+        Some(DVec2::new(k.fx * d.x + k.cx, k.fy * d.y + k.cy))
+    }
+
+    /// The unit camera-frame ray through a position `(u, v)` of the *distorted* image, in
+    /// COLMAP pixel coordinates (pixel index `(i, j)` has its centre at `(i + 0.5, j + 0.5)`).
+    /// `None` where undistortion does not converge.
+    pub fn try_pixel_ray(&self, u: f64, v: f64) -> Option<DVec3> {
+        let k = &self.intrinsics;
+        let d = DVec2::new((u - k.cx) / k.fx, (v - k.cy) / k.fy);
+        let n = k.distortion.undistort(d)?;
+        DVec3::new(n.x, n.y, 1.0).try_normalize()
+    }
+
+    /// As [`Camera::try_pixel_ray`], but always returns a direction: where undistortion
+    /// does not converge, Newton's best estimate (or the distorted direction) is used.
+    pub fn pixel_ray(&self, u: f64, v: f64) -> DVec3 {
+        let k = &self.intrinsics;
+        let d = DVec2::new((u - k.cx) / k.fx, (v - k.cy) / k.fy);
+        let (n, _) = k.distortion.undistort_checked(d);
+        DVec3::new(n.x, n.y, 1.0).try_normalize().unwrap_or(DVec3::Z)
+    }
+
+    /// The camera's viewing axis (+z of the camera frame) in world coordinates.
+    pub fn forward(&self) -> DVec3 {
+        self.pose.rotation.transpose() * DVec3::Z
+    }
 }
 
 /// A registered image: its name (as in COLMAP, relative to `images/`) and its camera.
@@ -188,5 +323,81 @@ mod tests {
             camera: cam,
         };
         assert_eq!(v.stem(), "DJI_0001");
+    }
+    fn camera_with(distortion: Distortion) -> Camera {
+        Camera {
+            intrinsics: Intrinsics {
+                width: 640,
+                height: 480,
+                fx: 500.0,
+                fy: 510.0,
+                cx: 321.5,
+                cy: 238.25,
+                distortion,
+            },
+            pose: Pose::look_at(DVec3::ZERO, DVec3::X, DVec3::Z).unwrap(),
+        }
+    }
+
+    /// distort ∘ undistort is the identity within 1e-6 px on a grid covering the whole
+    /// image (every 4th pixel centre plus the corners), for each lens model.
+    #[test]
+    fn undistort_inverts_distort_over_the_whole_image() {
+        let models = [
+            Distortion::None,
+            Distortion::Radial { k1: -0.12, k2: 0.0 },
+            Distortion::Radial { k1: 0.08, k2: -0.02 },
+            Distortion::OpenCv {
+                k1: -0.2,
+                k2: 0.05,
+                p1: 1e-3,
+                p2: -5e-4,
+            },
+            Distortion::FullOpenCv {
+                k: [-0.25, 0.08, -0.01, 0.02, 0.01, 0.002],
+                p1: 8e-4,
+                p2: -3e-4,
+            },
+        ];
+        for model in models {
+            let cam = camera_with(model);
+            let k = cam.intrinsics;
+            let mut worst = 0.0f64;
+            let mut pts: Vec<(f64, f64)> = Vec::new();
+            for j in (0..k.height).step_by(4) {
+                for i in (0..k.width).step_by(4) {
+                    pts.push((i as f64 + 0.5, j as f64 + 0.5));
+                }
+            }
+            pts.extend([(0.0, 0.0), (640.0, 0.0), (0.0, 480.0), (640.0, 480.0)]);
+            for (u, v) in pts {
+                let ray = cam.try_pixel_ray(u, v).expect("converges inside the image");
+                let back = cam.project(ray).unwrap();
+                worst = worst.max((back - DVec2::new(u, v)).length());
+            }
+            assert!(worst < 1e-6, "{model:?}: worst round trip {worst} px");
+        }
+    }
+
+    #[test]
+    fn pinhole_pixel_ray_goes_through_pixel_centres() {
+        let cam = camera_with(Distortion::None);
+        let r = cam.pixel_ray(321.5, 238.25);
+        assert!((r - DVec3::Z).length() < 1e-15);
+        let r = cam.pixel_ray(821.5, 238.25);
+        assert!((r - DVec3::new(1.0, 0.0, 1.0).normalize()).length() < 1e-15);
+        // Camera looks along world +x.
+        assert!((cam.forward() - DVec3::X).length() < 1e-12);
+    }
+
+    #[test]
+    fn undistort_reports_non_convergence_instead_of_panicking() {
+        // Strong barrel distortion folds over beyond r ≈ 1.3: no preimage for large radii.
+        let d = Distortion::Radial { k1: -0.2, k2: 0.0 };
+        assert!(d.undistort(DVec2::new(5.0, 5.0)).is_none());
+        assert!(d.undistort(DVec2::new(f64::NAN, 0.0)).is_none());
+        let cam = camera_with(d);
+        let r = cam.pixel_ray(1e7, 1e7);
+        assert!(r.is_finite());
     }
 }
