@@ -238,7 +238,9 @@ impl Camera {
         let k = &self.intrinsics;
         let d = DVec2::new((u - k.cx) / k.fx, (v - k.cy) / k.fy);
         let (n, _) = k.distortion.undistort_checked(d);
-        DVec3::new(n.x, n.y, 1.0).try_normalize().unwrap_or(DVec3::Z)
+        DVec3::new(n.x, n.y, 1.0)
+            .try_normalize()
+            .unwrap_or(DVec3::Z)
     }
 
     /// The camera's viewing axis (+z of the camera frame) in world coordinates.
@@ -346,7 +348,10 @@ mod tests {
         let models = [
             Distortion::None,
             Distortion::Radial { k1: -0.12, k2: 0.0 },
-            Distortion::Radial { k1: 0.08, k2: -0.02 },
+            Distortion::Radial {
+                k1: 0.08,
+                k2: -0.02,
+            },
             Distortion::OpenCv {
                 k1: -0.2,
                 k2: 0.05,
