@@ -10,7 +10,7 @@ pub mod citygml;
 pub mod colmap;
 
 pub mod cli;
-pub(crate) mod embree;
+pub mod embree;
 pub mod fsutil;
 pub mod imageio;
 pub mod mesh;

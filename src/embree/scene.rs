@@ -1,0 +1,436 @@
+//! Embree scenes: [`Scene`] (being built, owns its geometry buffers) and
+//! [`CommittedScene`] (read-only, `Send + Sync`, the only thing that can be queried), plus
+//! the single-ray and 16-ray packet queries.
+use std::ptr::NonNull;
+use std::sync::Arc;
+
+use super::device::{Device, DeviceInner, EmbreeError};
+use super::sys;
+
+/// `RTC_INVALID_GEOMETRY_ID` (`(unsigned)-1`); bindgen does not emit this macro.
+const INVALID_GEOMETRY_ID: u32 = u32::MAX;
+
+/// A ray hit, in our own terms.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hit {
+    /// Distance along the ray direction (in units of the direction's length).
+    pub t: f32,
+    /// Triangle index within its geometry.
+    pub prim_id: u32,
+    /// Geometry id (the order `add_triangles` was called in, from 0).
+    pub geom_id: u32,
+    /// Barycentric coordinates of the hit.
+    pub u: f32,
+    pub v: f32,
+    /// Unnormalised geometric normal.
+    pub ng: [f32; 3],
+}
+
+/// 16 rays for [`CommittedScene::intersect16`]; inactive lanes are ignored and miss.
+#[derive(Debug, Clone, Copy)]
+pub struct Packet16 {
+    pub org: [[f32; 3]; 16],
+    pub dir: [[f32; 3]; 16],
+    pub tfar: [f32; 16],
+    pub active: [bool; 16],
+}
+
+impl Default for Packet16 {
+    fn default() -> Self {
+        Packet16 {
+            org: [[0.0; 3]; 16],
+            dir: [[0.0, 0.0, 1.0]; 16],
+            tfar: [f32::INFINITY; 16],
+            active: [false; 16],
+        }
+    }
+}
+
+/// Triangle buffers shared with Embree. The vertex buffer carries one extra (zero) vertex:
+/// Embree may load 16 bytes from the last FLOAT3, i.e. 4 bytes past its end.
+struct Buffers {
+    vertices: Vec<[f32; 3]>,
+    faces: Vec<[u32; 3]>,
+}
+
+/// A scene under construction (RAII over `RTCScene`).
+pub struct Scene {
+    raw: NonNull<sys::RTCSceneTy>,
+    device: Arc<DeviceInner>,
+    buffers: Vec<Buffers>,
+}
+
+impl Drop for Scene {
+    fn drop(&mut self) {
+        // SAFETY: `raw` came from rtcNewScene and is owned only by this value.
+        unsafe { sys::rtcReleaseScene(self.raw.as_ptr()) };
+    }
+}
+
+impl Scene {
+    /// An empty scene on `device` (robust traversal off, default build quality).
+    pub fn new(device: &Device) -> Result<Scene, EmbreeError> {
+        let dev = device.inner.clone();
+        // SAFETY: the device handle is live (held by `dev`).
+        let raw = unsafe { sys::rtcNewScene(dev.raw()) };
+        let Some(raw) = NonNull::new(raw) else {
+            dev.check("rtcNewScene")?;
+            return Err(EmbreeError::Call {
+                during: "rtcNewScene",
+                code: "null scene".into(),
+                message: String::new(),
+            });
+        };
+        Ok(Scene {
+            raw,
+            device: dev,
+            buffers: Vec::new(),
+        })
+    }
+
+    /// Adds a triangle mesh; returns its geometry id. Indices and coordinates are checked
+    /// first (Embree would read out of bounds on a bad index). An empty mesh adds nothing
+    /// and returns `None`.
+    pub fn add_triangles(
+        &mut self,
+        vertices: &[[f32; 3]],
+        faces: &[[u32; 3]],
+    ) -> Result<Option<u32>, EmbreeError> {
+        if faces.is_empty() {
+            return Ok(None);
+        }
+        if vertices.len() >= u32::MAX as usize || faces.len() >= u32::MAX as usize {
+            return Err(EmbreeError::InvalidMesh(
+                "more than 2³²−2 vertices or faces".into(),
+            ));
+        }
+        let n = vertices.len() as u32;
+        if let Some((i, f)) = faces
+            .iter()
+            .enumerate()
+            .find(|(_, f)| f.iter().any(|&v| v >= n))
+        {
+            return Err(EmbreeError::InvalidMesh(format!(
+                "face {i} {f:?} references a vertex ≥ {n}"
+            )));
+        }
+        if let Some(i) = vertices
+            .iter()
+            .position(|v| v.iter().any(|c| !c.is_finite()))
+        {
+            return Err(EmbreeError::InvalidMesh(format!(
+                "vertex {i} is not finite"
+            )));
+        }
+        let mut verts = Vec::with_capacity(vertices.len() + 1);
+        verts.extend_from_slice(vertices);
+        verts.push([0.0; 3]); // padding, see `Buffers`
+        let buf = Buffers {
+            vertices: verts,
+            faces: faces.to_vec(),
+        };
+        // SAFETY: the device is live; TRIANGLE is a valid geometry type.
+        let geom = unsafe {
+            sys::rtcNewGeometry(
+                self.device.raw(),
+                sys::RTCGeometryType::RTC_GEOMETRY_TYPE_TRIANGLE,
+            )
+        };
+        if geom.is_null() {
+            self.device.check("rtcNewGeometry")?;
+            return Err(EmbreeError::Call {
+                during: "rtcNewGeometry",
+                code: "null geometry".into(),
+                message: String::new(),
+            });
+        }
+        // SAFETY: `geom` is a live triangle geometry. The shared buffers point into
+        // `buf`'s heap allocations, which are moved (not reallocated) into `self.buffers`
+        // and stay alive and unmodified until the scene — the last user of the geometry —
+        // is released (the scene, committed or not, owns them). Strides and counts match
+        // the Vec layouts ([f32;3] = 12 bytes, [u32;3] = 12 bytes); the vertex allocation
+        // has one padding vertex beyond `vertices.len()` items. After attaching,
+        // our geometry reference is released (the scene keeps its own).
+        let id = unsafe {
+            sys::rtcSetSharedGeometryBuffer(
+                geom,
+                sys::RTCBufferType::RTC_BUFFER_TYPE_VERTEX,
+                0,
+                sys::RTCFormat::RTC_FORMAT_FLOAT3,
+                buf.vertices.as_ptr().cast(),
+                0,
+                12,
+                vertices.len(),
+            );
+            sys::rtcSetSharedGeometryBuffer(
+                geom,
+                sys::RTCBufferType::RTC_BUFFER_TYPE_INDEX,
+                0,
+                sys::RTCFormat::RTC_FORMAT_UINT3,
+                buf.faces.as_ptr().cast(),
+                0,
+                12,
+                faces.len(),
+            );
+            sys::rtcCommitGeometry(geom);
+            let id = sys::rtcAttachGeometry(self.raw.as_ptr(), geom);
+            sys::rtcReleaseGeometry(geom);
+            id
+        };
+        self.buffers.push(buf);
+        self.device.check("adding triangles")?;
+        Ok(Some(id))
+    }
+
+    /// Builds the BVH; only a committed scene can be queried.
+    pub fn commit(self) -> Result<CommittedScene, EmbreeError> {
+        // SAFETY: `raw` is live and no other thread can reach an uncommitted `Scene`
+        // (`Scene` is neither Send nor Sync: it holds a raw pointer).
+        unsafe { sys::rtcCommitScene(self.raw.as_ptr()) };
+        self.device.check("rtcCommitScene")?;
+        Ok(CommittedScene { scene: self })
+    }
+}
+
+/// A committed, read-only scene: the only thing rays can be cast into.
+pub struct CommittedScene {
+    scene: Scene,
+}
+
+// SAFETY: after `rtcCommitScene` the scene is never modified again (CommittedScene exposes
+// no mutating call and owns the buffers it shares with Embree, which nothing else can
+// reach). Embree documents that a committed scene may be traced from any number of
+// threads concurrently (rtcCommitScene man page; RenderKit/embree#207) and the device is
+// thread-safe, so moving the handle to another thread or sharing `&CommittedScene`
+// between threads is sound.
+unsafe impl Send for CommittedScene {}
+// SAFETY: see `Send` above: every `&self` method only issues concurrent-safe traversal calls.
+unsafe impl Sync for CommittedScene {}
+
+/// The `rtcInitIntersectContext` that Embree 3 defines inline (no symbol for bindgen).
+#[cfg(not(feature = "embree4"))]
+fn intersect_context(coherent: bool) -> sys::RTCIntersectContext {
+    sys::RTCIntersectContext {
+        flags: if coherent {
+            sys::RTCIntersectContextFlags::RTC_INTERSECT_CONTEXT_FLAG_COHERENT
+        } else {
+            sys::RTCIntersectContextFlags::RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT
+        },
+        filter: None,
+        instID: [INVALID_GEOMETRY_ID; 1],
+    }
+}
+
+/// One ray query (Embree 3 signature).
+#[cfg(not(feature = "embree4"))]
+fn raw_intersect1(scene: sys::RTCScene, rh: &mut sys::RTCRayHit) {
+    let mut ctx = intersect_context(false);
+    // SAFETY: `scene` is a live committed scene; `ctx` and `rh` are valid, aligned,
+    // exclusively borrowed for the call.
+    unsafe { sys::rtcIntersect1(scene, &mut ctx, rh) };
+}
+
+/// One 16-ray packet query (Embree 3 signature).
+#[cfg(not(feature = "embree4"))]
+fn raw_intersect16(scene: sys::RTCScene, valid: &Valid16, rh: &mut sys::RTCRayHit16) {
+    let mut ctx = intersect_context(true);
+    // SAFETY: `valid` and `rh` are 64-byte aligned (their types say so) and valid for the
+    // call; `scene` is live and committed.
+    unsafe { sys::rtcIntersect16(valid.0.as_ptr(), scene, &mut ctx, rh) };
+}
+
+/// One ray query (Embree 4 signature; not compiled or tested on Debian 12).
+#[cfg(feature = "embree4")]
+fn raw_intersect1(scene: sys::RTCScene, rh: &mut sys::RTCRayHit) {
+    // SAFETY: a null RTCIntersectArguments selects Embree 4's defaults (incoherent).
+    unsafe { sys::rtcIntersect1(scene, rh, std::ptr::null_mut()) };
+}
+
+/// One 16-ray packet query (Embree 4 signature; not compiled or tested on Debian 12).
+#[cfg(feature = "embree4")]
+fn raw_intersect16(scene: sys::RTCScene, valid: &Valid16, rh: &mut sys::RTCRayHit16) {
+    // `rtcInitIntersectArguments` is inline in Embree 4: zero, then flags + feature mask
+    // (context = NULL means Embree's default context).
+    let mut args = sys::RTCIntersectArguments::default();
+    args.flags = sys::RTCRayQueryFlags::RTC_RAY_QUERY_FLAG_COHERENT;
+    args.feature_mask = sys::RTCFeatureFlags::RTC_FEATURE_FLAG_ALL;
+    // SAFETY: as for Embree 3: aligned, valid, exclusively borrowed; scene committed.
+    unsafe { sys::rtcIntersect16(valid.0.as_ptr(), scene, rh, &mut args) };
+}
+
+/// The `valid` mask of a 16-wide query (−1 = active), 64-byte aligned as Embree requires.
+#[repr(C, align(64))]
+struct Valid16([i32; 16]);
+
+impl CommittedScene {
+    fn raw(&self) -> sys::RTCScene {
+        self.scene.raw.as_ptr()
+    }
+
+    /// Nearest hit of the ray `org + t·dir`, `t ∈ [0, tfar]`.
+    pub fn intersect1(&self, org: [f32; 3], dir: [f32; 3], tfar: f32) -> Option<Hit> {
+        let mut rh = sys::RTCRayHit {
+            ray: sys::RTCRay {
+                org_x: org[0],
+                org_y: org[1],
+                org_z: org[2],
+                tnear: 0.0,
+                dir_x: dir[0],
+                dir_y: dir[1],
+                dir_z: dir[2],
+                time: 0.0,
+                tfar,
+                mask: u32::MAX,
+                id: 0,
+                flags: 0,
+            },
+            hit: sys::RTCHit {
+                geomID: INVALID_GEOMETRY_ID,
+                instID: [INVALID_GEOMETRY_ID],
+                ..Default::default()
+            },
+        };
+        raw_intersect1(self.raw(), &mut rh);
+        (rh.hit.geomID != INVALID_GEOMETRY_ID).then_some(Hit {
+            t: rh.ray.tfar,
+            prim_id: rh.hit.primID,
+            geom_id: rh.hit.geomID,
+            u: rh.hit.u,
+            v: rh.hit.v,
+            ng: [rh.hit.Ng_x, rh.hit.Ng_y, rh.hit.Ng_z],
+        })
+    }
+
+    /// Nearest hits of a 16-ray packet (best used on 4×4 pixel tiles: coherent flag).
+    pub fn intersect16(&self, packet: &Packet16) -> [Option<Hit>; 16] {
+        let mut valid = Valid16([0; 16]);
+        let mut rh = sys::RTCRayHit16::default();
+        for i in 0..16 {
+            valid.0[i] = if packet.active[i] { -1 } else { 0 };
+            let r = &mut rh.ray;
+            [r.org_x[i], r.org_y[i], r.org_z[i]] = packet.org[i];
+            [r.dir_x[i], r.dir_y[i], r.dir_z[i]] = packet.dir[i];
+            r.tnear[i] = 0.0;
+            r.tfar[i] = packet.tfar[i];
+            r.mask[i] = u32::MAX;
+            rh.hit.geomID[i] = INVALID_GEOMETRY_ID;
+            rh.hit.instID[0][i] = INVALID_GEOMETRY_ID;
+        }
+        if packet.active.iter().any(|&a| a) {
+            raw_intersect16(self.raw(), &valid, &mut rh);
+        }
+        std::array::from_fn(|i| {
+            (packet.active[i] && rh.hit.geomID[i] != INVALID_GEOMETRY_ID).then(|| Hit {
+                t: rh.ray.tfar[i],
+                prim_id: rh.hit.primID[i],
+                geom_id: rh.hit.geomID[i],
+                u: rh.hit.u[i],
+                v: rh.hit.v[i],
+                ng: [rh.hit.Ng_x[i], rh.hit.Ng_y[i], rh.hit.Ng_z[i]],
+            })
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn quad_scene() -> CommittedScene {
+        let dev = Device::new().unwrap();
+        let mut s = Scene::new(&dev).unwrap();
+        // Unit square at z = 2 (two triangles), then a second geometry at z = 5.
+        let v = [
+            [0.0, 0.0, 2.0],
+            [1.0, 0.0, 2.0],
+            [1.0, 1.0, 2.0],
+            [0.0, 1.0, 2.0],
+        ];
+        assert_eq!(
+            s.add_triangles(&v, &[[0, 1, 2], [0, 2, 3]]).unwrap(),
+            Some(0)
+        );
+        let w = v.map(|p| [p[0] - 0.5, p[1], 5.0]);
+        assert_eq!(
+            s.add_triangles(&w, &[[0, 1, 2], [0, 2, 3]]).unwrap(),
+            Some(1)
+        );
+        drop(dev); // scenes keep the device alive
+        s.commit().unwrap()
+    }
+
+    #[test]
+    fn intersect1_and_intersect16_agree() {
+        let sc = quad_scene();
+        let h = sc
+            .intersect1([0.75, 0.25, 0.0], [0.0, 0.0, 1.0], f32::INFINITY)
+            .unwrap();
+        assert_eq!((h.t, h.prim_id, h.geom_id), (2.0, 0, 0));
+        let h = sc
+            .intersect1([0.25, 0.75, 0.0], [0.0, 0.0, 1.0], f32::INFINITY)
+            .unwrap();
+        assert_eq!((h.t, h.prim_id, h.geom_id), (2.0, 1, 0));
+        let h = sc
+            .intersect1([-0.25, 0.5, 0.0], [0.0, 0.0, 1.0], f32::INFINITY)
+            .unwrap();
+        assert_eq!((h.t, h.geom_id), (5.0, 1));
+        assert!(
+            sc.intersect1([-0.25, 0.5, 0.0], [0.0, 0.0, 1.0], 4.0)
+                .is_none()
+        );
+        assert!(
+            sc.intersect1([3.0, 3.0, 0.0], [0.0, 0.0, 1.0], f32::INFINITY)
+                .is_none()
+        );
+
+        let mut p = Packet16::default();
+        for i in 0..16 {
+            p.org[i] = [-0.6 + 0.1 * i as f32, 0.3 + 0.01 * i as f32, 0.0];
+            p.active[i] = i != 7;
+        }
+        let hits = sc.intersect16(&p);
+        for i in 0..16 {
+            let single = sc.intersect1(p.org[i], p.dir[i], f32::INFINITY);
+            if i == 7 {
+                assert!(hits[i].is_none());
+            } else {
+                assert_eq!(
+                    hits[i].map(|h| (h.t, h.geom_id, h.prim_id)),
+                    single.map(|h| (h.t, h.geom_id, h.prim_id)),
+                    "lane {i}"
+                );
+            }
+        }
+        assert!(hits.iter().filter(|h| h.is_some()).count() >= 10);
+    }
+
+    #[test]
+    fn bad_meshes_are_errors_and_empty_scenes_miss() {
+        let dev = Device::new().unwrap();
+        let mut s = Scene::new(&dev).unwrap();
+        assert!(matches!(
+            s.add_triangles(&[[0.0; 3]; 3], &[[0, 1, 3]]),
+            Err(EmbreeError::InvalidMesh(_))
+        ));
+        assert!(matches!(
+            s.add_triangles(&[[0.0, 0.0, f32::NAN], [1.0; 3], [2.0; 3]], &[[0, 1, 2]]),
+            Err(EmbreeError::InvalidMesh(_))
+        ));
+        assert_eq!(s.add_triangles(&[], &[]).unwrap(), None);
+        let c = s.commit().unwrap();
+        assert!(
+            c.intersect1([0.0; 3], [0.0, 0.0, 1.0], f32::INFINITY)
+                .is_none()
+        );
+        let mut p = Packet16::default();
+        p.active = [true; 16];
+        assert!(c.intersect16(&p).iter().all(|h| h.is_none()));
+    }
+
+    #[test]
+    fn committed_scene_is_send_and_sync() {
+        fn assert_send_sync<T: Send + Sync>() {}
+        assert_send_sync::<CommittedScene>();
+        assert_send_sync::<Device>();
+    }
+}
