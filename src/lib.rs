@@ -15,3 +15,4 @@ pub mod fsutil;
 pub mod imageio;
 pub mod mesh;
 pub mod npy;
+pub mod raycast;

@@ -1,3 +1,5 @@
+pub mod raycast;
+
 pub fn main() -> anyhow::Result<()> {
     Ok(())
 }

@@ -1,0 +1,324 @@
+//! Two-pass raycasting (GS4City §3.1, a stage): casts one ray per pixel centre of each
+//! view into the labelled city mesh and produces per-pixel feature / surface / part ids,
+//! the city id `M_city` and the z-depth.
+//!
+//! * Global pass over all faces: front-most face `f*`, its label `(feature, surface, part)`
+//!   and depth `D_t`.
+//! * Part pass over the part-level faces only (`label.part != −1`, a second Embree scene;
+//!   its primitive ids map back to mesh faces through a `Vec<u32>`): part depth `D̃`, part
+//!   id `p̃` and its parent surface `s̃` (that face's `label.surface`).
+//! * Accept `γ = (s̃ = s_t) ∧ (D̃ − D_t ≤ τ)`, with `s_t ≠ −1` (a missing surface equals
+//!   nothing). `p = p̃` where accepted; otherwise the global hit's own part id (a part face
+//!   hit directly in the global pass keeps its part; else −1).
+//! * `M_city = p` if `p ≠ −1`, else `s_t` if ≠ −1, else the feature id.
+//!
+//! Depth is z-depth along the camera axis (`t · dot(dir, forward)` for the unit ray
+//! direction), NaN where nothing is hit. τ is in scene units (the caller converts metres
+//! with the alignment scale). The part pass only needs hits with `D̃ ≤ D_t + τ`, so its
+//! `tfar` is limited accordingly — the result is identical, the work smaller.
+//!
+//! Rays are traced in 4×4 pixel tiles with Embree's 16-wide coherent packets, rows of
+//! tiles in parallel (rayon); every pixel's result is independent of the thread count.
+mod output;
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use crate::camera::Camera;
+use crate::embree::{CommittedScene, Device, EmbreeError, Packet16, Scene};
+use crate::mesh::{FaceLabel, TriMesh};
+
+pub use output::{RaycastSummary, ViewSummary, run};
+
+/// Errors of the raycasting stage.
+#[derive(Debug, thiserror::Error)]
+pub enum RaycastError {
+    #[error(transparent)]
+    Embree(#[from] EmbreeError),
+    #[error("invalid mesh: {0}")]
+    Mesh(String),
+    #[error("invalid option: {0}")]
+    Option(String),
+    #[error("view {name}: {why}")]
+    View { name: String, why: String },
+    #[error(transparent)]
+    Npy(#[from] crate::npy::NpyError),
+    #[error(transparent)]
+    Image(#[from] crate::imageio::ImageError),
+    #[error(transparent)]
+    Fs(#[from] crate::fsutil::FsError),
+}
+
+/// Options of the raycasting stage.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RaycastOptions {
+    /// Depth tolerance τ of the part pass, in scene units (≥ 0).
+    pub tau: f64,
+    /// Disables the part pass (single-pass labels, for comparison).
+    pub single_pass: bool,
+}
+
+impl Default for RaycastOptions {
+    fn default() -> Self {
+        RaycastOptions {
+            tau: 0.5,
+            single_pass: false,
+        }
+    }
+}
+
+impl RaycastOptions {
+    /// Checks τ (finite, ≥ 0).
+    pub fn validate(&self) -> Result<(), RaycastError> {
+        if !self.tau.is_finite() || self.tau < 0.0 {
+            return Err(RaycastError::Option(format!(
+                "tau must be finite and ≥ 0, got {}",
+                self.tau
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// The two committed Embree scenes of a mesh plus the face labels.
+pub struct TwoPassScene {
+    global: CommittedScene,
+    part: CommittedScene,
+    /// Part-scene primitive id → mesh face index.
+    part_faces: Vec<u32>,
+    labels: Vec<FaceLabel>,
+    /// Seconds spent building both scenes.
+    pub build_seconds: f64,
+}
+
+impl TwoPassScene {
+    /// Validates the mesh and builds the global and part scenes.
+    pub fn build(mesh: &TriMesh) -> Result<TwoPassScene, RaycastError> {
+        mesh.validate().map_err(RaycastError::Mesh)?;
+        let t0 = Instant::now();
+        let device = Device::new()?;
+        let mut global = Scene::new(&device)?;
+        global.add_triangles(&mesh.vertices, &mesh.faces)?;
+        let part_faces: Vec<u32> = (0..mesh.faces.len() as u32)
+            .filter(|&i| mesh.labels[i as usize].part != -1)
+            .collect();
+        let sub: Vec<[u32; 3]> = part_faces.iter().map(|&i| mesh.faces[i as usize]).collect();
+        let mut part = Scene::new(&device)?;
+        part.add_triangles(&mesh.vertices, &sub)?;
+        let (global, part) = (global.commit()?, part.commit()?);
+        Ok(TwoPassScene {
+            global,
+            part,
+            part_faces,
+            labels: mesh.labels.clone(),
+            build_seconds: t0.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Number of faces in the global and in the part scene.
+    pub fn face_counts(&self) -> (usize, usize) {
+        (self.labels.len(), self.part_faces.len())
+    }
+
+    /// Global pass for one ray: mesh face index and hit distance `t`.
+    pub fn trace_global(&self, org: [f32; 3], dir: [f32; 3]) -> Option<(u32, f32)> {
+        self.global
+            .intersect1(org, dir, f32::INFINITY)
+            .map(|h| (h.prim_id, h.t))
+    }
+}
+
+/// The per-pixel result of one view, row-major `H×W` each.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewIds {
+    pub width: usize,
+    pub height: usize,
+    pub feature: Vec<i32>,
+    pub surface: Vec<i32>,
+    pub part: Vec<i32>,
+    pub city: Vec<i32>,
+    /// z-depth, NaN where nothing is hit.
+    pub depth: Vec<f32>,
+    /// Global-pass mesh face index, −1 where nothing is hit.
+    pub face: Vec<i32>,
+    /// Pixels whose part came from the part pass where the global face had none
+    /// (single pass would have labelled them surface/feature).
+    pub recovered: Vec<bool>,
+    /// Pixels whose ray could not be undistorted (traced as misses).
+    pub undistort_failures: usize,
+}
+
+impl ViewIds {
+    /// Pixels with a part id.
+    pub fn part_pixels(&self) -> usize {
+        self.part.iter().filter(|&&p| p != -1).count()
+    }
+    /// Pixels recovered by the part pass.
+    pub fn recovered_pixels(&self) -> usize {
+        self.recovered.iter().filter(|&&r| r).count()
+    }
+    /// Distinct part ids among the recovered pixels.
+    pub fn recovered_parts(&self) -> usize {
+        let mut ids: Vec<i32> = self
+            .part
+            .iter()
+            .zip(&self.recovered)
+            .filter(|(_, r)| **r)
+            .map(|(p, _)| *p)
+            .collect();
+        ids.sort_unstable();
+        ids.dedup();
+        ids.len()
+    }
+}
+
+/// The world-space ray of pixel `(i, j)` (through its centre `(i + 0.5, j + 0.5)`):
+/// origin, unit direction (f32 for Embree) and the z-depth factor `dot(dir, forward)`.
+/// `None` where undistortion does not converge.
+pub fn pixel_ray(camera: &Camera, i: usize, j: usize) -> Option<([f32; 3], [f32; 3], f64)> {
+    let c = camera.try_pixel_ray(i as f64 + 0.5, j as f64 + 0.5)?;
+    let rt = camera.pose.rotation.transpose();
+    let dir = rt * c;
+    let org = camera.pose.center();
+    Some((org.as_vec3().to_array(), dir.as_vec3().to_array(), c.z))
+}
+
+#[derive(Clone, Copy)]
+struct Lane {
+    pixel: usize,
+    zf: f64,
+}
+
+/// Casts both passes for one view (see the module docs for the rules).
+pub fn raycast_view(scene: &TwoPassScene, camera: &Camera, opts: &RaycastOptions) -> ViewIds {
+    let (w, h) = (
+        camera.intrinsics.width as usize,
+        camera.intrinsics.height as usize,
+    );
+    let n = w * h;
+    let mut out = ViewIds {
+        width: w,
+        height: h,
+        feature: vec![-1; n],
+        surface: vec![-1; n],
+        part: vec![-1; n],
+        city: vec![-1; n],
+        depth: vec![f32::NAN; n],
+        face: vec![-1; n],
+        recovered: vec![false; n],
+        undistort_failures: 0,
+    };
+    if n == 0 {
+        return out;
+    }
+    let rows = 4 * w;
+    let failures: usize = out
+        .feature
+        .par_chunks_mut(rows)
+        .zip(out.surface.par_chunks_mut(rows))
+        .zip(out.part.par_chunks_mut(rows))
+        .zip(out.city.par_chunks_mut(rows))
+        .zip(out.depth.par_chunks_mut(rows))
+        .zip(out.face.par_chunks_mut(rows))
+        .zip(out.recovered.par_chunks_mut(rows))
+        .enumerate()
+        .map(|(ty, ((((((fe, su), pa), ci), de), fa), re))| {
+            let mut failures = 0;
+            let j0 = ty * 4;
+            let th = fe.len() / w;
+            for tx in 0..w.div_ceil(4) {
+                let mut packet = Packet16::default();
+                let mut lanes = [None::<Lane>; 16];
+                for k in 0..16 {
+                    let (di, dj) = (k % 4, k / 4);
+                    let (i, jl) = (tx * 4 + di, dj);
+                    if i >= w || jl >= th {
+                        continue;
+                    }
+                    match pixel_ray(camera, i, j0 + jl) {
+                        Some((o, d, zf)) => {
+                            packet.org[k] = o;
+                            packet.dir[k] = d;
+                            packet.active[k] = true;
+                            lanes[k] = Some(Lane {
+                                pixel: jl * w + i,
+                                zf,
+                            });
+                        }
+                        None => failures += 1,
+                    }
+                }
+                let hits = scene.global.intersect16(&packet);
+                let mut globals = [None; 16];
+                let mut part_packet = packet;
+                for k in 0..16 {
+                    let Some(lane) = lanes[k] else { continue };
+                    let Some(hit) = hits[k] else {
+                        part_packet.active[k] = false;
+                        continue;
+                    };
+                    let face = hit.prim_id as usize;
+                    let Some(label) = scene.labels.get(face).copied() else {
+                        part_packet.active[k] = false;
+                        continue;
+                    };
+                    let p = lane.pixel;
+                    let depth = f64::from(hit.t) * lane.zf;
+                    fe[p] = label.feature;
+                    su[p] = label.surface;
+                    pa[p] = label.part;
+                    de[p] = depth as f32;
+                    fa[p] = face as i32;
+                    globals[k] = Some((label, depth));
+                    // Only part hits with D̃ ≤ D_t + τ can be accepted; a missing surface
+                    // can never match.
+                    if opts.single_pass || label.surface == -1 {
+                        part_packet.active[k] = false;
+                    } else {
+                        let tmax = (depth + opts.tau) / lane.zf;
+                        // Widen by a relative ulp margin so f32 rounding of tfar never drops
+                        // a hit exactly at the limit; the exact test is done below in f64.
+                        part_packet.tfar[k] = (tmax * (1.0 + 1e-6) + 1e-6) as f32;
+                    }
+                }
+                if !opts.single_pass && part_packet.active.iter().any(|&a| a) {
+                    let phits = scene.part.intersect16(&part_packet);
+                    for k in 0..16 {
+                        let (Some(lane), Some((label, depth)), Some(ph)) =
+                            (lanes[k], globals[k], phits[k])
+                        else {
+                            continue;
+                        };
+                        if !part_packet.active[k] {
+                            continue;
+                        }
+                        let Some(&face) = scene.part_faces.get(ph.prim_id as usize) else {
+                            continue;
+                        };
+                        let pl = scene.labels[face as usize];
+                        let pdepth = f64::from(ph.t) * lane.zf;
+                        if pl.surface == label.surface && pdepth - depth <= opts.tau {
+                            let p = lane.pixel;
+                            pa[p] = pl.part;
+                            re[p] = label.part == -1;
+                        }
+                    }
+                }
+                for lane in lanes.iter().flatten() {
+                    let p = lane.pixel;
+                    ci[p] = if pa[p] != -1 {
+                        pa[p]
+                    } else if su[p] != -1 {
+                        su[p]
+                    } else {
+                        fe[p]
+                    };
+                }
+            }
+            failures
+        })
+        .sum();
+    out.undistort_failures = failures;
+    out
+}
