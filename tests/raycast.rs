@@ -270,7 +270,13 @@ fn same_output_for_one_and_two_threads_and_distorted_cameras_work() {
     assert!(a.face.iter().filter(|&&f| f >= 0).count() > 123 * 77 / 2);
     // Packets agree with single rays (global pass) on every pixel's surface (the faces
     // themselves may differ where coplanar window and wall faces tie).
-    let surf = |f: i32| if f < 0 { -2 } else { m.labels[f as usize].surface };
+    let surf = |f: i32| {
+        if f < 0 {
+            -2
+        } else {
+            m.labels[f as usize].surface
+        }
+    };
     let mut differ = 0;
     for j in 0..77 {
         for i in 0..123 {
