@@ -7,6 +7,7 @@
 
 pub mod camera;
 pub mod citygml;
+pub mod citymodel;
 
 pub mod cli;
 pub(crate) mod embree;

@@ -248,6 +248,7 @@ struct Parser {
     srs_name: Option<String>,
     stack: Vec<Tag>,
     unknown_depth: usize,
+    curve_depth: usize,
     objects: Vec<CityObject>,
     object_stack: Vec<usize>,
     /// Children count per (parent, class) for derived ids.
@@ -318,6 +319,7 @@ fn parse<R: Read>(
         srs_name: None,
         stack: Vec::with_capacity(64),
         unknown_depth: 0,
+        curve_depth: 0,
         objects: Vec::new(),
         object_stack: Vec::new(),
         lod: None,
@@ -631,6 +633,11 @@ impl Parser {
     }
 
     fn gml_start(&mut self, local: &str, a: &Attrs, parent_is_object: bool, line: u64) -> Tag {
+        if self.curve_depth > 0 {
+            // Everything inside a skipped curve/point geometry is part of it.
+            self.curve_depth += 1;
+            return Tag::Curve;
+        }
         if let Some(href) = &a.href
             && self.lod.is_some()
         {
@@ -708,10 +715,11 @@ impl Parser {
                 _ => {}
             }
         }
-        if CURVES.contains(&local) {
-            if self.poly.is_none() {
+        if CURVES.contains(&local) || (local == "curveMember" && self.poly.is_none()) {
+            if self.poly.is_none() && local != "curveMember" {
                 self.stats.curves_skipped += 1;
             }
+            self.curve_depth += 1;
             return Tag::Curve;
         }
         if GEOM_CONTAINERS.contains(&local) {
@@ -875,7 +883,8 @@ impl Parser {
             self.dim_stack.pop();
         }
         match tag {
-            Tag::Plain | Tag::Curve | Tag::Implicit => {}
+            Tag::Plain | Tag::Implicit => {}
+            Tag::Curve => self.curve_depth -= 1,
             Tag::Unknown => self.unknown_depth -= 1,
             Tag::Object => {
                 self.object_stack.pop();
