@@ -40,41 +40,94 @@ fn peak_rss_mb() -> f64 {
 
 fn main() {
     let files = files();
-    let bytes: u64 = files.iter().map(|f| std::fs::metadata(f).map(|m| m.len()).unwrap_or(0)).sum();
-    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
+    let bytes: u64 = files
+        .iter()
+        .map(|f| std::fs::metadata(f).map(|m| m.len()).unwrap_or(0))
+        .sum();
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("pool");
 
     // Parse only, one thread, sequential over files.
-    let (t_parse, models) = best_of(3, || files.iter().map(|f| citygml::read(f).expect("read")).collect::<Vec<_>>());
+    let (t_parse, models) = best_of(3, || {
+        files
+            .iter()
+            .map(|f| citygml::read(f).expect("read"))
+            .collect::<Vec<_>>()
+    });
     let polys: usize = models.iter().map(|m| m.polygons.len()).sum();
-    println!("parse (1 thread): {:.3} s for {:.1} MB → {:.1} MB/s, {polys} patches", t_parse, bytes as f64 / 1e6, bytes as f64 / 1e6 / t_parse);
+    println!(
+        "parse (1 thread): {:.3} s for {:.1} MB → {:.1} MB/s, {polys} patches",
+        t_parse,
+        bytes as f64 / 1e6,
+        bytes as f64 / 1e6 / t_parse
+    );
 
     // Triangulate every patch (used or not), one thread — the same polygons as the CGAL script.
     let (t_tri, n_tri) = best_of(3, || {
-        one.install(|| models.iter().map(|m| citymodel::triangulate_all(m).iter().filter_map(|r| r.result.as_ref().ok().map(|x| x.0)).sum::<usize>()).sum::<usize>())
+        one.install(|| {
+            models
+                .iter()
+                .map(|m| {
+                    citymodel::triangulate_all(m)
+                        .iter()
+                        .filter_map(|r| r.result.as_ref().ok().map(|x| x.0))
+                        .sum::<usize>()
+                })
+                .sum::<usize>()
+        })
     });
-    println!("triangulate (1 thread, spade): {:.3} s, {n_tri} triangles, {:.0} patches/s", t_tri, polys as f64 / t_tri);
+    println!(
+        "triangulate (1 thread, spade): {:.3} s, {n_tri} triangles, {:.0} patches/s",
+        t_tri,
+        polys as f64 / t_tri
+    );
 
     // Whole stage (parse + flatten + triangulate + align), all threads.
-    let (t_stage, out) = best_of(3, || citymodel::run(&files, &Default::default()).expect("stage"));
-    println!("citymodel stage (rayon, {} threads): {:.3} s, {} triangles", rayon::current_num_threads(), t_stage, out.mesh.faces.len());
+    let (t_stage, out) = best_of(3, || {
+        citymodel::run(&files, &Default::default()).expect("stage")
+    });
+    println!(
+        "citymodel stage (rayon, {} threads): {:.3} s, {} triangles",
+        rayon::current_num_threads(),
+        t_stage,
+        out.mesh.faces.len()
+    );
 
     // Peer: the CGAL script on the same files (its own timer around CDT + face filter only).
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/cgal_reference.py");
     let tmp = std::env::temp_dir().join(format!("gs4city-bench-cgal-{}", std::process::id()));
-    let status = std::process::Command::new("python3").arg(&script).arg("--out").arg(&tmp).args(&files).output();
+    let status = std::process::Command::new("python3")
+        .arg(&script)
+        .arg("--out")
+        .arg(&tmp)
+        .args(&files)
+        .output();
     match status {
         Ok(o) if o.status.success() => {
             let mut t_cgal = 0.0;
             for f in &files {
                 let stem = f.file_stem().unwrap().to_string_lossy();
-                let j: serde_json::Value = serde_json::from_slice(&std::fs::read(tmp.join(format!("{stem}.json"))).expect("cgal json")).expect("json");
+                let j: serde_json::Value = serde_json::from_slice(
+                    &std::fs::read(tmp.join(format!("{stem}.json"))).expect("cgal json"),
+                )
+                .expect("json");
                 t_cgal += j["seconds_triangulate"].as_f64().unwrap_or(f64::NAN);
             }
-            println!("triangulate (CGAL 2D CDT via Python, same patches): {:.3} s → spade/CGAL time ratio {:.2} (CGAL {:.1}× slower)", t_cgal, t_tri / t_cgal, t_cgal / t_tri);
+            println!(
+                "triangulate (CGAL 2D CDT via Python, same patches): {:.3} s → spade/CGAL time ratio {:.2} (CGAL {:.1}× slower)",
+                t_cgal,
+                t_tri / t_cgal,
+                t_cgal / t_tri
+            );
         }
         Ok(o) => println!("CGAL peer failed: {}", String::from_utf8_lossy(&o.stderr)),
         Err(e) => println!("CGAL peer not run: {e}"),
     }
     let _ = std::fs::remove_dir_all(&tmp);
-    println!("peak memory (VmHWM, whole bench process): {:.1} MB", peak_rss_mb());
+    println!(
+        "peak memory (VmHWM, whole bench process): {:.1} MB",
+        peak_rss_mb()
+    );
 }

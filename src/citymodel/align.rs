@@ -227,7 +227,7 @@ pub fn estimate(path: &Path, pairs: &[(DVec3, DVec3)]) -> Result<Estimate, Align
     let eig = jacobi_eigen::<3>(mat3_to_arr(&cov));
     let mut ev = eig.0;
     ev.sort_by(|x, y| y.total_cmp(x));
-    if !(ev[1] > 1e-10 * ev[0].max(1e-300)) {
+    if ev[1].is_nan() || ev[1] <= 1e-10 * ev[0].max(1e-300) {
         return Err(bad(
             "point pairs are (nearly) collinear or coincident: the rotation is not determined"
                 .into(),
@@ -261,7 +261,7 @@ pub fn estimate(path: &Path, pairs: &[(DVec3, DVec3)]) -> Result<Estimate, Align
         .map(|(p, q)| q.dot(rotation * *p))
         .sum::<f64>()
         / var_a;
-    if !(scale > 0.0) {
+    if scale.is_nan() || scale <= 0.0 {
         return Err(bad(format!(
             "estimated scale {scale} is not positive (mirrored point pairs?)"
         )));
@@ -324,15 +324,15 @@ pub(crate) fn jacobi_eigen<const N: usize>(mut a: [[f64; N]; N]) -> ([f64; N], [
                 let t = if theta == 0.0 { 1.0 } else { t };
                 let c = 1.0 / (t * t + 1.0).sqrt();
                 let s = t * c;
-                for k in 0..N {
-                    let (akp, akq) = (a[k][p], a[k][q]);
-                    a[k][p] = c * akp - s * akq;
-                    a[k][q] = s * akp + c * akq;
+                for row in a.iter_mut() {
+                    let (akp, akq) = (row[p], row[q]);
+                    row[p] = c * akp - s * akq;
+                    row[q] = s * akp + c * akq;
                 }
+                let (rp, rq) = (a[p], a[q]);
                 for k in 0..N {
-                    let (apk, aqk) = (a[p][k], a[q][k]);
-                    a[p][k] = c * apk - s * aqk;
-                    a[q][k] = s * apk + c * aqk;
+                    a[p][k] = c * rp[k] - s * rq[k];
+                    a[q][k] = s * rp[k] + c * rq[k];
                 }
                 for row in v.iter_mut() {
                     let (vkp, vkq) = (row[p], row[q]);
