@@ -1,0 +1,502 @@
+#!/usr/bin/env python3
+"""Independent CGAL reference triangulation of every surface patch in CityGML files.
+
+For each input .gml file this writes <out>/<stem>.json with one record per GML
+surface patch (gml:Polygon, gml:Triangle, gml:PolygonPatch, gml:Rectangle, in
+document order) holding the triangle count, 3D area, projected area and
+planarity of a CGAL constrained Delaunay triangulation of that patch. gs4city's
+own triangulation (spade) is compared against these files by a Rust test.
+
+Usage:
+    python3 scripts/cgal_reference.py [--out tests/reference/cgal] [--runs 3] [FILES_OR_DIRS...]
+
+Defaults: <repo>/../shared/data/citygml (or $GS4CITY_SHARED/data/citygml) and
+<repo>/data. Directories are searched recursively for *.gml.
+
+Method per patch (float64 throughout):
+  1. rings = exterior + interiors; the closing duplicate point is dropped.
+  2. all points minus the first exterior vertex (local origin).
+  3. Newell normal of the exterior ring; ~0 length -> skipped "degenerate: zero area".
+  4. planarity = max |distance| of all vertices to the plane through the
+     exterior-vertex centroid with that normal.
+  5. project to an orthonormal (u, v) basis of the plane (u, v, n right-handed);
+     consecutive duplicates (exact 3D equality, also last==first) are removed;
+     a ring with < 3 distinct points -> skipped.
+  6. CGAL CDT of all ring edges; a face is kept iff its centroid is inside by
+     the even-odd rule over all rings. If CGAL inserted vertices (intersecting
+     constraints) or raised, the patch is skipped with the reason.
+  7. area = sum of 3D areas of kept triangles, using the original 3D points;
+     area_projected = |shoelace(exterior)| - sum |shoelace(hole)| in (u, v).
+"""
+import argparse
+import hashlib
+import importlib.metadata
+import json
+import math
+import os
+import sys
+import time
+import xml.etree.ElementTree as ET
+
+from CGAL.CGAL_Kernel import Point_2
+from CGAL.CGAL_Triangulation_2 import Constrained_Delaunay_triangulation_2
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+GENERATOR = "scripts/cgal_reference.py"
+PATCH_TYPES = {"Polygon", "Triangle", "PolygonPatch", "Rectangle"}
+EXTERIOR = {"exterior", "outerBoundaryIs"}
+INTERIOR = {"interior", "innerBoundaryIs"}
+# Relative threshold for a "zero" Newell normal: |n| (= 2*area) compared with
+# the squared bounding-box diagonal of the ring.
+ZERO_AREA_REL = 1e-12
+
+try:
+    CGAL_VERSION = importlib.metadata.version("cgal")
+except importlib.metadata.PackageNotFoundError:  # pragma: no cover
+    CGAL_VERSION = "unknown"
+
+
+def split_tag(tag):
+    if tag.startswith("{"):
+        ns, local = tag[1:].split("}", 1)
+        return ns, local
+    return "", tag
+
+
+def is_gml(ns):
+    return ns.startswith("http://www.opengis.net/gml")
+
+
+def round_sig(x, sig=12):
+    if x is None:
+        return None
+    if x == 0 or not math.isfinite(x):
+        return 0.0 if x == 0 else x
+    return float(f"{x:.{sig}g}")
+
+
+# --------------------------------------------------------------------------- parsing
+
+def _points_from_values(vals, dim):
+    if dim not in (2, 3):
+        raise ValueError(f"unsupported srsDimension {dim}")
+    if len(vals) % dim:
+        raise ValueError(f"{len(vals)} coordinates not a multiple of srsDimension {dim}")
+    pts = []
+    for i in range(0, len(vals), dim):
+        if dim == 3:
+            pts.append((vals[i], vals[i + 1], vals[i + 2]))
+        else:
+            pts.append((vals[i], vals[i + 1], 0.0))
+    return pts
+
+
+def _parse_coordinates(text, cs=",", ts=None, decimal="."):
+    """GML 2 style gml:coordinates: tuples separated by ts (default whitespace)."""
+    pts = []
+    text = text.strip()
+    if not text:
+        return pts
+    tuples = text.split(ts) if ts and ts.strip() else text.split()
+    for t in tuples:
+        t = t.strip()
+        if not t:
+            continue
+        parts = [p.strip() for p in t.split(cs)]
+        if decimal != ".":
+            parts = [p.replace(decimal, ".") for p in parts]
+        vals = [float(p) for p in parts if p]
+        if len(vals) == 2:
+            vals.append(0.0)
+        pts.append(tuple(vals[:3]))
+    return pts
+
+
+def iter_patches(path):
+    """Yield dicts {ordinal, id, type, rings: [[(x,y,z),...], ...], error} in document order.
+
+    rings[0] is the exterior ring (may be missing -> error)."""
+    dim_stack = []  # srsDimension inherited from ancestors (None = not set)
+    patch = None  # current patch being collected
+    ring_kind = None  # 'ext' / 'int' while inside exterior/interior
+    ring_pts = None  # points of the current LinearRing
+    ordinal = 0
+    for event, elem in ET.iterparse(path, events=("start", "end")):
+        ns, local = split_tag(elem.tag)
+        if event == "start":
+            d = elem.get("srsDimension") or elem.get("dimension")
+            dim_stack.append(int(d) if d else (dim_stack[-1] if dim_stack else None))
+            if not is_gml(ns):
+                continue
+            if local in PATCH_TYPES and patch is None:
+                patch = {"ordinal": ordinal, "type": local,
+                         "id": elem.get("{http://www.opengis.net/gml}id")
+                         or elem.get("{http://www.opengis.net/gml/3.2}id"),
+                         "exterior": None, "interiors": [], "error": None}
+                ordinal += 1
+            elif patch is not None and local in EXTERIOR:
+                ring_kind = "ext"
+            elif patch is not None and local in INTERIOR:
+                ring_kind = "int"
+            elif patch is not None and ring_kind and local in ("LinearRing", "Ring"):
+                ring_pts = []
+            continue
+
+        # end event
+        dim = dim_stack.pop()
+        if patch is None or not is_gml(ns):
+            if patch is None:
+                elem.clear()
+            continue
+        if ring_pts is not None and local in ("pos", "posList", "coordinates"):
+            text = elem.text or ""
+            try:
+                if local == "coordinates":
+                    ring_pts.extend(_parse_coordinates(
+                        text, elem.get("cs", ","), elem.get("ts"), elem.get("decimal", ".")))
+                else:
+                    vals = [float(v) for v in text.split()]
+                    if local == "pos":
+                        d = dim or len(vals)
+                    else:
+                        d = dim or 3
+                    ring_pts.extend(_points_from_values(vals, d))
+            except ValueError as e:
+                patch["error"] = f"parse error: {e}"
+        elif local in ("LinearRing", "Ring") and ring_pts is not None:
+            if ring_kind == "ext":
+                if patch["exterior"] is None:
+                    patch["exterior"] = ring_pts
+                else:
+                    patch["error"] = "parse error: more than one exterior ring"
+            elif ring_kind == "int":
+                patch["interiors"].append(ring_pts)
+            ring_pts = None
+        elif local in EXTERIOR or local in INTERIOR:
+            ring_kind = None
+        elif local in PATCH_TYPES and patch is not None and local == patch["type"]:
+            yield patch
+            patch = None
+            elem.clear()
+
+
+# --------------------------------------------------------------------------- geometry
+
+def sub(a, b):
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+def cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def norm(a):
+    return math.sqrt(dot(a, a))
+
+
+def newell(ring):
+    nx = ny = nz = 0.0
+    n = len(ring)
+    for i in range(n):
+        x0, y0, z0 = ring[i]
+        x1, y1, z1 = ring[(i + 1) % n]
+        nx += (y0 - y1) * (z0 + z1)
+        ny += (z0 - z1) * (x0 + x1)
+        nz += (x0 - x1) * (y0 + y1)
+    return (nx, ny, nz)
+
+
+def plane_basis(n):
+    """Orthonormal u, v with (u, v, n) right-handed; u from the axis least aligned with n."""
+    ax = min(range(3), key=lambda i: abs(n[i]))
+    a = [0.0, 0.0, 0.0]
+    a[ax] = 1.0
+    u = cross(n, tuple(a))
+    lu = norm(u)
+    u = (u[0] / lu, u[1] / lu, u[2] / lu)
+    v = cross(n, u)
+    return u, v
+
+
+def shoelace(r2):
+    s = 0.0
+    n = len(r2)
+    for i in range(n):
+        x0, y0 = r2[i]
+        x1, y1 = r2[(i + 1) % n]
+        s += x0 * y1 - x1 * y0
+    return 0.5 * s
+
+
+def dedupe_consecutive(ring3, ring2):
+    """Remove consecutive duplicates (exact 3D equality), including last == first."""
+    o3, o2 = [], []
+    for p3, p2 in zip(ring3, ring2):
+        if o3 and o3[-1] == p3:
+            continue
+        o3.append(p3)
+        o2.append(p2)
+    while len(o3) > 1 and o3[-1] == o3[0]:
+        o3.pop()
+        o2.pop()
+    return o3, o2
+
+
+def inside_even_odd(x, y, edges):
+    """Crossing-number test; edges = list of (x0, y0, x1, y1) of all rings."""
+    c = False
+    for x0, y0, x1, y1 in edges:
+        if (y0 > y) != (y1 > y):
+            xi = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
+            if x < xi:
+                c = not c
+    return c
+
+
+def prepare(patch):
+    """Everything before the CDT. Returns a record; rec['tri'] holds the CDT input or None."""
+    ext = patch["exterior"]
+    holes = patch["interiors"]
+    rings = ([ext] if ext is not None else []) + holes
+    rings = [r[:-1] if len(r) > 1 and r[-1] == r[0] else list(r) for r in rings]
+    rec = {"ordinal": patch["ordinal"], "id": patch["id"], "rings": len(rings),
+           "points": sum(len(r) for r in rings), "status": "ok", "reason": None,
+           "triangles": 0, "area": 0.0, "area_projected": None, "planarity": None,
+           "tri": None}
+    if patch["type"] != "Polygon":
+        rec["type"] = patch["type"]
+    if patch["error"]:
+        rec.update(status="skipped", reason=patch["error"])
+        return rec
+    if ext is None:
+        rec.update(status="skipped", reason="parse error: no exterior ring")
+        return rec
+    if not rings[0]:
+        rec.update(status="skipped", reason="degenerate: fewer than 3 distinct points")
+        return rec
+    o = rings[0][0]
+    rings = [[sub(p, o) for p in r] for r in rings]
+    n = newell(rings[0])
+    ln = norm(n)
+    xs = [p[0] for p in rings[0]]
+    ys = [p[1] for p in rings[0]]
+    zs = [p[2] for p in rings[0]]
+    diag2 = (max(xs) - min(xs)) ** 2 + (max(ys) - min(ys)) ** 2 + (max(zs) - min(zs)) ** 2
+    if ln == 0.0 or ln <= ZERO_AREA_REL * diag2:
+        rec.update(status="skipped", reason="degenerate: zero area", area_projected=0.0)
+        return rec
+    n = (n[0] / ln, n[1] / ln, n[2] / ln)
+    m = len(rings[0])
+    c = (sum(xs) / m, sum(ys) / m, sum(zs) / m)
+    rec["planarity"] = max(abs(dot(sub(p, c), n)) for r in rings for p in r)
+    u, v = plane_basis(n)
+    rings3, rings2 = [], []
+    for r in rings:
+        r2 = [(dot(p, u), dot(p, v)) for p in r]
+        r3, r2 = dedupe_consecutive(r, r2)
+        rings3.append(r3)
+        rings2.append(r2)
+    if any(len(r) < 3 for r in rings3):
+        rec.update(status="skipped", reason="degenerate: fewer than 3 distinct points")
+        return rec
+    a_ext = abs(shoelace(rings2[0]))
+    rec["area_projected"] = a_ext - sum(abs(shoelace(r)) for r in rings2[1:])
+    # 2D point -> original 3D point; count distinct 3D points sharing a 2D position
+    lift = {}
+    merged = 0
+    for r3, r2 in zip(rings3, rings2):
+        for p3, p2 in zip(r3, r2):
+            q = lift.get(p2)
+            if q is None:
+                lift[p2] = p3
+            elif q != p3:
+                merged += 1
+    if merged:
+        rec["note"] = f"{merged} distinct 3D input points share a 2D projection; CGAL merged them"
+    edges = []
+    for r2 in rings2:
+        k = len(r2)
+        for i in range(k):
+            a, b = r2[i], r2[(i + 1) % k]
+            edges.append((a[0], a[1], b[0], b[1]))
+    rec["tri"] = (rings2, edges, lift)
+    return rec
+
+
+def triangulate(rings2, edges):
+    """CGAL CDT of all ring edges + even-odd centroid filter. Returns (kept faces, n_vertices).
+
+    This is the part that is timed."""
+    cdt = Constrained_Delaunay_triangulation_2()
+    for r2 in rings2:
+        vh = [cdt.insert(Point_2(x, y)) for x, y in r2]
+        k = len(vh)
+        for i in range(k):
+            cdt.insert_constraint(vh[i], vh[(i + 1) % k])
+    kept = []
+    for f in cdt.finite_faces():
+        p0 = f.vertex(0).point()
+        p1 = f.vertex(1).point()
+        p2 = f.vertex(2).point()
+        a = (p0.x(), p0.y())
+        b = (p1.x(), p1.y())
+        c = (p2.x(), p2.y())
+        cx = (a[0] + b[0] + c[0]) / 3.0
+        cy = (a[1] + b[1] + c[1]) / 3.0
+        if inside_even_odd(cx, cy, edges):
+            kept.append((a, b, c))
+    return kept, cdt.number_of_vertices()
+
+
+def finish(rec, kept, nverts):
+    rings2, edges, lift = rec["tri"]
+    if nverts != len(lift):
+        rec.update(status="skipped",
+                   reason=f"intersecting constraints: CGAL inserted {nverts - len(lift)} vertices")
+        return
+    area = 0.0
+    for a, b, c in kept:
+        pa, pb, pc = lift[a], lift[b], lift[c]
+        area += 0.5 * norm(cross(sub(pb, pa), sub(pc, pa)))
+    rec["triangles"] = len(kept)
+    rec["area"] = area
+
+
+# --------------------------------------------------------------------------- driver
+
+def sha256(path):
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def process_file(path, runs=3):
+    t0 = time.perf_counter()
+    recs = []
+    holes = 0
+    for patch in iter_patches(path):
+        holes += len(patch["interiors"])
+        recs.append(prepare(patch))
+    work = [r for r in recs if r["tri"] is not None]
+    best = math.inf
+    results = None
+    for _ in range(max(1, runs)):
+        out = []
+        ts = time.perf_counter()
+        for r in work:
+            rings2, edges, _ = r["tri"]
+            try:
+                out.append(triangulate(rings2, edges))
+            except Exception as e:  # CGAL raised
+                out.append(e)
+        best = min(best, time.perf_counter() - ts)
+        results = out
+    for r, res in zip(work, results):
+        if isinstance(res, Exception):
+            r.update(status="skipped", reason=f"CGAL error: {type(res).__name__}: {res}")
+        else:
+            finish(r, *res)
+    polys = []
+    for r in recs:
+        r.pop("tri")
+        for k in ("area", "area_projected", "planarity"):
+            r[k] = round_sig(r[k])
+        polys.append(r)
+    doc = {"file": os.path.relpath(os.path.abspath(path), REPO), "sha256": sha256(path),
+           "generator": GENERATOR, "cgal": CGAL_VERSION, "patches": len(polys), "holes": holes,
+           "seconds_triangulate": round_sig(best, 6), "polygons": polys}
+    wall = time.perf_counter() - t0
+    return doc, wall
+
+
+def default_inputs():
+    shared = os.environ.get("GS4CITY_SHARED")
+    cands = [os.path.join(shared, "data", "citygml")] if shared else []
+    cands += [os.path.join(REPO, "..", "shared", "data", "citygml"),
+              os.path.join(REPO, "shared", "data", "citygml")]
+    out = [next((c for c in cands if os.path.isdir(c)), cands[0])]
+    if os.path.isdir(os.path.join(REPO, "data")):
+        out.append(os.path.join(REPO, "data"))
+    return out
+
+
+def collect(inputs):
+    files = []
+    for p in inputs:
+        if os.path.isdir(p):
+            for root, dirs, names in os.walk(p):
+                dirs.sort()
+                files += [os.path.join(root, n) for n in sorted(names) if n.lower().endswith(".gml")]
+        elif os.path.isfile(p):
+            files.append(p)
+        else:
+            print(f"warning: {p} does not exist, skipped", file=sys.stderr)
+    seen, uniq = set(), []
+    for f in files:
+        a = os.path.realpath(f)
+        if a not in seen:
+            seen.add(a)
+            uniq.append(f)
+    return uniq
+
+
+def summarize(doc):
+    skipped = {}
+    for p in doc["polygons"]:
+        if p["status"] != "ok":
+            key = p["reason"].split(":")[0] + ": " + p["reason"].split(":")[1].strip() \
+                if ":" in p["reason"] else p["reason"]
+            skipped[key] = skipped.get(key, 0) + 1
+    return skipped
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default=os.path.join(REPO, "tests", "reference", "cgal"))
+    ap.add_argument("--runs", type=int, default=3, help="timing repetitions (best is kept)")
+    ap.add_argument("--summary", help="also write a per-file summary JSON here")
+    ap.add_argument("inputs", nargs="*")
+    args = ap.parse_args(argv)
+    files = collect(args.inputs or default_inputs())
+    if not files:
+        print("no .gml files found", file=sys.stderr)
+        return 1
+    stems = {}
+    for f in files:
+        stem = os.path.splitext(os.path.basename(f))[0]
+        if stem in stems:
+            print(f"error: duplicate stem {stem}: {stems[stem]} and {f}", file=sys.stderr)
+            return 1
+        stems[stem] = f
+    os.makedirs(args.out, exist_ok=True)
+    summary = []
+    t_all = time.perf_counter()
+    for stem, f in stems.items():
+        doc, wall = process_file(f, args.runs)
+        with open(os.path.join(args.out, stem + ".json"), "w") as fh:
+            json.dump(doc, fh, separators=(",", ":"))
+            fh.write("\n")
+        sk = summarize(doc)
+        tris = sum(p["triangles"] for p in doc["polygons"])
+        summary.append({"stem": stem, "file": doc["file"], "patches": doc["patches"],
+                        "holes": doc["holes"], "triangles": tris, "skipped": sk,
+                        "seconds_triangulate": doc["seconds_triangulate"],
+                        "seconds_wall": round(wall, 3)})
+        print(f"{stem}: {doc['patches']} patches, {doc['holes']} holes, {tris} triangles, "
+              f"skipped {sum(sk.values())} {sk}, CDT {doc['seconds_triangulate']:.4f} s "
+              f"(best of {args.runs}), wall {wall:.3f} s", flush=True)
+    print(f"total wall {time.perf_counter() - t_all:.2f} s for {len(files)} files")
+    if args.summary:
+        with open(args.summary, "w") as fh:
+            json.dump(summary, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
