@@ -386,9 +386,11 @@ def process_file(path, runs=3):
         recs.append(prepare(patch))
     work = [r for r in recs if r["tri"] is not None]
     best = math.inf
+    best_cpu = math.inf
     results = None
     for _ in range(max(1, runs)):
         out = []
+        cs = time.process_time()
         ts = time.perf_counter()
         for r in work:
             rings2, edges, _ = r["tri"]
@@ -397,6 +399,7 @@ def process_file(path, runs=3):
             except Exception as e:  # CGAL raised
                 out.append(e)
         best = min(best, time.perf_counter() - ts)
+        best_cpu = min(best_cpu, time.process_time() - cs)
         results = out
     for r, res in zip(work, results):
         if isinstance(res, Exception):
@@ -411,7 +414,8 @@ def process_file(path, runs=3):
         polys.append(r)
     doc = {"file": os.path.relpath(os.path.abspath(path), REPO), "sha256": sha256(path),
            "generator": GENERATOR, "cgal": CGAL_VERSION, "patches": len(polys), "holes": holes,
-           "seconds_triangulate": round_sig(best, 6), "polygons": polys}
+           "seconds_triangulate": round_sig(best, 6),
+           "seconds_triangulate_cpu": round_sig(best_cpu, 6), "polygons": polys}
     wall = time.perf_counter() - t0
     return doc, wall
 
@@ -511,7 +515,8 @@ def write_readme(args, files, summary, total_wall, load0, load1):
     L.append("## Record format\n")
     L.append("Top level: `file` (path relative to the repo root), `sha256`, `generator`, `cgal`, "
              "`patches`, `holes` (interior rings), `seconds_triangulate` (best of the timing runs, "
-             "CDT + face filter only), `polygons` (list).\n")
+             "CDT + face filter only, wall clock), `seconds_triangulate_cpu` (same, process CPU time), "
+             "`polygons` (list).\n")
     L.append("Per patch: `ordinal` (0,1,2,... over the patch elements of the file), `id` (gml:id or null), "
              "`rings` (1 + holes), `points` (all rings, closing duplicate dropped), `status` "
              "(`ok`/`skipped`), `reason`, `triangles`, `area` (sum of 3D areas of the kept triangles, "
@@ -538,12 +543,13 @@ def write_readme(args, files, summary, total_wall, load0, load1):
              "`area_projected` does not.\n")
     L.append("## Per file\n")
     L.append("Times: `CDT s` = best of %d runs of the per-file triangulation loop (CDT construction + "
-             "centroid filter, `time.perf_counter`), `wall s` = the whole file (parse, projection, "
+             "centroid filter, `time.perf_counter`), `CDT cpu s` = the same loop's best `time.process_time` "
+             "(less sensitive to other load on the machine), `wall s` = the whole file (parse, projection, "
              "%d timing runs, areas, JSON). `SOURCES` = the `polygons`/`holes` columns of "
              "SOURCES.md (raw `gml:Polygon`/`gml:interior` counts).\n" % (args.runs, args.runs))
-    L.append("| file | patches | holes | SOURCES polygons/holes | triangles | skipped (by reason) | CDT s | wall s |")
-    L.append("|---|---|---|---|---|---|---|---|")
-    tot = {"n": 0, "patches": 0, "holes": 0, "triangles": 0, "cdt": 0.0, "wall": 0.0, "skipped": {},
+    L.append("| file | patches | holes | SOURCES polygons/holes | triangles | skipped (by reason) | CDT s | CDT cpu s | wall s |")
+    L.append("|---|---|---|---|---|---|---|---|---|")
+    tot = {"n": 0, "patches": 0, "holes": 0, "triangles": 0, "cdt": 0.0, "cpu": 0.0, "wall": 0.0, "skipped": {},
            "src_p": 0, "src_h": 0}
     mismatches = []
     for s in summary:
@@ -557,7 +563,8 @@ def write_readme(args, files, summary, total_wall, load0, load1):
                 mismatches.append(s["stem"])
         sk = ", ".join(f"{k}: {v}" for k, v in sorted(s["skipped"].items())) or "0"
         L.append(f"| {s['stem']} | {s['patches']} | {s['holes']} | {sct} | {s['triangles']} | {sk} | "
-                 f"{s['seconds_triangulate']:.4f} | {s['seconds_wall']:.3f} |")
+                 f"{s['seconds_triangulate']:.4f} | {s['seconds_triangulate_cpu']:.4f} | "
+                 f"{s['seconds_wall']:.3f} |")
         if "ingolstadt_north" in s["file"].replace(os.sep, "/").split("/"):
             tot["n"] += 1
             tot["src_p"] += sc[0] if sc else 0
@@ -565,6 +572,7 @@ def write_readme(args, files, summary, total_wall, load0, load1):
             for k in ("patches", "holes", "triangles"):
                 tot[k] += s[k]
             tot["cdt"] += s["seconds_triangulate"]
+            tot["cpu"] += s["seconds_triangulate_cpu"]
             tot["wall"] += s["seconds_wall"]
             for k, v in s["skipped"].items():
                 tot["skipped"][k] = tot["skipped"].get(k, 0) + v
@@ -572,6 +580,7 @@ def write_readme(args, files, summary, total_wall, load0, load1):
         sk = ", ".join(f"{k}: {v}" for k, v in sorted(tot["skipped"].items())) or "0"
         L.append(f"| **ingolstadt_north, sum of {tot['n']} files** | {tot['patches']} | {tot['holes']} | "
                  f"{tot['src_p']}/{tot['src_h']} | {tot['triangles']} | {sk} | {tot['cdt']:.4f} | "
+                 f"{tot['cpu']:.4f} | "
                  f"{tot['wall']:.3f} |")
     L.append("")
     L.append(f"Total wall time of the run: {total_wall:.2f} s for {len(files)} files.")
@@ -618,6 +627,7 @@ def main(argv=None):
         summary.append({"stem": stem, "file": doc["file"], "patches": doc["patches"],
                         "holes": doc["holes"], "triangles": tris, "skipped": sk,
                         "seconds_triangulate": doc["seconds_triangulate"],
+                        "seconds_triangulate_cpu": doc["seconds_triangulate_cpu"],
                         "seconds_wall": round(wall, 3)})
         print(f"{stem}: {doc['patches']} patches, {doc['holes']} holes, {tris} triangles, "
               f"skipped {sum(sk.values())} {sk}, CDT {doc['seconds_triangulate']:.4f} s "
