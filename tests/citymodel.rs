@@ -22,7 +22,17 @@ fn require_shared() -> PathBuf {
 }
 
 /// (file, buildings, wall, roof, ground, windows, doors, polygons, holes) from SOURCES.md.
-type Counts = (&'static str, usize, usize, usize, usize, usize, usize, usize, usize);
+type Counts = (
+    &'static str,
+    usize,
+    usize,
+    usize,
+    usize,
+    usize,
+    usize,
+    usize,
+    usize,
+);
 const SINGLE_FILES: &[Counts] = &[
     (
         "citygml1_FZK-House-LoD3-KIT-IAI-KHH-V2.gml",

@@ -185,7 +185,8 @@ pub fn triangulate(
         .map(|p| (*p - ext[0]).length())
         .fold(0.0f64, f64::max);
     let centroid = ext.iter().copied().sum::<DVec3>() / ext.len() as f64;
-    let normal = if scale > 0.0 && n_raw.length() > 1e-12 * scale * scale {
+    let newell_ok = scale > 0.0 && n_raw.length() > 1e-12 * scale * scale;
+    let normal = if newell_ok {
         n_raw.normalize()
     } else {
         // Lobes of opposite orientation (a bow tie) cancel in the Newell normal: fall back
@@ -353,7 +354,12 @@ pub fn triangulate(
         *p += centroid;
     }
     if out.triangles.is_empty() {
-        return Err(SkipReason::Empty);
+        // A ring folding back onto itself has a zero Newell normal and encloses nothing.
+        return Err(if newell_ok {
+            SkipReason::Empty
+        } else {
+            SkipReason::ZeroArea
+        });
     }
     Ok(out)
 }
