@@ -7,6 +7,7 @@
 
 pub mod camera;
 pub mod citygml;
+pub mod citymodel;
 pub mod colmap;
 
 pub mod cli;

@@ -248,6 +248,7 @@ struct Parser {
     srs_name: Option<String>,
     stack: Vec<Tag>,
     unknown_depth: usize,
+    curve_depth: usize,
     objects: Vec<CityObject>,
     object_stack: Vec<usize>,
     /// Children count per (parent, class) for derived ids.
@@ -318,6 +319,7 @@ fn parse<R: Read>(
         srs_name: None,
         stack: Vec::with_capacity(64),
         unknown_depth: 0,
+        curve_depth: 0,
         objects: Vec::new(),
         object_stack: Vec::new(),
         lod: None,
@@ -375,32 +377,22 @@ fn parse<R: Read>(
                 let line = reader.get_ref().get_ref().line_of(offset);
                 p.end(line)?;
             }
-            Event::Text(t) => {
-                if p.collecting {
-                    p.text.push_str(&t.xml10_content());
-                }
-            }
-            Event::CData(t) => {
-                if p.collecting {
-                    p.text.push_str(&t.xml10_content());
-                }
-            }
-            Event::GeneralRef(r) => {
-                if p.collecting {
-                    let s = if let Ok(Some(c)) = r.resolve_char_ref() {
-                        c.to_string()
-                    } else {
-                        match r.xml10_content().as_ref() {
-                            "lt" => "<".into(),
-                            "gt" => ">".into(),
-                            "amp" => "&".into(),
-                            "apos" => "'".into(),
-                            "quot" => "\"".into(),
-                            other => format!("&{other};"),
-                        }
-                    };
-                    p.text.push_str(&s);
-                }
+            Event::Text(t) if p.collecting => p.text.push_str(&t.xml10_content()),
+            Event::CData(t) if p.collecting => p.text.push_str(&t.xml10_content()),
+            Event::GeneralRef(r) if p.collecting => {
+                let s = if let Ok(Some(c)) = r.resolve_char_ref() {
+                    c.to_string()
+                } else {
+                    match r.xml10_content().as_ref() {
+                        "lt" => "<".into(),
+                        "gt" => ">".into(),
+                        "amp" => "&".into(),
+                        "apos" => "'".into(),
+                        "quot" => "\"".into(),
+                        other => format!("&{other};"),
+                    }
+                };
+                p.text.push_str(&s);
             }
             Event::Eof => {
                 let open = p.stack.len();
@@ -631,6 +623,11 @@ impl Parser {
     }
 
     fn gml_start(&mut self, local: &str, a: &Attrs, parent_is_object: bool, line: u64) -> Tag {
+        if self.curve_depth > 0 {
+            // Everything inside a skipped curve/point geometry is part of it.
+            self.curve_depth += 1;
+            return Tag::Curve;
+        }
         if let Some(href) = &a.href
             && self.lod.is_some()
         {
@@ -708,10 +705,11 @@ impl Parser {
                 _ => {}
             }
         }
-        if CURVES.contains(&local) {
-            if self.poly.is_none() {
+        if CURVES.contains(&local) || (local == "curveMember" && self.poly.is_none()) {
+            if self.poly.is_none() && local != "curveMember" {
                 self.stats.curves_skipped += 1;
             }
+            self.curve_depth += 1;
             return Tag::Curve;
         }
         if GEOM_CONTAINERS.contains(&local) {
@@ -875,7 +873,8 @@ impl Parser {
             self.dim_stack.pop();
         }
         match tag {
-            Tag::Plain | Tag::Curve | Tag::Implicit => {}
+            Tag::Plain | Tag::Implicit => {}
+            Tag::Curve => self.curve_depth -= 1,
             Tag::Unknown => self.unknown_depth -= 1,
             Tag::Object => {
                 self.object_stack.pop();
@@ -1230,8 +1229,8 @@ impl Parser {
     fn choose_lods(&mut self) {
         let n = self.objects.len();
         let mut root = vec![0usize; n];
-        for i in 0..n {
-            root[i] = match self.objects[i].parent {
+        for (i, o) in self.objects.iter().enumerate() {
+            root[i] = match o.parent {
                 Some(p) => root[p],
                 None => i,
             };
@@ -1262,8 +1261,8 @@ impl Parser {
                 );
             }
         }
-        for i in 0..n {
-            self.objects[i].lod_used = chosen.get(&root[i]).copied();
+        for (o, r) in self.objects.iter_mut().zip(&root) {
+            o.lod_used = chosen.get(r).copied();
         }
     }
 }

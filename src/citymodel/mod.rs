@@ -1,1 +1,443 @@
-//! placeholder
+//! The `citymodel` stage: CityGML files → hierarchy table (`semantics.json`) → triangulated,
+//! aligned mesh with per-face `(feature, surface, part)` ids (`mesh.ply`) → `summary.json`.
+pub mod align;
+pub mod triangulate;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use glam::DVec3;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::citygml::{self, CityGmlError, CityModel, Class, Level};
+use crate::fsutil::{self, FsError};
+use crate::mesh::{FaceLabel, MeshError, TriMesh};
+pub use align::{AlignError, Alignment};
+use triangulate::{Repair, SkipReason};
+
+/// Errors of the citymodel stage.
+#[derive(Debug, thiserror::Error)]
+pub enum CityModelError {
+    #[error(transparent)]
+    CityGml(#[from] CityGmlError),
+    #[error(transparent)]
+    Align(#[from] AlignError),
+    #[error(transparent)]
+    Mesh(#[from] MeshError),
+    #[error(transparent)]
+    Fs(#[from] FsError),
+    #[error("no CityGML input files")]
+    NoInput,
+    #[error("no polygon of {0} could be triangulated: nothing to write")]
+    Empty(String),
+}
+
+/// One row of the hierarchy table.
+#[derive(Debug, Clone, Serialize)]
+pub struct Entity {
+    pub id: i32,
+    pub object_id: String,
+    pub class: &'static str,
+    pub level: Level,
+    pub parent: Option<i32>,
+    pub building: i32,
+    pub source: String,
+    pub lod: Option<u8>,
+    pub attributes: BTreeMap<String, serde_json::Value>,
+}
+
+/// A polygon that produced no triangles.
+#[derive(Debug, Clone, Serialize)]
+pub struct Skipped {
+    pub file: String,
+    pub line: u64,
+    pub polygon: Option<String>,
+    pub object: String,
+    pub reason: String,
+}
+
+/// Options of the stage.
+#[derive(Debug, Clone, Default)]
+pub struct Options {
+    /// Georeferenced → scene transform; `None`: subtract a local origin only.
+    pub alignment: Option<Alignment>,
+}
+
+/// Everything the stage computed (also written to disk by [`write`]).
+pub struct Output {
+    pub mesh: TriMesh,
+    pub entities: Vec<Entity>,
+    pub summary: serde_json::Value,
+    pub alignment: Alignment,
+}
+
+/// Per-polygon triangulation outcome, for cross-checks (e.g. against CGAL).
+#[derive(Debug, Clone)]
+pub struct PolygonResult {
+    pub ordinal: usize,
+    pub id: Option<String>,
+    pub result: Result<(usize, f64), SkipReason>,
+    pub planarity: f64,
+}
+
+/// Triangulates every patch of a file in document order (whether the mesh uses it or not),
+/// in a local frame (first exterior vertex subtracted).
+pub fn triangulate_all(model: &CityModel) -> Vec<PolygonResult> {
+    model
+        .polygons
+        .par_iter()
+        .map(|p| {
+            let o = p.exterior.points.first().copied().unwrap_or(DVec3::ZERO);
+            let ext: Vec<DVec3> = p.exterior.points.iter().map(|q| *q - o).collect();
+            let holes: Vec<Vec<DVec3>> = p
+                .interiors
+                .iter()
+                .map(|r| r.points.iter().map(|q| *q - o).collect())
+                .collect();
+            let t = triangulate::triangulate(&ext, &holes);
+            PolygonResult {
+                ordinal: p.ordinal,
+                id: p.id.clone(),
+                planarity: t.as_ref().map(|t| t.planarity).unwrap_or(0.0),
+                result: t.map(|t| (t.triangles.len(), t.area)),
+            }
+        })
+        .collect()
+}
+
+/// Reads, flattens, triangulates and aligns the given CityGML files.
+pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> {
+    if files.is_empty() {
+        return Err(CityModelError::NoInput);
+    }
+    let t0 = Instant::now();
+    let models: Vec<CityModel> = files
+        .par_iter()
+        .map(|f| citygml::read(f))
+        .collect::<Result<_, _>>()?;
+    let t_parse = t0.elapsed().as_secs_f64();
+
+    // Hierarchy table: entity ids are global, in file order then document order.
+    let mut entities = Vec::new();
+    let mut base = Vec::with_capacity(models.len());
+    for m in &models {
+        base.push(entities.len() as i32);
+        let b = *base.last().unwrap_or(&0);
+        let source = m.path.display().to_string();
+        let mut root = vec![0i32; m.objects.len()];
+        for (i, o) in m.objects.iter().enumerate() {
+            root[i] = match o.parent {
+                Some(p) => root[p],
+                None => b + i as i32,
+            };
+            entities.push(Entity {
+                id: b + i as i32,
+                object_id: o.object_id.clone(),
+                class: o.class.name(),
+                level: o.class.level(),
+                parent: o.parent.map(|p| b + p as i32),
+                building: root[i],
+                source: source.clone(),
+                lod: o.lod_used,
+                attributes: o.attributes.clone(),
+            });
+        }
+    }
+
+    // Alignment: given, or a local origin at the bounding-box minimum (whole metres).
+    let alignment = match opts.alignment {
+        Some(a) => a,
+        None => {
+            let mut lo = DVec3::splat(f64::INFINITY);
+            for m in &models {
+                for p in m.used_polygons() {
+                    for q in p.exterior.points.iter().filter(|q| q.is_finite()) {
+                        lo = lo.min(*q);
+                    }
+                }
+            }
+            Alignment::local(if lo.is_finite() {
+                lo.floor()
+            } else {
+                DVec3::ZERO
+            })
+        }
+    };
+
+    // Triangulate used polygons (parallel), then assemble the mesh in a fixed order.
+    let t1 = Instant::now();
+    struct Job<'a> {
+        file: usize,
+        poly: &'a citygml::Polygon,
+        label: FaceLabel,
+    }
+    let mut jobs = Vec::new();
+    for (fi, m) in models.iter().enumerate() {
+        let labels = face_labels(m, base[fi]);
+        for p in m.used_polygons() {
+            let owner = p.owner.expect("used polygons have owners");
+            jobs.push(Job {
+                file: fi,
+                poly: p,
+                label: labels[owner],
+            });
+        }
+    }
+    let results: Vec<_> = jobs
+        .par_iter()
+        .map(|j| {
+            let ext: Vec<DVec3> = j
+                .poly
+                .exterior
+                .points
+                .iter()
+                .map(|q| *q - alignment.origin)
+                .collect();
+            let holes: Vec<Vec<DVec3>> = j
+                .poly
+                .interiors
+                .iter()
+                .map(|r| r.points.iter().map(|q| *q - alignment.origin).collect())
+                .collect();
+            triangulate::triangulate(&ext, &holes)
+        })
+        .collect();
+    let t_tri = t1.elapsed().as_secs_f64();
+
+    let mut mesh = TriMesh::default();
+    let mut skipped: Vec<Skipped> = Vec::new();
+    let mut repairs: BTreeMap<&'static str, usize> = BTreeMap::new();
+    let mut warnings: Vec<String> = Vec::new();
+    let mut worst_planarity = (0.0f64, String::new());
+    let mut holes_used = 0usize;
+    for (job, res) in jobs.iter().zip(results) {
+        let m = &models[job.file];
+        let object = &m.objects[job.poly.owner.expect("owned")];
+        match res {
+            Err(reason) => skipped.push(Skipped {
+                file: m.path.display().to_string(),
+                line: job.poly.line,
+                polygon: job.poly.id.clone(),
+                object: object.object_id.clone(),
+                reason: reason.to_string(),
+            }),
+            Ok(t) => {
+                holes_used += job.poly.interiors.len();
+                if t.planarity > worst_planarity.0 {
+                    worst_planarity = (
+                        t.planarity,
+                        format!("{} in {}", job.poly.label(), m.path.display()),
+                    );
+                }
+                for r in &t.repairs {
+                    let key = match r {
+                        Repair::DuplicatePoints(_) => "duplicate_points_removed",
+                        Repair::DegenerateHole(_) => "degenerate_holes_dropped",
+                        Repair::SelfIntersection => "self_intersections_split",
+                    };
+                    *repairs.entry(key).or_default() += 1;
+                    if !matches!(r, Repair::DuplicatePoints(_)) {
+                        warnings.push(format!(
+                            "{}:{}: {}: {:?}",
+                            m.path.display(),
+                            job.poly.line,
+                            job.poly.label(),
+                            r
+                        ));
+                    }
+                }
+                let base_v = mesh.vertices.len() as u32;
+                for v in &t.vertices {
+                    let s = alignment.apply(*v + alignment.origin);
+                    mesh.vertices.push([s.x as f32, s.y as f32, s.z as f32]);
+                }
+                for tri in &t.triangles {
+                    let f = tri.map(|i| i + base_v);
+                    mesh.faces.push(if job.poly.reversed {
+                        [f[0], f[2], f[1]]
+                    } else {
+                        f
+                    });
+                    mesh.labels.push(job.label);
+                }
+            }
+        }
+    }
+    if mesh.faces.is_empty() {
+        let names = files
+            .iter()
+            .map(|f| f.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ");
+        return Err(CityModelError::Empty(names));
+    }
+
+    let summary = summarize(
+        &models,
+        files,
+        &mesh,
+        &skipped,
+        &repairs,
+        &warnings,
+        worst_planarity,
+        holes_used,
+        &alignment,
+        t_parse,
+        t_tri,
+    );
+    Ok(Output {
+        mesh,
+        entities,
+        summary,
+        alignment,
+    })
+}
+
+/// Per object, its `(feature, surface, part)` ids: the nearest ancestor-or-self of each level.
+fn face_labels(m: &CityModel, base: i32) -> Vec<FaceLabel> {
+    let mut labels = vec![FaceLabel::NONE; m.objects.len()];
+    for (i, o) in m.objects.iter().enumerate() {
+        let mut l = match o.parent {
+            Some(p) => labels[p],
+            None => FaceLabel::NONE,
+        };
+        let id = base + i as i32;
+        match o.class.level() {
+            Level::Feature => {
+                l = FaceLabel {
+                    feature: id,
+                    surface: -1,
+                    part: -1,
+                }
+            }
+            Level::Surface => {
+                l.surface = id;
+                l.part = -1;
+            }
+            Level::Part => l.part = id,
+        }
+        labels[i] = l;
+    }
+    labels
+}
+
+#[allow(clippy::too_many_arguments)]
+fn summarize(
+    models: &[CityModel],
+    files: &[PathBuf],
+    mesh: &TriMesh,
+    skipped: &[Skipped],
+    repairs: &BTreeMap<&'static str, usize>,
+    warnings: &[String],
+    worst_planarity: (f64, String),
+    holes_used: usize,
+    alignment: &Alignment,
+    t_parse: f64,
+    t_tri: f64,
+) -> serde_json::Value {
+    let count = |c: Class| models.iter().map(|m| m.count(c)).sum::<usize>();
+    let surface_classes = [
+        Class::WallSurface,
+        Class::RoofSurface,
+        Class::GroundSurface,
+        Class::ClosureSurface,
+        Class::OuterCeilingSurface,
+        Class::OuterFloorSurface,
+    ];
+    let surfaces: BTreeMap<&str, usize> = surface_classes
+        .iter()
+        .map(|&c| (c.name(), count(c)))
+        .collect();
+    let mut by_reason: BTreeMap<String, usize> = BTreeMap::new();
+    for s in skipped {
+        *by_reason.entry(s.reason.clone()).or_default() += 1;
+    }
+    let mut unknown: BTreeMap<String, usize> = BTreeMap::new();
+    for m in models {
+        for (k, v) in &m.stats.unknown_elements {
+            *unknown.entry(k.clone()).or_default() += v;
+        }
+    }
+    let reader_warnings: Vec<String> = models
+        .iter()
+        .flat_map(|m| m.warnings.iter().map(|w| w.to_string()))
+        .collect();
+    let all_warnings: Vec<&String> = reader_warnings.iter().chain(warnings).collect();
+    let sum = |f: &dyn Fn(&CityModel) -> usize| models.iter().map(f).sum::<usize>();
+    let bytes: u64 = models.iter().map(|m| m.stats.bytes).sum();
+    serde_json::json!({
+        "files": models.iter().zip(files).map(|(m, f)| serde_json::json!({
+            "path": f.display().to_string(),
+            "citygml": m.version,
+            "srs_name": m.srs_name,
+            "bytes": m.stats.bytes,
+            "objects": m.objects.len(),
+            "polygons": m.stats.polygons,
+        })).collect::<Vec<_>>(),
+        "buildings": count(Class::Building),
+        "building_parts": count(Class::BuildingPart),
+        "installations": count(Class::BuildingInstallation) + count(Class::BuildingConstructiveElement),
+        "surfaces": surfaces,
+        "surfaces_total": surfaces.values().sum::<usize>(),
+        "windows": count(Class::Window) + count(Class::WindowSurface),
+        "doors": count(Class::Door) + count(Class::DoorSurface),
+        "entities": models.iter().map(|m| m.objects.len()).sum::<usize>(),
+        "polygons": sum(&|m| m.stats.polygons),
+        "polygons_used": sum(&|m| m.used_polygons().count()),
+        "polygons_unused": sum(&|m| m.stats.polygons_unused),
+        "holes": sum(&|m| m.stats.holes),
+        "holes_used": holes_used,
+        "triangles": mesh.faces.len(),
+        "vertices": mesh.vertices.len(),
+        "skipped": {
+            "count": skipped.len(),
+            "by_reason": by_reason,
+            "polygons": skipped,
+        },
+        "repairs": repairs,
+        "max_planarity_deviation": { "metres": worst_planarity.0, "polygon": worst_planarity.1 },
+        "curves_skipped": sum(&|m| m.stats.curves_skipped),
+        "implicit_geometries_skipped": sum(&|m| m.stats.implicit_skipped),
+        "xlinks": {
+            "shared": sum(&|m| m.stats.xlinks_shared),
+            "adopted": sum(&|m| m.stats.xlinks_adopted),
+            "dangling": sum(&|m| m.stats.xlinks_dangling),
+        },
+        "unknown_elements": unknown,
+        "warnings": { "count": all_warnings.len(), "items": all_warnings },
+        "alignment": {
+            "origin": alignment.origin.to_array(),
+            "scale": alignment.scale,
+            "rotation": alignment.rotation_rows(),
+            "translation": alignment.translation.to_array(),
+        },
+        "timing": {
+            "parse_s": t_parse,
+            "parse_mb_per_s": bytes as f64 / 1e6 / t_parse.max(1e-9),
+            "triangulate_s": t_tri,
+        },
+    })
+}
+
+/// Writes `mesh.ply`, `semantics.json`, `alignment.json` and (last, as the completion
+/// marker) `summary.json` into `out_dir`.
+pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
+    fsutil::create_dir(out_dir)?;
+    out.mesh.write_ply(&out_dir.join("mesh.ply"))?;
+    let class_names: Vec<&str> = out
+        .entities
+        .iter()
+        .map(|e| e.class)
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter()
+        .collect();
+    fsutil::write_json(
+        &out_dir.join("semantics.json"),
+        &serde_json::json!({ "entities": out.entities, "classes": class_names, "levels": ["feature", "surface", "part"] }),
+    )?;
+    fsutil::write_json(&out_dir.join("alignment.json"), &out.alignment.to_json())?;
+    fsutil::write_json(&out_dir.join("summary.json"), &out.summary)?;
+    Ok(())
+}

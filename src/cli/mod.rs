@@ -1,5 +1,31 @@
+//! The command line: one subcommand per stage (DESIGN.md). Only this module uses `anyhow`.
+//! Each subcommand parses its arguments, validates them into a config, then runs.
+mod citymodel;
 pub mod raycast;
 
+use clap::{Parser, Subcommand};
+
+/// gs4city: hierarchical CityGML LoD3 semantics for 3D Gaussian Splatting city scenes (CPU-only).
+#[derive(Debug, Parser)]
+#[command(name = "gs4city", version, about, long_about = None)]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// CityGML files → hierarchy table, triangulated aligned mesh (mesh.ply, semantics.json, summary.json).
+    Citymodel(citymodel::CitymodelArgs),
+    /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
+    Align(citymodel::AlignArgs),
+}
+
+/// Parses the process arguments and runs the chosen subcommand.
 pub fn main() -> anyhow::Result<()> {
-    Ok(())
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Citymodel(args) => citymodel::run(&args),
+        Command::Align(args) => citymodel::run_align(&args),
+    }
 }

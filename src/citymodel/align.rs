@@ -1,0 +1,422 @@
+//! Georeferenced CRS → scene frame: `p_scene = s · R · (p_geo − origin) + t` (DESIGN.md),
+//! evaluated in f64; `alignment.json` reading/writing; estimation of a similarity from ≥ 3
+//! point pairs (Umeyama's least-squares similarity, rotation by Horn's quaternion method).
+use std::path::{Path, PathBuf};
+
+use glam::{DMat3, DVec3};
+use serde::{Deserialize, Serialize};
+
+/// Errors of alignment reading and estimation.
+#[derive(Debug, thiserror::Error)]
+pub enum AlignError {
+    #[error("cannot read {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path}: {why}")]
+    Invalid { path: PathBuf, why: String },
+    #[error("{path}:{line}: {why}")]
+    Csv {
+        path: PathBuf,
+        line: usize,
+        why: String,
+    },
+}
+
+/// A similarity transform with a georeferenced origin subtracted first.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Alignment {
+    pub origin: DVec3,
+    pub scale: f64,
+    /// Rotation, applied after the origin is subtracted.
+    pub rotation: DMat3,
+    pub translation: DVec3,
+}
+
+#[derive(Serialize, Deserialize)]
+struct AlignmentJson {
+    origin: [f64; 3],
+    scale: f64,
+    rotation: serde_json::Value,
+    translation: [f64; 3],
+}
+
+impl Alignment {
+    /// Only a local origin: scene = geo − origin.
+    pub fn local(origin: DVec3) -> Alignment {
+        Alignment {
+            origin,
+            scale: 1.0,
+            rotation: DMat3::IDENTITY,
+            translation: DVec3::ZERO,
+        }
+    }
+
+    /// Applies the transform in f64.
+    pub fn apply(&self, p: DVec3) -> DVec3 {
+        self.scale * (self.rotation * (p - self.origin)) + self.translation
+    }
+
+    /// Rotation rows (row-major), as in `alignment.json`.
+    pub fn rotation_rows(&self) -> [[f64; 3]; 3] {
+        let t = self.rotation.transpose();
+        [
+            t.x_axis.to_array(),
+            t.y_axis.to_array(),
+            t.z_axis.to_array(),
+        ]
+    }
+
+    /// The `alignment.json` value.
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "origin": self.origin.to_array(),
+            "scale": self.scale,
+            "rotation": self.rotation_rows(),
+            "translation": self.translation.to_array(),
+        })
+    }
+
+    /// Parses and validates `alignment.json`: finite values, `scale > 0`, `R` a rotation
+    /// (orthonormal within 1e-6, det +1). `rotation` may be 3 rows or 9 numbers, row-major.
+    pub fn from_json_str(path: &Path, text: &str) -> Result<Alignment, AlignError> {
+        let bad = |why: String| AlignError::Invalid {
+            path: path.to_path_buf(),
+            why,
+        };
+        let j: AlignmentJson = serde_json::from_str(text).map_err(|e| {
+            bad(format!(
+                "not an alignment (origin, scale, rotation, translation): {e}"
+            ))
+        })?;
+        let flat: Vec<f64> = match &j.rotation {
+            serde_json::Value::Array(rows)
+                if rows.len() == 3 && rows.iter().all(|r| r.is_array()) =>
+            {
+                rows.iter()
+                    .flat_map(|r| r.as_array().cloned().unwrap_or_default())
+                    .map(|v| v.as_f64().unwrap_or(f64::NAN))
+                    .collect()
+            }
+            serde_json::Value::Array(v) => {
+                v.iter().map(|v| v.as_f64().unwrap_or(f64::NAN)).collect()
+            }
+            _ => Vec::new(),
+        };
+        if flat.len() != 9 {
+            return Err(bad(
+                "rotation must be 3×3 (3 rows of 3, or 9 numbers, row-major)".into(),
+            ));
+        }
+        let all = j
+            .origin
+            .iter()
+            .chain(&j.translation)
+            .chain(&flat)
+            .chain(std::iter::once(&j.scale));
+        if all.clone().any(|v| !v.is_finite()) {
+            return Err(bad("non-finite value".into()));
+        }
+        if j.scale <= 0.0 {
+            return Err(bad(format!("scale must be > 0, got {}", j.scale)));
+        }
+        let rotation = DMat3::from_cols_array(&[
+            flat[0], flat[3], flat[6], flat[1], flat[4], flat[7], flat[2], flat[5], flat[8],
+        ]);
+        let err = (rotation.transpose() * rotation - DMat3::IDENTITY)
+            .to_cols_array()
+            .iter()
+            .fold(0.0f64, |m, v| m.max(v.abs()));
+        if err > 1e-6 || rotation.determinant() < 0.0 {
+            return Err(bad(format!(
+                "rotation is not a proper rotation (|RᵀR − I| = {err:.2e}, det = {:.6})",
+                rotation.determinant()
+            )));
+        }
+        Ok(Alignment {
+            origin: DVec3::from_array(j.origin),
+            scale: j.scale,
+            rotation,
+            translation: DVec3::from_array(j.translation),
+        })
+    }
+
+    /// Reads `alignment.json`.
+    pub fn read(path: &Path) -> Result<Alignment, AlignError> {
+        let text = std::fs::read_to_string(path).map_err(|source| AlignError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Alignment::from_json_str(path, &text)
+    }
+}
+
+/// An estimated alignment and its residuals (scene units) per point pair.
+#[derive(Debug, Clone)]
+pub struct Estimate {
+    pub alignment: Alignment,
+    pub residuals: Vec<f64>,
+    pub rms: f64,
+    pub max: f64,
+}
+
+/// Reads point pairs: 6 numbers per line `geo_x geo_y geo_z scene_x scene_y scene_z`
+/// (comma- or whitespace-separated); `#` comments and a non-numeric header line are skipped.
+pub fn read_pairs(path: &Path) -> Result<Vec<(DVec3, DVec3)>, AlignError> {
+    let text = std::fs::read_to_string(path).map_err(|source| AlignError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut pairs = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.split('#').next().unwrap_or("").trim();
+        if line.is_empty() {
+            continue;
+        }
+        let toks: Vec<&str> = line
+            .split(|c: char| c == ',' || c == ';' || c.is_whitespace())
+            .filter(|t| !t.is_empty())
+            .collect();
+        let vals: Result<Vec<f64>, _> = toks.iter().map(|t| t.parse::<f64>()).collect();
+        let Ok(vals) = vals else {
+            if pairs.is_empty() && i == 0 {
+                continue; // header
+            }
+            return Err(AlignError::Csv {
+                path: path.to_path_buf(),
+                line: i + 1,
+                why: format!("expected 6 numbers, got '{line}'"),
+            });
+        };
+        if vals.len() != 6 || vals.iter().any(|v| !v.is_finite()) {
+            return Err(AlignError::Csv {
+                path: path.to_path_buf(),
+                line: i + 1,
+                why: format!("expected 6 finite numbers, got {}", vals.len()),
+            });
+        }
+        pairs.push((
+            DVec3::new(vals[0], vals[1], vals[2]),
+            DVec3::new(vals[3], vals[4], vals[5]),
+        ));
+    }
+    Ok(pairs)
+}
+
+/// Least-squares similarity (Umeyama 1991) mapping `geo` onto `scene`; the origin is the
+/// centroid of the geo points, so all arithmetic runs on small centred f64 numbers.
+pub fn estimate(path: &Path, pairs: &[(DVec3, DVec3)]) -> Result<Estimate, AlignError> {
+    let bad = |why: String| AlignError::Invalid {
+        path: path.to_path_buf(),
+        why,
+    };
+    if pairs.len() < 3 {
+        return Err(bad(format!(
+            "need at least 3 point pairs, got {}",
+            pairs.len()
+        )));
+    }
+    let n = pairs.len() as f64;
+    let mu_a = pairs.iter().map(|p| p.0).sum::<DVec3>() / n;
+    let mu_b = pairs.iter().map(|p| p.1).sum::<DVec3>() / n;
+    let a: Vec<DVec3> = pairs.iter().map(|p| p.0 - mu_a).collect();
+    let b: Vec<DVec3> = pairs.iter().map(|p| p.1 - mu_b).collect();
+    // Degeneracy: the geo points must span a plane (not a line or a point).
+    let cov = a.iter().fold(DMat3::ZERO, |m, p| m + outer(*p, *p));
+    let eig = jacobi_eigen::<3>(mat3_to_arr(&cov));
+    let mut ev = eig.0;
+    ev.sort_by(|x, y| y.total_cmp(x));
+    if ev[1].is_nan() || ev[1] <= 1e-10 * ev[0].max(1e-300) {
+        return Err(bad(
+            "point pairs are (nearly) collinear or coincident: the rotation is not determined"
+                .into(),
+        ));
+    }
+    // Horn: S = Σ a bᵀ, N (4×4) whose top eigenvector is the rotation quaternion.
+    let s = a
+        .iter()
+        .zip(&b)
+        .fold(DMat3::ZERO, |m, (p, q)| m + outer(*p, *q));
+    let s = mat3_to_arr(&s); // s[i][j] = Σ a_i b_j
+    let (sxx, sxy, sxz, syx, syy, syz, szx, szy, szz) = (
+        s[0][0], s[0][1], s[0][2], s[1][0], s[1][1], s[1][2], s[2][0], s[2][1], s[2][2],
+    );
+    let nmat = [
+        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+    ];
+    let (vals, vecs) = jacobi_eigen::<4>(nmat);
+    let k = (0..4)
+        .max_by(|&i, &j| vals[i].total_cmp(&vals[j]))
+        .unwrap_or(0);
+    let q = [vecs[0][k], vecs[1][k], vecs[2][k], vecs[3][k]];
+    let rotation = DMat3::from_quat(glam::DQuat::from_xyzw(q[1], q[2], q[3], q[0]).normalize());
+    let var_a: f64 = a.iter().map(|p| p.length_squared()).sum();
+    let scale = a
+        .iter()
+        .zip(&b)
+        .map(|(p, q)| q.dot(rotation * *p))
+        .sum::<f64>()
+        / var_a;
+    if scale.is_nan() || scale <= 0.0 {
+        return Err(bad(format!(
+            "estimated scale {scale} is not positive (mirrored point pairs?)"
+        )));
+    }
+    let alignment = Alignment {
+        origin: mu_a,
+        scale,
+        rotation,
+        translation: mu_b,
+    };
+    let residuals: Vec<f64> = pairs
+        .iter()
+        .map(|(g, sc)| (alignment.apply(*g) - *sc).length())
+        .collect();
+    let rms = (residuals.iter().map(|r| r * r).sum::<f64>() / n).sqrt();
+    let max = residuals.iter().copied().fold(0.0, f64::max);
+    Ok(Estimate {
+        alignment,
+        residuals,
+        rms,
+        max,
+    })
+}
+
+fn outer(p: DVec3, q: DVec3) -> DMat3 {
+    // Column j is p * q_j, so entry (i, j) = p_i q_j.
+    DMat3::from_cols(p * q.x, p * q.y, p * q.z)
+}
+
+fn mat3_to_arr(m: &DMat3) -> [[f64; 3]; 3] {
+    let c = m.to_cols_array_2d();
+    [
+        [c[0][0], c[1][0], c[2][0]],
+        [c[0][1], c[1][1], c[2][1]],
+        [c[0][2], c[1][2], c[2][2]],
+    ]
+}
+
+/// Eigen-decomposition of a symmetric matrix by cyclic Jacobi rotations: (values, vectors as columns).
+pub(crate) fn jacobi_eigen<const N: usize>(mut a: [[f64; N]; N]) -> ([f64; N], [[f64; N]; N]) {
+    let mut v = [[0.0; N]; N];
+    for (i, row) in v.iter_mut().enumerate() {
+        row[i] = 1.0;
+    }
+    for _sweep in 0..100 {
+        let off: f64 = (0..N)
+            .flat_map(|i| (0..N).filter(move |&j| j != i).map(move |j| (i, j)))
+            .map(|(i, j)| a[i][j] * a[i][j])
+            .sum();
+        if off < 1e-30 {
+            break;
+        }
+        for p in 0..N {
+            for q in p + 1..N {
+                if a[p][q].abs() < 1e-300 {
+                    continue;
+                }
+                let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let t = if theta == 0.0 { 1.0 } else { t };
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let s = t * c;
+                for row in a.iter_mut() {
+                    let (akp, akq) = (row[p], row[q]);
+                    row[p] = c * akp - s * akq;
+                    row[q] = s * akp + c * akq;
+                }
+                let (rp, rq) = (a[p], a[q]);
+                for k in 0..N {
+                    a[p][k] = c * rp[k] - s * rq[k];
+                    a[q][k] = s * rp[k] + c * rq[k];
+                }
+                for row in v.iter_mut() {
+                    let (vkp, vkq) = (row[p], row[q]);
+                    row[p] = c * vkp - s * vkq;
+                    row[q] = s * vkp + c * vkq;
+                }
+            }
+        }
+    }
+    let mut vals = [0.0; N];
+    for (i, val) in vals.iter_mut().enumerate() {
+        *val = a[i][i];
+    }
+    (vals, v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn estimate_recovers_a_utm_similarity() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let truth = Alignment {
+            origin: DVec3::new(678_100.0, 5_403_800.0, 400.0),
+            scale: 0.37,
+            rotation: DMat3::from_quat(glam::DQuat::from_euler(
+                glam::EulerRot::ZYX,
+                0.7,
+                -0.2,
+                0.1,
+            )),
+            translation: DVec3::new(3.0, -1.0, 0.5),
+        };
+        let pairs: Vec<(DVec3, DVec3)> = (0..12)
+            .map(|_| {
+                let g = truth.origin
+                    + DVec3::new(
+                        rng.random_range(-80.0..80.0),
+                        rng.random_range(-80.0..80.0),
+                        rng.random_range(0.0..30.0),
+                    );
+                (g, truth.apply(g))
+            })
+            .collect();
+        let est = estimate(Path::new("pairs.csv"), &pairs).unwrap();
+        assert!(est.max < 1e-9, "max residual {}", est.max);
+        assert!((est.alignment.scale - 0.37).abs() < 1e-12);
+        // With noise, residuals are reported and the fit stays close.
+        let noisy: Vec<_> = pairs
+            .iter()
+            .map(|(g, s)| (*g, *s + DVec3::new(rng.random_range(-0.01..0.01), 0.0, 0.0)))
+            .collect();
+        let est = estimate(Path::new("pairs.csv"), &noisy).unwrap();
+        assert!(est.rms > 0.0 && est.rms < 0.01);
+    }
+
+    #[test]
+    fn degenerate_and_bad_inputs_are_errors() {
+        let line: Vec<(DVec3, DVec3)> = (0..5)
+            .map(|i| (DVec3::X * i as f64, DVec3::Y * i as f64))
+            .collect();
+        assert!(
+            estimate(Path::new("p.csv"), &line)
+                .unwrap_err()
+                .to_string()
+                .contains("collinear")
+        );
+        assert!(estimate(Path::new("p.csv"), &line[..2]).is_err());
+        let p = Path::new("alignment.json");
+        let ok = r#"{"origin":[1,2,3],"scale":2,"rotation":[[0,-1,0],[1,0,0],[0,0,1]],"translation":[0,0,0]}"#;
+        let a = Alignment::from_json_str(p, ok).unwrap();
+        assert!((a.apply(DVec3::new(2.0, 2.0, 3.0)) - DVec3::new(0.0, 2.0, 0.0)).length() < 1e-12);
+        let mirror = ok.replace("[0,0,1]]", "[0,0,-1]]");
+        assert!(
+            Alignment::from_json_str(p, &mirror)
+                .unwrap_err()
+                .to_string()
+                .contains("alignment.json")
+        );
+        assert!(Alignment::from_json_str(p, &ok.replace("\"scale\":2", "\"scale\":0")).is_err());
+        let flat =
+            r#"{"origin":[0,0,0],"scale":1,"rotation":[1,0,0,0,1,0,0,0,1],"translation":[0,0,0]}"#;
+        assert!(Alignment::from_json_str(p, flat).is_ok());
+    }
+}

@@ -1,0 +1,150 @@
+//! `gs4city citymodel` and `gs4city align`.
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use clap::Args;
+
+use crate::citymodel::{self, Alignment, align};
+
+#[derive(Debug, Args)]
+pub struct CitymodelArgs {
+    /// CityGML files, or directories searched recursively for *.gml / *.xml.
+    #[arg(required = true)]
+    files: Vec<PathBuf>,
+    /// alignment.json: georeferenced CRS → scene frame. Default: subtract a local origin only.
+    #[arg(long, conflicts_with = "align_points")]
+    align: Option<PathBuf>,
+    /// Estimate the alignment from a CSV of point pairs (geo_x geo_y geo_z scene_x scene_y scene_z).
+    #[arg(long)]
+    align_points: Option<PathBuf>,
+    /// Output directory.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct AlignArgs {
+    /// CSV of point pairs: geo_x geo_y geo_z scene_x scene_y scene_z per line (≥ 3 pairs).
+    #[arg(long)]
+    points: PathBuf,
+    /// Where to write alignment.json.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+/// Expands directories into the CityGML files below them (sorted, so runs are reproducible).
+fn collect_files(inputs: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for input in inputs {
+        if input.is_dir() {
+            let mut found = Vec::new();
+            walk(input, &mut found).with_context(|| format!("cannot list {}", input.display()))?;
+            if found.is_empty() {
+                bail!(
+                    "{}: no .gml or .xml files below this directory",
+                    input.display()
+                );
+            }
+            found.sort();
+            files.extend(found);
+        } else if input.is_file() {
+            files.push(input.clone());
+        } else {
+            bail!("{}: no such file or directory", input.display());
+        }
+    }
+    Ok(files)
+}
+
+fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
+    for entry in std::fs::read_dir(dir)? {
+        let path = entry?.path();
+        if path.is_dir() {
+            walk(&path, out)?;
+        } else if path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("gml") || e.eq_ignore_ascii_case("xml"))
+        {
+            out.push(path);
+        }
+    }
+    Ok(())
+}
+
+fn print_estimate(est: &align::Estimate) {
+    println!(
+        "alignment from {} point pairs: scale {:.6}, residuals rms {:.4}, max {:.4} (scene units)",
+        est.residuals.len(),
+        est.alignment.scale,
+        est.rms,
+        est.max
+    );
+}
+
+pub fn run(args: &CitymodelArgs) -> anyhow::Result<()> {
+    // Validate.
+    let files = collect_files(&args.files)?;
+    let mut estimate = None;
+    let alignment = match (&args.align, &args.align_points) {
+        (Some(path), _) => Some(Alignment::read(path)?),
+        (None, Some(csv)) => {
+            let est = align::estimate(csv, &align::read_pairs(csv)?)?;
+            print_estimate(&est);
+            let a = est.alignment;
+            estimate = Some(est);
+            Some(a)
+        }
+        (None, None) => None,
+    };
+    // Run.
+    let mut out = citymodel::run(&files, &citymodel::Options { alignment })?;
+    if let Some(est) = &estimate {
+        out.summary["alignment"]["estimated_from"] = serde_json::json!({
+            "points": args.align_points,
+            "residuals": est.residuals,
+            "rms": est.rms,
+            "max": est.max,
+        });
+    }
+    citymodel::write(&out, &args.out)?;
+    let s = &out.summary;
+    println!("{:<14} {:>8}", "files", files.len());
+    for key in [
+        "buildings",
+        "building_parts",
+        "installations",
+        "surfaces_total",
+        "windows",
+        "doors",
+        "polygons",
+        "holes",
+        "triangles",
+    ] {
+        println!("{:<14} {:>8}", key, s[key].to_string());
+    }
+    println!("{:<14} {:>8}", "skipped", s["skipped"]["count"].to_string());
+    println!(
+        "{:<14} {:>8}",
+        "warnings",
+        s["warnings"]["count"].to_string()
+    );
+    println!(
+        "parse {:.2} s ({:.1} MB/s), triangulate {:.2} s → {}",
+        s["timing"]["parse_s"].as_f64().unwrap_or(0.0),
+        s["timing"]["parse_mb_per_s"].as_f64().unwrap_or(0.0),
+        s["timing"]["triangulate_s"].as_f64().unwrap_or(0.0),
+        args.out.display()
+    );
+    Ok(())
+}
+
+pub fn run_align(args: &AlignArgs) -> anyhow::Result<()> {
+    let est = align::estimate(&args.points, &align::read_pairs(&args.points)?)?;
+    print_estimate(&est);
+    for (i, r) in est.residuals.iter().enumerate() {
+        println!("  pair {:>3}: {:.4}", i + 1, r);
+    }
+    crate::fsutil::write_json(&args.out, &est.alignment.to_json())?;
+    println!("wrote {}", args.out.display());
+    Ok(())
+}
