@@ -82,8 +82,12 @@ fn main() {
         gs4city::npy::write(&dir.join(name), shape, data).expect("npy")
     };
     let flat_v: Vec<f32> = mesh.vertices.iter().flatten().copied().collect();
-    gs4city::npy::write(&dir.join("vertices.npy"), &[mesh.vertices.len(), 3], &flat_v)
-        .expect("npy");
+    gs4city::npy::write(
+        &dir.join("vertices.npy"),
+        &[mesh.vertices.len(), 3],
+        &flat_v,
+    )
+    .expect("npy");
     let flat_f: Vec<i32> = mesh.faces.iter().flatten().map(|&i| i as i32).collect();
     w("faces.npy", &[mesh.faces.len(), 3], &flat_f);
     let feat: Vec<i32> = mesh.labels.iter().map(|l| l.feature).collect();

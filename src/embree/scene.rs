@@ -360,6 +360,7 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::needless_range_loop)] // lanes index several parallel arrays
     fn intersect1_and_intersect16_agree() {
         let sc = quad_scene();
         let h = sc
@@ -422,8 +423,10 @@ mod tests {
             c.intersect1([0.0; 3], [0.0, 0.0, 1.0], f32::INFINITY)
                 .is_none()
         );
-        let mut p = Packet16::default();
-        p.active = [true; 16];
+        let p = Packet16 {
+            active: [true; 16],
+            ..Default::default()
+        };
         assert!(c.intersect16(&p).iter().all(|h| h.is_none()));
     }
 

@@ -191,6 +191,7 @@ struct Lane {
 }
 
 /// Casts both passes for one view (see the module docs for the rules).
+#[allow(clippy::needless_range_loop)] // packet lanes index several parallel arrays
 pub fn raycast_view(scene: &TwoPassScene, camera: &Camera, opts: &RaycastOptions) -> ViewIds {
     let (w, h) = (
         camera.intrinsics.width as usize,
