@@ -1,7 +1,7 @@
 //! The command line: one subcommand per stage (DESIGN.md). Only this module uses `anyhow`.
 //! Each subcommand parses its arguments, validates them into a config, then runs.
 mod citymodel;
-pub mod raycast;
+mod raycast;
 
 use clap::{Parser, Subcommand};
 
@@ -17,6 +17,8 @@ pub struct Cli {
 enum Command {
     /// CityGML files → hierarchy table, triangulated aligned mesh (mesh.ply, semantics.json, summary.json).
     Citymodel(citymodel::CitymodelArgs),
+    /// Two-pass raycasting of a citymodel mesh into every COLMAP view → per-view id maps and depth.
+    Raycast(raycast::RaycastArgs),
     /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
     Align(citymodel::AlignArgs),
 }
@@ -27,5 +29,6 @@ pub fn main() -> anyhow::Result<()> {
     match cli.command {
         Command::Citymodel(args) => citymodel::run(&args),
         Command::Align(args) => citymodel::run_align(&args),
+        Command::Raycast(args) => raycast::run(&args),
     }
 }
