@@ -47,11 +47,10 @@ fn measure(file: &Path) -> (usize, usize, usize, usize) {
     let two = RaycastOptions {
         tau: 0.5,
         single_pass: false,
-        ..RaycastOptions::default()
     };
     let one = RaycastOptions {
         single_pass: true,
-        ..two.clone()
+        ..two
     };
     let (mut s1, mut s2, mut recovered_px) = (BTreeSet::new(), BTreeSet::new(), 0);
     for cam in orbit(center, radius, radius * 0.3, 12, 320, 240) {
