@@ -14,3 +14,5 @@ pub mod fsutil;
 pub mod imageio;
 pub mod mesh;
 pub mod npy;
+pub mod render;
+pub mod splat;
