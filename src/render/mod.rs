@@ -27,8 +27,8 @@ use glam::{DMat3, DQuat};
 use ndarray::Array3;
 use rayon::prelude::*;
 
-pub use blend::{Contribution, ContributionMode};
 use blend::{BlendInput, TileOut};
+pub use blend::{Contribution, ContributionMode};
 use project::{Projected, ViewParams};
 
 use crate::camera::{Camera, Distortion, View};
@@ -520,8 +520,7 @@ pub fn render_to_dir(
         });
     }
     if summary.render_s > 0.0 {
-        summary.gaussians_per_s =
-            (scene.len() * summary.views.len()) as f64 / summary.render_s;
+        summary.gaussians_per_s = (scene.len() * summary.views.len()) as f64 / summary.render_s;
     }
     Ok(summary)
 }

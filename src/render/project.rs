@@ -138,7 +138,10 @@ pub fn sh_color(coeffs: &[[f32; 3]], degree: u8, d: DVec3) -> [f32; 3] {
             }
         }
     }
-    (r + DVec3::splat(0.5)).max(DVec3::ZERO).as_vec3().to_array()
+    (r + DVec3::splat(0.5))
+        .max(DVec3::ZERO)
+        .as_vec3()
+        .to_array()
 }
 
 /// Projects Gaussian `i`; `None` when INRIA's preprocess culls it (near plane, det = 0,
@@ -182,10 +185,7 @@ pub fn project(
     let mid = 0.5 * (a + c);
     let lambda1 = mid + (mid * mid - det).max(0.1).sqrt();
     let radius = (3.0 * lambda1.sqrt()).ceil();
-    let mean = [
-        v.fx * t.x / t.z + v.cx - 0.5,
-        v.fy * t.y / t.z + v.cy - 0.5,
-    ];
+    let mean = [v.fx * t.x / t.z + v.cx - 0.5, v.fy * t.y / t.z + v.cy - 0.5];
     let r = rect(mean, radius, v.grid_x, v.grid_y);
     if (r[2] - r[0]) * (r[3] - r[1]) == 0 {
         return None;
