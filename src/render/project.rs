@@ -155,7 +155,7 @@ pub fn project(
 ) -> Option<Projected> {
     let pw = DVec3::from_array(scene.positions[i].map(f64::from));
     let t = v.rot * pw + v.trans;
-    if !(t.z > NEAR) {
+    if t.z.is_nan() || t.z <= NEAR {
         return None;
     }
     let s = scene.cov3d[i].map(f64::from);
@@ -195,7 +195,7 @@ pub fn project(
         opacity *= (det0 / det).max(0.000_025).sqrt();
     }
     let opacity = opacity as f32;
-    if !(opacity >= ALPHA_MIN) {
+    if opacity.is_nan() || opacity < ALPHA_MIN {
         return None;
     }
     // alpha ≥ 1/255 needs dᵀ·conic·d ≤ 2 ln(255·o); that ellipse's half extents are
