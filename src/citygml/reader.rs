@@ -375,32 +375,22 @@ fn parse<R: Read>(
                 let line = reader.get_ref().get_ref().line_of(offset);
                 p.end(line)?;
             }
-            Event::Text(t) => {
-                if p.collecting {
-                    p.text.push_str(&t.xml10_content());
-                }
-            }
-            Event::CData(t) => {
-                if p.collecting {
-                    p.text.push_str(&t.xml10_content());
-                }
-            }
-            Event::GeneralRef(r) => {
-                if p.collecting {
-                    let s = if let Ok(Some(c)) = r.resolve_char_ref() {
-                        c.to_string()
-                    } else {
-                        match r.xml10_content().as_ref() {
-                            "lt" => "<".into(),
-                            "gt" => ">".into(),
-                            "amp" => "&".into(),
-                            "apos" => "'".into(),
-                            "quot" => "\"".into(),
-                            other => format!("&{other};"),
-                        }
-                    };
-                    p.text.push_str(&s);
-                }
+            Event::Text(t) if p.collecting => p.text.push_str(&t.xml10_content()),
+            Event::CData(t) if p.collecting => p.text.push_str(&t.xml10_content()),
+            Event::GeneralRef(r) if p.collecting => {
+                let s = if let Ok(Some(c)) = r.resolve_char_ref() {
+                    c.to_string()
+                } else {
+                    match r.xml10_content().as_ref() {
+                        "lt" => "<".into(),
+                        "gt" => ">".into(),
+                        "amp" => "&".into(),
+                        "apos" => "'".into(),
+                        "quot" => "\"".into(),
+                        other => format!("&{other};"),
+                    }
+                };
+                p.text.push_str(&s);
             }
             Event::Eof => {
                 let open = p.stack.len();
@@ -1230,8 +1220,8 @@ impl Parser {
     fn choose_lods(&mut self) {
         let n = self.objects.len();
         let mut root = vec![0usize; n];
-        for i in 0..n {
-            root[i] = match self.objects[i].parent {
+        for (i, o) in self.objects.iter().enumerate() {
+            root[i] = match o.parent {
                 Some(p) => root[p],
                 None => i,
             };
@@ -1262,8 +1252,8 @@ impl Parser {
                 );
             }
         }
-        for i in 0..n {
-            self.objects[i].lod_used = chosen.get(&root[i]).copied();
+        for (o, r) in self.objects.iter_mut().zip(&root) {
+            o.lod_used = chosen.get(r).copied();
         }
     }
 }
