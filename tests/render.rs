@@ -259,3 +259,76 @@ fn hard_cases_give_no_nan() {
         }
     }
 }
+
+#[test]
+fn render_to_dir_writes_png_depth_and_features() {
+    use gs4city::camera::View;
+    use gs4city::render::{RenderError, render_to_dir};
+    let (_, scene) = load_scene("aa1");
+    let mut cam = front_camera();
+    let views = vec![
+        View {
+            image_id: 1,
+            camera_id: 1,
+            name: "imgs/DJI_0001.JPG".into(),
+            camera: cam,
+        },
+        View {
+            image_id: 2,
+            camera_id: 1,
+            name: "DJI_0002.png".into(),
+            camera: Camera {
+                pose: Pose::look_at(
+                    DVec3::new(0.0, 0.0, -50.0),
+                    DVec3::new(0.0, 0.0, -100.0),
+                    DVec3::new(0.0, -1.0, 0.0),
+                )
+                .unwrap(),
+                ..cam
+            },
+        },
+    ];
+    let dir = std::env::temp_dir().join(format!("gs4city-render-{}", std::process::id()));
+    let summary = render_to_dir(&scene, &views, &dir, &RenderOptions::default()).unwrap();
+    assert_eq!(summary.views.len(), 2);
+    assert!(summary.gaussians_per_s > 0.0);
+    assert!(
+        serde_json::to_string(&summary)
+            .unwrap()
+            .contains("DJI_0001")
+    );
+    assert!(dir.join("DJI_0001.png").is_file());
+    let (shape, depth) = gs4city::npy::read::<f32>(&dir.join("DJI_0001.depth.npy")).unwrap();
+    assert_eq!(shape, vec![64, 80]);
+    assert!(depth.iter().all(|d| d.is_finite() && *d > 0.2));
+    let (shape, _) = gs4city::npy::read::<f32>(&dir.join("DJI_0001.features.npy")).unwrap();
+    assert_eq!(shape, vec![3, 64, 80]);
+    // Looking away from the scene: nothing drawn, depth NaN everywhere.
+    let (_, depth) = gs4city::npy::read::<f32>(&dir.join("DJI_0002.depth.npy")).unwrap();
+    assert!(depth.iter().all(|d| d.is_nan()));
+    assert_eq!(summary.views[1].coverage, 0.0);
+    // Distortion is reported, duplicate stems and empty images are errors.
+    cam.intrinsics.distortion = Distortion::Radial { k1: 0.1, k2: 0.0 };
+    let v = vec![View {
+        image_id: 3,
+        camera_id: 2,
+        name: "a/x.jpg".into(),
+        camera: cam,
+    }];
+    let s = render_to_dir(&scene, &v, &dir, &RenderOptions::default()).unwrap();
+    assert_eq!(s.warnings.len(), 1);
+    let dup = vec![
+        v[0].clone(),
+        View {
+            name: "b/x.png".into(),
+            ..v[0].clone()
+        },
+    ];
+    assert!(matches!(
+        render_to_dir(&scene, &dup, &dir, &RenderOptions::default()),
+        Err(RenderError::Camera { .. })
+    ));
+    cam.intrinsics.width = 0;
+    assert!(render_view(&scene, &cam, &RenderOptions::default()).is_err());
+    let _ = std::fs::remove_dir_all(&dir);
+}

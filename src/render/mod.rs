@@ -287,14 +287,18 @@ pub fn render_view(
     let v = ViewParams::new(camera);
     let n = scene.len();
     const CHUNK: usize = 16384;
-    let projected: Vec<Projected> = (0..n.div_ceil(CHUNK))
+    let chunks: Vec<Vec<Projected>> = (0..n.div_ceil(CHUNK))
         .into_par_iter()
-        .flat_map_iter(|c| {
-            (c * CHUNK..((c + 1) * CHUNK).min(n)).filter_map(|i| {
-                project::project(scene, i, &v, options.antialiased, options.max_sh_degree)
-            })
+        .map(|c| {
+            (c * CHUNK..((c + 1) * CHUNK).min(n))
+                .filter_map(|i| {
+                    project::project(scene, i, &v, options.antialiased, options.max_sh_degree)
+                })
+                .collect()
         })
         .collect();
+    let projected: Vec<Projected> = chunks.concat();
+    drop(chunks);
     let t1 = Instant::now();
     let bins = tile::bin(&projected, v.grid_x, v.grid_y);
     let t2 = Instant::now();

@@ -3,8 +3,6 @@
 //! Gaussian index (the same order INRIA's radix sort on `tile ≪ 32 | depth` gives, made
 //! deterministic). One global sort by `(depth, index)` followed by a counting scatter
 //! into the tiles replaces the per-pair sort.
-use rayon::prelude::*;
-
 use super::project::Projected;
 
 /// Per-tile lists of indices into the projected array, in CSR form.
@@ -21,6 +19,32 @@ impl TileBins {
     }
 }
 
+/// Stable LSD radix sort of `(depth_bits << 32) | index` keys on the upper 32 bits
+/// (three passes of 11/11/10 bits). The keys start in index order, so equal depths stay
+/// in index order: the result equals a full sort of the 64-bit keys.
+pub fn radix_sort_depth(keys: &mut Vec<u64>) {
+    let mut tmp = vec![0u64; keys.len()];
+    for (shift, bits) in [(32u32, 11u32), (43, 11), (54, 10)] {
+        let mask = (1u64 << bits) - 1;
+        let mut counts = vec![0usize; (1 << bits) + 1];
+        for &k in keys.iter() {
+            counts[((k >> shift) & mask) as usize + 1] += 1;
+        }
+        if counts.iter().filter(|&&c| c > 0).count() <= 1 {
+            continue; // every key has the same digit: the pass would not move anything
+        }
+        for b in 0..(1 << bits) {
+            counts[b + 1] += counts[b];
+        }
+        for &k in keys.iter() {
+            let d = ((k >> shift) & mask) as usize;
+            tmp[counts[d]] = k;
+            counts[d] += 1;
+        }
+        std::mem::swap(keys, &mut tmp);
+    }
+}
+
 /// Sorts `projected` by `(depth, index)` and bins it into a `grid_x × grid_y` tile grid.
 pub fn bin(projected: &[Projected], grid_x: usize, grid_y: usize) -> TileBins {
     // Depths are > 0.2, so their bit patterns order like the values.
@@ -29,7 +53,7 @@ pub fn bin(projected: &[Projected], grid_x: usize, grid_y: usize) -> TileBins {
         .enumerate()
         .map(|(i, p)| (u64::from(p.depth.to_bits()) << 32) | i as u64)
         .collect();
-    keys.par_sort_unstable();
+    radix_sort_depth(&mut keys);
     let tiles = grid_x * grid_y;
     let mut counts = vec![0usize; tiles + 1];
     for p in projected {
@@ -60,4 +84,33 @@ pub fn bin(projected: &[Projected], grid_x: usize, grid_y: usize) -> TileBins {
         }
     }
     TileBins { offsets, items }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn radix_sort_equals_full_sort_with_index_ties() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let depths: Vec<f32> = (0..5000)
+            .map(|_| {
+                if rng.random_bool(0.2) {
+                    1.5
+                } else {
+                    rng.random_range(0.2f32..1e4)
+                }
+            })
+            .collect();
+        let mut keys: Vec<u64> = depths
+            .iter()
+            .enumerate()
+            .map(|(i, d)| (u64::from(d.to_bits()) << 32) | i as u64)
+            .collect();
+        let mut expected = keys.clone();
+        expected.sort_unstable();
+        radix_sort_depth(&mut keys);
+        assert_eq!(keys, expected);
+    }
 }
