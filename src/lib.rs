@@ -1,15 +1,15 @@
 //! gs4city: hierarchical, queryable CityGML LoD3 semantics for 3D Gaussian Splatting
 //! city scenes (the GS4City method), CPU-only.
 //!
-//! Readers and formats (depend on no stage): [`citygml`], [`mesh`], [`npy`], [`camera`].
-//! Stages: [`citymodel`]. See ARCHITECTURE.md for the data flow.
+//! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
+//! [`mesh`], [`npy`], [`camera`], [`imageio`].
+//! Stages: [`citymodel`], [`raycast`], [`render`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
 pub mod camera;
 pub mod citygml;
 pub mod citymodel;
 pub mod colmap;
-
 pub mod cli;
 pub mod embree;
 pub mod fsutil;
@@ -17,3 +17,5 @@ pub mod imageio;
 pub mod mesh;
 pub mod npy;
 pub mod raycast;
+pub mod render;
+pub mod splat;

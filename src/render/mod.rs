@@ -1,0 +1,530 @@
+//! CPU rasterizer for 3D Gaussian Splatting: the INRIA `diff-gaussian-rasterization`
+//! forward pass (constants in `shared/docs/ANCHORS.md` §3), deterministic and rayon-parallel
+//! over 16×16 tiles. This module owns the render stage: [`PreparedScene`] (view-independent
+//! activations), [`render_view`] (one camera → RGB, alpha, depths, features, contribution
+//! lists) and [`render_to_dir`] (per-view files). Submodules: [`project`] (per-Gaussian
+//! preprocessing), [`tile`] (binning and depth sort), [`blend`] (per-tile compositing).
+//!
+//! Conventions:
+//! * Pixel `(i, j)` is evaluated at the projected mean in index coordinates
+//!   `fx·x/z + cx − 0.5` (COLMAP puts pixel centres at integer + 0.5; this equals INRIA's
+//!   `ndc2Pix` when `cx = W/2`). `tan_fovx = W/(2fx)`, `tan_fovy = H/(2fy)`.
+//! * Lens distortion is ignored (pinhole only, like INRIA); [`render_to_dir`] counts such views.
+//! * `depth_acc` is INRIA-style accumulated depth `Σ wᵢ·zᵢ` with `wᵢ = αᵢ·Tᵢ`; `depth` is the
+//!   expected depth `Σ wᵢ·zᵢ / (1 − T)` (NaN where `1 − T < DEPTH_MIN_ALPHA`); `median_depth`
+//!   is the z of the first Gaussian after which `T < 0.5` (NaN if never).
+//! * Features are blended with the same weights and no background term.
+//! * Results do not depend on the number of threads: tiles are independent and every
+//!   tile list is ordered by `(depth, Gaussian index)`.
+pub mod blend;
+pub mod project;
+pub mod tile;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use glam::{DMat3, DQuat};
+use ndarray::Array3;
+use rayon::prelude::*;
+
+use blend::{BlendInput, TileOut};
+pub use blend::{Contribution, ContributionMode};
+use project::{Projected, ViewParams};
+
+use crate::camera::{Camera, Distortion, View};
+use crate::fsutil::{self, FsError};
+use crate::imageio::{self, ImageError};
+use crate::npy::{self, NpyError};
+use crate::splat::Gaussians;
+
+/// `depth` is NaN where the accumulated alpha is below this.
+pub const DEPTH_MIN_ALPHA: f32 = 1e-3;
+
+/// Errors of the render stage.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error("invalid scene: {0}")]
+    Scene(String),
+    #[error("features: {found} values for {gaussians} Gaussians × {channels} channels")]
+    Features {
+        found: usize,
+        gaussians: usize,
+        channels: usize,
+    },
+    #[error("view `{view}`: {why}")]
+    Camera { view: String, why: String },
+    #[error(transparent)]
+    Fs(#[from] FsError),
+    #[error(transparent)]
+    Npy(#[from] NpyError),
+    #[error(transparent)]
+    Image(#[from] ImageError),
+}
+
+/// Render settings.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RenderOptions {
+    /// Background colour added with the final transmittance.
+    pub background: [f32; 3],
+    /// Mip-Splatting style opacity compensation `√(det Σ / det(Σ + 0.3 I))` (clamped at
+    /// 0.000025 inside the root, as INRIA's antialiasing branch).
+    pub antialiased: bool,
+    /// Highest SH degree used (the scene's own degree caps it).
+    pub max_sh_degree: u8,
+    /// Blend the scene's feature channels.
+    pub features: bool,
+    /// Per-pixel contribution lists.
+    pub contributions: ContributionMode,
+}
+
+impl Default for RenderOptions {
+    fn default() -> Self {
+        RenderOptions {
+            background: [0.0; 3],
+            antialiased: false,
+            max_sh_degree: 3,
+            features: true,
+            contributions: ContributionMode::None,
+        }
+    }
+}
+
+/// View-independent, activated Gaussian data, reusable across views.
+#[derive(Debug, Clone)]
+pub struct PreparedScene {
+    pub positions: Vec<[f32; 3]>,
+    /// World covariance `Σ = R·S²·Rᵀ` as `xx xy xz yy yz zz`.
+    pub cov3d: Vec<[f32; 6]>,
+    /// `sigmoid(opacity)`; 0 for a Gaussian that cannot be rendered (zero quaternion).
+    pub opacity: Vec<f32>,
+    pub sh_degree: u8,
+    /// SH coefficients per Gaussian (`coeffs` each, coefficient-major, RGB).
+    pub sh: Vec<[f32; 3]>,
+    pub coeffs: usize,
+    /// Per-Gaussian features, `len × channels`.
+    pub features: Vec<f32>,
+    pub channels: usize,
+}
+
+impl PreparedScene {
+    /// Activates `g`: `exp` scales, `sigmoid` opacity, normalised quaternion, covariance.
+    /// A Gaussian with a zero or non-finite quaternion gets opacity 0 (never drawn).
+    pub fn new(g: &Gaussians) -> Result<Self, RenderError> {
+        g.check().map_err(|e| RenderError::Scene(e.to_string()))?;
+        let n = g.len();
+        let coeffs = (usize::from(g.sh_degree) + 1).pow(2);
+        let kk = coeffs - 1;
+        let rest = g.rest_per_gaussian();
+        let mut sh = Vec::with_capacity(n * coeffs);
+        for i in 0..n {
+            sh.push(g.f_dc[i]);
+            let r = &g.f_rest[i * rest..(i + 1) * rest];
+            for k in 0..kk {
+                sh.push([r[k], r[kk + k], r[2 * kk + k]]);
+            }
+        }
+        let mut opacity = Vec::with_capacity(n);
+        let cov3d = (0..n)
+            .map(|i| match g.normalized_rotation(i) {
+                Some(q) => {
+                    opacity.push(g.activated_opacity(i));
+                    covariance(g.scale[i], q)
+                }
+                None => {
+                    opacity.push(0.0);
+                    [0.0; 6]
+                }
+            })
+            .collect();
+        Ok(PreparedScene {
+            positions: g.positions.clone(),
+            cov3d,
+            opacity,
+            sh_degree: g.sh_degree,
+            sh,
+            coeffs,
+            features: Vec::new(),
+            channels: 0,
+        })
+    }
+
+    /// Attaches per-Gaussian features (`len × channels`, Gaussian-major).
+    pub fn with_features(mut self, channels: usize, data: Vec<f32>) -> Result<Self, RenderError> {
+        if data.len() != self.len() * channels {
+            return Err(RenderError::Features {
+                found: data.len(),
+                gaussians: self.len(),
+                channels,
+            });
+        }
+        self.features = data;
+        self.channels = channels;
+        Ok(self)
+    }
+
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+}
+
+/// `Σ = R·diag(exp(scale))²·Rᵀ` for a unit quaternion `(w, x, y, z)`, computed in `f64`.
+pub fn covariance(scale: [f32; 3], q: [f32; 4]) -> [f32; 6] {
+    let q = q.map(f64::from);
+    let r = DMat3::from_quat(DQuat::from_xyzw(q[1], q[2], q[3], q[0]));
+    let s = scale.map(|v| f64::from(v).exp());
+    let m = r * DMat3::from_diagonal(glam::DVec3::from_array(s));
+    let sig = m * m.transpose();
+    [
+        sig.x_axis.x,
+        sig.y_axis.x,
+        sig.z_axis.x,
+        sig.y_axis.y,
+        sig.z_axis.y,
+        sig.z_axis.z,
+    ]
+    .map(|v| v as f32)
+}
+
+/// Per-pixel contribution lists in CSR form (row-major pixels).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Contributions {
+    /// `offsets[p]..offsets[p + 1]` are pixel `p`'s entries; `H·W + 1` values.
+    pub offsets: Vec<u64>,
+    /// Gaussian indices, in depth order per pixel.
+    pub ids: Vec<u32>,
+    /// Weights `α·T`.
+    pub weights: Vec<f32>,
+    /// Per pixel, the weight mass not kept (top-k mode; zeros otherwise).
+    pub residual: Vec<f32>,
+}
+
+impl Contributions {
+    /// Pixel `p`'s `(ids, weights)`.
+    pub fn pixel(&self, p: usize) -> (&[u32], &[f32]) {
+        let (a, b) = (self.offsets[p] as usize, self.offsets[p + 1] as usize);
+        (&self.ids[a..b], &self.weights[a..b])
+    }
+}
+
+/// Timings and counts of one render.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct RenderStats {
+    pub gaussians: usize,
+    /// Gaussians that survived preprocessing.
+    pub projected: usize,
+    /// (Gaussian, tile) pairs.
+    pub tile_pairs: usize,
+    pub project_s: f64,
+    pub sort_s: f64,
+    pub blend_s: f64,
+    pub total_s: f64,
+}
+
+/// Everything one view renders. Images are row-major `H×W`; RGB is `H×W×3`.
+#[derive(Debug, Clone)]
+pub struct RenderOutput {
+    pub width: usize,
+    pub height: usize,
+    pub rgb: Vec<f32>,
+    /// Accumulated alpha `1 − T`.
+    pub alpha: Vec<f32>,
+    /// INRIA-style accumulated depth `Σ w·z`.
+    pub depth_acc: Vec<f32>,
+    /// Expected depth `Σ w·z / (1 − T)`, NaN where `1 − T < DEPTH_MIN_ALPHA`.
+    pub depth: Vec<f32>,
+    pub median_depth: Vec<f32>,
+    /// `channels × H × W`.
+    pub features: Vec<f32>,
+    pub channels: usize,
+    pub contributions: Option<Contributions>,
+    pub stats: RenderStats,
+}
+
+impl RenderOutput {
+    /// RGB as 8-bit `H×W×3` (clamped to [0, 1], rounded).
+    pub fn rgb8(&self) -> Array3<u8> {
+        let v = self
+            .rgb
+            .iter()
+            .map(|&c| (c.clamp(0.0, 1.0) * 255.0).round() as u8)
+            .collect();
+        Array3::from_shape_vec((self.height, self.width, 3), v).expect("H×W×3 values")
+    }
+}
+
+fn check_camera(camera: &Camera) -> Result<(), String> {
+    let k = &camera.intrinsics;
+    if k.width == 0 || k.height == 0 {
+        return Err("image size is zero".into());
+    }
+    if (k.width as u64) * (k.height as u64) > (1 << 31) {
+        return Err("image larger than 2^31 pixels".into());
+    }
+    let finite = [k.fx, k.fy, k.cx, k.cy].iter().all(|v| v.is_finite())
+        && camera.pose.rotation.is_finite()
+        && camera.pose.translation.is_finite();
+    if !finite || k.fx <= 0.0 || k.fy <= 0.0 {
+        return Err("non-finite pose or non-positive focal length".into());
+    }
+    Ok(())
+}
+
+/// Renders one camera.
+pub fn render_view(
+    scene: &PreparedScene,
+    camera: &Camera,
+    options: &RenderOptions,
+) -> Result<RenderOutput, RenderError> {
+    check_camera(camera).map_err(|why| RenderError::Camera {
+        view: String::new(),
+        why,
+    })?;
+    let t0 = Instant::now();
+    let v = ViewParams::new(camera);
+    let n = scene.len();
+    const CHUNK: usize = 16384;
+    let chunks: Vec<Vec<Projected>> = (0..n.div_ceil(CHUNK))
+        .into_par_iter()
+        .map(|c| {
+            (c * CHUNK..((c + 1) * CHUNK).min(n))
+                .filter_map(|i| {
+                    project::project(scene, i, &v, options.antialiased, options.max_sh_degree)
+                })
+                .collect()
+        })
+        .collect();
+    let projected: Vec<Projected> = chunks.concat();
+    drop(chunks);
+    let t1 = Instant::now();
+    let bins = tile::bin(&projected, v.grid_x, v.grid_y);
+    let t2 = Instant::now();
+    let channels = if options.features { scene.channels } else { 0 };
+    let input = BlendInput {
+        projected: &projected,
+        features: if channels > 0 { &scene.features } else { &[] },
+        channels,
+        width: v.width,
+        height: v.height,
+        grid_x: v.grid_x,
+        background: options.background,
+        mode: options.contributions,
+    };
+    let tiles: Vec<TileOut> = (0..v.grid_x * v.grid_y)
+        .into_par_iter()
+        .map(|t| blend::blend_tile(&input, t, bins.tile(t)))
+        .collect();
+    let mut out = assemble(&tiles, v.width, v.height, channels, options.contributions);
+    let t3 = Instant::now();
+    out.stats = RenderStats {
+        gaussians: n,
+        projected: projected.len(),
+        tile_pairs: bins.items.len(),
+        project_s: (t1 - t0).as_secs_f64(),
+        sort_s: (t2 - t1).as_secs_f64(),
+        blend_s: (t3 - t2).as_secs_f64(),
+        total_s: (t3 - t0).as_secs_f64(),
+    };
+    Ok(out)
+}
+
+fn assemble(
+    tiles: &[TileOut],
+    width: usize,
+    height: usize,
+    channels: usize,
+    mode: ContributionMode,
+) -> RenderOutput {
+    let npx = width * height;
+    let mut rgb = vec![0.0f32; npx * 3];
+    let mut alpha = vec![0.0f32; npx];
+    let mut depth_acc = vec![0.0f32; npx];
+    let mut depth = vec![f32::NAN; npx];
+    let mut median_depth = vec![f32::NAN; npx];
+    let mut features = vec![0.0f32; channels * npx];
+    let keep = mode != ContributionMode::None;
+    let mut counts = vec![0u64; if keep { npx } else { 0 }];
+    let mut residual = vec![0.0f32; if keep { npx } else { 0 }];
+    for t in tiles {
+        for y in 0..t.h {
+            for x in 0..t.w {
+                let k = y * blend_tile_width() + x;
+                let p = (t.y0 + y) * width + t.x0 + x;
+                rgb[p * 3..p * 3 + 3].copy_from_slice(&t.rgb[k * 3..k * 3 + 3]);
+                let a = 1.0 - t.trans[k];
+                alpha[p] = a;
+                depth_acc[p] = t.depth_acc[k];
+                if a >= DEPTH_MIN_ALPHA {
+                    depth[p] = t.depth_acc[k] / a;
+                }
+                median_depth[p] = t.median[k];
+                for c in 0..channels {
+                    features[c * npx + p] = t.features[k * channels + c];
+                }
+                if keep {
+                    counts[p] = t.lists[k].len() as u64;
+                    if let Some(r) = t.residual.get(k) {
+                        residual[p] = *r;
+                    }
+                }
+            }
+        }
+    }
+    let contributions = keep.then(|| {
+        let mut offsets = vec![0u64; npx + 1];
+        for p in 0..npx {
+            offsets[p + 1] = offsets[p] + counts[p];
+        }
+        let total = offsets[npx] as usize;
+        let mut ids = vec![0u32; total];
+        let mut weights = vec![0.0f32; total];
+        for t in tiles {
+            for y in 0..t.h {
+                for x in 0..t.w {
+                    let k = y * blend_tile_width() + x;
+                    let p = (t.y0 + y) * width + t.x0 + x;
+                    let o = offsets[p] as usize;
+                    for (j, c) in t.lists[k].iter().enumerate() {
+                        ids[o + j] = c.id;
+                        weights[o + j] = c.weight;
+                    }
+                }
+            }
+        }
+        Contributions {
+            offsets,
+            ids,
+            weights,
+            residual,
+        }
+    });
+    RenderOutput {
+        width,
+        height,
+        rgb,
+        alpha,
+        depth_acc,
+        depth,
+        median_depth,
+        features,
+        channels,
+        contributions,
+        stats: RenderStats::default(),
+    }
+}
+
+const fn blend_tile_width() -> usize {
+    project::TILE
+}
+
+/// One rendered view in a [`RenderSummary`].
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ViewSummary {
+    pub name: String,
+    pub stem: String,
+    pub width: usize,
+    pub height: usize,
+    pub projected: usize,
+    pub tile_pairs: usize,
+    pub render_s: f64,
+    pub write_s: f64,
+    /// Fraction of pixels with accumulated alpha ≥ `DEPTH_MIN_ALPHA`.
+    pub coverage: f64,
+}
+
+/// What [`render_to_dir`] did.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct RenderSummary {
+    pub gaussians: usize,
+    pub views: Vec<ViewSummary>,
+    pub feature_channels: usize,
+    pub options: RenderOptions,
+    pub render_s: f64,
+    pub write_s: f64,
+    /// Gaussians × views / render seconds.
+    pub gaussians_per_s: f64,
+    pub warnings: Vec<String>,
+}
+
+/// Renders every view into `out_dir`: `<stem>.png` (8-bit RGB), `<stem>.depth.npy`
+/// (`float32` H×W expected depth, NaN where alpha < `DEPTH_MIN_ALPHA`) and, when the scene
+/// has feature channels and `options.features` is set, `<stem>.features.npy`
+/// (`float32` C×H×W). Contribution lists are not written.
+pub fn render_to_dir(
+    scene: &PreparedScene,
+    views: &[View],
+    out_dir: &Path,
+    options: &RenderOptions,
+) -> Result<RenderSummary, RenderError> {
+    fsutil::create_dir(out_dir)?;
+    let opts = RenderOptions {
+        contributions: ContributionMode::None,
+        ..*options
+    };
+    let mut summary = RenderSummary {
+        gaussians: scene.len(),
+        views: Vec::new(),
+        feature_channels: if opts.features { scene.channels } else { 0 },
+        options: opts,
+        render_s: 0.0,
+        write_s: 0.0,
+        gaussians_per_s: 0.0,
+        warnings: Vec::new(),
+    };
+    let mut stems = std::collections::HashSet::new();
+    for view in views {
+        let stem = view.stem();
+        if !stems.insert(stem.clone()) {
+            return Err(RenderError::Camera {
+                view: view.name.clone(),
+                why: format!("two views share the output stem `{stem}`"),
+            });
+        }
+        if view.camera.intrinsics.distortion != Distortion::None {
+            summary.warnings.push(format!(
+                "{}: lens distortion ignored (pinhole render)",
+                view.name
+            ));
+        }
+        let out = render_view(scene, &view.camera, &opts).map_err(|e| match e {
+            RenderError::Camera { why, .. } => RenderError::Camera {
+                view: view.name.clone(),
+                why,
+            },
+            e => e,
+        })?;
+        let tw = Instant::now();
+        let file = |ext: &str| -> PathBuf { out_dir.join(format!("{stem}.{ext}")) };
+        imageio::write_png(&file("png"), &out.rgb8())?;
+        npy::write(&file("depth.npy"), &[out.height, out.width], &out.depth)?;
+        if out.channels > 0 {
+            npy::write(
+                &file("features.npy"),
+                &[out.channels, out.height, out.width],
+                &out.features,
+            )?;
+        }
+        let write_s = tw.elapsed().as_secs_f64();
+        let covered = out.alpha.iter().filter(|&&a| a >= DEPTH_MIN_ALPHA).count();
+        summary.render_s += out.stats.total_s;
+        summary.write_s += write_s;
+        summary.views.push(ViewSummary {
+            name: view.name.clone(),
+            stem,
+            width: out.width,
+            height: out.height,
+            projected: out.stats.projected,
+            tile_pairs: out.stats.tile_pairs,
+            render_s: out.stats.total_s,
+            write_s,
+            coverage: covered as f64 / (out.width * out.height) as f64,
+        });
+    }
+    if summary.render_s > 0.0 {
+        summary.gaussians_per_s = (scene.len() * summary.views.len()) as f64 / summary.render_s;
+    }
+    Ok(summary)
+}
