@@ -9,8 +9,8 @@
 pub mod camera;
 pub mod citygml;
 pub mod citymodel;
-pub mod colmap;
 pub mod cli;
+pub mod colmap;
 pub mod embree;
 pub mod fsutil;
 pub mod imageio;

@@ -2,6 +2,7 @@
 //! Each subcommand parses its arguments, validates them into a config, then runs.
 mod citymodel;
 mod raycast;
+mod render;
 
 use clap::{Parser, Subcommand};
 
@@ -19,6 +20,8 @@ enum Command {
     Citymodel(citymodel::CitymodelArgs),
     /// Two-pass raycasting of a citymodel mesh into every COLMAP view → per-view id maps and depth.
     Raycast(raycast::RaycastArgs),
+    /// Render a 3DGS PLY (CPU, INRIA forward pass) into COLMAP views → PNG, depth .npy, features.
+    Render(render::RenderArgs),
     /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
     Align(citymodel::AlignArgs),
 }
@@ -30,5 +33,6 @@ pub fn main() -> anyhow::Result<()> {
         Command::Citymodel(args) => citymodel::run(&args),
         Command::Align(args) => citymodel::run_align(&args),
         Command::Raycast(args) => raycast::run(&args),
+        Command::Render(args) => render::run(&args),
     }
 }
