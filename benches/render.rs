@@ -138,6 +138,19 @@ fn main() {
         scenes.push((n, g, scene, prep_s));
     }
 
+    if std::env::var_os("RENDER_BENCH_PROFILE").is_some() {
+        // For `perf record`: only the 1M × 660×494 render, repeated.
+        let cam = camera(660, 494);
+        let opts = RenderOptions {
+            features: false,
+            ..cfg
+        };
+        for _ in 0..10 {
+            let out = render_view(&scenes[1].2, &cam, &opts).unwrap();
+            eprintln!("{:?}", out.stats);
+        }
+        return;
+    }
     println!("### Time per view (RGB + alpha + depths, no features, no lists; SH degree 3)\n");
     println!(
         "| Gaussians | image | projected | tile pairs | project s | sort+bin s | blend s | total s/view | Gaussians/s |"

@@ -134,7 +134,7 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                 }
                 let dx = mx - x as f32;
                 let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
-                if power > 0.0 {
+                if power > 0.0 || power < p.power_min {
                     continue;
                 }
                 let alpha = ALPHA_MAX.min(p.opacity * power.exp());

@@ -286,19 +286,16 @@ pub fn render_view(
     let t0 = Instant::now();
     let v = ViewParams::new(camera);
     let n = scene.len();
-    const CHUNK: usize = 16384;
-    let chunks: Vec<Vec<Projected>> = (0..n.div_ceil(CHUNK))
+    // Indexed collect: rayon writes every slot in place (no concatenation copy); culled
+    // Gaussians get an empty tile rectangle and are never binned.
+    let projected: Vec<Projected> = (0..n)
         .into_par_iter()
-        .map(|c| {
-            (c * CHUNK..((c + 1) * CHUNK).min(n))
-                .filter_map(|i| {
-                    project::project(scene, i, &v, options.antialiased, options.max_sh_degree)
-                })
-                .collect()
+        .with_min_len(4096)
+        .map(|i| {
+            project::project(scene, i, &v, options.antialiased, options.max_sh_degree)
+                .unwrap_or(Projected::CULLED)
         })
         .collect();
-    let projected: Vec<Projected> = chunks.concat();
-    drop(chunks);
     let t1 = Instant::now();
     let bins = tile::bin(&projected, v.grid_x, v.grid_y);
     let t2 = Instant::now();
@@ -321,7 +318,7 @@ pub fn render_view(
     let t3 = Instant::now();
     out.stats = RenderStats {
         gaussians: n,
-        projected: projected.len(),
+        projected: bins.visible,
         tile_pairs: bins.items.len(),
         project_s: (t1 - t0).as_secs_f64(),
         sort_s: (t2 - t1).as_secs_f64(),
