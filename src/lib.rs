@@ -1,8 +1,8 @@
 //! gs4city: hierarchical, queryable CityGML LoD3 semantics for 3D Gaussian Splatting
 //! city scenes (the GS4City method), CPU-only.
 //!
-//! Readers and formats (depend on no stage): [`citygml`], [`mesh`], [`npy`], [`camera`].
-//! Stages: [`citymodel`]. See ARCHITECTURE.md for the data flow.
+//! Readers and formats (depend on no stage): [`citygml`], [`mesh`], [`npy`], [`camera`],
+//! [`splat`] (3DGS PLY). Stages: [`citymodel`], [`render`] (CPU rasterizer). See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
 pub mod camera;
