@@ -119,7 +119,7 @@ fn main() {
     let threads = rayon::current_num_threads();
     println!("## Rasterizer (issue 3)\n");
     println!(
-        "Command: `cargo bench --bench render` (release profile). rayon threads: {threads}. Times are the best of 5 (per-view table), 3 (threads) or 2 (top-k) repetitions; the phase columns come from that best repetition.\n"
+        "Command: `cargo bench --bench render` (release profile). rayon threads: {threads}. Times are the best of 5 (per-view table), 3 (threads, top-k) repetitions; the phase columns come from that best repetition.\n"
     );
     let cfg = RenderOptions::default();
     let mut scenes = Vec::new();
@@ -212,7 +212,7 @@ fn main() {
         "| mode | s/view | list entries | mean entries/px | max abs err | mean abs err | max abs err (renorm) | mean abs err (renorm) |"
     );
     println!("|---|---:|---:|---:|---:|---:|---:|---:|");
-    let (base_s, base) = time_render(scene1m, &cam, &cfg, 2);
+    let (base_s, base) = time_render(scene1m, &cam, &cfg, 3);
     println!("| features, no lists | {base_s:.3} | 0 | 0 | – | – | – | – |");
     let npx = base.width * base.height;
     for mode in [
@@ -225,7 +225,7 @@ fn main() {
             contributions: mode,
             ..cfg
         };
-        let (s, out) = time_render(scene1m, &cam, &opts, 2);
+        let (s, out) = time_render(scene1m, &cam, &opts, 3);
         let c = out.contributions.as_ref().unwrap();
         let (mut max_e, mut sum_e, mut max_r, mut sum_r) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
         for p in 0..npx {
