@@ -1024,7 +1024,7 @@ mod tests {
         );
         let mut bytes = text.into_bytes();
         bytes.push(7); // the camera element
-        for v in 0..2 {
+        for v in 0..2i32 {
             for (j, _) in CORE.iter().enumerate() {
                 let x: f32 = if j == 10 {
                     1.0
@@ -1033,7 +1033,7 @@ mod tests {
                 };
                 bytes.extend(x.to_be_bytes());
             }
-            bytes.extend((-(v as i32) - 5).to_be_bytes());
+            bytes.extend((-v - 5).to_be_bytes());
         }
         let p = tmp("be.ply");
         std::fs::write(&p, &bytes).unwrap();
