@@ -223,7 +223,14 @@ fn hard_cases_give_no_nan() {
     for i in 0..50 {
         push([0.2, 0.1, 1.0 + 0.01 * i as f32], [-1.0; 3], 30.0, id); // opaque stack
     }
+    // Non-finite values in an in-memory scene (read_ply would have rejected them).
+    push([f32::NAN, 0.0, 3.0], [0.0; 3], 5.0, id);
+    push([0.0, 0.0, 3.0], [f32::INFINITY; 3], 5.0, id);
+    push([0.0, 0.0, 3.0], [100.0; 3], 5.0, id); // exp(100)² overflows f32
+    push([0.0, 0.0, 3.0], [0.0; 3], f32::NAN, id);
+    g.f_dc.last_mut().unwrap()[0] = f32::NAN;
     let scene = PreparedScene::new(&g).unwrap();
+    assert_eq!(scene.skipped, 5, "zero quaternion + 4 non-finite");
     let cam = front_camera();
     for aa in [false, true] {
         for mode in [ContributionMode::All, ContributionMode::TopK(2)] {

@@ -105,6 +105,7 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
         None => Vec::new(),
     };
     let mut residual = vec![0.0f32; if topk.is_some() { PIX } else { 0 }];
+    let mut mins = vec![0usize; if topk.is_some() { PIX } else { 0 }];
     let mut seq = 0u32;
 
     for &pi in list {
@@ -134,7 +135,7 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                 }
                 let dx = mx - x as f32;
                 let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
-                if power > 0.0 {
+                if power > 0.0 || power < p.power_min {
                     continue;
                 }
                 let alpha = ALPHA_MAX.min(p.opacity * power.exp());
@@ -167,7 +168,13 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                     match topk {
                         None => lists[k].push(c),
                         Some(kk) => {
-                            push_topk(&mut slots[k], &mut residual[k], kk, Slot { seq, c });
+                            push_topk(
+                                &mut slots[k],
+                                &mut mins[k],
+                                &mut residual[k],
+                                kk,
+                                Slot { seq, c },
+                            );
                             seq = seq.wrapping_add(1);
                         }
                     }
@@ -206,16 +213,9 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
     }
 }
 
-fn push_topk(slots: &mut Vec<Slot>, residual: &mut f32, k: usize, s: Slot) {
-    if slots.len() < k {
-        slots.push(s);
-        return;
-    }
-    if k == 0 {
-        *residual += s.c.weight;
-        return;
-    }
-    // Smallest weight; among equals the latest, so earlier ones win ties.
+/// Index of the slot to evict next: the smallest weight, among equals the latest, so that
+/// earlier contributions win ties.
+fn min_slot(slots: &[Slot]) -> usize {
     let mut m = 0;
     for (i, x) in slots.iter().enumerate() {
         let best = &slots[m];
@@ -223,10 +223,59 @@ fn push_topk(slots: &mut Vec<Slot>, residual: &mut f32, k: usize, s: Slot) {
             m = i;
         }
     }
-    if s.c.weight > slots[m].c.weight {
-        *residual += slots[m].c.weight;
-        slots[m] = s;
+    m
+}
+
+/// Offers `s` to a pixel's top-`k` set; `min` caches [`min_slot`] once the set is full,
+/// so a contribution that does not make the cut costs O(1).
+fn push_topk(slots: &mut Vec<Slot>, min: &mut usize, residual: &mut f32, k: usize, s: Slot) {
+    if slots.len() < k {
+        slots.push(s);
+        if slots.len() == k {
+            *min = min_slot(slots);
+        }
+        return;
+    }
+    if k == 0 {
+        *residual += s.c.weight;
+        return;
+    }
+    if s.c.weight > slots[*min].c.weight {
+        *residual += slots[*min].c.weight;
+        slots[*min] = s;
+        *min = min_slot(slots);
     } else {
         *residual += s.c.weight;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn topk_keeps_largest_earliest_on_ties_and_counts_the_rest() {
+        let (mut slots, mut min, mut residual) = (Vec::new(), 0, 0.0f32);
+        for (seq, w) in [0.1f32, 0.3, 0.3, 0.2, 0.3, 0.05].into_iter().enumerate() {
+            let c = Contribution {
+                id: seq as u32 * 10,
+                weight: w,
+            };
+            push_topk(
+                &mut slots,
+                &mut min,
+                &mut residual,
+                2,
+                Slot { seq: seq as u32, c },
+            );
+        }
+        let mut kept: Vec<u32> = slots.iter().map(|s| s.c.id).collect();
+        kept.sort();
+        assert_eq!(kept, vec![10, 20]);
+        assert!((residual - (0.1 + 0.2 + 0.3 + 0.05)).abs() < 1e-6);
+        let (mut none, mut m0, mut r0) = (Vec::new(), 0, 0.0f32);
+        let c = Contribution { id: 1, weight: 0.5 };
+        push_topk(&mut none, &mut m0, &mut r0, 0, Slot { seq: 0, c });
+        assert!(none.is_empty() && r0 == 0.5);
     }
 }

@@ -104,11 +104,16 @@ pub struct PreparedScene {
     /// Per-Gaussian features, `len × channels`.
     pub features: Vec<f32>,
     pub channels: usize,
+    /// Gaussians that are never drawn: zero or non-finite quaternion, a non-finite
+    /// position, scale, opacity or SH value, or a covariance that overflows `f32`.
+    pub skipped: usize,
 }
 
 impl PreparedScene {
     /// Activates `g`: `exp` scales, `sigmoid` opacity, normalised quaternion, covariance.
-    /// A Gaussian with a zero or non-finite quaternion gets opacity 0 (never drawn).
+    /// A Gaussian that cannot be drawn (see [`PreparedScene::skipped`]) gets opacity 0 and
+    /// is counted, so that in-memory scenes (which `read_ply` has not checked) never put
+    /// NaN into an image.
     pub fn new(g: &Gaussians) -> Result<Self, RenderError> {
         g.check().map_err(|e| RenderError::Scene(e.to_string()))?;
         let n = g.len();
@@ -124,15 +129,26 @@ impl PreparedScene {
             }
         }
         let mut opacity = Vec::with_capacity(n);
+        let mut skipped = 0;
         let cov3d = (0..n)
-            .map(|i| match g.normalized_rotation(i) {
-                Some(q) => {
-                    opacity.push(g.activated_opacity(i));
-                    covariance(g.scale[i], q)
-                }
-                None => {
-                    opacity.push(0.0);
-                    [0.0; 6]
+            .map(|i| {
+                let finite = g.positions[i].iter().all(|v| v.is_finite())
+                    && g.scale[i].iter().all(|v| v.is_finite())
+                    && g.opacity[i].is_finite()
+                    && sh[i * coeffs..(i + 1) * coeffs]
+                        .iter()
+                        .all(|c| c.iter().all(|v| v.is_finite()));
+                let cov = g.normalized_rotation(i).map(|q| covariance(g.scale[i], q));
+                match cov {
+                    Some(cov) if finite && cov.iter().all(|v| v.is_finite()) => {
+                        opacity.push(g.activated_opacity(i));
+                        cov
+                    }
+                    _ => {
+                        skipped += 1;
+                        opacity.push(0.0);
+                        [0.0; 6]
+                    }
                 }
             })
             .collect();
@@ -145,6 +161,7 @@ impl PreparedScene {
             coeffs,
             features: Vec::new(),
             channels: 0,
+            skipped,
         })
     }
 
@@ -286,19 +303,16 @@ pub fn render_view(
     let t0 = Instant::now();
     let v = ViewParams::new(camera);
     let n = scene.len();
-    const CHUNK: usize = 16384;
-    let chunks: Vec<Vec<Projected>> = (0..n.div_ceil(CHUNK))
+    // Indexed collect: rayon writes every slot in place (no concatenation copy); culled
+    // Gaussians get an empty tile rectangle and are never binned.
+    let projected: Vec<Projected> = (0..n)
         .into_par_iter()
-        .map(|c| {
-            (c * CHUNK..((c + 1) * CHUNK).min(n))
-                .filter_map(|i| {
-                    project::project(scene, i, &v, options.antialiased, options.max_sh_degree)
-                })
-                .collect()
+        .with_min_len(4096)
+        .map(|i| {
+            project::project(scene, i, &v, options.antialiased, options.max_sh_degree)
+                .unwrap_or(Projected::CULLED)
         })
         .collect();
-    let projected: Vec<Projected> = chunks.concat();
-    drop(chunks);
     let t1 = Instant::now();
     let bins = tile::bin(&projected, v.grid_x, v.grid_y);
     let t2 = Instant::now();
@@ -321,7 +335,7 @@ pub fn render_view(
     let t3 = Instant::now();
     out.stats = RenderStats {
         gaussians: n,
-        projected: projected.len(),
+        projected: bins.visible,
         tile_pairs: bins.items.len(),
         project_s: (t1 - t0).as_secs_f64(),
         sort_s: (t2 - t1).as_secs_f64(),
@@ -439,6 +453,8 @@ pub struct ViewSummary {
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct RenderSummary {
     pub gaussians: usize,
+    /// Gaussians never drawn (see [`PreparedScene::skipped`]).
+    pub skipped_gaussians: usize,
     pub views: Vec<ViewSummary>,
     pub feature_channels: usize,
     pub options: RenderOptions,
@@ -466,6 +482,7 @@ pub fn render_to_dir(
     };
     let mut summary = RenderSummary {
         gaussians: scene.len(),
+        skipped_gaussians: scene.skipped,
         views: Vec::new(),
         feature_channels: if opts.features { scene.channels } else { 0 },
         options: opts,

@@ -91,16 +91,40 @@ pub struct Projected {
     pub color: [f32; 3],
     /// Half extents of the box outside which `alpha < 1/255` for sure (+1 px margin).
     pub extent: [f32; 2],
+    /// Below this `power`, `α < 1/255` for sure (`−ln(255·o) − 1e-3`): lets the blend skip
+    /// `exp` without changing any decision.
+    pub power_min: f32,
     /// Tile rectangle `[x_min, y_min, x_max, y_max)`.
     pub rect: [u32; 4],
     /// Index of the Gaussian in the scene.
     pub id: u32,
 }
 
+impl Projected {
+    /// Placeholder for a culled Gaussian: an empty tile rectangle.
+    pub const CULLED: Projected = Projected {
+        mean: [0.0; 2],
+        conic: [0.0; 3],
+        opacity: 0.0,
+        depth: 0.0,
+        color: [0.0; 3],
+        extent: [0.0; 2],
+        power_min: 0.0,
+        rect: [0; 4],
+        id: u32::MAX,
+    };
+
+    /// Whether this Gaussian touches any tile.
+    pub fn is_visible(&self) -> bool {
+        self.rect[0] < self.rect[2] && self.rect[1] < self.rect[3]
+    }
+}
+
 /// INRIA's `getRect`, with float → int truncation toward zero, clamped to the grid.
 fn rect(mean: [f64; 2], radius: f64, grid_x: usize, grid_y: usize) -> [u32; 4] {
     let t = TILE as f64;
-    let clamp = |v: f64, hi: usize| -> u32 { v.trunc().clamp(0.0, hi as f64) as u32 };
+    // `as i64` truncates toward zero (and saturates), like C's float → int conversion.
+    let clamp = |v: f64, hi: usize| -> u32 { (v as i64).clamp(0, hi as i64) as u32 };
     [
         clamp((mean[0] - radius) / t, grid_x),
         clamp((mean[1] - radius) / t, grid_y),
@@ -200,7 +224,8 @@ pub fn project(
     }
     // alpha ≥ 1/255 needs dᵀ·conic·d ≤ 2 ln(255·o); that ellipse's half extents are
     // sqrt(q·Σ_xx), sqrt(q·Σ_yy). One pixel of margin keeps the box conservative.
-    let q = 2.0 * (255.0 * f64::from(opacity)).ln().max(0.0);
+    let ln255o = (255.0 * f64::from(opacity)).ln();
+    let q = 2.0 * ln255o.max(0.0);
     let extent = [(q * a).sqrt() as f32 + 1.0, (q * c).sqrt() as f32 + 1.0];
     let dir = (pw - v.center).normalize_or_zero();
     let k = scene.coeffs;
@@ -213,6 +238,7 @@ pub fn project(
         depth: t.z as f32,
         color,
         extent,
+        power_min: (-ln255o - 1e-3) as f32,
         rect: r,
         id: i as u32,
     })

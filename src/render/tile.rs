@@ -4,6 +4,7 @@
 //! deterministic). One global sort by `(depth, index)` followed by a counting scatter
 //! into the tiles replaces the per-pair sort.
 use super::project::Projected;
+use rayon::prelude::*;
 
 /// Per-tile lists of indices into the projected array, in CSR form.
 #[derive(Debug, Clone, Default)]
@@ -11,6 +12,8 @@ pub struct TileBins {
     /// `offsets[t]..offsets[t + 1]` indexes `items` for tile `t` (row-major tiles).
     pub offsets: Vec<usize>,
     pub items: Vec<u32>,
+    /// Gaussians with a non-empty tile rectangle.
+    pub visible: usize,
 }
 
 impl TileBins {
@@ -46,44 +49,77 @@ pub fn radix_sort_depth(keys: &mut Vec<u64>) {
 }
 
 /// Sorts `projected` by `(depth, index)` and bins it into a `grid_x × grid_y` tile grid.
+///
+/// After the sort, the rectangles are gathered in sorted order and bands of tile rows are
+/// filled in parallel, each by sequential scans; concatenating the bands gives the same
+/// lists for any number of bands.
 pub fn bin(projected: &[Projected], grid_x: usize, grid_y: usize) -> TileBins {
     // Depths are > 0.2, so their bit patterns order like the values.
     let mut keys: Vec<u64> = projected
-        .iter()
+        .par_iter()
         .enumerate()
+        .filter(|(_, p)| p.is_visible())
         .map(|(i, p)| (u64::from(p.depth.to_bits()) << 32) | i as u64)
         .collect();
+    let visible = keys.len();
     radix_sort_depth(&mut keys);
-    let tiles = grid_x * grid_y;
-    let mut counts = vec![0usize; tiles + 1];
-    for p in projected {
-        let [x0, y0, x1, y1] = p.rect;
-        for ty in y0..y1 {
-            let row = ty as usize * grid_x;
-            for tx in x0..x1 {
-                counts[row + tx as usize] += 1;
+    let sorted: Vec<(u32, [u32; 4])> = keys
+        .par_iter()
+        .map(|&k| {
+            let i = (k & 0xffff_ffff) as u32;
+            (i, projected[i as usize].rect)
+        })
+        .collect();
+    drop(keys);
+    let bands = (rayon::current_num_threads() * 2).clamp(1, grid_y.max(1));
+    let rows_per = grid_y.div_ceil(bands).max(1);
+    let parts: Vec<(Vec<usize>, Vec<u32>)> = (0..bands)
+        .into_par_iter()
+        .map(|b| {
+            let r0 = (b * rows_per).min(grid_y) as u32;
+            let r1 = ((b + 1) * rows_per).min(grid_y) as u32;
+            let tiles = (r1 - r0) as usize * grid_x;
+            let mut offsets = vec![0usize; tiles + 1];
+            for (_, r) in &sorted {
+                for ty in r[1].max(r0)..r[3].min(r1) {
+                    let row = (ty - r0) as usize * grid_x + 1;
+                    for tx in r[0]..r[2] {
+                        offsets[row + tx as usize] += 1;
+                    }
+                }
             }
-        }
-    }
-    let mut offsets = vec![0usize; tiles + 1];
-    for t in 0..tiles {
-        offsets[t + 1] = offsets[t] + counts[t];
-    }
-    let mut cursor = offsets[..tiles].to_vec();
-    let mut items = vec![0u32; offsets[tiles]];
-    for key in keys {
-        let i = (key & 0xffff_ffff) as u32;
-        let [x0, y0, x1, y1] = projected[i as usize].rect;
-        for ty in y0..y1 {
-            let row = ty as usize * grid_x;
-            for tx in x0..x1 {
-                let t = row + tx as usize;
-                items[cursor[t]] = i;
-                cursor[t] += 1;
+            for t in 0..tiles {
+                offsets[t + 1] += offsets[t];
             }
-        }
+            let mut cursor = offsets[..tiles].to_vec();
+            let mut items = vec![0u32; offsets[tiles]];
+            for &(i, r) in &sorted {
+                for ty in r[1].max(r0)..r[3].min(r1) {
+                    let row = (ty - r0) as usize * grid_x;
+                    for tx in r[0]..r[2] {
+                        let t = row + tx as usize;
+                        items[cursor[t]] = i;
+                        cursor[t] += 1;
+                    }
+                }
+            }
+            (offsets, items)
+        })
+        .collect();
+    let mut offsets = Vec::with_capacity(grid_x * grid_y + 1);
+    offsets.push(0usize);
+    let total: usize = parts.iter().map(|p| p.1.len()).sum();
+    let mut items = Vec::with_capacity(total);
+    for (offs, its) in parts {
+        let base = items.len();
+        offsets.extend(offs[1..].iter().map(|o| o + base));
+        items.extend_from_slice(&its);
     }
-    TileBins { offsets, items }
+    TileBins {
+        offsets,
+        items,
+        visible,
+    }
 }
 
 #[cfg(test)]

@@ -1014,6 +1014,45 @@ mod tests {
     }
 
     #[test]
+    fn big_endian_and_leading_elements_go_through_the_general_path() {
+        let mut text = header(&CORE, 2, "binary_big_endian")
+            .replace("end_header", "property int semantic_id\nend_header");
+        // A leading element that the reader must skip.
+        text = text.replace(
+            "element vertex",
+            "element camera 1\nproperty uchar k\nelement vertex",
+        );
+        let mut bytes = text.into_bytes();
+        bytes.push(7); // the camera element
+        for v in 0..2i32 {
+            for (j, _) in CORE.iter().enumerate() {
+                let x: f32 = if j == 10 {
+                    1.0
+                } else {
+                    v as f32 + j as f32 * 0.25
+                };
+                bytes.extend(x.to_be_bytes());
+            }
+            bytes.extend((-v - 5).to_be_bytes());
+        }
+        let p = tmp("be.ply");
+        std::fs::write(&p, &bytes).unwrap();
+        let (g, report) = read_ply(&p, &ReadOptions::default()).unwrap();
+        assert_eq!(report.encoding, PlyEncoding::BinaryBigEndian);
+        assert!(!report.fast_path);
+        assert_eq!(g.positions, vec![[0.0, 0.25, 0.5], [1.0, 1.25, 1.5]]);
+        assert_eq!(g.rotation[1], [1.0, 3.75, 4.0, 4.25]);
+        let e = g.extra("semantic_id").unwrap();
+        assert_eq!(
+            (e.kind, e.values.clone()),
+            (ScalarKind::I32, vec![-5.0, -6.0])
+        );
+        std::fs::write(&p, &bytes[..bytes.len() - 3]).unwrap();
+        let e = read_ply(&p, &ReadOptions::default()).unwrap_err();
+        assert!(matches!(e, PlyError::Truncated { vertex: 1, .. }), "{e}");
+    }
+
+    #[test]
     fn garbage_and_list_properties_are_errors_not_panics() {
         let p = tmp("garbage.ply");
         std::fs::write(&p, b"not a ply at all").unwrap();
