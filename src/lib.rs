@@ -9,6 +9,7 @@
 pub mod camera;
 pub mod citygml;
 pub mod citymodel;
+pub mod classes;
 pub mod cli;
 pub mod colmap;
 pub mod embree;

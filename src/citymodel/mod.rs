@@ -28,6 +28,8 @@ pub enum CityModelError {
     Mesh(#[from] MeshError),
     #[error(transparent)]
     Fs(#[from] FsError),
+    #[error("{path}: {why}")]
+    Semantics { path: PathBuf, why: String },
     #[error("no CityGML input files")]
     NoInput,
     #[error("no polygon of {0} could be triangulated: nothing to write")]
@@ -35,11 +37,11 @@ pub enum CityModelError {
 }
 
 /// One row of the hierarchy table.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct Entity {
     pub id: i32,
     pub object_id: String,
-    pub class: &'static str,
+    pub class: String,
     pub level: Level,
     pub parent: Option<i32>,
     pub building: i32,
@@ -135,7 +137,7 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
             entities.push(Entity {
                 id: b + i as i32,
                 object_id: o.object_id.clone(),
-                class: o.class.name(),
+                class: o.class.name().to_string(),
                 level: o.class.level(),
                 parent: o.parent.map(|p| b + p as i32),
                 building: root[i],
@@ -421,6 +423,40 @@ fn summarize(
     })
 }
 
+/// Reads the `entities` of a `semantics.json` written by [`write`]; ids must equal row indices.
+pub fn read_semantics(path: &Path) -> Result<Vec<Entity>, CityModelError> {
+    let bad = |why: String| CityModelError::Semantics {
+        path: path.to_path_buf(),
+        why,
+    };
+    let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+    #[derive(serde::Deserialize)]
+    struct File {
+        entities: Vec<Entity>,
+    }
+    let f: File = serde_json::from_str(&text)
+        .map_err(|e| bad(format!("not a gs4city semantics.json: {e}")))?;
+    for (i, e) in f.entities.iter().enumerate() {
+        if e.id != i as i32 {
+            return Err(bad(format!(
+                "entity {} has id {}, expected {i}",
+                e.object_id, e.id
+            )));
+        }
+        if e.parent
+            .is_some_and(|p| p < 0 || p as usize >= f.entities.len())
+            || e.building < 0
+            || e.building as usize >= f.entities.len()
+        {
+            return Err(bad(format!(
+                "entity {} refers to an entity that does not exist",
+                e.object_id
+            )));
+        }
+    }
+    Ok(f.entities)
+}
+
 /// Writes `mesh.ply`, `semantics.json`, `alignment.json` and (last, as the completion
 /// marker) `summary.json` into `out_dir`.
 pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
@@ -429,7 +465,7 @@ pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
     let class_names: Vec<&str> = out
         .entities
         .iter()
-        .map(|e| e.class)
+        .map(|e| e.class.as_str())
         .collect::<std::collections::BTreeSet<_>>()
         .into_iter()
         .collect();

@@ -1,0 +1,137 @@
+//! The evaluation class ids (DESIGN.md) and the mapping of city-model entities onto them.
+//!
+//! | id | class | coarse |  | id | class | coarse |
+//! |---|---|---|---|---|---|---|
+//! | −1 | none | — | | 6 | tree | non-building |
+//! | 0 | wall | building | | 7 | person | non-building |
+//! | 1 | roof | building | | 8 | car | non-building |
+//! | 2 | window | building | | 9 | road / ground | non-building |
+//! | 3 | door | building | | 10 | water | non-building |
+//! | 4 | ground_surface | building | | 11 | other | non-building |
+//! | 5 | installation | building | | | | |
+use crate::citymodel::Entity;
+
+pub const NONE: i32 = -1;
+pub const WALL: i32 = 0;
+pub const ROOF: i32 = 1;
+pub const WINDOW: i32 = 2;
+pub const DOOR: i32 = 3;
+pub const GROUND_SURFACE: i32 = 4;
+pub const INSTALLATION: i32 = 5;
+pub const TREE: i32 = 6;
+pub const PERSON: i32 = 7;
+pub const CAR: i32 = 8;
+pub const ROAD: i32 = 9;
+pub const WATER: i32 = 10;
+pub const OTHER: i32 = 11;
+
+/// Class names indexed by id.
+pub const NAMES: [&str; 12] = [
+    "wall",
+    "roof",
+    "window",
+    "door",
+    "ground_surface",
+    "installation",
+    "tree",
+    "person",
+    "car",
+    "road",
+    "water",
+    "other",
+];
+
+/// The fine-level evaluation classes of the paper.
+pub const FINE: [i32; 7] = [WALL, ROOF, WINDOW, DOOR, TREE, PERSON, CAR];
+
+/// Name of a class id (`"none"` for −1 and unknown ids).
+pub fn name(id: i32) -> &'static str {
+    usize::try_from(id)
+        .ok()
+        .and_then(|i| NAMES.get(i))
+        .copied()
+        .unwrap_or("none")
+}
+
+/// Whether a class id is a building class at the coarse level (0–5).
+pub fn is_building(id: i32) -> bool {
+    (WALL..=INSTALLATION).contains(&id)
+}
+
+/// The class of a city-model entity: openings are windows/doors; anything under an
+/// installation is an installation; surfaces by their CityGML class (ClosureSurface and
+/// OuterCeilingSurface count as wall, OuterFloorSurface as roof: it faces the sky); building
+/// geometry without a thematic surface counts as wall.
+pub fn of_entity(entities: &[Entity], id: i32) -> i32 {
+    let Some(e) = usize::try_from(id).ok().and_then(|i| entities.get(i)) else {
+        return NONE;
+    };
+    match e.class.as_str() {
+        "Window" | "WindowSurface" => return WINDOW,
+        "Door" | "DoorSurface" => return DOOR,
+        _ => {}
+    }
+    let mut cur = Some(e);
+    while let Some(x) = cur {
+        if matches!(
+            x.class.as_str(),
+            "BuildingInstallation" | "BuildingConstructiveElement"
+        ) {
+            return INSTALLATION;
+        }
+        cur = x.parent.and_then(|p| entities.get(p as usize));
+    }
+    match e.class.as_str() {
+        "RoofSurface" | "OuterFloorSurface" => ROOF,
+        "GroundSurface" => GROUND_SURFACE,
+        _ => WALL,
+    }
+}
+
+/// [`of_entity`] for every entity, indexed by entity id.
+pub fn table(entities: &[Entity]) -> Vec<i32> {
+    (0..entities.len() as i32)
+        .map(|i| of_entity(entities, i))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::citygml::Level;
+
+    fn e(id: i32, class: &str, parent: Option<i32>) -> Entity {
+        Entity {
+            id,
+            object_id: format!("e{id}"),
+            class: class.into(),
+            level: Level::Feature,
+            parent,
+            building: 0,
+            source: String::new(),
+            lod: Some(3),
+            attributes: Default::default(),
+        }
+    }
+
+    #[test]
+    fn entity_classes() {
+        let es = vec![
+            e(0, "Building", None),
+            e(1, "WallSurface", Some(0)),
+            e(2, "Window", Some(1)),
+            e(3, "BuildingInstallation", Some(0)),
+            e(4, "RoofSurface", Some(3)),
+            e(5, "OuterFloorSurface", Some(0)),
+            e(6, "DoorSurface", Some(1)),
+        ];
+        assert_eq!(
+            table(&es),
+            vec![WALL, WALL, WINDOW, INSTALLATION, INSTALLATION, ROOF, DOOR]
+        );
+        assert_eq!(of_entity(&es, 99), NONE);
+        assert_eq!(name(CAR), "car");
+        assert_eq!(name(-1), "none");
+        assert!(is_building(INSTALLATION) && !is_building(TREE));
+    }
+}
