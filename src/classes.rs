@@ -44,6 +44,31 @@ pub const NAMES: [&str; 12] = [
 /// The fine-level evaluation classes of the paper.
 pub const FINE: [i32; 7] = [WALL, ROOF, WINDOW, DOOR, TREE, PERSON, CAR];
 
+/// Display colours (RGB) per class id, for overlays.
+pub const PALETTE: [[u8; 3]; 12] = [
+    [200, 180, 140], // wall
+    [180, 60, 50],   // roof
+    [60, 140, 230],  // window
+    [240, 160, 40],  // door
+    [120, 100, 80],  // ground_surface
+    [170, 90, 200],  // installation
+    [40, 160, 60],   // tree
+    [250, 60, 160],  // person
+    [230, 230, 30],  // car
+    [90, 90, 90],    // road
+    [30, 200, 220],  // water
+    [255, 255, 255], // other
+];
+
+/// Colour of a class id (black for −1).
+pub fn color(id: i32) -> [u8; 3] {
+    usize::try_from(id)
+        .ok()
+        .and_then(|i| PALETTE.get(i))
+        .copied()
+        .unwrap_or([0, 0, 0])
+}
+
 /// Name of a class id (`"none"` for −1 and unknown ids).
 pub fn name(id: i32) -> &'static str {
     usize::try_from(id)

@@ -1,6 +1,7 @@
 //! The command line: one subcommand per stage (DESIGN.md). Only this module uses `anyhow`.
 //! Each subcommand parses its arguments, validates them into a config, then runs.
 mod citymodel;
+mod lift;
 mod raycast;
 mod render;
 
@@ -22,6 +23,8 @@ enum Command {
     Raycast(raycast::RaycastArgs),
     /// Render a 3DGS PLY (CPU, INRIA forward pass) into COLMAP views → PNG, depth .npy, features.
     Render(render::RenderArgs),
+    /// Lift city-model labels into the Gaussians (closed-form weighted vote) and predict test views.
+    Lift(lift::LiftArgs),
     /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
     Align(citymodel::AlignArgs),
 }
@@ -34,5 +37,6 @@ pub fn main() -> anyhow::Result<()> {
         Command::Align(args) => citymodel::run_align(&args),
         Command::Raycast(args) => raycast::run(&args),
         Command::Render(args) => render::run(&args),
+        Command::Lift(args) => lift::run(&args),
     }
 }
