@@ -88,6 +88,8 @@ pub struct TwoPassScene {
     /// Part-scene primitive id → mesh face index.
     part_faces: Vec<u32>,
     labels: Vec<FaceLabel>,
+    /// Indexed by surface id: whether any part face has that parent surface.
+    surface_has_parts: Vec<bool>,
     /// Seconds spent building both scenes.
     pub build_seconds: f64,
 }
@@ -107,13 +109,30 @@ impl TwoPassScene {
         let mut part = Scene::new(&device)?;
         part.add_triangles(&mesh.vertices, &sub)?;
         let (global, part) = (global.commit()?, part.commit()?);
+        let max_surface = mesh.labels.iter().map(|l| l.surface).max().unwrap_or(-1);
+        let mut surface_has_parts = vec![false; (max_surface + 1).max(0) as usize];
+        for &f in &part_faces {
+            if let Ok(s) = usize::try_from(mesh.labels[f as usize].surface) {
+                surface_has_parts[s] = true;
+            }
+        }
         Ok(TwoPassScene {
             global,
             part,
             part_faces,
+            surface_has_parts,
             labels: mesh.labels.clone(),
             build_seconds: t0.elapsed().as_secs_f64(),
         })
+    }
+
+    /// Whether a part face hangs under surface `s` (only then can the part pass change a pixel).
+    fn has_parts(&self, s: i32) -> bool {
+        usize::try_from(s)
+            .ok()
+            .and_then(|i| self.surface_has_parts.get(i))
+            .copied()
+            .unwrap_or(false)
     }
 
     /// Number of faces in the global and in the part scene.
@@ -214,6 +233,12 @@ pub fn raycast_view(scene: &TwoPassScene, camera: &Camera, opts: &RaycastOptions
         return out;
     }
     let rows = 4 * w;
+    let rt = camera.pose.rotation.transpose();
+    let org = camera.pose.center().as_vec3().to_array();
+    let ray = |i: usize, j: usize| -> Option<([f32; 3], [f32; 3], f64)> {
+        let c = camera.try_pixel_ray(i as f64 + 0.5, j as f64 + 0.5)?;
+        Some((org, (rt * c).as_vec3().to_array(), c.z))
+    };
     let failures: usize = out
         .feature
         .par_chunks_mut(rows)
@@ -237,7 +262,7 @@ pub fn raycast_view(scene: &TwoPassScene, camera: &Camera, opts: &RaycastOptions
                     if i >= w || jl >= th {
                         continue;
                     }
-                    match pixel_ray(camera, i, j0 + jl) {
+                    match ray(i, j0 + jl) {
                         Some((o, d, zf)) => {
                             packet.org[k] = o;
                             packet.dir[k] = d;
@@ -274,7 +299,9 @@ pub fn raycast_view(scene: &TwoPassScene, camera: &Camera, opts: &RaycastOptions
                     globals[k] = Some((label, depth));
                     // Only part hits with D̃ ≤ D_t + τ can be accepted; a missing surface
                     // can never match.
-                    if opts.single_pass || label.surface == -1 {
+                    // A part face hit directly keeps its part (the part pass could only find
+                    // that face again); a surface without openings has nothing to recover.
+                    if opts.single_pass || label.part != -1 || !scene.has_parts(label.surface) {
                         part_packet.active[k] = false;
                     } else {
                         let tmax = (depth + opts.tau) / lane.zf;
