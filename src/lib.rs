@@ -15,6 +15,7 @@ pub mod colmap;
 pub mod embree;
 pub mod fsutil;
 pub mod imageio;
+pub mod masks;
 pub mod mesh;
 pub mod npy;
 pub mod raycast;

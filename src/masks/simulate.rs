@@ -1,0 +1,1 @@
+//! Simulated SAM masks and simulated CLIP features (placeholder).
