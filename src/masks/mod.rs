@@ -100,6 +100,11 @@ pub enum MasksError {
         stated: u64,
         decoded: u64,
     },
+    #[error("{path}: not a simulated-prompts file: {source}")]
+    Prompts {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
     #[error("cannot serialise SAM masks for {path}: {source}")]
     Serialize {
         path: PathBuf,
