@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs what gs4city needs on Debian 12 (run as root, or with sudo available):
 # Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
-# and the Python packages of the reference scripts (numpy, cgal, open3d).
+# and the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools).
 # Idempotent: skips what is already there.
 set -euo pipefail
 SUDO=""
@@ -18,9 +18,9 @@ if [ ${#missing[@]} -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 "${missing[@]}" >/dev/null
 fi
 if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
-  py=(numpy cgal open3d)
+  py=(numpy cgal open3d pycocotools)
   need=()
-  for m in numpy CGAL open3d; do python3 -c "import $m" 2>/dev/null || need+=("$m"); done
+  for m in numpy CGAL open3d pycocotools; do python3 -c "import $m" 2>/dev/null || need+=("$m"); done
   if [ ${#need[@]} -gt 0 ]; then
     echo "setup: pip install ${py[*]}"
     python3 -m pip install -q --disable-pip-version-check "${py[@]}"

@@ -18,6 +18,8 @@ pub enum ImageError {
     Write { path: PathBuf, why: String },
     #[error(transparent)]
     Fs(#[from] FsError),
+    #[error("OpenCV {op} failed: {why}")]
+    Cv { op: &'static str, why: String },
 }
 
 /// Reads an image file (PNG, JPEG, …) as 8-bit RGB, `H×W×3`.
@@ -111,6 +113,75 @@ pub fn connected_components(
     Ok((labels, areas))
 }
 
+/// Which morphological operation [`morphology`] applies.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Morph {
+    /// Shrinks the foreground (`cv::erode`).
+    Erode,
+    /// Grows the foreground (`cv::dilate`).
+    Dilate,
+}
+
+/// Erodes or dilates a binary mask (`H×W`, `true` = foreground) with an elliptical kernel of
+/// size `(2·radius+1)²` (`cv::getStructuringElement(MORPH_ELLIPSE)`), one iteration, OpenCV's
+/// default border (`BORDER_CONSTANT` with `morphologyDefaultBorderValue`, i.e. the outside
+/// of the image never erodes the mask and never dilates into it). `radius = 0` is the identity.
+pub fn morphology(
+    mask: &ndarray::Array2<bool>,
+    op: Morph,
+    radius: usize,
+) -> Result<ndarray::Array2<bool>, ImageError> {
+    let name = match op {
+        Morph::Erode => "erode",
+        Morph::Dilate => "dilate",
+    };
+    let err = |why: String| ImageError::Cv { op: name, why };
+    let (h, w) = mask.dim();
+    if radius == 0 || h == 0 || w == 0 {
+        return Ok(mask.clone());
+    }
+    let data: Vec<u8> = mask.iter().map(|&v| u8::from(v)).collect();
+    let flat = Mat::from_slice(&data).map_err(|e| err(e.to_string()))?;
+    let img = flat.reshape(1, h as i32).map_err(|e| err(e.to_string()))?;
+    let k = 2 * radius as i32 + 1;
+    let kernel = imgproc::get_structuring_element(
+        imgproc::MORPH_ELLIPSE,
+        opencv::core::Size::new(k, k),
+        opencv::core::Point::new(-1, -1),
+    )
+    .map_err(|e| err(e.to_string()))?;
+    let mut out = Mat::default();
+    match op {
+        Morph::Erode => imgproc::erode_def(&img, &mut out, &kernel),
+        Morph::Dilate => imgproc::dilate_def(&img, &mut out, &kernel),
+    }
+    .map_err(|e| err(e.to_string()))?;
+    let out = if out.is_continuous() {
+        out
+    } else {
+        out.try_clone().map_err(|e| err(e.to_string()))?
+    };
+    let bytes = out.data_bytes().map_err(|e| err(e.to_string()))?;
+    ndarray::Array2::from_shape_vec((h, w), bytes.iter().map(|&b| b != 0).collect())
+        .map_err(|e| err(e.to_string()))
+}
+
+/// [`morphology`] with [`Morph::Erode`].
+pub fn erode(
+    mask: &ndarray::Array2<bool>,
+    radius: usize,
+) -> Result<ndarray::Array2<bool>, ImageError> {
+    morphology(mask, Morph::Erode, radius)
+}
+
+/// [`morphology`] with [`Morph::Dilate`].
+pub fn dilate(
+    mask: &ndarray::Array2<bool>,
+    radius: usize,
+) -> Result<ndarray::Array2<bool>, ImageError> {
+    morphology(mask, Morph::Dilate, radius)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -140,5 +211,25 @@ mod tests {
         assert_eq!(labels[[0, 0]], labels[[1, 1]]);
         assert_ne!(labels[[0, 0]], labels[[4, 4]]);
         assert_eq!(areas[labels[[4, 4]] as usize], 2);
+    }
+
+    #[test]
+    fn morphology_with_elliptical_kernel() {
+        let mut m = ndarray::Array2::from_elem((9, 9), false);
+        m[[4, 4]] = true;
+        let d = dilate(&m, 1).unwrap();
+        assert!(d.iter().filter(|&&v| v).count() >= 5);
+        assert!(d[[3, 4]] && d[[5, 4]] && d[[4, 3]] && d[[4, 5]]);
+        assert!(!d[[2, 4]]);
+        let d2 = dilate(&m, 2).unwrap();
+        assert!(
+            d2[[2, 4]] && !d2[[2, 2]],
+            "radius 2 ellipse excludes the corners"
+        );
+        assert_eq!(erode(&d2, 2).unwrap(), m);
+        // The image border does not erode a mask that touches it.
+        let full = ndarray::Array2::from_elem((5, 6), true);
+        assert_eq!(erode(&full, 2).unwrap(), full);
+        assert_eq!(dilate(&m, 0).unwrap(), m);
     }
 }

@@ -2,8 +2,8 @@
 //! city scenes (the GS4City method), CPU-only.
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
-//! [`mesh`], [`npy`], [`camera`], [`imageio`].
-//! Stages: [`citymodel`], [`raycast`], [`render`]. See ARCHITECTURE.md for the data flow.
+//! [`mesh`], [`npy`], [`camera`], [`imageio`], [`masks`] (SAM JSON / COCO RLE; `masks::simulate` for the synthetic benchmark).
+//! Stages: [`citymodel`], [`raycast`], [`render`], [`lift`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
 pub mod camera;
@@ -16,6 +16,7 @@ pub mod embree;
 pub mod fsutil;
 pub mod imageio;
 pub mod lift;
+pub mod masks;
 pub mod mesh;
 pub mod npy;
 pub mod raycast;
