@@ -3,7 +3,7 @@
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
 //! [`mesh`], [`npy`], [`camera`], [`imageio`].
-//! Stages: [`citymodel`], [`raycast`], [`render`]. See ARCHITECTURE.md for the data flow.
+//! Stages: [`citymodel`], [`raycast`], [`render`], [`eval`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
 pub mod camera;
@@ -13,6 +13,7 @@ pub mod classes;
 pub mod cli;
 pub mod colmap;
 pub mod embree;
+pub mod eval;
 pub mod fsutil;
 pub mod imageio;
 pub mod mesh;
