@@ -499,7 +499,7 @@ pub fn tables(m: &MetricsJson) -> String {
         .map(|h| h.to_string())
         .chain(names.iter().map(|n| capitalise(n)))
         .collect();
-    s.push_str(&format!("Table 1 (%)        | Coarse{:>29} | Fine\n", ""));
+    s.push_str(&format!("Table 1 (%)        | Coarse{:>25} | Fine\n", ""));
     s.push_str(&format!("{:<18} |", "protocol"));
     for (i, h) in head.iter().enumerate() {
         if i == 4 {
