@@ -3,7 +3,7 @@
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
 //! [`mesh`], [`npy`], [`camera`], [`imageio`], [`masks`] (SAM JSON / COCO RLE; `masks::simulate` for the synthetic benchmark).
-//! Stages: [`citymodel`], [`raycast`], [`render`], [`lift`]. See ARCHITECTURE.md for the data flow.
+//! Stages: [`citymodel`], [`raycast`], [`render`], [`lift`], [`eval`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
 pub mod camera;
@@ -13,6 +13,7 @@ pub mod classes;
 pub mod cli;
 pub mod colmap;
 pub mod embree;
+pub mod eval;
 pub mod fsutil;
 pub mod imageio;
 pub mod lift;

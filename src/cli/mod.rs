@@ -1,6 +1,7 @@
 //! The command line: one subcommand per stage (DESIGN.md). Only this module uses `anyhow`.
 //! Each subcommand parses its arguments, validates them into a config, then runs.
 mod citymodel;
+mod eval;
 mod lift;
 mod raycast;
 mod render;
@@ -27,6 +28,8 @@ enum Command {
     Lift(lift::LiftArgs),
     /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
     Align(citymodel::AlignArgs),
+    /// Evaluate predicted class maps against ground truth → metrics.json, paper-shaped tables.
+    Eval(eval::EvalArgs),
 }
 
 /// Parses the process arguments and runs the chosen subcommand.
@@ -37,6 +40,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Align(args) => citymodel::run_align(&args),
         Command::Raycast(args) => raycast::run(&args),
         Command::Render(args) => render::run(&args),
+        Command::Eval(args) => eval::run(&args),
         Command::Lift(args) => lift::run(&args),
     }
 }

@@ -1,0 +1,58 @@
+//! The `eval` subcommand: arguments and the call into [`crate::eval::run`]; writes
+//! `summary.json` and prints the paper-shaped tables.
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+
+use crate::{eval, fsutil};
+
+/// Evaluate predicted class maps against ground truth (coarse and fine, paper and dataset level).
+#[derive(Debug, Clone, clap::Args, serde::Serialize)]
+pub struct EvalArgs {
+    /// Folder of predictions `<stem>.class.npy` (int32 H×W, −1 = no class).
+    #[arg(long, value_name = "DIR")]
+    pub pred: PathBuf,
+    /// Folder of ground truth `<stem>.class.npy` (int32 H×W, −1 = ignore).
+    #[arg(long, value_name = "DIR")]
+    pub gt: PathBuf,
+    /// Output folder (metrics.json, summary.json).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+}
+
+/// Runs the evaluation, writes `summary.json`, prints warnings and the tables.
+pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
+    for (flag, dir) in [("--pred", &args.pred), ("--gt", &args.gt)] {
+        if !dir.is_dir() {
+            bail!("{flag} {}: not a directory", dir.display());
+        }
+    }
+    let (summary, metrics) = eval::run(&args.pred, &args.gt, &args.out).context("evaluating")?;
+    #[derive(serde::Serialize)]
+    struct Out<'a> {
+        args: &'a EvalArgs,
+        #[serde(flatten)]
+        summary: &'a eval::EvalSummary,
+    }
+    fsutil::write_json(
+        &args.out.join("summary.json"),
+        &Out {
+            args,
+            summary: &summary,
+        },
+    )?;
+    for w in &summary.warnings {
+        eprintln!("warning: {w}");
+    }
+    println!(
+        "{} views evaluated ({} coarse, {} fine; {} resized) in {:.3} s → {}",
+        summary.images,
+        summary.images - summary.coarse_skipped_no_valid_gt,
+        summary.images - summary.fine_skipped_no_fine_gt,
+        summary.resized_predictions,
+        summary.seconds,
+        args.out.join("metrics.json").display()
+    );
+    print!("{}", eval::tables(&metrics));
+    Ok(())
+}
