@@ -22,4 +22,6 @@ pub mod mesh;
 pub mod npy;
 pub mod raycast;
 pub mod render;
+pub mod report;
+pub mod run;
 pub mod splat;

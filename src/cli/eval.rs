@@ -15,6 +15,9 @@ pub struct EvalArgs {
     /// Folder of ground truth `<stem>.class.npy` (int32 H×W, −1 = ignore).
     #[arg(long, value_name = "DIR")]
     pub gt: PathBuf,
+    /// Only these views (stems, comma-separated), e.g. the test views; default: every GT view.
+    #[arg(long, value_delimiter = ',')]
+    pub views: Vec<String>,
     /// Output folder (metrics.json, summary.json).
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
@@ -27,7 +30,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
             bail!("{flag} {}: not a directory", dir.display());
         }
     }
-    let (summary, metrics) = eval::run(&args.pred, &args.gt, &args.out).context("evaluating")?;
+    let stems = (!args.views.is_empty()).then_some(args.views.as_slice());
+    let (summary, metrics) =
+        eval::run_for(&args.pred, &args.gt, &args.out, stems).context("evaluating")?;
     #[derive(serde::Serialize)]
     struct Out<'a> {
         args: &'a EvalArgs,

@@ -5,6 +5,7 @@ mod eval;
 mod lift;
 mod raycast;
 mod render;
+mod run;
 
 use clap::{Parser, Subcommand};
 
@@ -26,6 +27,8 @@ enum Command {
     Render(render::RenderArgs),
     /// Lift city-model labels into the Gaussians (closed-form weighted vote) and predict test views.
     Lift(lift::LiftArgs),
+    /// A scene folder through every stage: citymodel → raycast → lift → eval (when gt/ exists); resumes finished stages.
+    Run(run::RunArgs),
     /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
     Align(citymodel::AlignArgs),
     /// Evaluate predicted class maps against ground truth → metrics.json, paper-shaped tables.
@@ -42,5 +45,6 @@ pub fn main() -> anyhow::Result<()> {
         Command::Render(args) => render::run(&args),
         Command::Eval(args) => eval::run(&args),
         Command::Lift(args) => lift::run(&args),
+        Command::Run(args) => run::run(&args),
     }
 }

@@ -56,6 +56,8 @@ pub enum EvalError {
     MissingPrediction { stem: String, path: PathBuf },
     #[error("{dir}: no ground-truth class maps (*{SUFFIX})")]
     NoGroundTruth { dir: PathBuf },
+    #[error("{dir}: no ground truth for the requested view '{stem}'")]
+    MissingGroundTruth { stem: String, dir: PathBuf },
 }
 
 /// The `<stem>` → path map of the `*.class.npy` files of a folder.
@@ -166,7 +168,28 @@ pub struct Evaluation {
 
 /// Pairs the class maps of `pred` and `gt` by stem and evaluates every GT view.
 pub fn evaluate_dirs(pred: &Path, gt: &Path) -> Result<Evaluation, EvalError> {
-    let gts = list_maps(gt)?;
+    evaluate_dirs_for(pred, gt, None)
+}
+
+/// As [`evaluate_dirs`], restricted to the GT views named in `stems` (e.g. the test views);
+/// a named stem without GT is an error.
+pub fn evaluate_dirs_for(
+    pred: &Path,
+    gt: &Path,
+    stems: Option<&[String]>,
+) -> Result<Evaluation, EvalError> {
+    let mut gts = list_maps(gt)?;
+    if let Some(stems) = stems {
+        for s in stems {
+            if !gts.contains_key(s) {
+                return Err(EvalError::MissingGroundTruth {
+                    stem: s.clone(),
+                    dir: gt.to_path_buf(),
+                });
+            }
+        }
+        gts.retain(|k, _| stems.contains(k));
+    }
     if gts.is_empty() {
         return Err(EvalError::NoGroundTruth {
             dir: gt.to_path_buf(),
@@ -596,8 +619,22 @@ pub struct EvalSummary {
 /// Evaluates `pred` against `gt`, writes `<out>/metrics.json`; returns the summary and the
 /// full metrics (for printing).
 pub fn run(pred: &Path, gt: &Path, out: &Path) -> Result<(EvalSummary, MetricsJson), EvalError> {
+    run_for(pred, gt, out, None)
+}
+
+/// As [`run`], restricted to the GT views named in `stems`; predictions of other views are ignored.
+pub fn run_for(
+    pred: &Path,
+    gt: &Path,
+    out: &Path,
+    stems: Option<&[String]>,
+) -> Result<(EvalSummary, MetricsJson), EvalError> {
     let t0 = Instant::now();
-    let ev = evaluate_dirs(pred, gt)?;
+    let mut ev = evaluate_dirs_for(pred, gt, stems)?;
+    if stems.is_some() {
+        ev.predictions_without_gt.clear();
+        ev.warnings.retain(|w| !w.contains("without ground truth"));
+    }
     let m = metrics_json(&ev);
     fsutil::create_dir(out)?;
     fsutil::write_json(&out.join("metrics.json"), &m)?;
