@@ -20,3 +20,4 @@ pub mod npy;
 pub mod raycast;
 pub mod render;
 pub mod splat;
+pub mod synth;

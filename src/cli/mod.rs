@@ -3,6 +3,7 @@
 mod citymodel;
 mod raycast;
 mod render;
+mod synth;
 
 use clap::{Parser, Subcommand};
 
@@ -24,6 +25,8 @@ enum Command {
     Render(render::RenderArgs),
     /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
     Align(citymodel::AlignArgs),
+    /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
+    Synth(synth::SynthArgs),
 }
 
 /// Parses the process arguments and runs the chosen subcommand.
@@ -34,5 +37,6 @@ pub fn main() -> anyhow::Result<()> {
         Command::Align(args) => citymodel::run_align(&args),
         Command::Raycast(args) => raycast::run(&args),
         Command::Render(args) => render::run(&args),
+        Command::Synth(args) => synth::run(&args),
     }
 }
