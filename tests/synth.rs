@@ -73,15 +73,15 @@ fn same_seed_identical_other_seed_differs() {
     synth::run(&tiny(7), &b).unwrap();
     synth::run(&tiny(8), &c).unwrap();
     let (fa, fb, fc) = (files(&a), files(&b), files(&c));
-    assert_eq!(
-        fa.keys().collect::<Vec<_>>(),
-        fb.keys().collect::<Vec<_>>()
-    );
+    assert_eq!(fa.keys().collect::<Vec<_>>(), fb.keys().collect::<Vec<_>>());
     for (k, v) in &fa {
         if k == "summary.json" {
             assert_eq!(summary_without_timings(v), summary_without_timings(&fb[k]));
         } else {
-            assert!(v == &fb[k], "{k} differs between two runs with the same seed");
+            assert!(
+                v == &fb[k],
+                "{k} differs between two runs with the same seed"
+            );
         }
     }
     // The folder is complete (DESIGN.md).
@@ -122,8 +122,10 @@ fn same_seed_identical_other_seed_differs() {
     let mut building_px = 0;
     for v in &views {
         let stem = v.stem();
-        let (shape, class) = gs4city::npy::read::<i32>(&a.join(format!("gt/{stem}.class.npy"))).unwrap();
-        let (_, inst) = gs4city::npy::read::<i32>(&a.join(format!("gt/{stem}.instance.npy"))).unwrap();
+        let (shape, class) =
+            gs4city::npy::read::<i32>(&a.join(format!("gt/{stem}.class.npy"))).unwrap();
+        let (_, inst) =
+            gs4city::npy::read::<i32>(&a.join(format!("gt/{stem}.instance.npy"))).unwrap();
         let (hs, hier) = gs4city::npy::read::<i32>(&a.join(format!("gt/{stem}.hier.npy"))).unwrap();
         assert_eq!(shape, vec![150, 200]);
         assert_eq!(hs, vec![3, 150, 200]);
@@ -138,9 +140,16 @@ fn same_seed_identical_other_seed_differs() {
                     .into_iter()
                     .find(|&x| x >= 0);
                 assert_eq!(finest, Some(e));
-                assert_eq!(cm.entities[hier[p] as usize].level, gs4city::citygml::Level::Feature);
+                assert_eq!(
+                    cm.entities[hier[p] as usize].level,
+                    gs4city::citygml::Level::Feature
+                );
             } else {
-                assert!(e_none_or_sim(inst[p]), "non-building pixel with instance {}", inst[p]);
+                assert!(
+                    e_none_or_sim(inst[p]),
+                    "non-building pixel with instance {}",
+                    inst[p]
+                );
                 assert_eq!(hier[p], -1);
             }
         }
@@ -155,22 +164,26 @@ fn e_none_or_sim(i: i32) -> bool {
     i == -1 || i >= synth::world::FIRST_INSTANCE
 }
 
-fn subset(g: &Gaussians, truth: &[[i32; 5]], keep: impl Fn(&[i32; 5]) -> bool) -> (Gaussians, Vec<[i32; 5]>) {
+fn subset(
+    g: &Gaussians,
+    truth: &[[i32; 5]],
+    keep: impl Fn(&[i32; 5]) -> bool,
+) -> (Gaussians, Vec<[i32; 5]>) {
     let mut out = Gaussians {
         sh_degree: g.sh_degree,
         ..Default::default()
     };
     let mut t = Vec::new();
     let r = g.rest_per_gaussian();
-    for i in 0..g.len() {
-        if keep(&truth[i]) {
+    for (i, tr) in truth.iter().enumerate() {
+        if keep(tr) {
             out.positions.push(g.positions[i]);
             out.f_dc.push(g.f_dc[i]);
             out.f_rest.extend_from_slice(&g.f_rest[i * r..(i + 1) * r]);
             out.opacity.push(g.opacity[i]);
             out.scale.push(g.scale[i]);
             out.rotation.push(g.rotation[i]);
-            t.push(truth[i]);
+            t.push(*tr);
         }
     }
     (out, t)
@@ -212,7 +225,11 @@ fn visible_windows_are_in_gt_and_occluders_hide_openings() {
         for (id, (n, unhidden, in_gt)) in px {
             if n >= 50 && unhidden >= 50 {
                 checked += 1;
-                assert!(in_gt > 0, "view {}: opening {id} ({n} px alone) missing from GT", v.name);
+                assert!(
+                    in_gt > 0,
+                    "view {}: opening {id} ({n} px alone) missing from GT",
+                    v.name
+                );
             }
         }
     }
@@ -220,7 +237,12 @@ fn visible_windows_are_in_gt_and_occluders_hide_openings() {
 
     // Occluders: look at each occluded opening from in front; where the occluder alone is
     // opaque and nearer than the city surface, the GT says tree/car/person.
-    let occ: Vec<_> = sim.world.objects.iter().filter(|o| o.occludes.is_some()).collect();
+    let occ: Vec<_> = sim
+        .world
+        .objects
+        .iter()
+        .filter(|o| o.occludes.is_some())
+        .collect();
     assert!(!occ.is_empty());
     let mut hidden_openings = 0;
     for o in occ {
@@ -237,12 +259,18 @@ fn visible_windows_are_in_gt_and_occluders_hide_openings() {
         let (og, ot) = subset(g, truth, |t| t[1] == o.instance);
         let scene = PreparedScene::new(&og).unwrap();
         let alone = gs4city::render::render_view(&scene, &cam, &Default::default()).unwrap();
-        let city_r = gs4city::render::render_view(&PreparedScene::new(&city_g).unwrap(), &cam, &Default::default()).unwrap();
+        let city_r = gs4city::render::render_view(
+            &PreparedScene::new(&city_g).unwrap(),
+            &cam,
+            &Default::default(),
+        )
+        .unwrap();
         let class = ot[0][0];
         let (mut total, mut agree, mut not_city) = (0, 0, 0);
         let mut other: BTreeMap<i32, usize> = BTreeMap::new();
         for p in 0..full.class.len() {
-            let nearer = city_r.alpha[p] < 0.5 || alone.median_depth[p] < city_r.median_depth[p] - 0.5;
+            let nearer =
+                city_r.alpha[p] < 0.5 || alone.median_depth[p] < city_r.median_depth[p] - 0.5;
             if alone.alpha[p] > 0.95 && nearer {
                 total += 1;
                 if full.class[p] == class {
@@ -253,7 +281,9 @@ fn visible_windows_are_in_gt_and_occluders_hide_openings() {
                 if !classes::is_building(full.class[p]) {
                     not_city += 1;
                 }
-                if matches!(city.class[p], classes::WINDOW | classes::DOOR) && full.class[p] == class {
+                if matches!(city.class[p], classes::WINDOW | classes::DOOR)
+                    && full.class[p] == class
+                {
                     hidden_openings += 1;
                 }
             }
@@ -261,8 +291,16 @@ fn visible_windows_are_in_gt_and_occluders_hide_openings() {
         assert!(total > 20, "occluder {} covers only {total} px", o.instance);
         // What the occluder covers is never building in the GT; mostly it is the occluder
         // itself (another simulated object may stand in front of it).
-        assert!(not_city as f64 >= 0.98 * total as f64, "occluder {}: {not_city}/{total} {other:?}", o.instance);
-        assert!(agree as f64 >= 0.75 * total as f64, "occluder {}: {agree}/{total} {other:?}", o.instance);
+        assert!(
+            not_city as f64 >= 0.98 * total as f64,
+            "occluder {}: {not_city}/{total} {other:?}",
+            o.instance
+        );
+        assert!(
+            agree as f64 >= 0.75 * total as f64,
+            "occluder {}: {agree}/{total} {other:?}",
+            o.instance
+        );
     }
     assert!(hidden_openings > 0, "no occluder hides an opening pixel");
 }
@@ -299,12 +337,23 @@ fn bad_config_names_key_and_file() {
     std::fs::create_dir_all(&d).unwrap();
     let f = d.join("synth.toml");
     std::fs::write(&f, "[splats]\ndensty = 3\n").unwrap();
-    let e = SynthConfig::load(&f, SynthConfig::default()).unwrap_err().to_string();
+    let e = SynthConfig::load(&f, SynthConfig::default())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("densty") && e.contains("synth.toml"), "{e}");
     std::fs::write(&f, "[cameras]\norbit_radius = [50.0, 40.0]\n").unwrap();
-    let e = SynthConfig::load(&f, SynthConfig::default()).unwrap_err().to_string();
-    assert!(e.contains("cameras.orbit_radius") && e.contains("synth.toml"), "{e}");
-    std::fs::write(&f, "seed = 5\ncitygml = [\"x.gml\"]\n[splats]\ndensity = 3.0\n").unwrap();
+    let e = SynthConfig::load(&f, SynthConfig::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("cameras.orbit_radius") && e.contains("synth.toml"),
+        "{e}"
+    );
+    std::fs::write(
+        &f,
+        "seed = 5\ncitygml = [\"x.gml\"]\n[splats]\ndensity = 3.0\n",
+    )
+    .unwrap();
     let c = SynthConfig::load(&f, SynthConfig::default()).unwrap();
     assert_eq!((c.seed, c.splats.density, c.ground.density), (5, 3.0, 8.0));
     assert_eq!(c.citygml, vec![d.join("x.gml")]);

@@ -41,7 +41,9 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         cfg.citygml = args.citygml.clone();
     }
     if cfg.citygml.is_empty() {
-        anyhow::bail!("no CityGML input: give --citygml FILES…, a --preset, or `citygml` in --config");
+        anyhow::bail!(
+            "no CityGML input: give --citygml FILES…, a --preset, or `citygml` in --config"
+        );
     }
     cfg.validate(std::path::Path::new("<command line>"))?;
     let s = synth::run(&cfg, &args.out)

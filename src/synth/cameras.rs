@@ -64,16 +64,17 @@ pub fn generate(
     }
     // Street level: in front of walls with openings (area-weighted; all walls when none has
     // openings), where the ground is free.
-    let with_openings: std::collections::BTreeSet<i32> = city
-        .openings
-        .iter()
-        .map(|o| o.surface)
-        .collect();
-    let walls: Vec<&super::city::Facet> = if city.walls.iter().any(|w| with_openings.contains(&w.entity)) {
-        city.walls.iter().filter(|w| with_openings.contains(&w.entity)).collect()
-    } else {
-        city.walls.iter().collect()
-    };
+    let with_openings: std::collections::BTreeSet<i32> =
+        city.openings.iter().map(|o| o.surface).collect();
+    let walls: Vec<&super::city::Facet> =
+        if city.walls.iter().any(|w| with_openings.contains(&w.entity)) {
+            city.walls
+                .iter()
+                .filter(|w| with_openings.contains(&w.entity))
+                .collect()
+        } else {
+            city.walls.iter().collect()
+        };
     let total: f64 = walls.iter().map(|w| w.area).sum();
     let mut made = 0;
     let mut tries = 0;
@@ -116,7 +117,11 @@ pub fn generate(
         }
         let gz = map.height(foot.x, foot.y);
         let eye = DVec3::new(foot.x, foot.y, gz + cfg.street_height);
-        let target = DVec3::new(wall.centroid.x, wall.centroid.y, gz + cfg.street_height + 3.0);
+        let target = DVec3::new(
+            wall.centroid.x,
+            wall.centroid.y,
+            gz + cfg.street_height + 3.0,
+        );
         if let Some(pose) = Pose::look_at(eye, target, DVec3::Z) {
             out.push(SimCamera {
                 kind: "street",

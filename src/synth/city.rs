@@ -193,7 +193,9 @@ pub fn build(
             };
             // Texture coordinates per triangulation vertex, matched by exact position.
             let mut known: Vec<(DVec3, [f64; 2], usize)> = Vec::new();
-            for (ring, pts) in std::iter::once((&p.exterior, &ext)).chain(p.interiors.iter().zip(&holes)) {
+            for (ring, pts) in
+                std::iter::once((&p.exterior, &ext)).chain(p.interiors.iter().zip(&holes))
+            {
                 if let Some((img, uvs)) = ring.id.as_deref().and_then(|id| ring_uv.get(id))
                     && uvs.len() == pts.len()
                 {
@@ -221,12 +223,11 @@ pub fn build(
                     _ => None,
                 }
             };
-            let material = p
-                .id
-                .as_deref()
-                .and_then(|id| mat_of.get(id))
-                .or_else(|| mat_of.get(m.objects[owner].object_id.as_str()))
-                .copied();
+            let material =
+                p.id.as_deref()
+                    .and_then(|id| mat_of.get(id))
+                    .or_else(|| mat_of.get(m.objects[owner].object_id.as_str()))
+                    .copied();
             jobs.push(PolyJob {
                 file: fi,
                 poly: pi,
@@ -268,12 +269,19 @@ pub fn build(
             j.tri.normal
         };
         let c = j.tri.vertices.iter().copied().sum::<DVec3>() / j.tri.vertices.len() as f64;
-        let zmin = j.tri.vertices.iter().map(|v| v.z).fold(f64::INFINITY, f64::min);
+        let zmin = j
+            .tri
+            .vertices
+            .iter()
+            .map(|v| v.z)
+            .fold(f64::INFINITY, f64::min);
         for key in [j.label[1], j.label[2]] {
             if key < 0 {
                 continue;
             }
-            let e = acc.entry(key).or_insert((DVec3::ZERO, DVec3::ZERO, 0.0, f64::INFINITY, 0));
+            let e = acc
+                .entry(key)
+                .or_insert((DVec3::ZERO, DVec3::ZERO, 0.0, f64::INFINITY, 0));
             // Orient each polygon's normal outward before summing (files mix orientations).
             let b = entities[key as usize].building;
             let centre = bld.get(&b).map(|(lo, hi)| (*lo + *hi) * 0.5).unwrap_or(c);
@@ -331,14 +339,19 @@ pub fn build(
             j.tri.normal
         };
         let b = entities[j.label[0].max(0) as usize].building;
-        let centre = bld.get(&b).map(|(lo, hi)| (*lo + *hi) * 0.5).unwrap_or(DVec3::ZERO);
+        let centre = bld
+            .get(&b)
+            .map(|(lo, hi)| (*lo + *hi) * 0.5)
+            .unwrap_or(DVec3::ZERO);
         let pc = j.tri.vertices.iter().copied().sum::<DVec3>() / j.tri.vertices.len() as f64;
         let n_out = outward(poly_n, pc, centre);
         let frame = frame_from_normal(n_out);
         // Recess: openings move along their wall's inward normal.
         let shift = if matches!(j.class, classes::WINDOW | classes::DOOR) && j.label[2] >= 0 {
             let wall_n = if j.label[1] >= 0 {
-                acc.get(&j.label[1]).map(|a| a.0).and_then(|v| v.try_normalize())
+                acc.get(&j.label[1])
+                    .map(|a| a.0)
+                    .and_then(|v| v.try_normalize())
             } else {
                 None
             }

@@ -267,7 +267,9 @@ impl SynthConfig {
             path: path.to_path_buf(),
             why,
         };
-        let over: toml::Table = text.parse().map_err(|e: toml::de::Error| cfg_err(e.to_string()))?;
+        let over: toml::Table = text
+            .parse()
+            .map_err(|e: toml::de::Error| cfg_err(e.to_string()))?;
         let mut merged = toml::Table::try_from(&base).map_err(|e| cfg_err(e.to_string()))?;
         merge(&mut merged, over);
         let mut cfg: SynthConfig = merged
@@ -282,7 +284,13 @@ impl SynthConfig {
             cfg.citygml = cfg
                 .citygml
                 .iter()
-                .map(|p| if p.is_absolute() { p.clone() } else { dir.join(p) })
+                .map(|p| {
+                    if p.is_absolute() {
+                        p.clone()
+                    } else {
+                        dir.join(p)
+                    }
+                })
                 .collect();
         }
         cfg.validate(path)?;
@@ -378,9 +386,10 @@ impl SynthConfig {
             return bad("cameras.background", "values must be in [0, 1]");
         }
         let a = &self.alignment;
-        if !(a.scale > 0.0 && a.scale.is_finite())
-            || !a.rotation_deg.is_finite()
-            || a.translation.iter().any(|v| !v.is_finite())
+        if !(a.scale > 0.0
+            && a.scale.is_finite()
+            && a.rotation_deg.is_finite()
+            && a.translation.iter().all(|v| v.is_finite()))
         {
             return bad("alignment", "scale must be > 0 and all values finite");
         }
@@ -438,8 +447,8 @@ pub fn collect_files(paths: &[PathBuf]) -> Result<Vec<PathBuf>, SynthError> {
 }
 
 fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> Result<(), SynthError> {
-    let rd = std::fs::read_dir(dir)
-        .map_err(|e| SynthError::Input(format!("{}: {e}", dir.display())))?;
+    let rd =
+        std::fs::read_dir(dir).map_err(|e| SynthError::Input(format!("{}: {e}", dir.display())))?;
     for e in rd {
         let p = e
             .map_err(|e| SynthError::Input(format!("{}: {e}", dir.display())))?

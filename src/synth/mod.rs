@@ -95,7 +95,11 @@ fn true_alignment(models: &[CityModel], cfg: &SynthConfig) -> Alignment {
         }
     }
     Alignment {
-        origin: if lo.is_finite() { lo.floor() } else { DVec3::ZERO },
+        origin: if lo.is_finite() {
+            lo.floor()
+        } else {
+            DVec3::ZERO
+        },
         scale: cfg.alignment.scale,
         rotation: DMat3::from_rotation_z(cfg.alignment.rotation_deg.to_radians()),
         translation: DVec3::from_array(cfg.alignment.translation),
@@ -139,7 +143,13 @@ pub fn build_scene(cfg: &SynthConfig) -> Result<SimScene, SynthError> {
         &mut b,
     )?;
     let map = world::GroundMap::new(&city, cfg.ground.margin);
-    let water = world::ground(&map, &cfg.ground, &cfg.splats, &mut rng(cfg.seed, 2), &mut b);
+    let water = world::ground(
+        &map,
+        &cfg.ground,
+        &cfg.splats,
+        &mut rng(cfg.seed, 2),
+        &mut b,
+    );
     let mut world = world::objects(&map, &city, &cfg.objects, &mut rng(cfg.seed, 3), &mut b);
     world.water = water;
     timings.insert("gaussians_s", t1.elapsed().as_secs_f64());
@@ -287,7 +297,11 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
             &[h, w],
             &l.instance,
         )?;
-        crate::npy::write(&out.join(format!("gt/{stem}.hier.npy")), &[3, h, w], &l.hier)?;
+        crate::npy::write(
+            &out.join(format!("gt/{stem}.hier.npy")),
+            &[3, h, w],
+            &l.hier,
+        )?;
         let mut counts: BTreeMap<String, u64> = BTreeMap::new();
         for &c in &l.class {
             *counts.entry(classes::name(c).to_string()).or_insert(0) += 1;
@@ -303,7 +317,8 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
     if let Some(sheet) = gt::contact_sheet(&sheet_views) {
         crate::imageio::write_png(&out.join("contact_sheet.png"), &sheet)?;
     }
-    sim.timings.insert("render_gt_s", t_r.elapsed().as_secs_f64());
+    sim.timings
+        .insert("render_gt_s", t_r.elapsed().as_secs_f64());
 
     // City model handed to the pipeline: copies (index-prefixed to keep the order, and so
     // the entity ids) and the perturbed alignment.
@@ -329,11 +344,21 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
             lo = lo.min(q);
             hi = hi.max(q);
         }
-        if lo.is_finite() { (lo + hi) * 0.5 } else { DVec3::ZERO }
+        if lo.is_finite() {
+            (lo + hi) * 0.5
+        } else {
+            DVec3::ZERO
+        }
     };
-    let given = perturb(&sim.truth_alignment, &cfg.noise, centre, &mut rng(cfg.seed, 6));
+    let given = perturb(
+        &sim.truth_alignment,
+        &cfg.noise,
+        centre,
+        &mut rng(cfg.seed, 6),
+    );
     crate::fsutil::write_json(&out.join("citymodel/alignment.json"), &given.to_json())?;
-    sim.timings.insert("citymodel_copy_s", t_c.elapsed().as_secs_f64());
+    sim.timings
+        .insert("citymodel_copy_s", t_c.elapsed().as_secs_f64());
 
     // Instances.
     let mut inst: BTreeMap<String, serde_json::Value> = BTreeMap::new();

@@ -250,7 +250,8 @@ pub fn ground(
         }
         let z = map.height(x, y);
         let p = DVec3::new(x, y, z);
-        let in_water = water && (p - DVec3::new(water_c.x, water_c.y, z)).length() < cfg.water_radius;
+        let in_water =
+            water && (p - DVec3::new(water_c.x, water_c.y, z)).length() < cfg.water_radius;
         let (class, inst, rgb, reflect, dz) = if in_water {
             let c = palette(classes::WATER);
             let nz = value_noise(p, 0.8, 5) * 0.05;
@@ -301,7 +302,13 @@ pub fn ground(
 }
 
 /// A free place for an object of clearance `r` in front of `f` (or anywhere when `None`).
-fn place(map: &GroundMap, f: Option<&Facet>, dist: f64, r: f64, rng: &mut ChaCha8Rng) -> Option<DVec3> {
+fn place(
+    map: &GroundMap,
+    f: Option<&Facet>,
+    dist: f64,
+    r: f64,
+    rng: &mut ChaCha8Rng,
+) -> Option<DVec3> {
     if let Some(f) = f {
         let nh = DVec3::new(f.normal.x, f.normal.y, 0.0).try_normalize()?;
         let mut d = dist;
@@ -348,7 +355,11 @@ pub fn objects(
         let hb = b.centroid.z - map.height(b.centroid.x, b.centroid.y);
         ha.total_cmp(&hb).then(a.entity.cmp(&b.entity))
     });
-    let doors: Vec<&Facet> = low.iter().copied().filter(|f| f.class == classes::DOOR).collect();
+    let doors: Vec<&Facet> = low
+        .iter()
+        .copied()
+        .filter(|f| f.class == classes::DOOR)
+        .collect();
     let mut used = std::collections::BTreeSet::new();
     let mut pick = |pool: &[&Facet], rng: &mut ChaCha8Rng| -> Option<Facet> {
         let free: Vec<&&Facet> = pool.iter().filter(|f| !used.contains(&f.entity)).collect();
@@ -389,13 +400,10 @@ pub fn objects(
             let inst = next;
             next += 1;
             let before = out.len();
-            let facing = facet
-                .as_ref()
-                .map(|f| f.normal)
-                .unwrap_or_else(|| {
-                    let a = rng.random::<f64>() * std::f64::consts::TAU;
-                    DVec3::new(a.cos(), a.sin(), 0.0)
-                });
+            let facing = facet.as_ref().map(|f| f.normal).unwrap_or_else(|| {
+                let a = rng.random::<f64>() * std::f64::consts::TAU;
+                DVec3::new(a.cos(), a.sin(), 0.0)
+            });
             match class {
                 classes::TREE => tree(base, cfg.tree_gaussians, inst, rng, out),
                 classes::CAR => car(base, facing, inst, rng, out),
@@ -420,7 +428,11 @@ pub fn objects(
             2.0 + rng.random::<f64>() * (map.zmax + 8.0),
         );
         let s = 0.05 + rng.random::<f64>() * 0.25;
-        let rgb = [rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()];
+        let rgb = [
+            rng.random::<f64>(),
+            rng.random::<f64>(),
+            rng.random::<f64>(),
+        ];
         let frame = random_frame(rng);
         out.push(Splat {
             pos: p,
@@ -479,7 +491,11 @@ fn tree(base: DVec3, n_crown: usize, inst: i32, rng: &mut ChaCha8Rng, out: &mut 
             (centre + off, crown_r * (0.55 + 0.3 * rng.random::<f64>()))
         })
         .collect();
-    let green = [0.18 + 0.1 * rng.random::<f64>(), 0.38 + 0.1 * rng.random::<f64>(), 0.12];
+    let green = [
+        0.18 + 0.1 * rng.random::<f64>(),
+        0.38 + 0.1 * rng.random::<f64>(),
+        0.12,
+    ];
     for _ in 0..n_crown {
         let (c, r) = blobs[rng.random_range(0..blobs.len())];
         // Mostly near the blob's surface: a leafy shell.
@@ -505,6 +521,7 @@ fn tree(base: DVec3, n_crown: usize, inst: i32, rng: &mut ChaCha8Rng, out: &mut 
     }
 }
 
+#[allow(clippy::too_many_arguments)]
 fn box_surface(
     lo: DVec3,
     hi: DVec3,
@@ -561,10 +578,15 @@ fn box_surface(
 /// A car: body box and a shorter cabin, long axis along the façade.
 fn car(base: DVec3, facing: DVec3, inst: i32, rng: &mut ChaCha8Rng, out: &mut Builder) {
     let t = truth(classes::CAR, inst);
-    let nh = DVec3::new(facing.x, facing.y, 0.0).try_normalize().unwrap_or(DVec3::Y);
+    let nh = DVec3::new(facing.x, facing.y, 0.0)
+        .try_normalize()
+        .unwrap_or(DVec3::Y);
     let along = DVec3::new(-nh.y, nh.x, 0.0);
     let frame = DMat3::from_cols(along, nh, DVec3::Z);
-    let (l, w) = (4.2 + rng.random::<f64>() * 0.4, 1.7 + rng.random::<f64>() * 0.2);
+    let (l, w) = (
+        4.2 + rng.random::<f64>() * 0.4,
+        1.7 + rng.random::<f64>() * 0.2,
+    );
     let paints = [
         [0.75, 0.1, 0.1],
         [0.1, 0.2, 0.6],
@@ -601,7 +623,11 @@ fn car(base: DVec3, facing: DVec3, inst: i32, rng: &mut ChaCha8Rng, out: &mut Bu
 fn person(base: DVec3, inst: i32, rng: &mut ChaCha8Rng, out: &mut Builder) {
     let t = truth(classes::PERSON, inst);
     let h = 1.6 + rng.random::<f64>() * 0.25;
-    let shirt = [rng.random::<f64>(), rng.random::<f64>(), rng.random::<f64>()];
+    let shirt = [
+        rng.random::<f64>(),
+        rng.random::<f64>(),
+        rng.random::<f64>(),
+    ];
     let trousers = [0.15, 0.15, 0.25];
     for _ in 0..350 {
         let z = rng.random::<f64>() * (h - 0.25);
