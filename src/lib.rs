@@ -25,3 +25,4 @@ pub mod render;
 pub mod report;
 pub mod run;
 pub mod splat;
+pub mod synth;

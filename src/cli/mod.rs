@@ -6,6 +6,7 @@ mod lift;
 mod raycast;
 mod render;
 mod run;
+mod synth;
 
 use clap::{Parser, Subcommand};
 
@@ -33,6 +34,8 @@ enum Command {
     Align(citymodel::AlignArgs),
     /// Evaluate predicted class maps against ground truth → metrics.json, paper-shaped tables.
     Eval(eval::EvalArgs),
+    /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
+    Synth(synth::SynthArgs),
 }
 
 /// Parses the process arguments and runs the chosen subcommand.
@@ -46,5 +49,6 @@ pub fn main() -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(&args),
         Command::Lift(args) => lift::run(&args),
         Command::Run(args) => run::run(&args),
+        Command::Synth(args) => synth::run(&args),
     }
 }

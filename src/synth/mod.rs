@@ -1,0 +1,438 @@
+//! `synth`: a SIMULATED scene folder (DESIGN.md) with exact ground truth, built from real
+//! CityGML: Gaussians on the true city model (textured, windows/doors recessed, glass
+//! view-dependent), a ground plane, water, trees, cars, persons (some occluding openings),
+//! floaters; drone-orbit and street-level PINHOLE cameras (COLMAP bin + txt); images from the
+//! project's own rasterizer; per-view GT from the Gaussians' truth (top-1 α·T); the real
+//! CityGML handed to the pipeline with a perturbed alignment; `summary.json`; a contact sheet.
+//!
+//! Submodules: [`config`] (TOML, presets), [`gaussians`] (builder, truth), [`city`] (building
+//! Gaussians), [`world`] (ground, objects, floaters), [`cameras`], [`gt`] (labels, contact sheet).
+//! Deterministic: every random draw comes from one seeded ChaCha8 stream per part.
+pub mod cameras;
+pub mod city;
+pub mod config;
+pub mod gaussians;
+pub mod gt;
+pub mod world;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use glam::{DMat3, DVec3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use serde_json::json;
+
+pub use config::{Preset, SynthConfig};
+use gaussians::{Builder, Truth};
+
+use crate::camera::{Camera, Pose, View};
+use crate::citygml::{self, CityModel};
+use crate::citymodel::{self, Alignment, Entity};
+use crate::classes;
+use crate::render::PreparedScene;
+
+/// Errors of the synth stage.
+#[derive(Debug, thiserror::Error)]
+pub enum SynthError {
+    #[error("config {path}: {why}")]
+    Config { path: PathBuf, why: String },
+    #[error("{0}")]
+    Input(String),
+    #[error(transparent)]
+    CityGml(#[from] citygml::CityGmlError),
+    #[error(transparent)]
+    CityModel(#[from] citymodel::CityModelError),
+    #[error(transparent)]
+    Render(#[from] crate::render::RenderError),
+    #[error(transparent)]
+    Fs(#[from] crate::fsutil::FsError),
+    #[error(transparent)]
+    Npy(#[from] crate::npy::NpyError),
+    #[error(transparent)]
+    Image(#[from] crate::imageio::ImageError),
+    #[error(transparent)]
+    Ply(#[from] crate::splat::PlyError),
+    #[error(transparent)]
+    Colmap(#[from] crate::colmap::ColmapError),
+    #[error("copy {from} → {to}: {source}")]
+    Copy {
+        from: PathBuf,
+        to: PathBuf,
+        source: std::io::Error,
+    },
+}
+
+/// The simulated scene in the scene frame.
+pub struct SimScene {
+    pub files: Vec<PathBuf>,
+    pub entities: Vec<Entity>,
+    pub truth_alignment: Alignment,
+    pub builder: Builder,
+    pub views: Vec<View>,
+    pub city: city::CityInfo,
+    pub world: world::WorldInfo,
+    pub timings: BTreeMap<&'static str, f64>,
+}
+
+fn rng(seed: u64, stream: u64) -> ChaCha8Rng {
+    let mut r = ChaCha8Rng::seed_from_u64(seed);
+    r.set_stream(stream);
+    r
+}
+
+/// The true alignment: origin = floored bbox minimum of the used polygons, then the
+/// configured rotation about z, scale and translation.
+fn true_alignment(models: &[CityModel], cfg: &SynthConfig) -> Alignment {
+    let mut lo = DVec3::splat(f64::INFINITY);
+    for m in models {
+        for p in m.used_polygons() {
+            for q in p.exterior.points.iter().filter(|q| q.is_finite()) {
+                lo = lo.min(*q);
+            }
+        }
+    }
+    Alignment {
+        origin: if lo.is_finite() {
+            lo.floor()
+        } else {
+            DVec3::ZERO
+        },
+        scale: cfg.alignment.scale,
+        rotation: DMat3::from_rotation_z(cfg.alignment.rotation_deg.to_radians()),
+        translation: DVec3::from_array(cfg.alignment.translation),
+    }
+}
+
+/// Builds the simulated scene (Gaussians, truth, cameras) without writing anything.
+pub fn build_scene(cfg: &SynthConfig) -> Result<SimScene, SynthError> {
+    let mut timings = BTreeMap::new();
+    let t0 = Instant::now();
+    let files = config::collect_files(&cfg.citygml)?;
+    let models: Vec<CityModel> = files
+        .par_iter()
+        .map(|f| citygml::read(f))
+        .collect::<Result<_, _>>()?;
+    let truth_alignment = true_alignment(&models, cfg);
+    let cm = citymodel::run(
+        &files,
+        &citymodel::Options {
+            alignment: Some(truth_alignment),
+        },
+    )?;
+    let n_obj: usize = models.iter().map(|m| m.objects.len()).sum();
+    if n_obj != cm.entities.len() {
+        return Err(SynthError::Input(format!(
+            "entity table mismatch: {n_obj} objects read, citymodel has {}",
+            cm.entities.len()
+        )));
+    }
+    timings.insert("read_citygml_s", t0.elapsed().as_secs_f64());
+
+    let t1 = Instant::now();
+    let mut b = Builder::new();
+    let city = city::build(
+        &files,
+        &models,
+        &cm.entities,
+        truth_alignment.origin,
+        &cfg.splats,
+        &mut rng(cfg.seed, 1),
+        &mut b,
+    )?;
+    let map = world::GroundMap::new(&city, cfg.ground.margin);
+    let water = world::ground(
+        &map,
+        &cfg.ground,
+        &cfg.splats,
+        &mut rng(cfg.seed, 2),
+        &mut b,
+    );
+    let mut world = world::objects(&map, &city, &cfg.objects, &mut rng(cfg.seed, 3), &mut b);
+    world.water = water;
+    timings.insert("gaussians_s", t1.elapsed().as_secs_f64());
+
+    let t2 = Instant::now();
+    let cams = cameras::generate(&cfg.cameras, &city, &map, &mut rng(cfg.seed, 5));
+    // Local metric frame → scene frame: p_s = s·R·p_l + t.
+    let (s, r, t) = (
+        truth_alignment.scale,
+        truth_alignment.rotation,
+        truth_alignment.translation,
+    );
+    b.transform(s, r, t);
+    let mut counters = BTreeMap::new();
+    let mut views: Vec<View> = cams
+        .iter()
+        .map(|c| {
+            let k = counters.entry(c.kind).or_insert(0usize);
+            let name = format!("{}_{:03}.png", c.kind, *k);
+            *k += 1;
+            let rc = c.camera.pose.rotation * r.transpose();
+            View {
+                image_id: 0,
+                camera_id: 1,
+                name,
+                camera: Camera {
+                    intrinsics: c.camera.intrinsics,
+                    pose: Pose {
+                        rotation: rc,
+                        translation: s * c.camera.pose.translation - rc * t,
+                    },
+                },
+            }
+        })
+        .collect();
+    views.sort_by(|a, b| a.name.cmp(&b.name));
+    for (i, v) in views.iter_mut().enumerate() {
+        v.image_id = i as u32 + 1;
+    }
+    timings.insert("cameras_s", t2.elapsed().as_secs_f64());
+    Ok(SimScene {
+        files,
+        entities: cm.entities,
+        truth_alignment,
+        builder: b,
+        views,
+        city,
+        world,
+        timings,
+    })
+}
+
+/// The alignment handed to the pipeline: the true one perturbed about the scene centre `c`
+/// by a rotation of exactly `rotation_deg` about a random axis, a translation of exactly
+/// `translation_m` (scene units = metres·scale) in a random direction and a relative scale
+/// error of ±`scale`. Zero noise returns the true alignment unchanged.
+pub fn perturb(a: &Alignment, noise: &config::Noise, c: DVec3, rng: &mut ChaCha8Rng) -> Alignment {
+    let unit = |rng: &mut ChaCha8Rng| loop {
+        let v = DVec3::new(
+            rng.random::<f64>() * 2.0 - 1.0,
+            rng.random::<f64>() * 2.0 - 1.0,
+            rng.random::<f64>() * 2.0 - 1.0,
+        );
+        let l = v.length();
+        if l > 1e-3 && l <= 1.0 {
+            return v / l;
+        }
+    };
+    let axis = unit(rng);
+    let dir = unit(rng);
+    let sign = if rng.random::<bool>() { 1.0 } else { -1.0 };
+    if noise.rotation_deg == 0.0 && noise.translation_m == 0.0 && noise.scale == 0.0 {
+        return *a;
+    }
+    let rn = DMat3::from_axis_angle(axis, noise.rotation_deg.to_radians());
+    let e = 1.0 + sign * noise.scale;
+    let tn = dir * noise.translation_m * a.scale;
+    Alignment {
+        origin: a.origin,
+        scale: a.scale * e,
+        rotation: rn * a.rotation,
+        translation: c + e * (rn * (a.translation - c)) + tn,
+    }
+}
+
+fn count_by_class(truth: &[Truth]) -> BTreeMap<String, usize> {
+    let mut m = BTreeMap::new();
+    for t in truth {
+        *m.entry(classes::name(t[0]).to_string()).or_insert(0) += 1;
+    }
+    m
+}
+
+/// Builds the scene and writes the whole folder; returns `summary.json`'s value.
+pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthError> {
+    let t_all = Instant::now();
+    let mut sim = build_scene(cfg)?;
+    let t_w = Instant::now();
+    for d in ["", "images", "gt", "citymodel", "sparse"] {
+        crate::fsutil::create_dir(&out.join(d))?;
+    }
+    let g = &sim.builder.g;
+    crate::splat::write_ply(
+        &out.join("point_cloud.ply"),
+        g,
+        crate::splat::PlyEncoding::BinaryLittleEndian,
+    )?;
+    let flat: Vec<i32> = sim.builder.truth.iter().flatten().copied().collect();
+    crate::npy::write(
+        &out.join("gt/gaussians.npy"),
+        &[sim.builder.truth.len(), 5],
+        &flat,
+    )?;
+    // COLMAP: both encodings in sparse/0 (read_model prefers .bin).
+    let sparse = out.join("sparse/0");
+    crate::colmap::write_model(&sparse, &sim.views, true)?;
+    crate::colmap::write_model(&sparse, &sim.views, false)?;
+    sim.timings
+        .insert("write_scene_s", t_w.elapsed().as_secs_f64());
+
+    // Render images and GT.
+    let t_r = Instant::now();
+    let scene = PreparedScene::new(g)?;
+    let mut px_class: BTreeMap<String, u64> = BTreeMap::new();
+    let mut sheet_views = Vec::new();
+    let n_sheet = cfg.output.contact_views.min(sim.views.len());
+    let sheet_pick: Vec<usize> = (0..n_sheet)
+        .map(|i| i * sim.views.len() / n_sheet.max(1))
+        .collect();
+    let mut per_view = Vec::new();
+    for (vi, v) in sim.views.iter().enumerate() {
+        let l = gt::label_view(
+            &scene,
+            &sim.builder.truth,
+            &v.camera,
+            cfg.cameras.background,
+            cfg.output.min_alpha,
+        )?;
+        let stem = v.stem();
+        crate::imageio::write_png(&out.join("images").join(&v.name), &l.rgb)?;
+        let (h, w) = (l.height, l.width);
+        crate::npy::write(&out.join(format!("gt/{stem}.class.npy")), &[h, w], &l.class)?;
+        crate::npy::write(
+            &out.join(format!("gt/{stem}.instance.npy")),
+            &[h, w],
+            &l.instance,
+        )?;
+        crate::npy::write(
+            &out.join(format!("gt/{stem}.hier.npy")),
+            &[3, h, w],
+            &l.hier,
+        )?;
+        let mut counts: BTreeMap<String, u64> = BTreeMap::new();
+        for &c in &l.class {
+            *counts.entry(classes::name(c).to_string()).or_insert(0) += 1;
+        }
+        for (k, n) in &counts {
+            *px_class.entry(k.clone()).or_insert(0) += n;
+        }
+        per_view.push(json!({"name": v.name, "pixels": counts}));
+        if sheet_pick.contains(&vi) {
+            sheet_views.push((l.rgb, l.class));
+        }
+    }
+    if let Some(sheet) = gt::contact_sheet(&sheet_views) {
+        crate::imageio::write_png(&out.join("contact_sheet.png"), &sheet)?;
+    }
+    sim.timings
+        .insert("render_gt_s", t_r.elapsed().as_secs_f64());
+
+    // City model handed to the pipeline: copies (index-prefixed to keep the order, and so
+    // the entity ids) and the perturbed alignment.
+    let t_c = Instant::now();
+    let mut copied = Vec::new();
+    for (i, f) in sim.files.iter().enumerate() {
+        let name = f
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| format!("{i}.gml"));
+        let dst = out.join("citymodel").join(format!("{i:02}_{name}"));
+        std::fs::copy(f, &dst).map_err(|source| SynthError::Copy {
+            from: f.clone(),
+            to: dst.clone(),
+            source,
+        })?;
+        copied.push(dst.file_name().map(|n| n.to_string_lossy().into_owned()));
+    }
+    let centre = {
+        let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+        for p in &sim.builder.g.positions {
+            let q = DVec3::from_array(p.map(f64::from));
+            lo = lo.min(q);
+            hi = hi.max(q);
+        }
+        if lo.is_finite() {
+            (lo + hi) * 0.5
+        } else {
+            DVec3::ZERO
+        }
+    };
+    let given = perturb(
+        &sim.truth_alignment,
+        &cfg.noise,
+        centre,
+        &mut rng(cfg.seed, 6),
+    );
+    crate::fsutil::write_json(&out.join("citymodel/alignment.json"), &given.to_json())?;
+    sim.timings
+        .insert("citymodel_copy_s", t_c.elapsed().as_secs_f64());
+
+    // Instances.
+    let mut inst: BTreeMap<String, serde_json::Value> = BTreeMap::new();
+    let mut used: std::collections::BTreeSet<i32> = Default::default();
+    for t in &sim.builder.truth {
+        used.insert(t[1]);
+    }
+    for &i in &used {
+        let v = if i >= world::FIRST_INSTANCE {
+            let kind = match i {
+                world::ROAD_INSTANCE => "road",
+                world::PAVEMENT_INSTANCE => "pavement",
+                world::GRASS_INSTANCE => "grass",
+                world::WATER_INSTANCE => "water",
+                world::FLOATER_INSTANCE => "floaters",
+                _ => "object",
+            };
+            let obj = sim.world.objects.iter().find(|o| o.instance == i);
+            let class = match (kind, obj) {
+                ("water", _) => "water",
+                ("floaters", _) => "other",
+                (_, Some(o)) => o.class,
+                _ => "road",
+            };
+            json!({"class": class, "kind": kind, "simulated": true,
+                   "occludes": obj.and_then(|o| o.occludes)})
+        } else {
+            let e = &sim.entities[i as usize];
+            json!({"class": classes::name(classes::of_entity(&sim.entities, i)),
+                   "object_id": e.object_id, "citygml_class": e.class,
+                   "building": e.building, "source_index":
+                   sim.files.iter().position(|f| f.display().to_string() == e.source)})
+        };
+        inst.insert(i.to_string(), v);
+    }
+    crate::fsutil::write_json(&out.join("gt/instances.json"), &inst)?;
+
+    let n = sim.views.len();
+    let test_views: Vec<&str> = sim
+        .views
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| i % cfg.cameras.test_every == 0)
+        .map(|(_, v)| v.name.as_str())
+        .collect();
+    sim.timings.insert("total_s", t_all.elapsed().as_secs_f64());
+    let summary = json!({
+        "simulated": true,
+        "note": "SIMULATED scene: Gaussians, images and ground truth are synthetic (gs4city synth); only the CityGML files are real.",
+        "seed": cfg.seed,
+        "citygml": sim.files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>(),
+        "citymodel_copies": copied,
+        "gaussians": sim.builder.len(),
+        "gaussians_per_class": count_by_class(&sim.builder.truth),
+        "textured_gaussians": sim.city.textured_gaussians,
+        "textures_found": sim.city.textures_found,
+        "textures_missing": sim.city.textures_missing,
+        "polygons_skipped": sim.city.polygons_skipped,
+        "buildings": sim.city.buildings.len(),
+        "openings": sim.city.openings.len(),
+        "objects": sim.world.objects,
+        "water": sim.world.water,
+        "floaters": sim.world.floaters,
+        "views": n,
+        "view_names": sim.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
+        "test_views": test_views,
+        "pixels_per_class": px_class,
+        "per_view": per_view,
+        "alignment_true": sim.truth_alignment.to_json(),
+        "alignment_given": given.to_json(),
+        "noise": cfg.noise,
+        "timings": sim.timings,
+        "config": cfg,
+    });
+    crate::fsutil::write_json(&out.join("summary.json"), &summary)?;
+    Ok(summary)
+}
