@@ -1,12 +1,9 @@
 #!/usr/bin/env bash
-# The README's demo: installs what is missing, builds, and runs the pipeline stages that exist
-# on the bundled data (data/), printing where the results are.
+# The README's demo: installs what is missing, builds, and runs `gs4city demo`: the bundled
+# CityGML (data/) → a SIMULATED scene (synth, small preset) → citymodel → raycast → lift → eval
+# → out/demo/run/report.html. Ends by printing the metrics table and the report path.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 cargo build --release --quiet
-out=out/demo
-rm -rf "$out"
-./target/release/gs4city citymodel data/citygml --out "$out/citymodel"
-echo
-echo "demo: results in $out/citymodel (mesh.ply, semantics.json, summary.json, alignment.json)"
+./target/release/gs4city demo --out out/demo

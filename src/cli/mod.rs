@@ -1,6 +1,7 @@
 //! The command line: one subcommand per stage (DESIGN.md). Only this module uses `anyhow`.
 //! Each subcommand parses its arguments, validates them into a config, then runs.
 mod citymodel;
+mod demo;
 mod eval;
 mod lift;
 mod raycast;
@@ -30,6 +31,8 @@ enum Command {
     Lift(lift::LiftArgs),
     /// A scene folder through every stage: citymodel → raycast → lift → eval (when gt/ exists); resumes finished stages.
     Run(run::RunArgs),
+    /// The demo: bundled data → simulated scene → every stage → report.html.
+    Demo(demo::DemoArgs),
     /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
     Align(citymodel::AlignArgs),
     /// Evaluate predicted class maps against ground truth → metrics.json, paper-shaped tables.
@@ -49,6 +52,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(&args),
         Command::Lift(args) => lift::run(&args),
         Command::Run(args) => run::run(&args),
+        Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),
     }
 }
