@@ -44,6 +44,8 @@ pub enum SynthError {
     #[error(transparent)]
     CityGml(#[from] citygml::CityGmlError),
     #[error(transparent)]
+    Masks(#[from] crate::masks::MasksError),
+    #[error(transparent)]
     CityModel(#[from] citymodel::CityModelError),
     #[error(transparent)]
     Render(#[from] crate::render::RenderError),
@@ -280,6 +282,16 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
         .map(|i| i * sim.views.len() / n_sheet.max(1))
         .collect();
     let mut per_view = Vec::new();
+    // SIMULATED foundation-model outputs (docs/masks.md): SAM-format masks from the GT
+    // instances through the noise model, and CLIP-like features per mask.
+    crate::fsutil::create_dir(&out.join("masks"))?;
+    crate::fsutil::create_dir(&out.join("features"))?;
+    crate::masks::simulate::write_provenance(
+        &out.join("masks"),
+        &crate::masks::simulate::provenance(&cfg.masks, Some(&cfg.features), cfg.seed),
+    )?;
+    let mut n_masks = 0usize;
+    let mut prompts = None;
     for (vi, v) in sim.views.iter().enumerate() {
         let l = gt::label_view(
             &scene,
@@ -302,6 +314,18 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
             &[3, h, w],
             &l.hier,
         )?;
+        let inst_a = ndarray::ArrayView2::from_shape((h, w), &l.instance).expect("H×W map");
+        let class_a = ndarray::ArrayView2::from_shape((h, w), &l.class).expect("H×W map");
+        let view_seed = cfg.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(vi as u64);
+        let sim_masks = crate::masks::simulate::simulate_masks(inst_a, class_a, &cfg.masks, view_seed);
+        let sam: Vec<crate::masks::SamMask> = sim_masks.iter().map(|m| m.mask.clone()).collect();
+        crate::masks::write_sam_json(&out.join(format!("masks/{stem}.json")), &sam)?;
+        crate::masks::simulate::write_simulation_truth(&out.join(format!("masks/{stem}.sim.json")), &sim_masks)?;
+        let mask_classes: Vec<i32> = sim_masks.iter().map(|m| m.class).collect();
+        let (feats, p) = crate::masks::simulate::simulate_features(&mask_classes, &cfg.features, view_seed);
+        crate::masks::simulate::write_features_npy(&out.join(format!("features/{stem}.npy")), &feats)?;
+        prompts = Some(p);
+        n_masks += sam.len();
         let mut counts: BTreeMap<String, u64> = BTreeMap::new();
         for &c in &l.class {
             *counts.entry(classes::name(c).to_string()).or_insert(0) += 1;
@@ -313,6 +337,9 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
         if sheet_pick.contains(&vi) {
             sheet_views.push((l.rgb, l.class));
         }
+    }
+    if let Some(p) = &prompts {
+        crate::masks::simulate::write_prompts_json(&out.join("features/prompts.json"), p)?;
     }
     if let Some(sheet) = gt::contact_sheet(&sheet_views) {
         crate::imageio::write_png(&out.join("contact_sheet.png"), &sheet)?;
@@ -430,6 +457,8 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
         "alignment_true": sim.truth_alignment.to_json(),
         "alignment_given": given.to_json(),
         "noise": cfg.noise,
+        "simulated_masks": { "masks": n_masks, "mask_noise": cfg.masks, "feature_noise": cfg.features,
+            "note": "SIMULATED Segment-Anything masks and CLIP-like features (docs/masks.md); no SAM or CLIP model was run" },
         "timings": sim.timings,
         "config": cfg,
     });
