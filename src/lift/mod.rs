@@ -220,10 +220,11 @@ impl Default for LiftOptions {
     }
 }
 
-/// Per-Gaussian label votes: a few inline slots and an overflow map for the rare rest.
+/// Per-Gaussian label votes: a few inline slots, and per Gaussian an overflow list for the
+/// rare rest (looked up by Gaussian, so reading all votes stays linear).
 pub struct Votes {
     slots: Vec<[(i32, f32); SLOTS]>,
-    overflow: HashMap<(u32, i32), f32>,
+    overflow: HashMap<u32, Vec<(i32, f32)>>,
 }
 
 const SLOTS: usize = 4;
@@ -252,7 +253,11 @@ impl Votes {
                 return;
             }
         }
-        *self.overflow.entry((g, label)).or_insert(0.0) += w;
+        let list = self.overflow.entry(g).or_default();
+        match list.iter_mut().find(|e| e.0 == label) {
+            Some(e) => e.1 += w,
+            None => list.push((label, w)),
+        }
     }
 
     /// All `(label, weight)` votes of Gaussian `g`, in a deterministic order.
@@ -262,13 +267,10 @@ impl Votes {
             .copied()
             .filter(|s| s.0 != EMPTY)
             .collect();
-        if v.len() == SLOTS && !self.overflow.is_empty() {
-            let mut extra: Vec<(i32, f32)> = self
-                .overflow
-                .iter()
-                .filter(|((gi, _), _)| *gi == g)
-                .map(|((_, l), w)| (*l, *w))
-                .collect();
+        if v.len() == SLOTS
+            && let Some(extra) = self.overflow.get(&g)
+        {
+            let mut extra = extra.clone();
             extra.sort_by_key(|e| e.0);
             v.extend(extra);
         }
@@ -465,7 +467,7 @@ pub fn lift(
     let t = Instant::now();
     let a = assign(&votes, scene.len(), opts.gamma);
     stats.assign_s = t.elapsed().as_secs_f64();
-    stats.overflow_votes = votes.overflow.len();
+    stats.overflow_votes = votes.overflow.values().map(Vec::len).sum();
     Ok((a, stats))
 }
 

@@ -316,14 +316,25 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
         )?;
         let inst_a = ndarray::ArrayView2::from_shape((h, w), &l.instance).expect("H×W map");
         let class_a = ndarray::ArrayView2::from_shape((h, w), &l.class).expect("H×W map");
-        let view_seed = cfg.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(vi as u64);
-        let sim_masks = crate::masks::simulate::simulate_masks(inst_a, class_a, &cfg.masks, view_seed);
+        let view_seed = cfg
+            .seed
+            .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            .wrapping_add(vi as u64);
+        let sim_masks =
+            crate::masks::simulate::simulate_masks(inst_a, class_a, &cfg.masks, view_seed);
         let sam: Vec<crate::masks::SamMask> = sim_masks.iter().map(|m| m.mask.clone()).collect();
         crate::masks::write_sam_json(&out.join(format!("masks/{stem}.json")), &sam)?;
-        crate::masks::simulate::write_simulation_truth(&out.join(format!("masks/{stem}.sim.json")), &sim_masks)?;
+        crate::masks::simulate::write_simulation_truth(
+            &out.join(format!("masks/{stem}.sim.json")),
+            &sim_masks,
+        )?;
         let mask_classes: Vec<i32> = sim_masks.iter().map(|m| m.class).collect();
-        let (feats, p) = crate::masks::simulate::simulate_features(&mask_classes, &cfg.features, view_seed);
-        crate::masks::simulate::write_features_npy(&out.join(format!("features/{stem}.npy")), &feats)?;
+        let (feats, p) =
+            crate::masks::simulate::simulate_features(&mask_classes, &cfg.features, view_seed);
+        crate::masks::simulate::write_features_npy(
+            &out.join(format!("features/{stem}.npy")),
+            &feats,
+        )?;
         prompts = Some(p);
         n_masks += sam.len();
         let mut counts: BTreeMap<String, u64> = BTreeMap::new();
