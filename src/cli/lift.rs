@@ -5,7 +5,6 @@ use anyhow::bail;
 use clap::Args;
 
 use crate::lift::{self, LiftConfig, LiftOptions};
-use crate::render::ContributionMode;
 
 #[derive(Debug, Args)]
 pub struct LiftArgs {
@@ -45,14 +44,7 @@ pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
         raycast: args.raycast.clone(),
         citymodel: args.citymodel.clone(),
         out: args.out.clone(),
-        options: LiftOptions {
-            contributions: if args.top_k == 0 {
-                ContributionMode::All
-            } else {
-                ContributionMode::TopK(args.top_k)
-            },
-            gamma: args.gamma,
-        },
+        options: LiftOptions::new(args.top_k, args.gamma),
         test_every: args.test_every,
         predict_k: 16,
     };

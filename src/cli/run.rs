@@ -5,7 +5,6 @@ use anyhow::bail;
 use clap::Args;
 
 use crate::lift::LiftOptions;
-use crate::render::ContributionMode;
 use crate::run::{self, RunOptions};
 
 #[derive(Debug, Args)]
@@ -51,14 +50,7 @@ impl RunArgs {
         Ok(RunOptions {
             tau_m: self.tau,
             single_pass: self.single_pass,
-            lift: LiftOptions {
-                contributions: if self.top_k == 0 {
-                    ContributionMode::All
-                } else {
-                    ContributionMode::TopK(self.top_k)
-                },
-                gamma: self.gamma,
-            },
+            lift: LiftOptions::new(self.top_k, self.gamma),
             test_every: self.test_every,
             force: self.force,
         })

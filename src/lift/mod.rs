@@ -59,6 +59,36 @@ pub struct LiftConfig {
     pub predict_k: usize,
 }
 
+impl LiftOptions {
+    /// From command-line values: `top_k` contributions per pixel (0 = all) and γ.
+    pub fn new(top_k: usize, gamma: f32) -> LiftOptions {
+        let contributions = if top_k == 0 {
+            ContributionMode::All
+        } else {
+            ContributionMode::TopK(top_k)
+        };
+        LiftOptions {
+            contributions,
+            gamma,
+        }
+    }
+}
+
+/// The test-view stems recorded in a lift output folder's `summary.json` (empty when absent).
+pub fn test_views(lift_dir: &Path) -> Vec<String> {
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(lift_dir.join("summary.json")).unwrap_or_default())
+            .unwrap_or_default();
+    summary["test_views"]
+        .as_array()
+        .map(|v| {
+            v.iter()
+                .filter_map(|s| s.as_str().map(String::from))
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
 /// Splits views (sorted by name) into (train, test): index `i % every == 0` is a test view.
 pub fn split_views(mut views: Vec<View>, every: usize) -> (Vec<View>, Vec<View>) {
     views.sort_by(|a, b| a.name.cmp(&b.name));

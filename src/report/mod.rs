@@ -79,17 +79,7 @@ pub fn write(
 ) -> Result<PathBuf, ReportError> {
     let dir = out.join("report");
     crate::fsutil::create_dir(&dir)?;
-    let lift: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("lift/summary.json")).unwrap_or_default())
-            .unwrap_or_default();
-    let test: Vec<String> = lift["test_views"]
-        .as_array()
-        .map(|v| {
-            v.iter()
-                .filter_map(|s| s.as_str().map(String::from))
-                .collect()
-        })
-        .unwrap_or_default();
+    let test = crate::lift::test_views(&out.join("lift"));
     let views = crate::colmap::read_model(&scene.sparse)?;
 
     let mut html = String::new();

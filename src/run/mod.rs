@@ -286,18 +286,7 @@ pub fn run(
     let mut metrics: Option<serde_json::Value> = None;
     if let Some(gt) = &scene.gt {
         let fp_eval = fingerprint("eval", &serde_json::json!({}), &[gt], &[&fp_lift]);
-        let lift_summary: serde_json::Value = serde_json::from_slice(
-            &std::fs::read(out.join("lift/summary.json")).unwrap_or_default(),
-        )
-        .unwrap_or_default();
-        let stems: Vec<String> = lift_summary["test_views"]
-            .as_array()
-            .map(|v| {
-                v.iter()
-                    .filter_map(|s| s.as_str().map(String::from))
-                    .collect()
-            })
-            .unwrap_or_default();
+        let stems = lift::test_views(&out.join("lift"));
         if stems.is_empty() {
             return Err(RunError::Scene {
                 scene: scene.root.clone(),
