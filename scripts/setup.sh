@@ -18,7 +18,7 @@ if [ ${#missing[@]} -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 "${missing[@]}" >/dev/null
 fi
 if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
-  py=(numpy cgal open3d pycocotools)
+  py=(numpy==2.4.6 cgal==6.0.1.post202410241521 open3d==0.20.0 pycocotools==2.0.11)
   need=()
   for m in numpy CGAL open3d pycocotools; do python3 -c "import $m" 2>/dev/null || need+=("$m"); done
   if [ ${#need[@]} -gt 0 ]; then
