@@ -222,10 +222,15 @@ pub fn ground(
         return false;
     }
     let (lo, hi) = map.extent();
-    // Water: the cell farthest from any building, if there is room.
+    // Water: the cell farthest from any building whose whole disc lies inside the ground
+    // extent (otherwise most of the patch would fall off the map), if there is room.
+    let r = cfg.water_radius;
     let mut best = (0.0f32, 0usize);
     for (i, &d) in map.dist.iter().enumerate() {
-        if d > best.0 {
+        let cx = lo[0] + ((i % map.nx) as f64 + 0.5) * CELL;
+        let cy = lo[1] + ((i / map.nx) as f64 + 0.5) * CELL;
+        let inside = cx - lo[0] >= r && hi[0] - cx >= r && cy - lo[1] >= r && hi[1] - cy >= r;
+        if inside && d > best.0 {
             best = (d, i);
         }
     }
