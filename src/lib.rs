@@ -2,7 +2,7 @@
 //! city scenes (the GS4City method), CPU-only.
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
-//! [`mesh`], [`npy`], [`camera`], [`imageio`], [`masks`] (SAM JSON / COCO RLE; `masks::simulate` for the synthetic benchmark).
+//! [`mesh`], [`npy`], [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
 //! Stages: [`citymodel`], [`raycast`], [`render`], [`lift`], [`eval`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
@@ -17,12 +17,12 @@ pub mod eval;
 pub mod fsutil;
 pub mod imageio;
 pub mod lift;
-pub mod masks;
 pub mod mesh;
 pub mod npy;
 pub mod raycast;
 pub mod render;
 pub mod report;
 pub mod run;
+pub mod sam;
 pub mod splat;
 pub mod synth;

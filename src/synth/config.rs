@@ -210,10 +210,10 @@ pub struct SynthConfig {
     pub alignment: TrueAlignment,
     pub noise: Noise,
     pub output: Output,
-    /// SIMULATED SAM masks (docs/masks.md: every key of the noise model).
-    pub masks: crate::masks::simulate::MaskNoise,
-    /// SIMULATED CLIP features (docs/masks.md).
-    pub features: crate::masks::simulate::FeatureNoise,
+    /// SIMULATED SAM masks (docs/sam.md: every key of the noise model).
+    pub masks: super::masks::MaskNoise,
+    /// SIMULATED CLIP features (docs/sam.md).
+    pub features: super::masks::FeatureNoise,
 }
 
 /// A named preset.

@@ -13,6 +13,7 @@ pub mod city;
 pub mod config;
 pub mod gaussians;
 pub mod gt;
+pub mod masks;
 pub mod world;
 
 use std::collections::BTreeMap;
@@ -44,7 +45,7 @@ pub enum SynthError {
     #[error(transparent)]
     CityGml(#[from] citygml::CityGmlError),
     #[error(transparent)]
-    Masks(#[from] crate::masks::MasksError),
+    Sam(#[from] crate::sam::SamError),
     #[error(transparent)]
     CityModel(#[from] citymodel::CityModelError),
     #[error(transparent)]
@@ -282,13 +283,13 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
         .map(|i| i * sim.views.len() / n_sheet.max(1))
         .collect();
     let mut per_view = Vec::new();
-    // SIMULATED foundation-model outputs (docs/masks.md): SAM-format masks from the GT
+    // SIMULATED foundation-model outputs (docs/sam.md): SAM-format masks from the GT
     // instances through the noise model, and CLIP-like features per mask.
     crate::fsutil::create_dir(&out.join("masks"))?;
     crate::fsutil::create_dir(&out.join("features"))?;
-    crate::masks::simulate::write_provenance(
+    masks::write_provenance(
         &out.join("masks"),
-        &crate::masks::simulate::provenance(&cfg.masks, Some(&cfg.features), cfg.seed),
+        &masks::provenance(&cfg.masks, Some(&cfg.features), cfg.seed),
     )?;
     let mut n_masks = 0usize;
     let mut prompts = None;
@@ -320,19 +321,15 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
             .seed
             .wrapping_mul(0x9E37_79B9_7F4A_7C15)
             .wrapping_add(vi as u64);
-        let sim_masks =
-            crate::masks::simulate::simulate_masks(inst_a, class_a, &cfg.masks, view_seed);
-        let sam: Vec<crate::masks::SamMask> = sim_masks.iter().map(|m| m.mask.clone()).collect();
-        crate::masks::write_sam_json(&out.join(format!("masks/{stem}.json")), &sam)?;
-        crate::masks::simulate::write_simulation_truth(
-            &out.join(format!("masks/{stem}.sim.json")),
-            &sim_masks,
-        )?;
+        let sim_masks = masks::simulate_masks(inst_a, class_a, &cfg.masks, view_seed);
+        let sam: Vec<crate::sam::SamMask> = sim_masks.iter().map(|m| m.mask.clone()).collect();
+        crate::sam::write_sam_json(&out.join(format!("masks/{stem}.json")), &sam)?;
+        masks::write_simulation_truth(&out.join(format!("masks/{stem}.sim.json")), &sim_masks)?;
         let mask_classes: Vec<i32> = sim_masks.iter().map(|m| m.class).collect();
-        let (feats, p) =
-            crate::masks::simulate::simulate_features(&mask_classes, &cfg.features, view_seed);
-        crate::masks::simulate::write_features_npy(
+        let (feats, p) = masks::simulate_features(&mask_classes, &cfg.features, view_seed);
+        crate::sam::write_features_npy(
             &out.join(format!("features/{stem}.npy")),
+            masks::FEATURE_DIM,
             &feats,
         )?;
         prompts = Some(p);
@@ -350,7 +347,7 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
         }
     }
     if let Some(p) = &prompts {
-        crate::masks::simulate::write_prompts_json(&out.join("features/prompts.json"), p)?;
+        crate::sam::write_prompts_json(&out.join("features/prompts.json"), p)?;
     }
     if let Some(sheet) = gt::contact_sheet(&sheet_views) {
         crate::imageio::write_png(&out.join("contact_sheet.png"), &sheet)?;
@@ -469,7 +466,7 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
         "alignment_given": given.to_json(),
         "noise": cfg.noise,
         "simulated_masks": { "masks": n_masks, "mask_noise": cfg.masks, "feature_noise": cfg.features,
-            "note": "SIMULATED Segment-Anything masks and CLIP-like features (docs/masks.md); no SAM or CLIP model was run" },
+            "note": "SIMULATED Segment-Anything masks and CLIP-like features (docs/sam.md); no SAM or CLIP model was run" },
         "timings": sim.timings,
         "config": cfg,
     });

@@ -6,10 +6,14 @@
 //! "bbox": [x, y, w, h], "predicted_iou": f, "stability_score": f, "point_coords": [[x, y]],
 //! "crop_box": [x, y, w, h]}`. Uncompressed RLE (`"counts": [int, ...]`) is accepted too.
 //!
-//! This module is a reader/writer: it depends on no pipeline stage. [`simulate`] builds
+//! Also the two feature files that travel with the masks (computed elsewhere, e.g. by CLIP):
+//! `features/<stem>.npy` (float32 N×D, one row per SAM mask, [`read_features`]) and
+//! `features/prompts.json` (`{"dim": D, "prompts": {text: [D floats]}}`, [`read_prompts_json`]).
+//!
+//! This module is a reader/writer: it depends on no pipeline stage. `synth::masks` builds
 //! *simulated* SAM masks and *simulated* CLIP features from ground truth for the synthetic
 //! benchmark; nothing here runs SAM or CLIP. The format, the checks and the noise model are
-//! documented in `docs/masks.md`.
+//! documented in `docs/sam.md`.
 //!
 //! ## RLE (as `pycocotools/common/maskApi.c`)
 //! Pixels are visited in column-major (Fortran) order, index `y + h·x`. `counts` are the run
@@ -28,8 +32,7 @@
 //! was damaged or written by a different tool, and downstream area filters would silently use
 //! a wrong number. `bbox` and `point_coords` are not checked (they are informational).
 //! Every error names the file and the 0-based index of the mask.
-pub mod simulate;
-
+use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
@@ -37,6 +40,7 @@ use ndarray::{Array2, ArrayView2};
 use serde::{Deserialize, Deserializer, Serialize};
 
 use crate::fsutil::{self, FsError};
+use crate::npy::{self, NpyError};
 
 /// Errors of one RLE (independent of any file).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -62,7 +66,7 @@ pub enum RleError {
 
 /// Errors of SAM mask files. Each names the file and, where one is at fault, the mask index.
 #[derive(Debug, thiserror::Error)]
-pub enum MasksError {
+pub enum SamError {
     #[error("cannot read {path}: {source}")]
     Read {
         path: PathBuf,
@@ -100,7 +104,9 @@ pub enum MasksError {
         stated: u64,
         decoded: u64,
     },
-    #[error("{path}: not a simulated-prompts file: {source}")]
+    #[error(
+        "{path}: not a prompts file ({{\"dim\": D, \"prompts\": {{text: [D floats]}}}}): {source}"
+    )]
     Prompts {
         path: PathBuf,
         source: serde_json::Error,
@@ -462,7 +468,7 @@ impl SamMask {
 }
 
 /// Reads a SAM mask JSON file and validates every mask (module docs: RLE, common size, area).
-pub fn read_sam_json(path: &Path) -> Result<Vec<SamMask>, MasksError> {
+pub fn read_sam_json(path: &Path) -> Result<Vec<SamMask>, SamError> {
     read_sam_json_sized(path, None)
 }
 
@@ -470,8 +476,8 @@ pub fn read_sam_json(path: &Path) -> Result<Vec<SamMask>, MasksError> {
 pub fn read_sam_json_sized(
     path: &Path,
     image_size: Option<[usize; 2]>,
-) -> Result<Vec<SamMask>, MasksError> {
-    let bytes = std::fs::read(path).map_err(|source| MasksError::Read {
+) -> Result<Vec<SamMask>, SamError> {
+    let bytes = std::fs::read(path).map_err(|source| SamError::Read {
         path: path.to_path_buf(),
         source,
     })?;
@@ -483,14 +489,14 @@ pub fn parse_sam_json(
     path: &Path,
     bytes: &[u8],
     image_size: Option<[usize; 2]>,
-) -> Result<Vec<SamMask>, MasksError> {
+) -> Result<Vec<SamMask>, SamError> {
     let p = || path.to_path_buf();
     let items: Vec<serde_json::Value> =
-        serde_json::from_slice(bytes).map_err(|source| MasksError::Json { path: p(), source })?;
+        serde_json::from_slice(bytes).map_err(|source| SamError::Json { path: p(), source })?;
     let mut out = Vec::with_capacity(items.len());
     let mut expected = image_size.map(|s| (s, "the image size"));
     for (index, item) in items.into_iter().enumerate() {
-        let m: SamMask = serde_json::from_value(item).map_err(|source| MasksError::Field {
+        let m: SamMask = serde_json::from_value(item).map_err(|source| SamError::Field {
             path: p(),
             index,
             source,
@@ -498,7 +504,7 @@ pub fn parse_sam_json(
         let size = m.segmentation.size;
         match expected {
             Some((e, what)) if e != size => {
-                return Err(MasksError::Size {
+                return Err(SamError::Size {
                     path: p(),
                     index,
                     found: size,
@@ -509,13 +515,13 @@ pub fn parse_sam_json(
             Some(_) => {}
             None => expected = Some((size, "the size of mask 0")),
         }
-        let decoded = m.segmentation.area().map_err(|source| MasksError::Rle {
+        let decoded = m.segmentation.area().map_err(|source| SamError::Rle {
             path: p(),
             index,
             source,
         })?;
         if decoded != m.area {
-            return Err(MasksError::Area {
+            return Err(SamError::Area {
                 path: p(),
                 index,
                 stated: m.area,
@@ -528,14 +534,61 @@ pub fn parse_sam_json(
 }
 
 /// Writes masks as a SAM JSON list (compact, one trailing newline), atomically.
-pub fn write_sam_json(path: &Path, masks: &[SamMask]) -> Result<(), MasksError> {
-    let mut text = serde_json::to_vec(masks).map_err(|source| MasksError::Serialize {
+pub fn write_sam_json(path: &Path, masks: &[SamMask]) -> Result<(), SamError> {
+    let mut text = serde_json::to_vec(masks).map_err(|source| SamError::Serialize {
         path: path.to_path_buf(),
         source,
     })?;
     text.write_all(b"\n").expect("writing to a Vec cannot fail");
     fsutil::write_bytes(path, &text)?;
     Ok(())
+}
+
+// ---------------------------------------------------------------------------------------
+// Feature files: per-mask image features and text-prompt features.
+
+/// Text-prompt features: prompt text → vector of dimension `dim` (e.g. CLIP text embeddings
+/// computed elsewhere). `simulated` is `true` in files written by the synthetic benchmark.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Prompts {
+    /// `true` when these vectors are simulations, not real text embeddings.
+    #[serde(default)]
+    pub simulated: bool,
+    /// Feature dimension.
+    pub dim: usize,
+    /// Prompt text → vector.
+    pub prompts: BTreeMap<String, Vec<f32>>,
+}
+
+/// Writes per-mask features as a float32 `N×dim` `.npy` (N = 0 gives shape `(0, dim)`).
+///
+/// # Panics
+/// If a row is not `dim` long.
+pub fn write_features_npy(path: &Path, dim: usize, features: &[Vec<f32>]) -> Result<(), NpyError> {
+    assert!(
+        features.iter().all(|f| f.len() == dim),
+        "write_features_npy: every feature must have {dim} values"
+    );
+    let flat: Vec<f32> = features.iter().flatten().copied().collect();
+    npy::write(path, &[features.len(), dim], &flat)
+}
+
+/// Writes prompts as JSON, atomically.
+pub fn write_prompts_json(path: &Path, prompts: &Prompts) -> Result<(), SamError> {
+    fsutil::write_json(path, prompts)?;
+    Ok(())
+}
+
+/// Reads a prompts file (`{"dim": D, "prompts": {text: [D floats]}}`).
+pub fn read_prompts_json(path: &Path) -> Result<Prompts, SamError> {
+    let bytes = std::fs::read(path).map_err(|source| SamError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    serde_json::from_slice(&bytes).map_err(|source| SamError::Prompts {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 #[cfg(test)]

@@ -9,7 +9,7 @@
 //! seeded: the same inputs and seed give identical output on any number of threads (each
 //! instance, pair and mask draws from its own RNG, keyed by the seed and its ids).
 //!
-//! The noise model, in order (`docs/masks.md` has the details):
+//! The noise model, in order (`docs/sam.md` has the details):
 //! 1. **missed small objects**: an instance with fewer than `small_area_px` pixels is dropped
 //!    with probability `miss_small_prob`;
 //! 2. **under-segmentation**: instances within `merge_gap_px` of each other (a window and
@@ -34,11 +34,10 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{MasksError, Rle, SamMask};
 use crate::classes;
 use crate::fsutil;
 use crate::imageio::{self, Morph};
-use crate::npy::{self, NpyError};
+use crate::sam::{Prompts, Rle, SamError, SamMask};
 
 /// The dimension of the simulated CLIP features (as CLIP ViT-B/16 and ViT-B/32).
 pub const FEATURE_DIM: usize = 512;
@@ -197,7 +196,7 @@ pub fn provenance(
         what: "SIMULATED Segment-Anything masks (and simulated CLIP features) derived from \
                ground-truth instance maps by a noise model; no SAM or CLIP model was run"
             .into(),
-        generator: format!("gs4city {} masks::simulate", env!("CARGO_PKG_VERSION")),
+        generator: format!("gs4city {} synth::masks", env!("CARGO_PKG_VERSION")),
         format: "SAM automatic mask generator JSON (output_mode=coco_rle), one file per view; \
                  features: float32 N×512 .npy, one row per mask in file order"
             .into(),
@@ -208,7 +207,7 @@ pub fn provenance(
 }
 
 /// Writes the provenance sidecar `dir/README.json`, atomically.
-pub fn write_provenance(dir: &Path, prov: &SimulationProvenance) -> Result<(), MasksError> {
+pub fn write_provenance(dir: &Path, prov: &SimulationProvenance) -> Result<(), SamError> {
     fsutil::write_json(&dir.join(PROVENANCE_FILE), prov)?;
     Ok(())
 }
@@ -226,7 +225,7 @@ pub struct SimulationTruth {
 
 /// Writes what the simulation knows about each mask (sources, class, kind, damage), in the
 /// order of the SAM JSON list, as a JSON list, atomically.
-pub fn write_simulation_truth(path: &Path, masks: &[SimulatedMask]) -> Result<(), MasksError> {
+pub fn write_simulation_truth(path: &Path, masks: &[SimulatedMask]) -> Result<(), SamError> {
     let rows: Vec<SimulationTruth> = masks
         .iter()
         .enumerate()
@@ -791,17 +790,6 @@ impl Default for FeatureNoise {
     }
 }
 
-/// Simulated text-prompt embeddings: prompt text → unit vector, stored with its provenance.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Prompts {
-    /// Always `true`: these vectors are not CLIP text embeddings.
-    pub simulated: bool,
-    /// Feature dimension (512).
-    pub dim: usize,
-    /// Prompt text → unit vector.
-    pub prompts: BTreeMap<String, Vec<f32>>,
-}
-
 /// The prompts and the class each one targets (`None` = the shared building direction).
 pub const PROMPTS: [(&str, Option<i32>); 14] = [
     ("a wall of a building", Some(classes::WALL)),
@@ -926,36 +914,4 @@ pub fn simulate_prompts(cfg: &FeatureNoise) -> Prompts {
         dim: FEATURE_DIM,
         prompts,
     }
-}
-
-/// Writes features as a float32 `N×512` `.npy` (N = 0 gives shape `(0, 512)`).
-///
-/// # Panics
-/// If a row is not 512 long.
-pub fn write_features_npy(path: &Path, features: &[Vec<f32>]) -> Result<(), NpyError> {
-    assert!(
-        features.iter().all(|f| f.len() == FEATURE_DIM),
-        "write_features_npy: every feature must have {FEATURE_DIM} values"
-    );
-    let flat: Vec<f32> = features.iter().flatten().copied().collect();
-    npy::write(path, &[features.len(), FEATURE_DIM], &flat)
-}
-
-/// Writes the simulated prompts as JSON (`{"simulated": true, "dim": 512, "prompts": {..}}`),
-/// atomically.
-pub fn write_prompts_json(path: &Path, prompts: &Prompts) -> Result<(), MasksError> {
-    fsutil::write_json(path, prompts)?;
-    Ok(())
-}
-
-/// Reads a prompts file written by [`write_prompts_json`].
-pub fn read_prompts_json(path: &Path) -> Result<Prompts, MasksError> {
-    let bytes = std::fs::read(path).map_err(|source| MasksError::Read {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    serde_json::from_slice(&bytes).map_err(|source| MasksError::Prompts {
-        path: path.to_path_buf(),
-        source,
-    })
 }

@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use gs4city::masks::{self, MasksError, Rle, RleCounts, RleError, SamMask};
+use gs4city::sam::{self as masks, Rle, RleCounts, RleError, SamError as MasksError, SamMask};
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -1,11 +1,11 @@
-//! The simulated SAM masks and simulated CLIP features (`gs4city::masks::simulate`): the
+//! The simulated SAM masks and simulated CLIP features (`gs4city::synth::masks`): the
 //! noise model's effects are measurable, and everything is deterministic.
 use gs4city::classes;
-use gs4city::masks::simulate::{
-    self, FEATURE_DIM, FeatureNoise, MaskKind, MaskNoise, SimulatedMask, simulate_features,
-    simulate_masks,
+use gs4city::sam as masks;
+use gs4city::synth::masks::{
+    self as simulate, FEATURE_DIM, FeatureNoise, MaskKind, MaskNoise, SimulatedMask,
+    simulate_features, simulate_masks,
 };
-use gs4city::masks::{self};
 use ndarray::{Array2, s};
 
 /// A façade view: roof, wall with 2×3 windows (two of them 2 px apart), a door, a road, a
@@ -429,18 +429,18 @@ fn simulated_features_cluster_by_class() {
     // Files.
     let dir = std::env::temp_dir().join(format!("gs4city-feat-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    simulate::write_features_npy(&dir.join("f.npy"), &f).unwrap();
+    masks::write_features_npy(&dir.join("f.npy"), FEATURE_DIM, &f).unwrap();
     let (shape, data) = gs4city::npy::read::<f32>(&dir.join("f.npy")).unwrap();
     assert_eq!(shape, vec![200, FEATURE_DIM]);
     assert_eq!(&data[FEATURE_DIM..2 * FEATURE_DIM], f[1].as_slice());
-    simulate::write_features_npy(&dir.join("e.npy"), &[]).unwrap();
+    masks::write_features_npy(&dir.join("e.npy"), FEATURE_DIM, &[]).unwrap();
     assert_eq!(
         gs4city::npy::read::<f32>(&dir.join("e.npy")).unwrap().0,
         vec![0, FEATURE_DIM]
     );
-    simulate::write_prompts_json(&dir.join("p.json"), &prompts).unwrap();
+    masks::write_prompts_json(&dir.join("p.json"), &prompts).unwrap();
     assert_eq!(
-        simulate::read_prompts_json(&dir.join("p.json")).unwrap(),
+        masks::read_prompts_json(&dir.join("p.json")).unwrap(),
         prompts
     );
     std::fs::remove_dir_all(&dir).unwrap();
