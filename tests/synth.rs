@@ -62,7 +62,7 @@ fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
 
 fn summary_without_timings(bytes: &[u8]) -> serde_json::Value {
     let mut v: serde_json::Value = serde_json::from_slice(bytes).unwrap();
-    v.as_object_mut().unwrap().remove("timings");
+    v.as_object_mut().unwrap().remove("timing");
     v
 }
 

@@ -17,6 +17,7 @@
 //! * Results do not depend on the number of threads: tiles are independent and every
 //!   tile list is ordered by `(depth, Gaussian index)`.
 pub mod blend;
+pub mod cache;
 pub mod project;
 pub mod tile;
 
@@ -59,6 +60,8 @@ pub enum RenderError {
     Npy(#[from] NpyError),
     #[error(transparent)]
     Image(#[from] ImageError),
+    #[error(transparent)]
+    Cache(#[from] cache::CacheError),
 }
 
 /// Render settings.

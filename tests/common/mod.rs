@@ -157,3 +157,5 @@ pub fn orbit_camera(w: u32, h: u32, f: f64, angle: f64, radius: f64, z: f64) -> 
     c.pose = Pose::look_at(eye, DVec3::new(0.0, 0.0, 5.0), DVec3::Z).expect("valid orbit pose");
     c
 }
+
+pub mod wall;
