@@ -19,6 +19,7 @@ pub mod fsutil;
 pub mod imageio;
 pub mod labels;
 pub mod lift;
+pub mod masks;
 pub mod mesh;
 pub mod npy;
 pub mod progress;
