@@ -3,9 +3,6 @@
 //! deleted or truncated file, no stale predictions, refusal of a run folder inside the scene.
 mod common;
 
-use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
-
 use common::wall;
 use gs4city::run::{RunOptions, RunSummary, run};
 
@@ -20,23 +17,6 @@ fn reruns(s: &RunSummary) -> Vec<&str> {
 fn miou(s: &RunSummary) -> (Option<f64>, Option<f64>) {
     let e = s.eval.as_ref().expect("gt/ exists: metrics");
     (e.paper["miou"], e.dataset["coarse_iou"])
-}
-
-/// Every file below `dir` → its bytes.
-fn snapshot(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
-    let mut m = BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                m.insert(p.clone(), std::fs::read(&p).unwrap());
-            }
-        }
-    }
-    m
 }
 
 #[test]
@@ -69,8 +49,11 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
     assert_eq!(rec["version"], env!("CARGO_PKG_VERSION"));
     assert_eq!(rec["options"]["top_k"], 16);
     let lift_outputs = rec["stages"]["lift"]["outputs"].as_array().unwrap();
-    assert!(lift_outputs.iter().any(|o| o["path"] == "gaussians.npy"
-        && o["digest"].as_str().unwrap().len() == 16));
+    assert!(
+        lift_outputs
+            .iter()
+            .any(|o| o["path"] == "gaussians.npy" && o["digest"].as_str().unwrap().len() == 16)
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -87,7 +70,11 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
     // For one output of each stage: delete it, then truncate it; the next run redoes that
     // stage and exactly the stages that read it, and the metrics equal the clean run's.
     let cases: [(&str, &str, &[&str]); 5] = [
-        ("citymodel", "mesh.ply", &["citymodel", "raycast", "lift", "eval"]),
+        (
+            "citymodel",
+            "mesh.ply",
+            &["citymodel", "raycast", "lift", "eval"],
+        ),
         ("raycast", "v03.ids.npy", &["raycast", "lift", "eval"]),
         ("render", "v05.contrib", &["render", "lift", "eval"]),
         ("lift", "v00.class.npy", &["lift", "eval"]),
@@ -165,7 +152,11 @@ fn another_test_split_leaves_no_stale_prediction() {
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .filter(|n| n.ends_with(".class.npy"))
         .collect();
-    assert_eq!(preds, ["v00.class.npy"], "no prediction of the old split is left");
+    assert_eq!(
+        preds,
+        ["v00.class.npy"],
+        "no prediction of the old split is left"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -173,20 +164,30 @@ fn another_test_split_leaves_no_stale_prediction() {
 fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
     let dir = wall::tmp("run-refuse");
     let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
-    let before = snapshot(&scene);
+    let before = common::files(&scene);
     for out in [scene.clone(), scene.join("run"), scene.join("gt/../x")] {
         let e = run(&scene, &out, &RunOptions::default())
             .unwrap_err()
             .to_string();
         assert!(e.contains("scene folder"), "{e}");
-        assert_eq!(snapshot(&scene), before, "the scene must stay unchanged");
+        assert_eq!(
+            common::files(&scene),
+            before,
+            "the scene must stay unchanged"
+        );
     }
     std::fs::remove_file(scene.join("citymodel/alignment.json")).unwrap();
     let e = run(&scene, &dir.join("out"), &RunOptions::default())
         .unwrap_err()
         .to_string();
-    assert!(e.contains("alignment.json") && e.contains("--local-origin"), "{e}");
-    assert!(!dir.join("out").exists(), "nothing written before the refusal");
+    assert!(
+        e.contains("alignment.json") && e.contains("--local-origin"),
+        "{e}"
+    );
+    assert!(
+        !dir.join("out").exists(),
+        "nothing written before the refusal"
+    );
     // With --local-origin it runs (the wall's local origin equals its alignment here).
     let s = run(
         &scene,

@@ -94,7 +94,13 @@ pub fn run(args: &CitymodelArgs) -> anyhow::Result<()> {
             estimate = Some(est);
             Some(a)
         }
-        (None, None) => None,
+        (None, None) => {
+            log::warn!(
+                "no --align or --align-points: the mesh stays in the CityGML coordinates minus a \
+                 local origin, which matches a 3DGS scene only if it was reconstructed in that frame"
+            );
+            None
+        }
     };
     // Run.
     let mut out = citymodel::run(&files, &citymodel::Options { alignment })?;
