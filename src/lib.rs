@@ -20,6 +20,7 @@ pub mod lift;
 pub mod mesh;
 pub mod npy;
 pub mod raycast;
+pub mod refine;
 pub mod render;
 pub mod report;
 pub mod run;
