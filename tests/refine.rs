@@ -664,6 +664,16 @@ fn cli_refines_a_synthetic_scene() {
     let input = scene.join("citymodel/alignment.json");
     let (ok, log) = gs4city(&args(&input).iter().map(String::as_str).collect::<Vec<_>>());
     assert!(!ok && log.contains("input alignment"), "{log}");
+    // Refine options from a JSON file: unknown keys are errors naming the file.
+    let bad = dir.join("opts.json");
+    std::fs::write(&bad, r#"{"voxel_m": 0.5, "voxel": 1}"#).unwrap();
+    let mut with_opts = args(&out);
+    with_opts.extend(["--options".to_string(), s(&bad)]);
+    let (ok, log) = gs4city(&with_opts.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(
+        !ok && log.contains("opts.json") && log.contains("voxel"),
+        "{log}"
+    );
     // Point-pair mode still works, and the two modes exclude each other.
     let csv = dir.join("pairs.csv");
     std::fs::write(&csv, "0 0 0 1 1 1\n1 0 0 2 1 1\n0 1 0 1 2 1\n0 0 1 1 1 2\n").unwrap();

@@ -216,6 +216,19 @@ pub struct RefineInput<'a> {
     pub camera_centres: Option<&'a [DVec3]>,
 }
 
+impl<'a> RefineInput<'a> {
+    /// The input for a `citymodel` stage output (mesh, entities and the alignment it used).
+    pub fn from_citymodel(city: &'a crate::citymodel::Output, gaussians: &'a Gaussians) -> Self {
+        RefineInput {
+            mesh: &city.mesh,
+            entities: &city.entities,
+            initial: &city.alignment,
+            gaussians,
+            camera_centres: None,
+        }
+    }
+}
+
 /// Distances of the selected Gaussian centres to the city-model surface (metres; only
 /// triangles of matching orientation count, within the initial search radius).
 #[derive(Debug, Clone, Serialize, PartialEq)]
