@@ -266,6 +266,33 @@ fn main() {
         rotation_deg: r,
         scale: sc,
     };
+    // One case in detail: REFINE_BENCH_CASE="t_m,rot_deg,scale,seed" prints the summary.
+    if let Ok(case) = std::env::var("REFINE_BENCH_CASE") {
+        let v: Vec<f64> = case
+            .split(',')
+            .map(|x| x.trim().parse().expect("number"))
+            .collect();
+        assert!(v.len() == 4, "REFINE_BENCH_CASE=t_m,rot_deg,scale,seed");
+        let mut rng = ChaCha8Rng::seed_from_u64(1000 + v[3] as u64);
+        let given = synth::perturb(&s.truth, &noise(v[0], v[1], v[2]), s.centre, &mut rng);
+        let mesh = mesh_for(&s, &given);
+        let input = RefineInput {
+            mesh: &mesh,
+            entities: &s.entities,
+            initial: &given,
+            gaussians: &s.gaussians,
+            camera_centres: None,
+        };
+        match refine::refine(&input, &opts) {
+            Ok(out) => {
+                let err = refine::compare(&s.truth, &out.alignment, &s.mesh.vertices, &s.truth);
+                println!("{}", serde_json::to_string_pretty(&out).expect("json"));
+                println!("error vs truth: {err:?}");
+            }
+            Err(e) => println!("refused: {e}"),
+        }
+        return;
+    }
     let mut cases = vec![];
     for t in [0.1, 0.3, 0.5, 1.0, 1.5, 2.0] {
         cases.push(noise(t, 0.0, 0.0));

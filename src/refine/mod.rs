@@ -68,6 +68,10 @@ pub enum RefineError {
         tolerance_m: f64,
     },
     #[error(
+        "refusing: the Gaussians do not settle on the model (robust residual σ {sigma_m:.3} m after refinement > {max_sigma_m} m): a wrong local minimum, or the scene and the model disagree"
+    )]
+    NoFit { sigma_m: f64, max_sigma_m: f64 },
+    #[error(
         "refusing: the fit drifted implausibly far from the initial alignment ({what}); the initial alignment is outside the basin of convergence"
     )]
     Drift { what: String },
@@ -105,6 +109,9 @@ pub struct RefineOptions {
     pub max_iterations: usize,
     /// Refuse when the smallest / largest eigenvalue of the final normal equations is below.
     pub min_eigen_ratio: f64,
+    /// Refuse when, at the refined alignment and the initial search radius, the robust
+    /// residual σ (1.4826 × MAD) of all matches exceeds this.
+    pub max_sigma_m: f64,
     /// Refuse when the correction rotates by more than this…
     pub max_rotation_deg: f64,
     /// …or changes the scale by more than this fraction.
@@ -132,6 +139,7 @@ impl Default for RefineOptions {
             tolerance_m: 1e-4,
             max_iterations: 100,
             min_eigen_ratio: 1e-3,
+            max_sigma_m: 0.2,
             max_rotation_deg: 15.0,
             max_scale_change: 0.15,
             estimate_scale: true,
@@ -153,6 +161,7 @@ impl RefineOptions {
             ("min_cutoff_m", self.min_cutoff_m),
             ("tolerance_m", self.tolerance_m),
             ("min_eigen_ratio", self.min_eigen_ratio),
+            ("max_sigma_m", self.max_sigma_m),
             ("max_rotation_deg", self.max_rotation_deg),
             ("max_scale_change", self.max_scale_change),
         ];
@@ -365,6 +374,8 @@ pub struct RefineOutput {
     /// Residuals at the initial and at the refined alignment.
     pub before: ResidualStats,
     pub after: ResidualStats,
+    /// After: the residuals per surface orientation.
+    pub orientation: Vec<OrientationStats>,
     pub iterations: usize,
     pub converged: bool,
     pub selection: SelectionStats,
@@ -536,6 +547,8 @@ fn build_target(mesh: &TriMesh, entities: &[Entity]) -> Result<(Target, usize), 
 struct Match {
     x: DVec3,
     n: DVec3,
+    /// Orientation bin of `n` (see [`bin_of`]).
+    bin: u8,
     /// Signed point-to-plane residual `n·(x − q)`.
     r: f64,
     /// Point-to-surface distance.
@@ -568,11 +581,80 @@ fn correspond(
             Some(Match {
                 x,
                 n,
+                bin: bin_of(n),
                 r: n.dot(x - q),
                 d: hit.distance,
             })
         })
         .collect()
+}
+
+/// A level of the cutoff schedule is done when a step moves points by less than this
+/// fraction of its cutoff, or after this many iterations.
+const LEVEL_STEP: f64 = 0.05;
+const LEVEL_ITERATIONS: usize = 8;
+
+/// Orientation bins: the 13 unsigned symmetry axes of a cube (3 axes, 6 face diagonals,
+/// 4 body diagonals), so that walls of every azimuth, roofs and slopes fall in separate bins.
+const BINS: usize = 13;
+const BIN_DIRS: [[f64; 3]; BINS] = [
+    [1.0, 0.0, 0.0],
+    [0.0, 1.0, 0.0],
+    [0.0, 0.0, 1.0],
+    [1.0, 1.0, 0.0],
+    [1.0, -1.0, 0.0],
+    [1.0, 0.0, 1.0],
+    [1.0, 0.0, -1.0],
+    [0.0, 1.0, 1.0],
+    [0.0, 1.0, -1.0],
+    [1.0, 1.0, 1.0],
+    [1.0, 1.0, -1.0],
+    [1.0, -1.0, 1.0],
+    [-1.0, 1.0, 1.0],
+];
+/// A bin's own robust scale is used from this many matches on (else the global one).
+const MIN_BIN: usize = 50;
+
+/// The orientation bin of a unit normal (sign-free).
+fn bin_of(n: DVec3) -> u8 {
+    let mut best = (0usize, -1.0f64);
+    for (k, d) in BIN_DIRS.iter().enumerate() {
+        let c = n.dot(DVec3::from_array(*d).normalize()).abs();
+        if c > best.1 {
+            best = (k, c);
+        }
+    }
+    best.0 as u8
+}
+
+/// Robust scales (1.4826 × median |r|): global, and per orientation bin (a bin with fewer
+/// than [`MIN_BIN`] matches gets the global one), with the bins' match counts.
+fn robust_scales(matched: &[Match]) -> (f64, [f64; BINS], [usize; BINS]) {
+    let mut per: Vec<Vec<f64>> = vec![Vec::new(); BINS];
+    for m in matched {
+        per[m.bin as usize].push(m.r.abs());
+    }
+    let mut all: Vec<f64> = matched.iter().map(|m| m.r.abs()).collect();
+    let global = 1.4826 * quantile(&mut all, 0.5);
+    let mut sigma = [global; BINS];
+    let mut count = [0usize; BINS];
+    for (k, v) in per.iter_mut().enumerate() {
+        count[k] = v.len();
+        if v.len() >= MIN_BIN {
+            sigma[k] = 1.4826 * quantile(v, 0.5);
+        }
+    }
+    (global, sigma, count)
+}
+
+/// Residuals per orientation bin at the refined alignment.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct OrientationStats {
+    /// The bin's (unsigned) normal direction, in the scene frame of the initial alignment.
+    pub normal: [f64; 3],
+    pub matched: usize,
+    /// Robust σ of the point-to-plane residuals, metres.
+    pub sigma_m: f64,
 }
 
 /// The `q`-quantile (0..1) of `v` (nearest rank; `v` is reordered).
@@ -636,7 +718,7 @@ pub fn refine(input: &RefineInput, opts: &RefineOptions) -> Result<RefineOutput,
     let cos_max = opts.max_normal_angle_deg.to_radians().cos();
     let t2 = Instant::now();
     let mut m = Similarity::IDENTITY;
-    let mut radius = opts.initial_radius_m * unit;
+    let initial_radius = opts.initial_radius_m * unit;
     let final_radius = opts.final_radius_m * unit;
     let min_cutoff = opts.min_cutoff_m * unit;
     let tol = opts.tolerance_m * unit;
@@ -645,7 +727,17 @@ pub fn refine(input: &RefineInput, opts: &RefineOptions) -> Result<RefineOutput,
     let mut first_matches = None;
     let mut last: Option<Normal7> = None;
     let mut last_motion = f64::INFINITY;
+    // Graduated robustness: the Tukey cutoff starts at the search radius (every match
+    // counts: the coarse pose) and halves whenever a level has converged, down to the
+    // noise level (tukey_k × the robust σ, at least min_cutoff). A global, data-driven
+    // cutoff from the start would let the majority that fits first (walls) turn the
+    // minority that alone fixes a direction (roofs: the height) into outliers; a per-
+    // orientation one would let junk-dominated orientations (ground Gaussians near low
+    // roofs) pull. The search radius follows the level: 3 × cutoff.
+    let mut level = initial_radius;
+    let mut level_iterations = 0usize;
     for it in 0..opts.max_iterations {
+        let radius = (3.0 * level).clamp(final_radius, initial_radius);
         let matches = correspond(&sel, &target, &m, radius, cos_max);
         if it == 0 {
             first_matches = Some(matches.clone());
@@ -661,37 +753,53 @@ pub fn refine(input: &RefineInput, opts: &RefineOptions) -> Result<RefineOutput,
         }
         let mut abs: Vec<f64> = matched.iter().map(|m| m.r.abs()).collect();
         let sigma = 1.4826 * quantile(&mut abs, 0.5);
-        let cutoff = (opts.tukey_k * sigma).clamp(min_cutoff, radius.max(min_cutoff));
-        let weights: Vec<f64> = matched
-            .iter()
-            .map(|m| {
-                let u = m.r / cutoff;
-                if u.abs() < 1.0 {
-                    (1.0 - u * u).powi(2)
-                } else {
-                    0.0
+        let floor = (opts.tukey_k * sigma).max(min_cutoff);
+        let last_level = level <= floor;
+        let base = if last_level { floor } else { level };
+        // Where the weights leave a direction undetermined, the cutoff doubles (up to the
+        // search radius) for this iteration.
+        let mut cutoff = base;
+        let (system, solution, inliers) = loop {
+            let weights: Vec<f64> = matched
+                .iter()
+                .map(|m| {
+                    let u = m.r / cutoff;
+                    if u.abs() < 1.0 {
+                        (1.0 - u * u).powi(2)
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            let inliers = weights.iter().filter(|w| **w > 0.0).count();
+            let can_widen = cutoff < radius;
+            match Normal7::accumulate(&matched, &weights, opts.estimate_scale) {
+                None if !can_widen => {
+                    return Err(RefineError::TooFewMatches {
+                        iteration: it + 1,
+                        matched: inliers,
+                        radius_m: radius / unit,
+                        needed: opts.min_points,
+                    });
                 }
-            })
-            .collect();
-        let inliers = weights.iter().filter(|w| **w > 0.0).count();
-        let system = Normal7::accumulate(&matched, &weights, opts.estimate_scale);
-        let Some(system) = system else {
-            return Err(RefineError::TooFewMatches {
-                iteration: it + 1,
-                matched: inliers,
-                radius_m: radius / unit,
-                needed: opts.min_points,
-            });
+                Some(system) => {
+                    let solution = system.solve(opts.min_eigen_ratio);
+                    if solution.dropped == 0 || !can_widen {
+                        break (system, solution, inliers);
+                    }
+                }
+                None => {}
+            }
+            cutoff = (2.0 * cutoff).min(radius);
         };
         let Solution {
             step,
             motion,
             dropped,
-        } = system.solve(opts.min_eigen_ratio);
+        } = solution;
         m = m.then(&step);
         last_motion = motion;
         last = Some(system);
-        let next_radius = (3.0 * cutoff).clamp(final_radius, radius);
         history.push(Iteration {
             radius_m: radius / unit,
             matched: matched.len(),
@@ -701,11 +809,15 @@ pub fn refine(input: &RefineInput, opts: &RefineOptions) -> Result<RefineOutput,
             motion_m: motion / unit,
             dropped_directions: dropped,
         });
-        let stable = next_radius >= radius * (1.0 - 1e-9);
-        radius = next_radius;
-        if motion < tol && stable && dropped == 0 {
-            converged = true;
-            break;
+        level_iterations += 1;
+        if last_level {
+            if motion < tol && dropped == 0 {
+                converged = true;
+                break;
+            }
+        } else if motion < LEVEL_STEP * level || level_iterations >= LEVEL_ITERATIONS {
+            level = (level / 2.0).max(floor);
+            level_iterations = 0;
         }
     }
     let t_icp = t2.elapsed().as_secs_f64();
@@ -741,7 +853,33 @@ pub fn refine(input: &RefineInput, opts: &RefineOptions) -> Result<RefineOutput,
     let t3 = Instant::now();
     let eval_radius = opts.initial_radius_m * unit;
     let before = residual_stats(&first_matches.expect("at least one iteration"), unit);
-    let after = residual_stats(&correspond(&sel, &target, &m, eval_radius, cos_max), unit);
+    let after_matches = correspond(&sel, &target, &m, eval_radius, cos_max);
+    let after = residual_stats(&after_matches, unit);
+    let after_matched: Vec<Match> = after_matches.into_iter().flatten().collect();
+    let (sigma, sigmas, counts) = robust_scales(&after_matched);
+    let orientation: Vec<OrientationStats> = (0..BINS)
+        .filter(|&k| counts[k] > 0)
+        .map(|k| OrientationStats {
+            normal: DVec3::from_array(BIN_DIRS[k]).normalize().to_array(),
+            matched: counts[k],
+            sigma_m: if counts[k] >= MIN_BIN {
+                sigmas[k] / unit
+            } else {
+                f64::NAN
+            },
+        })
+        .collect();
+    // At the initial search radius, the Gaussians must settle on the refined model: a
+    // wrong local minimum leaves a large robust σ of all the matches. (Per orientation, σ
+    // is reported but not judged: an orientation can be dominated by junk, e.g. ground
+    // Gaussians near low flat roofs, whatever the alignment.)
+    let worst = sigma;
+    if worst > opts.max_sigma_m * unit {
+        return Err(RefineError::NoFit {
+            sigma_m: worst / unit,
+            max_sigma_m: opts.max_sigma_m,
+        });
+    }
     let t_stats = t3.elapsed().as_secs_f64();
     if after.within_5cm < 0.3 {
         warnings.push(format!(
@@ -756,6 +894,7 @@ pub fn refine(input: &RefineInput, opts: &RefineOptions) -> Result<RefineOutput,
         correction,
         before,
         after,
+        orientation,
         iterations: history.len(),
         converged,
         selection: sel.stats,
