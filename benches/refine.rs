@@ -7,7 +7,10 @@
 //! Perturbations are made in-process (the Gaussians are the same, only the alignment handed
 //! over changes): `gs4city::synth::perturb` about the Gaussians' bounding-box centre, exactly
 //! as `gs4city synth` makes `alignment.json`, with `REFINE_BENCH_SEEDS` seeds (default 5)
-//! per row. Run: `cargo bench --bench refine` (`REFINE_BENCH_QUICK=1`: 2 seeds, fewer rows).
+//! per row. Run: `cargo bench --bench refine` (`REFINE_BENCH_QUICK=1`: 2 seeds, fewer rows;
+//! `REFINE_BENCH_CASE=t_m,rot_deg,scale,seed`: one case with its whole summary;
+//! `REFINE_BENCH_SCORE=alignment.json`: that alignment's error against the scene's truth;
+//! `REFINE_BENCH_ONLY=basin|noisy|knob`: one part).
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -144,7 +147,7 @@ fn max(v: &[f64]) -> f64 {
 fn sweep_row(s: &Scene, g: &Gaussians, noise: &Noise, seeds: u64, opts: &RefineOptions) -> Row {
     let mut row = Row {
         label: format!(
-            "{:.1} m, {:.1}°, {:+.1} %",
+            "{:.1} m, {:.1}°, ±{:.1} %",
             noise.translation_m,
             noise.rotation_deg,
             noise.scale * 100.0
@@ -266,6 +269,31 @@ fn main() {
         rotation_deg: r,
         scale: sc,
     };
+    // Score an alignment.json (e.g. written by `gs4city align --refine`) against the truth:
+    // REFINE_BENCH_SCORE=path/alignment.json.
+    if let Ok(path) = std::env::var("REFINE_BENCH_SCORE") {
+        let a = Alignment::read(Path::new(&path)).expect("alignment.json");
+        let given_path = dir.join("citymodel/alignment.json");
+        let given = Alignment::read(&given_path).expect("the scene's citymodel/alignment.json");
+        for (name, x) in [("given", &given), ("scored", &a)] {
+            let e = refine::compare(&s.truth, x, &s.mesh.vertices, &s.truth);
+            println!(
+                "{name:<7} vs truth: vertex displacement rms {:.4} cm, max {:.4} cm, centroid {:.4} cm; rotation {:.6}°; scale {:+.6} %",
+                e.rms_m * 100.0,
+                e.max_m * 100.0,
+                e.centroid_m * 100.0,
+                e.rotation_deg,
+                e.scale_pct
+            );
+        }
+        let moved = refine::compare(&given, &a, &s.mesh.vertices, &s.truth);
+        println!(
+            "given → scored: vertices moved rms {:.4} cm, max {:.4} cm",
+            moved.rms_m * 100.0,
+            moved.max_m * 100.0
+        );
+        return;
+    }
     // One case in detail: REFINE_BENCH_CASE="t_m,rot_deg,scale,seed" prints the summary.
     if let Ok(case) = std::env::var("REFINE_BENCH_CASE") {
         let v: Vec<f64> = case
@@ -324,6 +352,11 @@ fn main() {
             noise(0.0, 5.0, 0.0),
         ];
     }
+    let only = std::env::var("REFINE_BENCH_ONLY").unwrap_or_default();
+    let part = |name: &str| only.is_empty() || only == name;
+    if !part("basin") {
+        cases.clear();
+    }
     let rows: Vec<Row> = cases
         .iter()
         .map(|c| sweep_row(&s, &s.gaussians, c, seeds, &opts))
@@ -335,7 +368,9 @@ fn main() {
 
     let sigma = 0.02 * s.truth.scale;
     let noisy = jittered(&s.gaussians, sigma, 99);
-    let noisy_cases: Vec<Noise> = if quick {
+    let noisy_cases: Vec<Noise> = if !part("noisy") {
+        vec![]
+    } else if quick {
         vec![noise(0.3, 0.5, 0.0)]
     } else {
         vec![
@@ -355,6 +390,9 @@ fn main() {
     );
 
     // Speed against error: the number of sampled Gaussians (0.3 m / 0.5° error, noisy centres).
+    if !part("knob") {
+        return;
+    }
     println!(
         "\n### Speed against error: `max_points` (voxel 0.1 m; 0.3 m, 0.5°; centres jittered σ = 2 cm; best of 3 runs)\n"
     );

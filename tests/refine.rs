@@ -496,7 +496,7 @@ fn refusals_name_the_reason() {
     let g = gaussians(&quads, &t, 10.0, CLEAN, 6);
     let given = perturb(&t, DVec3::ZERO, 0.0, DVec3::Z, 20.0, DVec3::Z, 0.0);
     let (out, _) = run(&quads, &given, &g, &RefineOptions::default());
-    let e = out.err().expect("refused");
+    let e = out.expect_err("refused");
     assert!(matches!(e, RefineError::TooFewMatches { .. }), "{e}");
     assert!(e.to_string().contains("3.000 m"), "{e}");
     // Only transparent Gaussians.

@@ -84,7 +84,7 @@ pub fn closest_point_on_triangle(p: [f64; 3], a: [f64; 3], b: [f64; 3], c: [f64;
         };
     }
     let den = va + vb + vc;
-    if !(den.abs() > 0.0) || !den.is_finite() {
+    if den == 0.0 || !den.is_finite() {
         return a;
     }
     let v = vb / den;
@@ -94,6 +94,16 @@ pub fn closest_point_on_triangle(p: [f64; 3], a: [f64; 3], b: [f64; 3], c: [f64;
         a[1] + ab[1] * v + ac[1] * w,
         a[2] + ab[2] * v + ac[2] * w,
     ]
+}
+
+/// The smallest f32 ≥ `x` (≥ 0, finite): Embree's radius must not cull what `x` reaches.
+fn round_up(x: f64) -> f32 {
+    let y = x as f32;
+    if f64::from(y) >= x || !y.is_finite() {
+        y
+    } else {
+        f32::from_bits(y.to_bits() + 1) // y ≥ 0: the next representable value up
+    }
 }
 
 /// Embree's per-candidate callback: exact distance to the candidate triangle, keep the
@@ -148,7 +158,7 @@ unsafe extern "C" fn point_query_callback(args: *mut sys::RTCPointQueryFunctionA
         // Ties are broken by ids, so the answer does not depend on traversal order.
         Some(b) => (d, geom, prim) < (b.distance, b.geom_id, b.prim_id),
     };
-    if !(d <= state.max_distance) || !better {
+    if d.is_nan() || d > state.max_distance || !better {
         return false;
     }
     state.best = Some(PointHit {
@@ -157,7 +167,7 @@ unsafe extern "C" fn point_query_callback(args: *mut sys::RTCPointQueryFunctionA
         geom_id: geom,
         prim_id: prim,
     });
-    let r = ((d + state.slack) as f32).next_up();
+    let r = round_up(d + state.slack);
     if r < query.radius {
         query.radius = r;
         true
@@ -181,7 +191,7 @@ impl CommittedScene {
         max_distance: f64,
         accept: &mut dyn FnMut(u32, u32) -> bool,
     ) -> Option<PointHit> {
-        if p.iter().any(|c| !c.is_finite()) || !(max_distance >= 0.0) {
+        if p.iter().any(|c| !c.is_finite()) || max_distance.is_nan() || max_distance < 0.0 {
             return None;
         }
         let p32 = p.map(|c| c as f32);
@@ -195,7 +205,7 @@ impl CommittedScene {
             .sum::<f64>()
             .sqrt();
         let radius = if max_distance.is_finite() {
-            ((max_distance + slack) as f32).next_up()
+            round_up(max_distance + slack)
         } else {
             f32::INFINITY
         };

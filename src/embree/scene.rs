@@ -202,6 +202,9 @@ impl Scene {
     }
 }
 
+/// A geometry's vertices and faces, as shared with Embree.
+pub(super) type TriangleBuffers<'a> = (&'a [[f32; 3]], &'a [[u32; 3]]);
+
 /// A committed, read-only scene: the only thing rays can be cast into.
 pub struct CommittedScene {
     scene: Scene,
@@ -278,7 +281,7 @@ impl CommittedScene {
     }
 
     /// Vertices (without the padding vertex) and faces of geometry `geom_id`.
-    pub(super) fn triangles(&self, geom_id: u32) -> Option<(&[[f32; 3]], &[[u32; 3]])> {
+    pub(super) fn triangles(&self, geom_id: u32) -> Option<TriangleBuffers<'_>> {
         self.scene.buffers.get(geom_id as usize).map(|b| {
             (
                 &b.vertices[..b.vertices.len().saturating_sub(1)],

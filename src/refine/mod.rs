@@ -166,7 +166,7 @@ impl RefineOptions {
             ("max_scale_change", self.max_scale_change),
         ];
         for (k, v) in pos {
-            if !(v.is_finite() && v > 0.0) {
+            if !v.is_finite() || v <= 0.0 {
                 return bad(format!("{k} must be finite and > 0, got {v}"));
             }
         }
@@ -176,13 +176,16 @@ impl RefineOptions {
                 self.min_opacity
             ));
         }
-        if !(self.max_flatness > 0.0 && self.max_flatness <= 1.0) {
+        if self.max_flatness.is_nan() || self.max_flatness <= 0.0 || self.max_flatness > 1.0 {
             return bad(format!(
                 "max_flatness must be in (0, 1], got {}",
                 self.max_flatness
             ));
         }
-        if !(self.max_normal_angle_deg > 0.0 && self.max_normal_angle_deg <= 90.0) {
+        if self.max_normal_angle_deg.is_nan()
+            || self.max_normal_angle_deg <= 0.0
+            || self.max_normal_angle_deg > 90.0
+        {
             return bad(format!(
                 "max_normal_angle_deg must be in (0, 90], got {}",
                 self.max_normal_angle_deg
@@ -425,7 +428,7 @@ fn select(input: &RefineInput, opts: &RefineOptions, unit: f64) -> Selection {
             let mut order = [0usize, 1, 2];
             order.sort_by(|&a, &b| s[a].total_cmp(&s[b]));
             let (smin, smid) = (s[order[0]], s[order[1]]);
-            if !(smin.is_finite() && smid.is_finite() && smin <= opts.max_flatness * smid) {
+            if !smin.is_finite() || !smid.is_finite() || smin > opts.max_flatness * smid {
                 return (1, DVec3::ZERO);
             }
             let rot = DMat3::from_quat(
@@ -518,7 +521,7 @@ fn build_target(mesh: &TriMesh, entities: &[Entity]) -> Result<(Target, usize), 
         let v = |k: usize| DVec3::from_array(mesh.vertices[f[k] as usize].map(f64::from));
         let nrm = (v(1) - v(0)).cross(v(2) - v(0));
         let len = nrm.length();
-        if !(len > 0.0) || !len.is_finite() {
+        if len == 0.0 || !len.is_finite() {
             excluded += 1; // degenerate: no orientation
             continue;
         }

@@ -38,9 +38,10 @@ pub(super) struct Solution {
 impl Normal7 {
     /// The weighted system, or `None` when the weights sum to zero or fewer than 7 points
     /// carry weight.
+    #[allow(clippy::needless_range_loop)] // a symmetric matrix: (i, j) and (j, i)
     pub(super) fn accumulate(matches: &[Match], weights: &[f64], scale: bool) -> Option<Normal7> {
         let wsum: f64 = weights.iter().sum();
-        if !(wsum > 0.0) || weights.iter().filter(|w| **w > 0.0).count() < 7 {
+        if wsum.is_nan() || wsum <= 0.0 || weights.iter().filter(|w| **w > 0.0).count() < 7 {
             return None;
         }
         let centre = matches
@@ -138,7 +139,7 @@ impl Normal7 {
         let mut eta = [0.0; 7];
         let mut dropped = 0;
         for (l, v) in &eig {
-            if !(*l > 0.0) || *l < min_ratio * lmax {
+            if l.is_nan() || *l <= 0.0 || *l < min_ratio * lmax {
                 dropped += 1;
                 continue;
             }
@@ -192,7 +193,7 @@ fn describe(v: &[f64; 7]) -> String {
         let d = d.normalize_or_zero();
         format!("({:.2}, {:.2}, {:.2})", d.x, d.y, d.z)
     };
-    let mut parts = vec![
+    let mut parts = [
         (t.length(), format!("the translation along {}", f(t))),
         (w.length(), format!("the rotation about {}", f(w))),
         (v[0].abs(), "the scale".to_string()),
@@ -215,6 +216,7 @@ mod tests {
         Match {
             x,
             n,
+            bin: crate::refine::bin_of(n),
             r,
             d: r.abs(),
         }
