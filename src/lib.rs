@@ -24,6 +24,7 @@ pub mod mesh;
 pub mod npy;
 pub mod progress;
 pub mod raycast;
+pub mod refine;
 pub mod render;
 pub mod report;
 pub mod run;

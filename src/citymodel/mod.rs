@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 use crate::citygml::{self, CityGmlError, CityModel, Class, Level};
 use crate::fsutil::{self, FsError};
 use crate::mesh::{FaceLabel, MeshError, TriMesh};
-pub use align::{AlignError, Alignment};
+pub use align::{AlignError, Alignment, Similarity};
 use triangulate::{Repair, SkipReason};
 
 /// Errors of the citymodel stage.

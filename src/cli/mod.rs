@@ -1,5 +1,6 @@
 //! The command line: one subcommand per stage (DESIGN.md). Only this module uses `anyhow`.
 //! Each subcommand parses its arguments, validates them into a config, then runs.
+mod align;
 mod citymodel;
 mod demo;
 mod eval;
@@ -40,8 +41,8 @@ enum Command {
     Run(run::RunArgs),
     /// The demo: bundled data → simulated scene → every stage → report.html.
     Demo(demo::DemoArgs),
-    /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
-    Align(citymodel::AlignArgs),
+    /// alignment.json from geo ↔ scene point pairs (Umeyama), or --refine it against the 3DGS scene (robust 7-DoF ICP).
+    Align(align::AlignArgs),
     /// Evaluate predicted class maps against ground truth → metrics.json, paper-shaped tables.
     Eval(eval::EvalArgs),
     /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
@@ -58,7 +59,7 @@ pub fn main() -> anyhow::Result<()> {
     });
     match cli.command {
         Command::Citymodel(args) => citymodel::run(&args),
-        Command::Align(args) => citymodel::run_align(&args),
+        Command::Align(args) => align::run(&args),
         Command::Raycast(args) => raycast::run(&args),
         Command::Render(args) => render::run(&args),
         Command::Eval(args) => eval::run(&args),
