@@ -207,3 +207,68 @@ fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
     assert!(e.contains("point_cloud.ply"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `run --refine-alignment` on a SIMULATED scene (synth small preset, 2 real buildings) with a
+/// 0.3 m / 0.5° alignment error: the align stage runs first and the citymodel stage — so every
+/// later stage — uses its refined alignment, which is close to the truth (read from the scene's
+/// summary.json here only, to score).
+#[test]
+fn refine_alignment_feeds_the_whole_run() {
+    use gs4city::citymodel::Alignment;
+    use gs4city::synth::{self, Preset, SynthConfig};
+    let dir = wall::tmp("run-refine");
+    let mut cfg = SynthConfig::preset(Preset::Small);
+    cfg.noise.translation_m = 0.3;
+    cfg.noise.rotation_deg = 0.5;
+    cfg.cameras.orbit_views = 6;
+    cfg.cameras.street_views = 0;
+    cfg.cameras.width = 330;
+    cfg.cameras.height = 247;
+    let scene = dir.join("scene");
+    let truth = synth::run(&cfg, &scene).unwrap();
+    let out = dir.join("out");
+    let s = run(
+        &scene,
+        &out,
+        &RunOptions {
+            refine_alignment: true,
+            test_every: 3,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(s.stages[0].stage, "align");
+    let refined = Alignment::read(&out.join("align/alignment.json")).unwrap();
+    let used = Alignment::read(&out.join("citymodel/alignment.json")).unwrap();
+    let read = |v: &serde_json::Value| {
+        Alignment::from_json_str(std::path::Path::new("summary.json"), &v.to_string()).unwrap()
+    };
+    let (t, given) = (read(&truth.alignment_true), read(&truth.alignment_given));
+    // Scored at the corners of a 60 × 60 × 20 m box over the buildings (local metres).
+    let mut worst: (f64, f64, f64) = (0.0, 0.0, 0.0);
+    for c in 0..8 {
+        let geo = t.origin
+            + glam::DVec3::new(
+                60.0 * f64::from(c & 1),
+                60.0 * f64::from((c >> 1) & 1),
+                20.0 * f64::from(c >> 2),
+            );
+        worst.0 = worst.0.max((refined.apply(geo) - t.apply(geo)).length());
+        worst.1 = worst.1.max((given.apply(geo) - t.apply(geo)).length());
+        worst.2 = worst.2.max((used.apply(geo) - refined.apply(geo)).length());
+    }
+    assert!(worst.1 > 0.3, "the given alignment is off: {worst:?}");
+    assert!(
+        worst.0 < 0.03,
+        "refined within 3 cm of the truth: {worst:?}"
+    );
+    assert!(
+        worst.2 < 1e-6,
+        "the citymodel stage used the refined alignment: {worst:?}"
+    );
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    assert!(rec["stages"]["align"]["outputs"].is_array());
+    assert_eq!(rec["options"]["refine_alignment"], true);
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -78,7 +78,7 @@ pub enum RefineError {
 }
 
 /// Knobs of the refinement. Lengths in metres (× the initial alignment's scale in the scene).
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RefineOptions {
     /// Gaussians used: activated opacity at least this.
@@ -243,7 +243,7 @@ impl<'a> RefineInput<'a> {
 
 /// Distances of the selected Gaussian centres to the city-model surface (metres; only
 /// triangles of matching orientation count, within the initial search radius).
-#[derive(Debug, Clone, Serialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct ResidualStats {
     /// Selected Gaussians.
     pub points: usize,
@@ -260,7 +260,7 @@ pub struct ResidualStats {
 }
 
 /// How one alignment moves the model relative to another (metres, degrees, percent).
-#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 pub struct Displacement {
     /// RMS / max / mean displacement of the mesh vertices.
     pub rms_m: f64,
@@ -308,7 +308,7 @@ pub fn compare(
 }
 
 /// Counts of the Gaussian selection.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SelectionStats {
     pub gaussians: usize,
     pub opaque: usize,
@@ -322,7 +322,7 @@ pub struct SelectionStats {
 }
 
 /// The conditioning of the final normal equations (normalised: O(1) columns).
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Conditioning {
     /// Eigenvalues, ascending.
     pub eigenvalues: Vec<f64>,
@@ -333,7 +333,7 @@ pub struct Conditioning {
 }
 
 /// One ICP iteration.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Iteration {
     pub radius_m: f64,
     pub matched: usize,
@@ -349,7 +349,7 @@ pub struct Iteration {
 }
 
 /// Wall-clock seconds per phase.
-#[derive(Debug, Clone, Serialize, Default)]
+#[derive(Debug, Clone, Serialize, Deserialize, Default)]
 pub struct Timings {
     pub select_s: f64,
     pub bvh_s: f64,
@@ -362,15 +362,21 @@ fn ser_alignment<S: serde::Serializer>(a: &Alignment, s: S) -> Result<S::Ok, S::
     a.to_json().serialize(s)
 }
 
+fn de_alignment<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Alignment, D::Error> {
+    let v = serde_json::Value::deserialize(d)?;
+    Alignment::from_json_str(std::path::Path::new("summary.json"), &v.to_string())
+        .map_err(serde::de::Error::custom)
+}
+
 /// The result (also the stage's `summary.json`).
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RefineOutput {
     /// `"align_refine"`: marks a summary.json written by this stage.
-    pub stage: &'static str,
+    pub stage: String,
     /// The refined alignment (alignment.json format).
-    #[serde(serialize_with = "ser_alignment")]
+    #[serde(serialize_with = "ser_alignment", deserialize_with = "de_alignment")]
     pub alignment: Alignment,
-    #[serde(serialize_with = "ser_alignment")]
+    #[serde(serialize_with = "ser_alignment", deserialize_with = "de_alignment")]
     pub initial: Alignment,
     /// How the refinement moved the model (initial → refined).
     pub correction: Displacement,
@@ -651,7 +657,7 @@ fn robust_scales(matched: &[Match]) -> (f64, [f64; BINS], [usize; BINS]) {
 }
 
 /// Residuals per orientation bin at the refined alignment.
-#[derive(Debug, Clone, Serialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct OrientationStats {
     /// The bin's (unsigned) normal direction, in the scene frame of the initial alignment.
     pub normal: [f64; 3],
@@ -891,7 +897,7 @@ pub fn refine(input: &RefineInput, opts: &RefineOptions) -> Result<RefineOutput,
         ));
     }
     Ok(RefineOutput {
-        stage: "align_refine",
+        stage: "align_refine".into(),
         alignment,
         initial,
         correction,
