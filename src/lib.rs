@@ -23,6 +23,7 @@ pub mod masks;
 pub mod mesh;
 pub mod npy;
 pub mod progress;
+pub mod query;
 pub mod raycast;
 pub mod render;
 pub mod report;

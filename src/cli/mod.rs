@@ -4,6 +4,7 @@ mod citymodel;
 mod demo;
 mod eval;
 mod lift;
+mod query;
 mod raycast;
 mod render;
 mod run;
@@ -42,6 +43,8 @@ enum Command {
     Demo(demo::DemoArgs),
     /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
     Align(citymodel::AlignArgs),
+    /// Select from a finished run (class, level, attribute, id, text, pick) → selection.json, view masks, PLY exports, SQLite.
+    Query(query::QueryArgs),
     /// Evaluate predicted class maps against ground truth → metrics.json, paper-shaped tables.
     Eval(eval::EvalArgs),
     /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
@@ -62,6 +65,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Raycast(args) => raycast::run(&args),
         Command::Render(args) => render::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Query(args) => query::run(&args),
         Command::Lift(args) => lift::run(&args),
         Command::Run(args) => run::run(&args),
         Command::Demo(args) => demo::run(&args),
