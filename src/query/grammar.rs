@@ -596,19 +596,21 @@ impl Parser {
                 Some((v, rest)) => {
                     let text = w[..w.len() - rest.len()].to_string();
                     let mut unit = (!rest.is_empty()).then(|| rest.to_string());
+                    let mut uc = vc;
+                    // A word right after the number that is not a keyword is its unit.
                     if unit.is_none()
-                        && let Tok::Word(u) = &self.peek().0
-                        && super::units::is_known(u)
+                        && let (Tok::Word(u), c) = self.peek().clone()
                         && !KEYWORDS.contains(&u.to_ascii_lowercase().as_str())
                     {
-                        unit = Some(u.clone());
+                        unit = Some(u);
+                        uc = c;
                         self.next();
                     }
                     if let Some(u) = &unit
                         && !super::units::is_known(u)
                     {
                         return self.err(
-                            vc,
+                            uc,
                             format!(
                                 "unknown unit `{u}` after the number (known: {}); quote the value to compare text",
                                 super::units::KNOWN.join(" ")
@@ -840,7 +842,10 @@ mod tests {
         assert!(x.why.contains("without a matching"), "{x}");
         let x = e("h > 10 furlongs");
         assert_eq!(x.column, 8, "{x}");
-        assert!(x.why.contains("furlongs"), "{x}");
+        assert!(x.why.contains("unknown unit `furlongs`"), "{x}");
+        let x = e("h > 10 m m");
+        assert_eq!(x.column, 10, "{x}");
+        assert!(x.why.contains("expected `and`"), "{x}");
         let x = e("h > 10furlongs");
         assert_eq!(x.column, 5);
         assert!(x.why.contains("unknown unit `furlongs`"), "{x}");

@@ -12,7 +12,8 @@
 //! * `label=N` — label id N.
 //! * `name OP value` — the entity's attribute `name`, **inherited**: an entity without it takes
 //!   its nearest ancestor's value (so `measuredHeight>15` selects whole buildings). Numbers
-//!   compare as numbers, a unit on the literal is converted to the entity's `name.uom`; other
+//!   compare as numbers, a unit on the literal is converted to the entity's `name.uom` (a number
+//!   without a unit is in the file's unit, and needs one when the file uses several); other
 //!   values compare as text (`<`, `>` lexicographically: ISO dates order correctly). A list
 //!   value matches when one element does (`!=`: when no element equals). A missing attribute
 //!   satisfies no comparison, `!=` included (`not name=v` selects it).
@@ -551,7 +552,25 @@ fn check(
                 ));
             };
             let numeric_only = info.texts == 0 && info.numbers > 0;
+            // The units the file uses for this attribute.
+            let uoms: BTreeSet<&str> = ctx
+                .entities
+                .iter()
+                .filter_map(|e| e.attributes.get(&format!("{name}.uom")))
+                .filter_map(|v| v.as_str())
+                .collect();
             match value {
+                Literal::Number { unit: None, .. } if uoms.len() > 1 => {
+                    return Err(invalid(
+                        *column,
+                        format!(
+                            "attribute `{name}` comes in several units in semantics.json ({}): give the number a unit, e.g. `{name} {} 10 {}`",
+                            uoms.iter().copied().collect::<Vec<_>>().join(", "),
+                            op.as_str(),
+                            units::normalise(uoms.iter().next().expect("two units"))
+                        ),
+                    ));
+                }
                 Literal::Number { unit: Some(u), .. } if !info.has_uom => {
                     return Err(invalid(
                         *column,
@@ -562,12 +581,6 @@ fn check(
                 }
                 Literal::Number { unit: Some(u), .. } => {
                     // Every unit the file uses for this attribute must be convertible.
-                    let uoms: BTreeSet<&str> = ctx
-                        .entities
-                        .iter()
-                        .filter_map(|e| e.attributes.get(&format!("{name}.uom")))
-                        .filter_map(|v| v.as_str())
-                        .collect();
                     if let Some(bad) = uoms.iter().find(|to| units::convert(1.0, u, to).is_none()) {
                         return Err(invalid(
                             *column,
