@@ -985,3 +985,74 @@ fn query_driven_evaluation_on_known_masks() {
     assert!((r.metrics.paper.miou.mean.unwrap() - 0.75).abs() < 1e-12);
     assert!(r.tables.contains("Window"));
 }
+
+/// Attribute selections on real CityGML (the 27 Ingolstadt files of ../shared/data/citygml
+/// and the FZK houses, CityGML 1.0 and 3.0) agree with an independent reading of the files
+/// (`scripts/query_attr_check.py`, Python's ElementTree).
+#[test]
+fn attribute_selections_match_an_independent_reading_of_the_citygml() {
+    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/citygml");
+    assert!(shared.is_dir(), "{} is missing: the real-data tests need it", shared.display());
+    let mut files: Vec<PathBuf> = std::fs::read_dir(shared.join("ingolstadt_north"))
+        .unwrap()
+        .filter_map(|d| d.ok())
+        .flat_map(|d| std::fs::read_dir(d.path()).into_iter().flatten())
+        .filter_map(|f| f.ok().map(|f| f.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "gml"))
+        .collect();
+    files.sort();
+    assert_eq!(files.len(), 27);
+    files.push(shared.join("citygml1_FZK-House-LoD3-KIT-IAI-KHH-V2.gml"));
+    files.push(shared.join("citygml3_FZK-Haus-LoD3-KIT-IAI-KHH-B36-V1__v3.gml"));
+    let out = gs4city::citymodel::run(&files, &Default::default()).unwrap();
+    let entities = out.entities;
+    let table = LabelTable::city(&entities, &gs4city::classes::table(&entities)).unwrap();
+    let index = query::select::Index::new(&entities);
+    let ctx = query::select::Context {
+        entities: &entities,
+        labels: &table,
+        features: None,
+        prompts: None,
+        features_path: PathBuf::new(),
+        text: TextOptions::default(),
+    };
+    let python = Command::new("python3").arg("--version").output().is_ok_and(|o| o.status.success());
+    if !python {
+        assert!(std::env::var("CI").is_err(), "python3 is required in CI");
+        eprintln!("SKIPPED: no python3");
+        return;
+    }
+    for (op, value, expr) in [
+        (">", "15", "measuredHeight > 15"),
+        ("<=", "12.68", "measuredHeight <= 12.68"),
+        (">=", "13", "measuredHeight >= 1300 cm"),
+        ("<", "7", "measuredHeight < 0.007 km"),
+    ] {
+        let mut cmd = Command::new("python3");
+        cmd.arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/query_attr_check.py"))
+            .args(["--name", "measuredHeight", "--op", op, "--value", value])
+            .args(&files);
+        let o = cmd.output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let want: Value = serde_json::from_slice(&o.stdout).unwrap();
+        let sel = query::select::evaluate(&ctx, &index, &query::grammar::parse(expr).unwrap()).unwrap();
+        let ids = |v: &[i32], features_only: bool| -> Vec<String> {
+            let mut x: Vec<String> = v
+                .iter()
+                .map(|&e| &entities[e as usize])
+                .filter(|e| !features_only || matches!(e.class.as_str(), "Building" | "BuildingPart"))
+                .map(|e| e.object_id.clone())
+                .collect();
+            x.sort();
+            x
+        };
+        let sorted = |v: &Value| -> Vec<String> {
+            let mut x: Vec<String> = v.as_array().unwrap().iter().map(|s| s.as_str().unwrap().to_string()).collect();
+            x.sort();
+            x
+        };
+        assert_eq!(ids(&sel.roots, false), sorted(&want["roots"]), "{expr}");
+        assert_eq!(ids(&sel.entities, true), sorted(&want["selected"]), "{expr}");
+        assert!(!sel.roots.is_empty(), "{expr}: a check that selects nothing proves little");
+    }
+}
