@@ -992,7 +992,11 @@ fn query_driven_evaluation_on_known_masks() {
 #[test]
 fn attribute_selections_match_an_independent_reading_of_the_citygml() {
     let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/citygml");
-    assert!(shared.is_dir(), "{} is missing: the real-data tests need it", shared.display());
+    assert!(
+        shared.is_dir(),
+        "{} is missing: the real-data tests need it",
+        shared.display()
+    );
     let mut files: Vec<PathBuf> = std::fs::read_dir(shared.join("ingolstadt_north"))
         .unwrap()
         .filter_map(|d| d.ok())
@@ -1016,7 +1020,10 @@ fn attribute_selections_match_an_independent_reading_of_the_citygml() {
         features_path: PathBuf::new(),
         text: TextOptions::default(),
     };
-    let python = Command::new("python3").arg("--version").output().is_ok_and(|o| o.status.success());
+    let python = Command::new("python3")
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success());
     if !python {
         assert!(std::env::var("CI").is_err(), "python3 is required in CI");
         eprintln!("SKIPPED: no python3");
@@ -1035,24 +1042,107 @@ fn attribute_selections_match_an_independent_reading_of_the_citygml() {
         let o = cmd.output().unwrap();
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let want: Value = serde_json::from_slice(&o.stdout).unwrap();
-        let sel = query::select::evaluate(&ctx, &index, &query::grammar::parse(expr).unwrap()).unwrap();
+        let sel =
+            query::select::evaluate(&ctx, &index, &query::grammar::parse(expr).unwrap()).unwrap();
         let ids = |v: &[i32], features_only: bool| -> Vec<String> {
             let mut x: Vec<String> = v
                 .iter()
                 .map(|&e| &entities[e as usize])
-                .filter(|e| !features_only || matches!(e.class.as_str(), "Building" | "BuildingPart"))
+                .filter(|e| {
+                    !features_only || matches!(e.class.as_str(), "Building" | "BuildingPart")
+                })
                 .map(|e| e.object_id.clone())
                 .collect();
             x.sort();
             x
         };
         let sorted = |v: &Value| -> Vec<String> {
-            let mut x: Vec<String> = v.as_array().unwrap().iter().map(|s| s.as_str().unwrap().to_string()).collect();
+            let mut x: Vec<String> = v
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|s| s.as_str().unwrap().to_string())
+                .collect();
             x.sort();
             x
         };
         assert_eq!(ids(&sel.roots, false), sorted(&want["roots"]), "{expr}");
-        assert_eq!(ids(&sel.entities, true), sorted(&want["selected"]), "{expr}");
-        assert!(!sel.roots.is_empty(), "{expr}: a check that selects nothing proves little");
+        assert_eq!(
+            ids(&sel.entities, true),
+            sorted(&want["selected"]),
+            "{expr}"
+        );
+        assert!(
+            !sel.roots.is_empty(),
+            "{expr}: a check that selects nothing proves little"
+        );
     }
+}
+
+#[path = "common/sim_labels.rs"]
+mod sim_labels;
+
+/// A SIMULATED scene without cars (`synth --preset small`, `objects.cars = 0`): with label
+/// features standing in for the fuse stage's (instance groups of simulated mask features,
+/// `common/sim_labels.rs`), "a car" matches nothing at the calibrated threshold while "a tree"
+/// and "a person" match exactly labels of their class.
+#[test]
+fn absent_class_in_a_simulated_scene_without_cars() {
+    let root = std::env::temp_dir().join(format!("gs4city-query-nocar-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    std::fs::create_dir_all(&root).unwrap();
+    let cfg = root.join("nocar.toml");
+    std::fs::write(&cfg, "[objects]\ncars = 0\n").unwrap();
+    let scene = root.join("scene");
+    let (ok, _, err) = cli(&[
+        "-q",
+        "synth",
+        "--preset",
+        "small",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        scene.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let (_, groups) = sim_labels::simulated_labels(&scene);
+    assert!(
+        groups.iter().all(|g| g.class != gs4city::classes::CAR),
+        "the variant has no car"
+    );
+    let classes: Vec<i32> = groups.iter().map(|g| g.class).collect();
+    let flat: Vec<f32> = groups
+        .iter()
+        .flat_map(|g| g.feature.iter().copied())
+        .collect();
+    let feats = query::LabelFeatures::new(Path::new("simulated"), 512, &flat).unwrap();
+    let prompts = gs4city::sam::read_prompts_json(&scene.join("features/prompts.json")).unwrap();
+    let o = TextOptions::default();
+    let ids: Vec<i32> = (0..groups.len() as i32).collect();
+    for (prompt, class) in [
+        ("a car", gs4city::classes::CAR),
+        ("a tree", gs4city::classes::TREE),
+        ("a person", gs4city::classes::PERSON),
+    ] {
+        let q =
+            query::text::build_query(&prompts, Path::new("prompts.json"), Ok(prompt), &o).unwrap();
+        let (scores, m) = query::text::score_labels(&q, &feats, &ids, &o);
+        let matched: Vec<usize> = (0..groups.len())
+            .filter(|&i| scores[i].is_some_and(|s| s >= o.min_relevancy))
+            .collect();
+        let of_class = classes.iter().filter(|&&c| c == class).count();
+        if class == gs4city::classes::CAR {
+            assert!(matched.is_empty(), "{prompt}: {m:?}");
+            assert!(m.best.unwrap() < o.min_relevancy);
+        } else {
+            assert!(of_class > 0, "{prompt}: the small scene has {prompt}s");
+            assert_eq!(
+                matched.len(),
+                of_class,
+                "{prompt}: every group of the class matches, nothing else: {m:?}"
+            );
+            assert!(matched.iter().all(|&i| classes[i] == class));
+        }
+    }
+    let _ = std::fs::remove_dir_all(&root);
 }

@@ -648,10 +648,12 @@ pub fn run(
             let v = find_view(cache, stem)?;
             let c = cache.load(stem)?;
             let mask = masks::view_mask(&c, &merged, &selected, opts.rule);
-            let (_, label_map) = crate::lift::predict(&c, &sr.label_of, &sr.class_of);
-            for &l in &label_map {
-                if let Some(&r) = sr.row_of.get(&l) {
-                    label_pixels[r] += 1;
+            if opts.sqlite {
+                let (_, label_map) = crate::lift::predict(&c, &sr.label_of, &sr.class_of);
+                for &l in &label_map {
+                    if let Some(&r) = sr.row_of.get(&l) {
+                        label_pixels[r] += 1;
+                    }
                 }
             }
             let image = sr.scene.images.as_ref().map(|d| d.join(&v.name));

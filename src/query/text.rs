@@ -47,7 +47,7 @@ pub struct TextOptions {
 }
 
 /// The calibrated default threshold (docs/query.md, "Calibration").
-pub const MIN_RELEVANCY: f64 = 0.75;
+pub const MIN_RELEVANCY: f64 = 0.85;
 
 impl Default for TextOptions {
     fn default() -> Self {
