@@ -17,7 +17,7 @@ use std::time::Instant;
 
 use gs4city::query::text::{self, LabelFeatures, TextOptions};
 use gs4city::query::{self, MaskRule, QueryOptions, Request, SemanticRun, Views};
-use gs4city::{npy, sam, synth};
+use gs4city::{sam, synth};
 
 fn best_of<T>(n: usize, mut f: impl FnMut() -> T) -> (f64, T) {
     let mut best = f64::INFINITY;
@@ -34,17 +34,20 @@ fn best_of<T>(n: usize, mut f: impl FnMut() -> T) -> (f64, T) {
 #[path = "../tests/common/sim_labels.rs"]
 mod sim_labels;
 
+/// (true class, feature) per simulated label.
+type Labelled = Vec<(i32, Vec<f32>)>;
+
 fn calibration(scene: &Path) {
     let prompts = sam::read_prompts_json(&scene.join("features/prompts.json")).unwrap();
     let (singles, groups) = sim_labels::simulated_labels(scene);
-    let pairs = |v: Vec<sim_labels::SimLabel>, min: usize| -> Vec<(i32, Vec<f32>)> {
+    let pairs = |v: Vec<sim_labels::SimLabel>, min: usize| -> Labelled {
         v.into_iter()
             .filter(|l| l.masks >= min)
             .map(|l| (l.class, l.feature))
             .collect()
     };
     let opts = TextOptions::default();
-    let sets: [(&str, Vec<(i32, Vec<f32>)>); 2] = [
+    let sets: [(&str, Labelled); 2] = [
         ("single masks (raw simulated features)", pairs(singles, 1)),
         (
             "instance groups of ≥ 3 masks (simulated label features)",

@@ -695,9 +695,9 @@ fn term(
                 return false;
             }
             if *op == Op::Ne {
-                !v.is_null() && !hits.iter().any(|h| *h == Some(true))
+                !v.is_null() && !hits.contains(&Some(true))
             } else {
-                hits.iter().any(|h| *h == Some(true))
+                hits.contains(&Some(true))
             }
         }
     }

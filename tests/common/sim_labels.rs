@@ -5,6 +5,7 @@
 //! feature is the normalised mean of its masks' features (the association's running mean);
 //! merged masks and false positives stay groups of their own. Included with `#[path]` by
 //! `tests/query.rs` and `benches/query.rs`.
+#![allow(dead_code)]
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
