@@ -63,6 +63,14 @@ fn calibration(scene: &Path) {
         let flat: Vec<f32> = set.iter().flat_map(|x| x.1.iter().copied()).collect();
         let feats = LabelFeatures::new(Path::new("simulated"), d, &flat).unwrap();
         println!("### {name}: {} labels\n", set.len());
+        let ids: Vec<i32> = (0..set.len() as i32).collect();
+        let car =
+            text::build_query(&prompts, Path::new("prompts.json"), Ok("a car"), &opts).unwrap();
+        let (t_score, _) = best_of(3, || text::score_labels(&car, &feats, &ids, &opts));
+        println!(
+            "Scoring every label for \"a car\" ({} negatives, D = {d}): {t_score:.3} s (best of 3).\n",
+            car.negatives.len()
+        );
         println!(
             "| prompt | target class | positives | min / median positive relevancy | max relevancy of the rest (its class) | rest ≥ 0.5 |"
         );

@@ -255,8 +255,8 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
                 })
                 .collect();
             println!(
-                "  {:?} {} {} {}",
-                c.level,
+                "  {} {} {} {}",
+                format!("{:?}", c.level).to_lowercase(),
                 c.class,
                 c.object_id,
                 if attrs.is_empty() {

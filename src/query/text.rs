@@ -302,18 +302,18 @@ pub fn score_labels(
     label_ids: &[i32],
     opts: &TextOptions,
 ) -> (Vec<Option<f64>>, TextMatch) {
-    let mut scores = Vec::with_capacity(features.rows.len());
-    let mut ranked: Vec<(i32, f64, usize)> = Vec::new();
-    for (row, id) in features.rows.iter().zip(label_ids) {
-        match row {
-            Some(f) => {
-                let (r, j) = relevancy(q, f, opts.temperature);
-                scores.push(Some(r));
-                ranked.push((*id, r, j));
-            }
-            None => scores.push(None),
-        }
-    }
+    use rayon::prelude::*;
+    let scored: Vec<Option<(f64, usize)>> = features
+        .rows
+        .par_iter()
+        .map(|row| row.as_ref().map(|f| relevancy(q, f, opts.temperature)))
+        .collect();
+    let scores: Vec<Option<f64>> = scored.iter().map(|s| s.map(|x| x.0)).collect();
+    let mut ranked: Vec<(i32, f64, usize)> = scored
+        .iter()
+        .zip(label_ids)
+        .filter_map(|(s, &id)| s.map(|(r, j)| (id, r, j)))
+        .collect();
     ranked.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
     let m = TextMatch {
         query: q.query.clone(),
