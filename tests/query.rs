@@ -770,6 +770,30 @@ fn masks_counts_table_and_exports() {
         )
         .unwrap();
     assert_eq!(px, 3);
+    drop(db);
+
+    // A second query into the same folder leaves nothing of the first behind.
+    let again = QueryOptions {
+        views: Views::None,
+        sqlite: false,
+        ..Default::default()
+    };
+    query::run(
+        &sr,
+        &Request::Select(query::grammar::parse("class=Door").unwrap()),
+        &again,
+        &out,
+    )
+    .unwrap();
+    for f in [
+        "extract.ply",
+        "remove.ply",
+        "v0.mask.npy",
+        "v0.mask.png",
+        "semantic.sqlite",
+    ] {
+        assert!(!out.join(f).exists(), "{f} left over");
+    }
 }
 
 #[test]

@@ -570,7 +570,24 @@ pub fn run(
 ) -> Result<QuerySummary, QueryError> {
     let t0 = Instant::now();
     fsutil::create_dir(out)?;
+    // A previous query's outputs in `out` must not pass for this one's.
     let _ = std::fs::remove_file(out.join("summary.json"));
+    for f in [
+        "selection.json",
+        "extract.ply",
+        "remove.ply",
+        "semantic.sqlite",
+    ] {
+        let _ = std::fs::remove_file(out.join(f));
+    }
+    if let Ok(rd) = std::fs::read_dir(out) {
+        for e in rd.flatten() {
+            let n = e.file_name().to_string_lossy().into_owned();
+            if n.ends_with(".mask.npy") || n.ends_with(".mask.png") {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
     let mut timing = QueryTiming {
         load_s: sr.load_s,
         ..Default::default()

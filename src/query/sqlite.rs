@@ -78,14 +78,20 @@ pub fn write(path: &Path, t: &TableInputs<'_>) -> Result<(), SqliteError> {
         source,
     };
     let _ = std::fs::remove_file(&tmp);
-    let mut db = Connection::open(&tmp).map_err(err)?;
-    fill(&mut db, t).map_err(err)?;
-    db.close().map_err(|(_, e)| err(e))?;
-    std::fs::rename(&tmp, path).map_err(|source| SqliteError::Io {
-        path: path.display().to_string(),
-        source,
-    })?;
-    Ok(())
+    let _ = std::fs::remove_file(path);
+    let result = (|| {
+        let mut db = Connection::open(&tmp).map_err(err)?;
+        fill(&mut db, t).map_err(err)?;
+        db.close().map_err(|(_, e)| err(e))?;
+        std::fs::rename(&tmp, path).map_err(|source| SqliteError::Io {
+            path: path.display().to_string(),
+            source,
+        })
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
 }
 
 fn fill(db: &mut Connection, t: &TableInputs<'_>) -> rusqlite::Result<()> {
