@@ -3,7 +3,7 @@
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
 //! [`mesh`], [`npy`], [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
-//! Stages: [`citymodel`], [`raycast`], [`render`], [`lift`], [`eval`]. See ARCHITECTURE.md for the data flow.
+//! Stages: [`citymodel`], [`raycast`], [`render`], [`lift`], [`eval`], [`query`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
 pub mod bundled;
@@ -23,6 +23,7 @@ pub mod masks;
 pub mod mesh;
 pub mod npy;
 pub mod progress;
+pub mod query;
 pub mod raycast;
 pub mod refine;
 pub mod render;

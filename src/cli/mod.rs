@@ -5,6 +5,7 @@ mod citymodel;
 mod demo;
 mod eval;
 mod lift;
+mod query;
 mod raycast;
 mod render;
 mod run;
@@ -43,6 +44,8 @@ enum Command {
     Demo(demo::DemoArgs),
     /// alignment.json from geo ↔ scene point pairs (Umeyama), or --refine it against the 3DGS scene (robust 7-DoF ICP).
     Align(align::AlignArgs),
+    /// Select from a finished run (class, level, attribute, id, text, pick) → selection.json, view masks, PLY exports, SQLite.
+    Query(query::QueryArgs),
     /// Evaluate predicted class maps against ground truth → metrics.json, paper-shaped tables.
     Eval(eval::EvalArgs),
     /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
@@ -63,6 +66,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Raycast(args) => raycast::run(&args),
         Command::Render(args) => render::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Query(args) => query::run(&args),
         Command::Lift(args) => lift::run(&args),
         Command::Run(args) => run::run(&args),
         Command::Demo(args) => demo::run(&args),
