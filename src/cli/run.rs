@@ -93,6 +93,9 @@ pub fn print_run(s: &RunSummary) {
             e.mode.as_deref().unwrap_or("?"),
             e.tables
         );
+        if let Some(t) = &e.by_query_tables {
+            println!("query-driven (one selection per class, the paper's protocol)\n{t}");
+        }
     }
     println!("report: {}", s.report.display());
 }

@@ -73,6 +73,8 @@ pub enum RunError {
     Report(#[from] crate::report::ReportError),
     #[error(transparent)]
     Refine(#[from] crate::refine::RefineError),
+    #[error(transparent)]
+    Query(#[from] crate::query::QueryError),
 }
 
 /// Every option of a run (recorded in `run.json`).
@@ -306,7 +308,21 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
             .collect();
         let mode = "vote";
         let e: EvalSummary = st.stage("eval", &(mode, &stems), &inputs, &["lift"], |dir| {
-            Ok::<_, RunError>(crate::eval::run_for(&pred_dir, gt, dir, Some(&stems), Some(mode))?.0)
+            let (mut e, _) = crate::eval::run_for(&pred_dir, gt, dir, Some(&stems), Some(mode))?;
+            // The paper's query-driven evaluation, next to the class maps'.
+            let sr = crate::query::SemanticRun::open(out, &scene.root, Some(crate::query::Mode::Vote))?;
+            let bq = crate::query::evaluate::evaluate(
+                &sr,
+                &cache,
+                gt,
+                &stems,
+                Default::default(),
+                Default::default(),
+            )?;
+            fsutil::write_json(&dir.join("metrics_by_query.json"), &bq)?;
+            e.by_query_tables = Some(bq.tables);
+            fsutil::write_json(&dir.join("summary.json"), &e)?;
+            Ok::<_, RunError>(e)
         })?;
         eval_summary = Some(e);
     }
