@@ -29,6 +29,8 @@ struct Args {
     out: Option<PathBuf>,
     checkpoints: Vec<usize>,
     configs: String,
+    /// Train on this fused folder (labels.json, <stem>.ids.npy) instead of M_city.
+    fuse: Option<PathBuf>,
 }
 
 fn parse() -> Args {
@@ -41,6 +43,7 @@ fn parse() -> Args {
         out: None,
         checkpoints: vec![0, 250, 500, 1000, 2000, 3000],
         configs: "default".into(),
+        fuse: None,
     };
     let v: Vec<String> = std::env::args().skip(1).collect();
     let list = |s: &str| s.split(',').map(|x| x.parse().expect("number")).collect();
@@ -56,6 +59,7 @@ fn parse() -> Args {
             "--out" => a.out = Some(val.into()),
             "--checkpoints" => a.checkpoints = list(&val),
             "--configs" => a.configs = val,
+            "--fuse" => a.fuse = Some(val.into()),
             "--bench" => {
                 i += 1;
                 continue;
@@ -107,8 +111,16 @@ fn context(a: &Args) -> Ctx {
     );
     let entities =
         gs4city::citymodel::read_semantics(&a.run.join("citymodel/semantics.json")).expect("sem");
-    let table = LabelTable::city(&entities, &classes::table(&entities)).expect("table");
-    let maps = LabelMaps::City(a.run.join("raycast"));
+    let (maps, table) = match &a.fuse {
+        Some(f) => (
+            LabelMaps::Fused(f.clone()),
+            LabelTable::read(&f.join("labels.json")).expect("labels.json"),
+        ),
+        None => (
+            LabelMaps::City(a.run.join("raycast")),
+            LabelTable::city(&entities, &classes::table(&entities)).expect("table"),
+        ),
+    };
     let views = split
         .test
         .iter()
@@ -387,8 +399,72 @@ fn softmax_error(ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
     out.push(serde_json::json!({"exp": "predict", "differ": diff, "pixels": total, "s_candidates": tc, "s_exact": tf}));
 }
 
+/// Writes a SIMULATED fused folder into `out`: per view, the GT instance as an image label
+/// (`Δ + instance − 10⁶`) where the GT class is non-building (perfect masks of trees, cars,
+/// persons, ground, water, other), else the run's `M_city`; `labels.json` lists every id. A
+/// stand-in for the `fuse` stage's output, built from simulation truth: benchmark only.
+fn simulate_fused(a: &Args, out: &Path) {
+    let entities =
+        gs4city::citymodel::read_semantics(&a.run.join("citymodel/semantics.json")).expect("sem");
+    let city = LabelTable::city(&entities, &classes::table(&entities)).expect("table");
+    let delta = city.delta;
+    std::fs::create_dir_all(out).expect("mkdir");
+    let mut image: std::collections::BTreeMap<i32, i32> = Default::default();
+    let (mut replaced, mut total) = (0usize, 0usize);
+    for v in gs4city::colmap::read_model(&a.scene.join("sparse/0")).expect("colmap") {
+        let stem = v.stem();
+        let (shape, ids) =
+            gs4city::npy::read::<i32>(&a.run.join(format!("raycast/{stem}.ids.npy"))).expect("ids");
+        let npx = shape[1] * shape[2];
+        let (_, class) =
+            gs4city::npy::read::<i32>(&a.scene.join(format!("gt/{stem}.class.npy"))).expect("gt");
+        let (_, inst) = gs4city::npy::read::<i32>(&a.scene.join(format!("gt/{stem}.instance.npy")))
+            .expect("gt");
+        let fused: Vec<i32> = (0..npx)
+            .map(|p| {
+                let c = class[p];
+                if c >= classes::TREE && inst[p] >= 1_000_000 {
+                    let id = delta + (inst[p] - 1_000_000);
+                    image.entry(id).or_insert(c);
+                    replaced += 1;
+                    id
+                } else {
+                    ids[3 * npx + p]
+                }
+            })
+            .collect();
+        total += npx;
+        gs4city::npy::write(&out.join(format!("{stem}.ids.npy")), &shape[1..], &fused).expect("w");
+    }
+    let mut labels = city.labels.clone();
+    for (&id, &c) in &image {
+        labels.push(gs4city::labels::Label {
+            id,
+            source: gs4city::labels::Source::Image,
+            entity: None,
+            group: Some(id - delta),
+            class: c,
+            level: None,
+        });
+    }
+    LabelTable::new(delta, labels)
+        .expect("table")
+        .write(&out.join("labels.json"))
+        .expect("labels.json");
+    println!(
+        "SIMULATED fused labels → {}: {} image labels, {replaced} of {total} pixels ({:.1} %) take an image label",
+        out.display(),
+        image.len(),
+        100.0 * replaced as f64 / total as f64
+    );
+}
+
 fn main() {
     let a = parse();
+    if a.exp == "simfuse" {
+        simulate_fused(&a, a.out.as_deref().expect("--out DIR"));
+        return;
+    }
     let ctx = context(&a);
     let mut out = Vec::new();
     if a.exp == "sweep" || a.exp == "all" {

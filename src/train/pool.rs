@@ -246,3 +246,35 @@ pub fn build(
     }
     Ok(pool)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::Contributions;
+
+    #[test]
+    fn truncation_keeps_the_largest_weights_in_depth_order() {
+        let c = ViewContrib {
+            width: 2,
+            height: 1,
+            k: 4,
+            gaussians: 10,
+            lists: Contributions {
+                offsets: vec![0, 4, 5],
+                ids: vec![1, 2, 3, 4, 9],
+                weights: vec![0.1, 0.4, 0.2, 0.2, 0.5],
+                residual: vec![0.05, 0.0],
+            },
+            alpha: vec![0.95, 0.5],
+            depth: vec![1.0, 2.0],
+        };
+        let t = truncate(&c, 2);
+        // 0.4 first, then the nearer of the two 0.2 entries; depth order kept.
+        assert_eq!(t.pixel(0), (&[2u32, 3][..], &[0.4f32, 0.2][..]));
+        assert_eq!(t.pixel(1), (&[9u32][..], &[0.5f32][..]));
+        assert!((t.lists.residual[0] - 0.35).abs() < 1e-6);
+        assert_eq!(t.k, 2);
+        assert!(matches!(truncate(&c, 0), Cow::Borrowed(_)));
+        assert!(matches!(truncate(&c, 4), Cow::Borrowed(_)));
+    }
+}
