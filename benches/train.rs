@@ -294,10 +294,27 @@ fn sweep(a: &Args, ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
                     cpu += cpu_s() - c0;
                     let (cm, _) = predict_all(ctx, &tr.model, &pool.class_ids, false);
                     let r = score(&ctx.test, &cm);
-                    println!("{} {cpu:.1} cpu-s |", fmt_row(&name, cp, secs, r));
+                    // The learned per-Gaussian labels, predicted with the vote's pixel rule.
+                    let gl: Vec<i32> = predict::gaussian_classes(&tr.model)
+                        .iter()
+                        .map(|&c| pool.class_ids[c as usize])
+                        .collect();
+                    let gc: Vec<i32> = gl.iter().map(|&l| ctx.table.class_of(l)).collect();
+                    let lm: Vec<Vec<i32>> = ctx
+                        .test
+                        .views
+                        .iter()
+                        .map(|(_, v, _)| lift::predict(&pool::truncate(v, top_k), &gl, &gc).0)
+                        .collect();
+                    let rl = score(&ctx.test, &lm);
+                    println!(
+                        "{} {cpu:.1} cpu-s | {:.2} |",
+                        fmt_row(&name, cp, secs, r),
+                        100.0 * rl.0
+                    );
                     out.push(serde_json::json!({"stride": stride, "top_k": top_k, "config": name,
                         "pixels": opts.pixels, "iterations": cp, "train_s": secs, "cpu_s": cpu, "miou": r.0, "miou_dataset": r.1,
-                        "times": tr.times}));
+                        "miou_labels_vote_rule": rl.0, "times": tr.times}));
                 }
                 eprintln!("{name}: {:?}", tr.times);
             }
@@ -342,8 +359,7 @@ fn softmax_error(ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
             let reps = 8;
             for _ in 0..reps {
                 let (batch, a) = tr.sample_batch();
-                let mut members = a.members.clone();
-                members.push(0);
+                let members = a.members.clone();
                 let sampled = Active::sampled(c, members, negatives, &mut tr.rng);
                 act += sampled.members.len();
                 let scale = 1.0 / (batch.len() as f64 * (c as f64).ln());
@@ -476,5 +492,4 @@ fn main() {
     if let Some(p) = &a.out {
         std::fs::write(p, serde_json::to_string_pretty(&out).expect("json")).expect("write");
     }
-    let _ = Path::new("");
 }

@@ -146,14 +146,12 @@ fn quick() -> TrainOptions {
     }
 }
 
+/// A checked parameter: its name, how to reach it in a model, and its analytic derivative.
+type Param = (String, Box<dyn Fn(&mut Model<f64>) -> &mut f64>, f64);
+
 /// Central finite differences of `f` at the parameters selected by `get`/`set` against the
 /// analytic gradient `want`; every entry must agree to a relative error ≤ 1e-4.
-fn check_gradient(
-    what: &str,
-    m: &Model<f64>,
-    params: &[(String, Box<dyn Fn(&mut Model<f64>) -> &mut f64>, f64)],
-    f: &dyn Fn(&Model<f64>) -> f64,
-) {
+fn check_gradient(what: &str, m: &Model<f64>, params: &[Param], f: &dyn Fn(&Model<f64>) -> f64) {
     let h = 1e-5;
     let mut worst: f64 = 0.0;
     for (name, sel, want) in params {

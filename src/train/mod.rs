@@ -143,7 +143,7 @@ impl Default for TrainOptions {
             init_scale: 8.0,
             gamma: 0.0,
             window: 200,
-            tol: 0.0,
+            tol: 0.005,
             seed: 0,
             exact_predict: false,
         }

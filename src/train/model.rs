@@ -15,7 +15,7 @@
 //!   does not grow with the number of labels `K`.
 //! * Work is split into chunks of fixed size whose partial sums are added in chunk order, so
 //!   results do not depend on the number of threads.
-use ndarray::{Array2, ArrayView2, Axis};
+use ndarray::{Array2, Axis};
 use rayon::prelude::*;
 
 /// Rows per parallel chunk (fixed: results must not depend on the thread count).
@@ -731,25 +731,20 @@ impl<T: Real> Optimiser<T> {
         let mut gr = vec![T::zero(); d + 1];
         for &c in &g.touched_classes {
             let c = c as usize;
-            for j in 0..d {
-                p[j] = m.weights[[c, j]];
-                gr[j] = g.weights[[c, j]];
+            for (j, (pj, gj)) in p.iter_mut().zip(gr.iter_mut()).take(d).enumerate() {
+                *pj = m.weights[[c, j]];
+                *gj = g.weights[[c, j]];
             }
             p[d] = m.bias[c];
             gr[d] = g.bias[c];
             self.classifier.step(c, &mut p, &gr);
-            for j in 0..d {
-                m.weights[[c, j]] = p[j];
+            for (j, &pj) in p.iter().take(d).enumerate() {
+                m.weights[[c, j]] = pj;
             }
             m.bias[c] = p[d];
         }
         g.clear();
     }
-}
-
-/// Logits `W e + b` of a set of codes (rows of `codes`, `n × D`) over every class, in blocks.
-pub fn all_logits<T: Real>(m: &Model<T>, codes: ArrayView2<'_, T>) -> Array2<T> {
-    logits(&codes.to_owned(), &m.weights, &m.bias)
 }
 
 #[cfg(test)]
@@ -786,8 +781,8 @@ mod tests {
             let (ids, ws) = b.row(p);
             let mut e = [0.0; 3];
             for (&i, &w) in ids.iter().zip(ws) {
-                for j in 0..3 {
-                    e[j] += f64::from(w) * m.codes[i as usize * 3 + j];
+                for (j, ej) in e.iter_mut().enumerate() {
+                    *ej += f64::from(w) * m.codes[i as usize * 3 + j];
                 }
             }
             let z: Vec<f64> = (0..5)
