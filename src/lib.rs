@@ -33,3 +33,4 @@ pub mod sam;
 pub mod scene;
 pub mod splat;
 pub mod synth;
+pub mod train;

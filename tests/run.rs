@@ -41,13 +41,19 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
     assert!(e.paper_iou["tree"].is_none(), "absent classes are null");
     // The query-driven evaluation (a "building" selection and one per class) agrees with the
     // class maps on this scene to within 2 points.
-    assert!(e.by_query_tables.as_deref().is_some_and(|t| t.contains("Table 1")));
-    let bq: serde_json::Value = serde_json::from_slice(
-        &std::fs::read(dir.join("out/eval/metrics_by_query.json")).unwrap(),
-    )
-    .unwrap();
+    assert!(
+        e.by_query_tables
+            .as_deref()
+            .is_some_and(|t| t.contains("Table 1"))
+    );
+    let bq: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("out/eval/metrics_by_query.json")).unwrap())
+            .unwrap();
     let q_iou = bq["metrics"]["dataset"]["coarse"]["iou"].as_f64().unwrap();
-    assert!((q_iou - e.dataset["coarse_iou"].unwrap()).abs() < 0.02, "{q_iou}");
+    assert!(
+        (q_iou - e.dataset["coarse_iou"].unwrap()).abs() < 0.02,
+        "{q_iou}"
+    );
     // report.html shows the metrics tables and a panel per test view.
     let html = std::fs::read_to_string(&s.report).unwrap();
     assert!(html.contains("Table 1") && html.contains("report/v04.png"));

@@ -10,6 +10,7 @@ mod raycast;
 mod render;
 mod run;
 mod synth;
+mod train;
 
 use clap::{Parser, Subcommand};
 
@@ -38,6 +39,8 @@ enum Command {
     Render(render::RenderArgs),
     /// Lift per-view labels into the Gaussians (closed-form weighted vote over the cache), predict test views.
     Lift(lift::LiftArgs),
+    /// Learn per-Gaussian identity codes and a classifier from per-view labels (paper §3.3), starting from the vote; semantic PLY, test-view maps.
+    Train(train::TrainArgs),
     /// A scene folder through every stage (citymodel → raycast → render cache → lift → eval), resuming complete stages; report.html.
     Run(run::RunArgs),
     /// The demo: bundled data → simulated scene → every stage → report.html.
@@ -68,6 +71,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(&args),
         Command::Query(args) => query::run(&args),
         Command::Lift(args) => lift::run(&args),
+        Command::Train(args) => train::run(&args),
         Command::Run(args) => run::run(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),

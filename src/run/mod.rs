@@ -310,7 +310,8 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
         let e: EvalSummary = st.stage("eval", &(mode, &stems), &inputs, &["lift"], |dir| {
             let (mut e, _) = crate::eval::run_for(&pred_dir, gt, dir, Some(&stems), Some(mode))?;
             // The paper's query-driven evaluation, next to the class maps'.
-            let sr = crate::query::SemanticRun::open(out, &scene.root, Some(crate::query::Mode::Vote))?;
+            let sr =
+                crate::query::SemanticRun::open(out, &scene.root, Some(crate::query::Mode::Vote))?;
             let bq = crate::query::evaluate::evaluate(
                 &sr,
                 &cache,
