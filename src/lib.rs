@@ -2,7 +2,7 @@
 //! city scenes (the GS4City method), CPU-only.
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
-//! [`mesh`], [`npy`], [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
+//! [`mesh`], [`ply`] (the PLY format under `splat` and `mesh`), [`npy`], [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
 //! Stages: [`citymodel`], [`raycast`], [`render`], [`lift`], [`eval`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
@@ -19,6 +19,7 @@ pub mod imageio;
 pub mod lift;
 pub mod mesh;
 pub mod npy;
+pub mod ply;
 pub mod raycast;
 pub mod render;
 pub mod report;
