@@ -572,14 +572,14 @@ fn parse_points_txt(path: &Path, text: &str) -> Result<Vec<Point3D>, ColmapError
 
 // ---------------------------------------------------------------- public API
 
-fn read_text(path: &Path) -> Result<String, ColmapError> {
-    let bytes = read_file(path)?;
-    String::from_utf8(bytes).map_err(|e| {
-        let line = 1 + e.as_bytes()[..e.utf8_error().valid_up_to()]
+/// The bytes of a text-format file as UTF-8, or an error naming the line of the first bad byte.
+fn utf8<'a>(path: &Path, bytes: &'a [u8]) -> Result<&'a str, ColmapError> {
+    std::str::from_utf8(bytes).map_err(|e| {
+        let line = 1 + bytes[..e.valid_up_to()]
             .iter()
             .filter(|&&b| b == b'\n')
             .count();
-        parse_err(path, line, "not UTF-8")
+        parse_err(path, line, "not UTF-8 text")
     })
 }
 
@@ -601,10 +601,11 @@ fn model_ext(dir: &Path) -> Result<&'static str, ColmapError> {
 pub fn read_cameras(sparse_dir: &Path) -> Result<Vec<ColmapCamera>, ColmapError> {
     let ext = model_ext(sparse_dir)?;
     let path = sparse_dir.join(format!("cameras.{ext}"));
+    let bytes = read_file(&path)?;
     if ext == "bin" {
-        parse_cameras_bin(&path, &read_file(&path)?)
+        parse_cameras_bin(&path, &bytes)
     } else {
-        parse_cameras_txt(&path, &read_text(&path)?)
+        parse_cameras_txt(&path, utf8(&path, &bytes)?)
     }
 }
 
@@ -616,10 +617,15 @@ pub fn read_points3d(sparse_dir: &Path) -> Result<Vec<Point3D>, ColmapError> {
     if !path.is_file() {
         return Ok(Vec::new());
     }
-    if ext == "bin" {
-        parse_points_bin(&path, &read_file(&path)?)
+    parse_points(&path, &read_file(&path)?, ext == "bin")
+}
+
+/// Parses the bytes of a `points3D.bin` (`binary`) or `points3D.txt`; `path` names it.
+pub fn parse_points(path: &Path, bytes: &[u8], binary: bool) -> Result<Vec<Point3D>, ColmapError> {
+    if binary {
+        parse_points_bin(path, bytes)
     } else {
-        parse_points_txt(&path, &read_text(&path)?)
+        parse_points_txt(path, utf8(path, bytes)?)
     }
 }
 
@@ -629,15 +635,29 @@ pub fn read_model(sparse_dir: &Path) -> Result<Vec<View>, ColmapError> {
     let ext = model_ext(sparse_dir)?;
     let cam_path = sparse_dir.join(format!("cameras.{ext}"));
     let img_path = sparse_dir.join(format!("images.{ext}"));
-    let (cameras, images) = if ext == "bin" {
+    let (cam_bytes, img_bytes) = (read_file(&cam_path)?, read_file(&img_path)?);
+    parse_model(&cam_path, &cam_bytes, &img_path, &img_bytes, ext == "bin")
+}
+
+/// [`read_model`] on the bytes of `cameras` and `images` (`.bin` when `binary`, else
+/// `.txt`); the paths name them in errors.
+pub fn parse_model(
+    cam_path: &Path,
+    cam_bytes: &[u8],
+    img_path: &Path,
+    img_bytes: &[u8],
+    binary: bool,
+) -> Result<Vec<View>, ColmapError> {
+    let (cam_path, img_path) = (cam_path.to_path_buf(), img_path.to_path_buf());
+    let (cameras, images) = if binary {
         (
-            parse_cameras_bin(&cam_path, &read_file(&cam_path)?)?,
-            parse_images_bin(&img_path, &read_file(&img_path)?)?,
+            parse_cameras_bin(&cam_path, cam_bytes)?,
+            parse_images_bin(&img_path, img_bytes)?,
         )
     } else {
         (
-            parse_cameras_txt(&cam_path, &read_text(&cam_path)?)?,
-            parse_images_txt(&img_path, &read_text(&img_path)?)?,
+            parse_cameras_txt(&cam_path, utf8(&cam_path, cam_bytes)?)?,
+            parse_images_txt(&img_path, utf8(&img_path, img_bytes)?)?,
         )
     };
     let mut by_id = std::collections::BTreeMap::new();

@@ -178,7 +178,8 @@ pub fn decode<T: NpyElement>(path: &Path, bytes: &[u8]) -> Result<(Vec<usize>, V
     let shape_txt = dict_value(header, "shape").ok_or_else(|| fmt("no shape"))?;
     let inner = shape_txt.trim().trim_start_matches('(');
     let bad_shape = || {
-        let t: String = shape_txt.chars().take(60).collect();
+        let end = shape_txt.find(')').map_or(shape_txt.len(), |i| i + 1);
+        let t: String = shape_txt[..end].chars().take(60).collect();
         fmt(&format!("its shape {t} is not a tuple of whole numbers"))
     };
     let inner = &inner[..inner.find(')').ok_or_else(bad_shape)?];

@@ -56,21 +56,21 @@ pub enum PlyError {
     ListProperty { path: PathBuf, name: String },
     #[error("{path}: {found} `f_rest_*` properties; SH degree 0/1/2/3 needs 0/9/24/45")]
     ShCount { path: PathBuf, found: usize },
-    #[error("{path}: vertex {vertex}{}: `{name}` is {value}, not a finite number", at_line(*line))]
+    #[error("{path}: vertex {vertex}{}: `{name}` is {value:?}, not a finite number", at_line(*line))]
     NonFinite {
         path: PathBuf,
         vertex: usize,
         line: Option<usize>,
         name: String,
-        value: f64,
+        value: f32,
     },
-    #[error("{path}: vertex {vertex}{}: `{name}` is {value}, outside {range}", at_line(*line))]
+    #[error("{path}: vertex {vertex}{}: `{name}` is {value:?}, outside {range}", at_line(*line))]
     OutOfRange {
         path: PathBuf,
         vertex: usize,
         line: Option<usize>,
         name: String,
-        value: f64,
+        value: f32,
         range: &'static str,
     },
     #[error("{path}: vertex {vertex}{}: zero quaternion (rot_0..3 all 0)", at_line(*line))]
@@ -340,19 +340,19 @@ impl<'a> Assembler<'a> {
             let (path, vertex, line) = (self.path.into(), row.index, row.line);
             let name = |p: usize| self.layout.names[p].clone();
             return Err(match defect {
-                Defect::NonFinite(p, v) => PlyError::NonFinite {
+                Defect::NonFinite(p, value) => PlyError::NonFinite {
                     path,
                     vertex,
                     line,
                     name: name(p),
-                    value: f64::from(v),
+                    value,
                 },
-                Defect::OutOfRange(p, v, range) => PlyError::OutOfRange {
+                Defect::OutOfRange(p, value, range) => PlyError::OutOfRange {
                     path,
                     vertex,
                     line,
                     name: name(p),
-                    value: f64::from(v),
+                    value,
                     range,
                 },
                 Defect::ZeroQuaternion => PlyError::ZeroQuaternion { path, vertex, line },
