@@ -117,10 +117,10 @@ pub fn encode<T: NpyElement>(shape: &[usize], data: &[T]) -> Vec<u8> {
 pub fn write<T: NpyElement>(path: &Path, shape: &[usize], data: &[T]) -> Result<(), NpyError> {
     let bytes = encode(shape, data);
     fsutil::atomic_write(path, |w| {
-        w.write_all(&bytes).map_err(|source| {
+        w.write_all(&bytes).map_err(|err| {
             NpyError::Fs(FsError::Write {
                 path: path.to_path_buf(),
-                source,
+                err,
             })
         })
     })

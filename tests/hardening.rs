@@ -834,6 +834,35 @@ fn hierarchy_tables_with_cycles_are_refused() {
     assert!(citymodel::parse_semantics(p, &wrong_root).is_err());
 }
 
+/// An image whose header declares a huge size is refused before OpenCV decodes it.
+#[test]
+fn images_declaring_huge_sizes_are_refused_before_decoding() {
+    let dir = tmp("images");
+    let small = dir.join("small.png");
+    gs4city::imageio::write_png(&small, &ndarray::Array3::zeros((3, 5, 3))).unwrap();
+    let bytes = std::fs::read(&small).unwrap();
+    assert_eq!(gs4city::imageio::declared_size(&bytes), Some((5, 3)));
+    assert_eq!(gs4city::imageio::read_rgb(&small).unwrap().dim(), (3, 5, 3));
+    // PNG: signature + an IHDR chunk declaring 60000×60000 (no pixel data at all).
+    let mut png = bytes[..16].to_vec();
+    png.extend(60000u32.to_be_bytes());
+    png.extend(60000u32.to_be_bytes());
+    png.extend([8, 2, 0, 0, 0, 0, 0, 0, 0]);
+    // JPEG: SOI, an APP0 segment, then SOF0 declaring 65535×65535.
+    let mut jpg = vec![0xFF, 0xD8, 0xFF, 0xE0, 0x00, 0x04, 0x4A, 0x46];
+    jpg.extend([0xFF, 0xC0, 0x00, 0x11, 0x08, 0xFF, 0xFF, 0xFF, 0xFF, 0x03]);
+    for (name, data, size) in [
+        ("huge.png", png, "60000×60000"),
+        ("huge.jpg", jpg, "65535×65535"),
+    ] {
+        let p = dir.join(name);
+        std::fs::write(&p, &data).unwrap();
+        let e = gs4city::imageio::read_rgb(&p).unwrap_err();
+        let msg = check_message(&e, name);
+        assert!(msg.contains(size) && msg.contains("megapixels"), "{msg}");
+    }
+}
+
 // ------------------------------------------------------------------ SAM
 
 #[test]

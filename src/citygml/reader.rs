@@ -3,7 +3,6 @@
 //! One pass collects objects, polygons, xlink references, attributes and appearances with a
 //! stack of open elements; references, the LoD choice and derived ids are resolved after EOF.
 use std::collections::{BTreeMap, HashMap};
-use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
@@ -15,29 +14,28 @@ use quick_xml::reader::NsReader;
 use super::CityGmlError;
 use super::model::*;
 
-/// Reads a newline index while bytes stream through, so byte offsets map to lines.
-struct LineCounter<R> {
-    inner: R,
-    pos: u64,
-    newlines: Vec<u64>,
+/// Maps byte offsets of the text to 1-based line numbers with a forward cursor: offsets
+/// arrive in increasing order while the XML streams, so the whole file costs one pass and
+/// no memory per line (a step back recounts from the start).
+struct Lines<'a> {
+    text: &'a [u8],
+    pos: usize,
+    line: u64,
 }
 
-impl<R: Read> Read for LineCounter<R> {
-    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-        let n = self.inner.read(buf)?;
-        for (i, &b) in buf[..n].iter().enumerate() {
-            if b == b'\n' {
-                self.newlines.push(self.pos + i as u64);
-            }
+impl Lines<'_> {
+    fn line_of(&mut self, offset: u64) -> u64 {
+        let offset = (offset as usize).min(self.text.len());
+        if offset < self.pos {
+            self.pos = 0;
+            self.line = 1;
         }
-        self.pos += n as u64;
-        Ok(n)
-    }
-}
-
-impl<R> LineCounter<R> {
-    fn line_of(&self, offset: u64) -> u64 {
-        self.newlines.partition_point(|&p| p < offset) as u64 + 1
+        self.line += self.text[self.pos..offset]
+            .iter()
+            .filter(|&&b| b == b'\n')
+            .count() as u64;
+        self.pos = offset;
+        self.line
     }
 }
 
@@ -295,13 +293,7 @@ pub fn read(path: &Path) -> Result<CityModel, CityGmlError> {
 /// Reads CityGML from bytes (`path` names the source in messages).
 pub fn read_bytes(path: &Path, bytes: &[u8]) -> Result<CityModel, CityGmlError> {
     let text = decode_text(path, bytes)?;
-    let counter = LineCounter {
-        inner: text.as_ref(),
-        pos: 0,
-        newlines: Vec::new(),
-    };
-    let reader = NsReader::from_reader(BufReader::new(counter));
-    parse(path, reader)
+    parse(path, &text)
 }
 
 /// The 1-based line of byte `offset` of `bytes`.
@@ -422,10 +414,13 @@ pub fn decode_text<'a>(
     }
 }
 
-fn parse<R: Read>(
-    path: &Path,
-    mut reader: NsReader<BufReader<LineCounter<R>>>,
-) -> Result<CityModel, CityGmlError> {
+fn parse(path: &Path, text: &[u8]) -> Result<CityModel, CityGmlError> {
+    let mut reader = NsReader::from_reader(text);
+    let mut lines = Lines {
+        text,
+        pos: 0,
+        line: 1,
+    };
     reader.config_mut().expand_empty_elements = true;
     reader.config_mut().check_end_names = true;
     let mut p = Parser {
@@ -474,7 +469,7 @@ fn parse<R: Read>(
             Ok(x) => x,
             Err(e) => {
                 let pos = reader.error_position();
-                let line = reader.get_ref().get_ref().line_of(pos);
+                let line = lines.line_of(pos);
                 return Err(CityGmlError::Xml {
                     path: p.path.clone(),
                     line,
@@ -488,12 +483,12 @@ fn parse<R: Read>(
         };
         match event {
             Event::Start(e) => {
-                let line = reader.get_ref().get_ref().line_of(offset);
+                let line = lines.line_of(offset);
                 let attrs = Attrs::read(&reader, &e);
                 p.start(ns, &e, attrs, line)?;
             }
             Event::End(_) => {
-                let line = reader.get_ref().get_ref().line_of(offset);
+                let line = lines.line_of(offset);
                 p.end(line)?;
             }
             Event::Text(t) if p.collecting => p.text.push_str(&t.xml10_content()),
@@ -503,7 +498,7 @@ fn parse<R: Read>(
                 let s = match r.resolve_char_ref() {
                     Ok(Some(c)) => c.to_string(),
                     Err(_) => {
-                        let line = reader.get_ref().get_ref().line_of(offset);
+                        let line = lines.line_of(offset);
                         return Err(CityGmlError::Content {
                             path: p.path.clone(),
                             line,
@@ -517,7 +512,7 @@ fn parse<R: Read>(
                         "apos" => "'".into(),
                         "quot" => "\"".into(),
                         other => {
-                            let line = reader.get_ref().get_ref().line_of(offset);
+                            let line = lines.line_of(offset);
                             let message = if p.dtd_entities.iter().any(|e| e == other) {
                                 format!(
                                     "entity &{other}; is declared in the document type, but gs4city does not expand document-type entities"
@@ -556,7 +551,7 @@ fn parse<R: Read>(
             Event::Eof => {
                 let open = p.stack.len();
                 if open > 0 {
-                    let line = reader.get_ref().get_ref().line_of(offset);
+                    let line = lines.line_of(offset);
                     return Err(CityGmlError::Truncated {
                         path: p.path.clone(),
                         line,
@@ -569,7 +564,7 @@ fn parse<R: Read>(
         }
         buf.clear();
     }
-    p.stats.bytes = reader.get_ref().get_ref().pos;
+    p.stats.bytes = text.len() as u64;
     p.finish()
 }
 

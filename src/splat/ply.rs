@@ -544,9 +544,9 @@ pub fn write_ply(path: &Path, g: &Gaussians, encoding: PlyEncoding) -> Result<()
         count: g.len(),
         properties: props,
     };
-    let werr = |source| FsError::Write {
+    let werr = |err| FsError::Write {
         path: path.into(),
-        source,
+        err,
     };
     fsutil::atomic_write(path, |w| -> Result<(), PlyError> {
         let mut out = RowWriter::new(encoding, &[], std::slice::from_ref(&element));
