@@ -96,8 +96,10 @@ pub fn of_entity(entities: &[Entity], id: i32) -> i32 {
         "Door" | "DoorSurface" => return DOOR,
         _ => {}
     }
+    // At most one step per entity: a parent cycle (a damaged table) cannot hang the walk.
     let mut cur = Some(e);
-    while let Some(x) = cur {
+    for _ in 0..=entities.len() {
+        let Some(x) = cur else { break };
         if matches!(
             x.class.as_str(),
             "BuildingInstallation" | "BuildingConstructiveElement"

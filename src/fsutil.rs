@@ -13,6 +13,13 @@ pub enum FsError {
     Write { path: PathBuf, err: io::Error },
     #[error("cannot create directory {path}: {err}")]
     CreateDir { path: PathBuf, err: io::Error },
+    #[error("cannot read {path}: {err}")]
+    Read { path: PathBuf, err: io::Error },
+    #[error("{path}: {err}")]
+    Parse {
+        path: PathBuf,
+        err: serde_json::Error,
+    },
     #[error("cannot serialise JSON for {path}: {err}")]
     Json {
         path: PathBuf,
@@ -76,6 +83,18 @@ pub fn write_json<T: Serialize + ?Sized>(path: &Path, value: &T) -> Result<(), F
     })?;
     text.push(b'\n');
     write_bytes(path, &text)
+}
+
+/// Reads a JSON file into `T` (an error names the file, and serde's message the line and column).
+pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, FsError> {
+    let bytes = fs::read(path).map_err(|err| FsError::Read {
+        path: path.to_path_buf(),
+        err,
+    })?;
+    serde_json::from_slice(&bytes).map_err(|err| FsError::Parse {
+        path: path.to_path_buf(),
+        err,
+    })
 }
 
 /// Creates `dir` and its parents.

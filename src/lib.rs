@@ -6,6 +6,7 @@
 //! Stages: [`citymodel`], [`raycast`], [`render`], [`lift`], [`eval`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
+pub mod bundled;
 pub mod camera;
 pub mod citygml;
 pub mod citymodel;
@@ -16,14 +17,18 @@ pub mod embree;
 pub mod eval;
 pub mod fsutil;
 pub mod imageio;
+pub mod labels;
 pub mod lift;
+pub mod masks;
 pub mod mesh;
 pub mod npy;
 pub mod ply;
+pub mod progress;
 pub mod raycast;
 pub mod render;
 pub mod report;
 pub mod run;
 pub mod sam;
+pub mod scene;
 pub mod splat;
 pub mod synth;

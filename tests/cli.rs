@@ -183,16 +183,46 @@ fn citymodel_raycast_render_lift_through_the_binary() {
     ]);
     assert!(ok, "{log}");
     assert!(
-        dir.join("rd/img0.png").is_file()
-            && dir.join("rd/img2.depth.npy").is_file()
-            && !dir.join("rd/img1.png").exists()
+        !dir.join("rd/img1.png").exists(),
+        "only the views asked for"
     );
+    // img2 looks from (12, −30, 6) at (10, 0, 6): the centre ray meets the opaque wall plane
+    // y = 0 at depth 30·cos(atan(2/30)) ≈ 29.93 along the axis … the expected depth there.
+    let (shape, depth) = npy::read::<f32>(&dir.join("rd/img2.depth.npy")).unwrap();
+    assert_eq!(shape, vec![64, 96]);
+    let axis = (DVec3::new(10.0, 0.0, 6.0) - DVec3::new(12.0, -30.0, 6.0)).length();
+    let z = depth[32 * 96 + 48] as f64;
+    assert!(
+        (z - axis).abs() < 0.05,
+        "centre depth {z}, expected ≈ {axis}"
+    );
+    // Colour: f_dc (0.5, 0.2, 0.1) → 0.5 + C0·f_dc = (0.641, 0.556, 0.528) on an opaque wall.
+    let img = gs4city::imageio::read_rgb(&dir.join("rd/img0.png")).unwrap();
+    let px = img.slice(ndarray::s![32, 48, ..]).to_vec();
+    for (c, want) in px.iter().zip([0.641f32, 0.556, 0.528]) {
+        assert!((*c as f32 / 255.0 - want).abs() < 0.02, "{px:?}");
+    }
+    let (ok, log) = gs4city(&[
+        "render",
+        "--ply",
+        &d("scene.ply"),
+        "--colmap",
+        &d("sparse"),
+        "--cache",
+        "--top-k",
+        "8",
+        "--out",
+        &d("cache"),
+    ]);
+    assert!(ok, "{log}");
     let (ok, log) = gs4city(&[
         "lift",
         "--ply",
         &d("scene.ply"),
         "--colmap",
         &d("sparse"),
+        "--cache",
+        &d("cache"),
         "--raycast",
         &d("rc"),
         "--citymodel",
@@ -203,7 +233,21 @@ fn citymodel_raycast_render_lift_through_the_binary() {
         &d("lift"),
     ]);
     assert!(ok, "{log}");
-    assert!(dir.join("lift/img0.class.npy").is_file() && dir.join("lift/summary.json").is_file());
+    // Test view img0 (every 3rd by name): Gaussians on the wall plane in front of the recessed
+    // window took the window's label from the training views; the rest of the wall is wall.
+    let (_, class) = npy::read::<i32>(&dir.join("lift/img0.class.npy")).unwrap();
+    let cam = &views[0].camera;
+    let pixel = |p: DVec3| {
+        let uv = cam.project(cam.pose.world_to_camera(p)).unwrap();
+        class[uv.y as usize * 96 + uv.x as usize]
+    };
+    assert_eq!(pixel(DVec3::new(10.0, 0.0, 6.0)), gs4city::classes::WINDOW);
+    assert_eq!(pixel(DVec3::new(3.0, 0.0, 2.0)), gs4city::classes::WALL);
+    assert_eq!(
+        pixel(DVec3::new(10.0, 0.0, 14.0)),
+        -1,
+        "above the wall: nothing"
+    );
 
     // Bad arguments: one clear error each, naming what is wrong.
     let (ok, log) = gs4city(&[

@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use glam::DVec3;
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::camera::SCENE_COORD_LIMIT;
 use crate::citygml::{self, CityGmlError, CityModel, Class, Level};
@@ -63,7 +63,7 @@ pub struct Entity {
 }
 
 /// A polygon that produced no triangles.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Skipped {
     pub file: String,
     pub line: u64,
@@ -83,7 +83,7 @@ pub struct Options {
 pub struct Output {
     pub mesh: TriMesh,
     pub entities: Vec<Entity>,
-    pub summary: serde_json::Value,
+    pub summary: CitymodelSummary,
     pub alignment: Alignment,
 }
 
@@ -190,6 +190,120 @@ fn walk_dir(
         }
     }
     Ok(true)
+}
+
+/// One input file in [`CitymodelSummary`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FileSummary {
+    pub path: String,
+    pub citygml: String,
+    pub srs_name: Option<String>,
+    pub bytes: u64,
+    pub objects: usize,
+    pub polygons: usize,
+}
+
+/// Polygons that produced no triangles.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SkippedSummary {
+    pub count: usize,
+    pub by_reason: BTreeMap<String, usize>,
+    pub polygons: Vec<Skipped>,
+}
+
+/// The largest deviation of a polygon from its plane.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Planarity {
+    pub metres: f64,
+    pub polygon: String,
+}
+
+/// xlink statistics.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Xlinks {
+    pub shared: usize,
+    pub adopted: usize,
+    pub dangling: usize,
+}
+
+/// Warnings, as sentences.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Warnings {
+    pub count: usize,
+    pub items: Vec<String>,
+}
+
+/// The alignment used, as in `alignment.json`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AlignmentRecord {
+    pub origin: [f64; 3],
+    pub scale: f64,
+    pub rotation: [[f64; 3]; 3],
+    pub translation: [f64; 3],
+}
+
+impl From<&Alignment> for AlignmentRecord {
+    fn from(a: &Alignment) -> Self {
+        AlignmentRecord {
+            origin: a.origin.to_array(),
+            scale: a.scale,
+            rotation: a.rotation_rows(),
+            translation: a.translation.to_array(),
+        }
+    }
+}
+
+/// Timing of the stage.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct CitymodelTiming {
+    pub parse_s: f64,
+    pub parse_mb_per_s: f64,
+    pub triangulate_s: f64,
+}
+
+/// The stage's `summary.json` (DESIGN.md: counts, skipped polygons with reasons, warnings).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CitymodelSummary {
+    pub files: Vec<FileSummary>,
+    pub buildings: usize,
+    pub building_parts: usize,
+    pub installations: usize,
+    /// Count per thematic surface class.
+    pub surfaces: BTreeMap<String, usize>,
+    pub surfaces_total: usize,
+    pub windows: usize,
+    pub doors: usize,
+    pub entities: usize,
+    pub polygons: usize,
+    pub polygons_used: usize,
+    pub polygons_unused: usize,
+    pub holes: usize,
+    pub holes_used: usize,
+    pub triangles: usize,
+    pub vertices: usize,
+    pub skipped: SkippedSummary,
+    pub repairs: BTreeMap<String, usize>,
+    pub max_planarity_deviation: Planarity,
+    pub curves_skipped: usize,
+    pub implicit_geometries_skipped: usize,
+    pub xlinks: Xlinks,
+    pub unknown_elements: BTreeMap<String, usize>,
+    pub warnings: Warnings,
+    /// `None` without an alignment file: a local origin only (then the scene frame is metres).
+    pub alignment: AlignmentRecord,
+    /// Whether the alignment was given (`alignment.json` or point pairs) rather than a local origin.
+    pub alignment_given: bool,
+    /// The point pairs the alignment was estimated from, with residuals (`--align-points`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub estimated_from: Option<serde_json::Value>,
+    pub timing: CitymodelTiming,
+}
+
+impl CitymodelSummary {
+    /// Reads a citymodel folder's `summary.json`.
+    pub fn read(dir: &Path) -> Result<Self, FsError> {
+        fsutil::read_json(&dir.join("summary.json"))
+    }
 }
 
 /// Per-polygon triangulation outcome, for cross-checks (e.g. against CGAL).
@@ -317,14 +431,14 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
         label: FaceLabel,
     }
     let mut jobs = Vec::new();
+    let labels = chains(&entities);
     for (fi, m) in models.iter().enumerate() {
-        let labels = face_labels(m, base[fi]);
         for p in m.used_polygons() {
             let owner = p.owner.expect("used polygons have owners");
             jobs.push(Job {
                 file: fi,
                 poly: p,
-                label: labels[owner],
+                label: labels[base[fi] as usize + owner],
             });
         }
     }
@@ -437,6 +551,7 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
         worst_planarity,
         holes_used,
         &alignment,
+        opts.alignment.is_some(),
         t_parse,
         t_tri,
     );
@@ -448,16 +563,21 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
     })
 }
 
-/// Per object, its `(feature, surface, part)` ids: the nearest ancestor-or-self of each level.
-fn face_labels(m: &CityModel, base: i32) -> Vec<FaceLabel> {
-    let mut labels = vec![FaceLabel::NONE; m.objects.len()];
-    for (i, o) in m.objects.iter().enumerate() {
-        let mut l = match o.parent {
-            Some(p) => labels[p],
-            None => FaceLabel::NONE,
+/// The ancestor chain of every entity of a semantic table: its `(feature, surface, part)` ids,
+/// i.e. the nearest ancestor-or-self of each level (−1 where a level is missing). A surface
+/// resets the part, a feature resets both. The table lists parents before children
+/// ([`read_semantics`] checks this), so one forward pass suffices. This is the one
+/// implementation of the hierarchy chain: face labels, the synthetic truth and the lifted
+/// per-Gaussian hierarchy all use it.
+pub fn chains(entities: &[Entity]) -> Vec<FaceLabel> {
+    let mut out: Vec<FaceLabel> = Vec::with_capacity(entities.len());
+    for (i, e) in entities.iter().enumerate() {
+        let mut l = match e.parent {
+            Some(p) if (p as usize) < i => out[p as usize],
+            _ => FaceLabel::NONE,
         };
-        let id = base + i as i32;
-        match o.class.level() {
+        let id = i as i32;
+        match e.level {
             Level::Feature => {
                 l = FaceLabel {
                     feature: id,
@@ -471,9 +591,9 @@ fn face_labels(m: &CityModel, base: i32) -> Vec<FaceLabel> {
             }
             Level::Part => l.part = id,
         }
-        labels[i] = l;
+        out.push(l);
     }
-    labels
+    out
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -487,9 +607,10 @@ fn summarize(
     worst_planarity: (f64, String),
     holes_used: usize,
     alignment: &Alignment,
+    alignment_given: bool,
     t_parse: f64,
     t_tri: f64,
-) -> serde_json::Value {
+) -> CitymodelSummary {
     let count = |c: Class| models.iter().map(|m| m.count(c)).sum::<usize>();
     let surface_classes = [
         Class::WallSurface,
@@ -520,58 +641,72 @@ fn summarize(
     let all_warnings: Vec<&String> = reader_warnings.iter().chain(warnings).collect();
     let sum = |f: &dyn Fn(&CityModel) -> usize| models.iter().map(f).sum::<usize>();
     let bytes: u64 = models.iter().map(|m| m.stats.bytes).sum();
-    serde_json::json!({
-        "files": models.iter().zip(files).map(|(m, f)| serde_json::json!({
-            "path": f.display().to_string(),
-            "citygml": m.version,
-            "srs_name": m.srs_name,
-            "bytes": m.stats.bytes,
-            "objects": m.objects.len(),
-            "polygons": m.stats.polygons,
-        })).collect::<Vec<_>>(),
-        "buildings": count(Class::Building),
-        "building_parts": count(Class::BuildingPart),
-        "installations": count(Class::BuildingInstallation) + count(Class::BuildingConstructiveElement),
-        "surfaces": surfaces,
-        "surfaces_total": surfaces.values().sum::<usize>(),
-        "windows": count(Class::Window) + count(Class::WindowSurface),
-        "doors": count(Class::Door) + count(Class::DoorSurface),
-        "entities": models.iter().map(|m| m.objects.len()).sum::<usize>(),
-        "polygons": sum(&|m| m.stats.polygons),
-        "polygons_used": sum(&|m| m.used_polygons().count()),
-        "polygons_unused": sum(&|m| m.stats.polygons_unused),
-        "holes": sum(&|m| m.stats.holes),
-        "holes_used": holes_used,
-        "triangles": mesh.faces.len(),
-        "vertices": mesh.vertices.len(),
-        "skipped": {
-            "count": skipped.len(),
-            "by_reason": by_reason,
-            "polygons": skipped,
+    CitymodelSummary {
+        files: models
+            .iter()
+            .zip(files)
+            .map(|(m, f)| FileSummary {
+                path: f.display().to_string(),
+                citygml: serde_json::to_value(m.version)
+                    .ok()
+                    .and_then(|v| v.as_str().map(String::from))
+                    .unwrap_or_default(),
+                srs_name: m.srs_name.clone(),
+                bytes: m.stats.bytes,
+                objects: m.objects.len(),
+                polygons: m.stats.polygons,
+            })
+            .collect(),
+        buildings: count(Class::Building),
+        building_parts: count(Class::BuildingPart),
+        installations: count(Class::BuildingInstallation)
+            + count(Class::BuildingConstructiveElement),
+        surfaces_total: surfaces.values().sum::<usize>(),
+        surfaces: surfaces
+            .into_iter()
+            .map(|(k, v)| (k.to_string(), v))
+            .collect(),
+        windows: count(Class::Window) + count(Class::WindowSurface),
+        doors: count(Class::Door) + count(Class::DoorSurface),
+        entities: models.iter().map(|m| m.objects.len()).sum::<usize>(),
+        polygons: sum(&|m| m.stats.polygons),
+        polygons_used: sum(&|m| m.used_polygons().count()),
+        polygons_unused: sum(&|m| m.stats.polygons_unused),
+        holes: sum(&|m| m.stats.holes),
+        holes_used,
+        triangles: mesh.faces.len(),
+        vertices: mesh.vertices.len(),
+        skipped: SkippedSummary {
+            count: skipped.len(),
+            by_reason,
+            polygons: skipped.to_vec(),
         },
-        "repairs": repairs,
-        "max_planarity_deviation": { "metres": worst_planarity.0, "polygon": worst_planarity.1 },
-        "curves_skipped": sum(&|m| m.stats.curves_skipped),
-        "implicit_geometries_skipped": sum(&|m| m.stats.implicit_skipped),
-        "xlinks": {
-            "shared": sum(&|m| m.stats.xlinks_shared),
-            "adopted": sum(&|m| m.stats.xlinks_adopted),
-            "dangling": sum(&|m| m.stats.xlinks_dangling),
+        repairs: repairs.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+        max_planarity_deviation: Planarity {
+            metres: worst_planarity.0,
+            polygon: worst_planarity.1,
         },
-        "unknown_elements": unknown,
-        "warnings": { "count": all_warnings.len(), "items": all_warnings },
-        "alignment": {
-            "origin": alignment.origin.to_array(),
-            "scale": alignment.scale,
-            "rotation": alignment.rotation_rows(),
-            "translation": alignment.translation.to_array(),
+        curves_skipped: sum(&|m| m.stats.curves_skipped),
+        implicit_geometries_skipped: sum(&|m| m.stats.implicit_skipped),
+        xlinks: Xlinks {
+            shared: sum(&|m| m.stats.xlinks_shared),
+            adopted: sum(&|m| m.stats.xlinks_adopted),
+            dangling: sum(&|m| m.stats.xlinks_dangling),
         },
-        "timing": {
-            "parse_s": t_parse,
-            "parse_mb_per_s": bytes as f64 / 1e6 / t_parse.max(1e-9),
-            "triangulate_s": t_tri,
+        unknown_elements: unknown,
+        warnings: Warnings {
+            count: all_warnings.len(),
+            items: all_warnings.into_iter().cloned().collect(),
         },
-    })
+        alignment: AlignmentRecord::from(alignment),
+        alignment_given,
+        estimated_from: None,
+        timing: CitymodelTiming {
+            parse_s: t_parse,
+            parse_mb_per_s: bytes as f64 / 1e6 / t_parse.max(1e-9),
+            triangulate_s: t_tri,
+        },
+    }
 }
 
 /// Reads the `entities` of a `semantics.json` written by [`write`] and checks the table:
@@ -661,6 +796,8 @@ pub fn check_mesh_labels(
 /// marker) `summary.json` into `out_dir`.
 pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
     fsutil::create_dir(out_dir)?;
+    // A stale summary would make a half-rewritten folder look complete.
+    let _ = std::fs::remove_file(out_dir.join("summary.json"));
     out.mesh.write_ply(&out_dir.join("mesh.ply"))?;
     let class_names: Vec<&str> = out
         .entities
@@ -675,5 +812,19 @@ pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
     )?;
     fsutil::write_json(&out_dir.join("alignment.json"), &out.alignment.to_json())?;
     fsutil::write_json(&out_dir.join("summary.json"), &out.summary)?;
+    crate::progress::done(
+        "citymodel",
+        &format!(
+            "{} buildings, {} surfaces, {} windows, {} doors → {} triangles ({} polygons skipped, {} warnings)",
+            out.summary.buildings,
+            out.summary.surfaces_total,
+            out.summary.windows,
+            out.summary.doors,
+            out.summary.triangles,
+            out.summary.skipped.count,
+            out.summary.warnings.count
+        ),
+        out.summary.timing.parse_s + out.summary.timing.triangulate_s,
+    );
     Ok(())
 }

@@ -61,45 +61,47 @@ pub fn run(args: &CitymodelArgs) -> anyhow::Result<()> {
             estimate = Some(est);
             Some(a)
         }
-        (None, None) => None,
+        (None, None) => {
+            log::warn!(
+                "no --align or --align-points: the mesh stays in the CityGML coordinates minus a \
+                 local origin, which matches a 3DGS scene only if it was reconstructed in that frame"
+            );
+            None
+        }
     };
     // Run.
     let mut out = citymodel::run(&files, &citymodel::Options { alignment })?;
     if let Some(est) = &estimate {
-        out.summary["alignment"]["estimated_from"] = serde_json::json!({
+        out.summary.estimated_from = Some(serde_json::json!({
             "points": args.align_points,
             "residuals": est.residuals,
             "rms": est.rms,
             "max": est.max,
-        });
+        }));
     }
     citymodel::write(&out, &args.out)?;
     let s = &out.summary;
     println!("{:<14} {:>8}", "files", files.len());
-    for key in [
-        "buildings",
-        "building_parts",
-        "installations",
-        "surfaces_total",
-        "windows",
-        "doors",
-        "polygons",
-        "holes",
-        "triangles",
+    for (key, n) in [
+        ("buildings", s.buildings),
+        ("building_parts", s.building_parts),
+        ("installations", s.installations),
+        ("surfaces_total", s.surfaces_total),
+        ("windows", s.windows),
+        ("doors", s.doors),
+        ("polygons", s.polygons),
+        ("holes", s.holes),
+        ("triangles", s.triangles),
+        ("skipped", s.skipped.count),
+        ("warnings", s.warnings.count),
     ] {
-        println!("{:<14} {:>8}", key, s[key].to_string());
+        println!("{key:<14} {n:>8}");
     }
-    println!("{:<14} {:>8}", "skipped", s["skipped"]["count"].to_string());
-    println!(
-        "{:<14} {:>8}",
-        "warnings",
-        s["warnings"]["count"].to_string()
-    );
     println!(
         "parse {:.2} s ({:.1} MB/s), triangulate {:.2} s → {}",
-        s["timing"]["parse_s"].as_f64().unwrap_or(0.0),
-        s["timing"]["parse_mb_per_s"].as_f64().unwrap_or(0.0),
-        s["timing"]["triangulate_s"].as_f64().unwrap_or(0.0),
+        s.timing.parse_s,
+        s.timing.parse_mb_per_s,
+        s.timing.triangulate_s,
         args.out.display()
     );
     Ok(())

@@ -1,10 +1,10 @@
 //! The `eval` subcommand: arguments and the call into [`crate::eval::run`]; writes
-//! `summary.json` and prints the paper-shaped tables.
+//! `metrics.json` and `summary.json` and prints the paper-shaped tables.
 use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 
-use crate::{eval, fsutil};
+use crate::eval;
 
 /// Evaluate predicted class maps against ground truth (coarse and fine, paper and dataset level).
 #[derive(Debug, Clone, clap::Args, serde::Serialize)]
@@ -31,21 +31,8 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         }
     }
     let stems = (!args.views.is_empty()).then_some(args.views.as_slice());
-    let (summary, metrics) =
-        eval::run_for(&args.pred, &args.gt, &args.out, stems).context("evaluating")?;
-    #[derive(serde::Serialize)]
-    struct Out<'a> {
-        args: &'a EvalArgs,
-        #[serde(flatten)]
-        summary: &'a eval::EvalSummary,
-    }
-    fsutil::write_json(
-        &args.out.join("summary.json"),
-        &Out {
-            args,
-            summary: &summary,
-        },
-    )?;
+    let (summary, _) =
+        eval::run_for(&args.pred, &args.gt, &args.out, stems, None).context("evaluating")?;
     for w in &summary.warnings {
         eprintln!("warning: {w}");
     }
@@ -58,6 +45,6 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         summary.seconds,
         args.out.join("metrics.json").display()
     );
-    print!("{}", eval::tables(&metrics));
+    print!("{}", summary.tables);
     Ok(())
 }

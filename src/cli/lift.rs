@@ -1,31 +1,39 @@
-//! `gs4city lift`: closed-form weighted vote of city-model labels into the Gaussians.
+//! `gs4city lift`: the closed-form weighted vote of per-view labels into the Gaussians, through
+//! the contributions cache.
 use std::path::PathBuf;
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use clap::Args;
 
-use crate::lift::{self, LiftConfig, LiftOptions};
+use crate::labels::LabelTable;
+use crate::lift::{self, LabelMaps, LiftOptions};
+use crate::render::cache::Cache;
+use crate::scene::Split;
+use crate::{citymodel, classes, colmap};
 
 #[derive(Debug, Args)]
 pub struct LiftArgs {
-    /// Pre-trained 3DGS scene (INRIA PLY).
+    /// Pre-trained 3DGS scene (INRIA PLY) the cache was built from.
     #[arg(long)]
     ply: PathBuf,
     /// COLMAP sparse model folder.
     #[arg(long)]
     colmap: PathBuf,
-    /// Output folder of `gs4city raycast` (per view <stem>.ids.npy).
+    /// Contributions cache (`gs4city render --cache`, or a run's `render/`).
     #[arg(long)]
-    raycast: PathBuf,
+    cache: PathBuf,
     /// Output folder of `gs4city citymodel` (semantics.json).
     #[arg(long)]
     citymodel: PathBuf,
+    /// Vote the city-model labels `M_city` of this `gs4city raycast` output …
+    #[arg(long, conflicts_with = "fuse", required_unless_present = "fuse")]
+    raycast: Option<PathBuf>,
+    /// … or the fused labels of this `gs4city fuse` output (labels.json, <stem>.ids.npy).
+    #[arg(long)]
+    fuse: Option<PathBuf>,
     /// Background bias γ in [-1, 1] (FlashSplat), added to the normalised background vote.
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     gamma: f32,
-    /// Contributions per pixel kept for the vote (top-k by weight); 0 = all.
-    #[arg(long, default_value_t = 16)]
-    top_k: usize,
     /// Every N-th view (sorted by name) is a test view, not voted on (3DGS --eval: 8); 0 = none.
     #[arg(long, default_value_t = 8)]
     test_every: usize,
@@ -35,30 +43,49 @@ pub struct LiftArgs {
 }
 
 pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
-    if !(-1.0..=1.0).contains(&args.gamma) {
-        bail!("--gamma must lie in [-1, 1], got {}", args.gamma);
+    let opts = LiftOptions { gamma: args.gamma };
+    opts.validate()?;
+    let split = Split::new(colmap::read_model(&args.colmap)?, args.test_every);
+    if split.train.is_empty() {
+        bail!("no training views: every view is a test view (--test-every 1?)");
     }
-    let cfg = LiftConfig {
-        ply: args.ply.clone(),
-        colmap: args.colmap.clone(),
-        raycast: args.raycast.clone(),
-        citymodel: args.citymodel.clone(),
-        out: args.out.clone(),
-        options: LiftOptions::new(args.top_k, args.gamma),
-        test_every: args.test_every,
-        predict_k: 16,
+    let cache = Cache::open(&args.cache)
+        .with_context(|| format!("opening the contributions cache {}", args.cache.display()))?;
+    let entities = citymodel::read_semantics(&args.citymodel.join("semantics.json"))?;
+    let (maps, labels) = match (&args.raycast, &args.fuse) {
+        (Some(r), _) => (
+            LabelMaps::City(r.clone()),
+            LabelTable::city(&entities, &classes::table(&entities))?,
+        ),
+        (None, Some(f)) => (
+            LabelMaps::Fused(f.clone()),
+            LabelTable::read(&f.join("labels.json"))?,
+        ),
+        (None, None) => bail!("give --raycast or --fuse"),
     };
-    let s = lift::run(&cfg)?;
-    let t = &s["timing"];
+    let s = lift::run(
+        &lift::LiftInputs {
+            ply: &args.ply,
+            cache: &cache,
+            train: &split.train,
+            test: &split.test,
+            maps: &maps,
+            labels: &labels,
+            entities: &entities,
+        },
+        &opts,
+        &args.out,
+    )?;
     println!(
-        "lifted labels into {} Gaussians ({} assigned) from {} training views: render {:.2} s, accumulate {:.2} s, assign {:.3} s; {} test-view maps → {}",
-        s["gaussians"],
-        s["assigned"],
-        s["train_views"].as_array().map_or(0, |v| v.len()),
-        t["render_s"].as_f64().unwrap_or(0.0),
-        t["accumulate_s"].as_f64().unwrap_or(0.0),
-        t["assign_s"].as_f64().unwrap_or(0.0),
-        s["test_views"].as_array().map_or(0, |v| v.len()),
+        "lifted labels into {} Gaussians ({} assigned) from {} training views: vote {:.2} s (load {:.2} s, accumulate {:.2} s, assign {:.3} s); {} test-view maps → {}",
+        s.gaussians,
+        s.assigned,
+        s.train_views.len(),
+        s.timing.vote_s,
+        s.stats.load_s,
+        s.stats.accumulate_s,
+        s.stats.assign_s,
+        s.test_views.len(),
         args.out.display()
     );
     Ok(())

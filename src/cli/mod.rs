@@ -15,6 +15,12 @@ use clap::{Parser, Subcommand};
 #[derive(Debug, Parser)]
 #[command(name = "gs4city", version, about, long_about = None)]
 pub struct Cli {
+    /// More log output (-v: debug, -vv: trace).
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    verbose: u8,
+    /// Only warnings and errors; no progress bars.
+    #[arg(short, long, global = true, conflicts_with = "verbose")]
+    quiet: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -25,11 +31,12 @@ enum Command {
     Citymodel(citymodel::CitymodelArgs),
     /// Two-pass raycasting of a citymodel mesh into every COLMAP view → per-view id maps and depth.
     Raycast(raycast::RaycastArgs),
-    /// Render a 3DGS PLY (CPU, INRIA forward pass) into COLMAP views → PNG, depth .npy, features.
+    /// Render a 3DGS PLY (CPU, INRIA forward pass) into COLMAP views → PNG, depth .npy, features;
+    /// or (--cache) the per-pixel contribution lists every later stage reuses.
     Render(render::RenderArgs),
-    /// Lift city-model labels into the Gaussians (closed-form weighted vote) and predict test views.
+    /// Lift per-view labels into the Gaussians (closed-form weighted vote over the cache), predict test views.
     Lift(lift::LiftArgs),
-    /// A scene folder through every stage: citymodel → raycast → lift → eval (when gt/ exists); resumes finished stages.
+    /// A scene folder through every stage (citymodel → raycast → render cache → lift → eval), resuming complete stages; report.html.
     Run(run::RunArgs),
     /// The demo: bundled data → simulated scene → every stage → report.html.
     Demo(demo::DemoArgs),
@@ -44,6 +51,11 @@ enum Command {
 /// Parses the process arguments and runs the chosen subcommand.
 pub fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    crate::progress::init(if cli.quiet {
+        -1
+    } else {
+        cli.verbose.min(2) as i8
+    });
     match cli.command {
         Command::Citymodel(args) => citymodel::run(&args),
         Command::Align(args) => citymodel::run_align(&args),

@@ -1,16 +1,17 @@
 //! The `raycast` subcommand: arguments, validation and the call into
-//! [`crate::raycast::run`] (the lead wires it into the subcommand enum).
-use std::path::{Path, PathBuf};
+//! [`crate::raycast::run`].
+use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 
-use crate::raycast::{RaycastOptions, RaycastSummary};
-use crate::{colmap, fsutil, mesh::TriMesh, raycast};
+use crate::citymodel::Alignment;
+use crate::raycast::RaycastOptions;
+use crate::{colmap, mesh::TriMesh, raycast};
 
 /// Two-pass raycasting of the city mesh into every COLMAP view.
 #[derive(Debug, Clone, clap::Args, serde::Serialize)]
 pub struct RaycastArgs {
-    /// Output folder of the `citymodel` stage (reads mesh.ply and summary.json).
+    /// Output folder of the `citymodel` stage (reads mesh.ply and alignment.json).
     #[arg(long, value_name = "DIR")]
     pub citymodel: PathBuf,
     /// COLMAP sparse model folder (cameras, images: .bin or .txt).
@@ -30,33 +31,6 @@ pub struct RaycastArgs {
     pub out: PathBuf,
 }
 
-/// The alignment scale in `summary.json` (`alignment.scale`), 1.0 when absent.
-fn alignment_scale(citymodel: &Path) -> anyhow::Result<f64> {
-    let path = citymodel.join("summary.json");
-    if !path.is_file() {
-        return Ok(1.0);
-    }
-    let text =
-        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    let json: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
-    match json.get("alignment").and_then(|a| a.get("scale")) {
-        None | Some(serde_json::Value::Null) => Ok(1.0),
-        Some(v) => {
-            let s = v
-                .as_f64()
-                .with_context(|| format!("{}: alignment.scale is not a number", path.display()))?;
-            if !s.is_finite() || s <= 0.0 {
-                bail!(
-                    "{}: alignment.scale must be finite and > 0, got {s}",
-                    path.display()
-                );
-            }
-            Ok(s)
-        }
-    }
-}
-
 /// Parses the inputs, validates them, runs the stage, writes `summary.json` and prints a table.
 pub fn run(args: &RaycastArgs) -> anyhow::Result<()> {
     if !args.tau.is_finite() || args.tau < 0.0 {
@@ -65,7 +39,7 @@ pub fn run(args: &RaycastArgs) -> anyhow::Result<()> {
     let mesh_path = args.citymodel.join("mesh.ply");
     let mesh = TriMesh::read_ply(&mesh_path)
         .with_context(|| format!("reading the city mesh {}", mesh_path.display()))?;
-    let scale = alignment_scale(&args.citymodel)?;
+    let scale = Alignment::read(&args.citymodel.join("alignment.json"))?.scale;
     let views = colmap::read_model(&args.colmap)
         .with_context(|| format!("reading COLMAP model {}", args.colmap.display()))?;
     if views.is_empty() {
@@ -87,23 +61,6 @@ pub fn run(args: &RaycastArgs) -> anyhow::Result<()> {
     };
     let summary =
         raycast::run(&mesh, &views, &opts, images.as_deref(), &args.out).context("raycasting")?;
-    #[derive(serde::Serialize)]
-    struct Out<'a> {
-        args: &'a RaycastArgs,
-        alignment_scale: f64,
-        images: Option<&'a Path>,
-        #[serde(flatten)]
-        summary: &'a RaycastSummary,
-    }
-    fsutil::write_json(
-        &args.out.join("summary.json"),
-        &Out {
-            args,
-            alignment_scale: scale,
-            images: images.as_deref(),
-            summary: &summary,
-        },
-    )?;
     println!(
         "{} views, {} rays, {:.1} Mrays/s, scene build {:.3} s ({} faces, {} part faces), τ = {} m = {} scene units{}",
         summary.views,

@@ -28,6 +28,17 @@ pub struct RenderArgs {
     /// Drop Gaussians with NaN/Inf values or a zero quaternion (counted) instead of failing.
     #[arg(long)]
     drop_invalid: bool,
+    /// Also render per-Gaussian feature channels: the PLY properties `<PREFIX>0`, `<PREFIX>1`, …
+    /// (e.g. `obj_dc_` of a trained `semantic.ply`) → `<stem>.features.npy` (float32 C×H×W).
+    #[arg(long, value_name = "PREFIX", conflicts_with = "cache")]
+    features: Option<String>,
+    /// Write the contributions cache instead of images: per view `<stem>.contrib` with the
+    /// per-pixel top-k (Gaussian id, α·T) lists, alpha and expected depth.
+    #[arg(long)]
+    cache: bool,
+    /// List length of the cache (0 = complete lists).
+    #[arg(long, default_value_t = 16, requires = "cache")]
+    top_k: usize,
     /// Output folder.
     #[arg(long)]
     out: PathBuf,
@@ -68,9 +79,48 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         antialiased: args.antialiased,
         ..Default::default()
     };
+    let mut channels = Vec::new();
+    if let Some(prefix) = &args.features {
+        while let Some(p) = gaussians.extra(&format!("{prefix}{}", channels.len())) {
+            channels.push(p);
+        }
+        if channels.is_empty() {
+            bail!(
+                "--features {prefix}: {} has no property {prefix}0",
+                args.ply.display()
+            );
+        }
+    }
     // Run.
-    let scene = PreparedScene::new(&gaussians)
+    let mut scene = PreparedScene::new(&gaussians)
         .with_context(|| format!("preparing {}", args.ply.display()))?;
+    if args.cache {
+        let s = render::cache::build(
+            &scene,
+            &views,
+            &render::cache::CacheOptions { top_k: args.top_k },
+            &args.out,
+        )?;
+        println!(
+            "cached the top-{} contributions of {} views ({:.0} MB) in {:.2} s → {}",
+            args.top_k,
+            s.views.len(),
+            s.bytes as f64 / 1e6,
+            s.total_s,
+            args.out.display()
+        );
+        return Ok(());
+    }
+    if !channels.is_empty() {
+        let n = gaussians.len();
+        let mut data = vec![0.0f32; n * channels.len()];
+        for (c, p) in channels.iter().enumerate() {
+            for (i, v) in p.values.iter().enumerate() {
+                data[i * channels.len() + c] = *v as f32;
+            }
+        }
+        scene = scene.with_features(channels.len(), data)?;
+    }
     let summary = render::render_to_dir(&scene, &views, &args.out, &options)?;
     let mut json = serde_json::to_value(&summary)?;
     json["ply"] = serde_json::to_value(&report)?;

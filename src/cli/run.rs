@@ -1,15 +1,15 @@
-//! `gs4city run`: a scene folder through every stage (citymodel → raycast → lift → eval).
+//! `gs4city run`: a scene folder through every stage into a run folder.
 use std::path::PathBuf;
 
-use anyhow::bail;
 use clap::Args;
 
 use crate::lift::LiftOptions;
-use crate::run::{self, RunOptions};
+use crate::run::{self, RunOptions, RunSummary};
 
 #[derive(Debug, Args)]
 pub struct RunArgs {
-    /// Scene folder (DESIGN.md): images/, sparse/0/, point_cloud.ply, citymodel/*.gml (+ alignment.json), optional gt/.
+    /// Scene folder (DESIGN.md): images/, sparse/0/, point_cloud.ply, citymodel/*.gml +
+    /// alignment.json, optional masks/, features/, gt/.
     #[arg(long)]
     pub scene: PathBuf,
     /// Part-pass depth tolerance τ in metres.
@@ -21,16 +21,19 @@ pub struct RunArgs {
     /// Background bias γ of the vote, in [-1, 1].
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     pub gamma: f32,
-    /// Contributions per pixel kept for the vote; 0 = all.
+    /// Contributions per pixel kept in the cache (top-k by α·T); 0 = all.
     #[arg(long, default_value_t = 16)]
     pub top_k: usize,
     /// Every N-th view (by name) is a test view (3DGS --eval: 8).
     #[arg(long, default_value_t = 8)]
     pub test_every: usize,
+    /// Run a scene without citymodel/alignment.json: CityGML coordinates minus a local origin.
+    #[arg(long)]
+    pub local_origin: bool,
     /// Rerun every stage even when its output is complete.
     #[arg(long)]
     pub force: bool,
-    /// Output folder (one sub-folder per stage).
+    /// Output folder (one sub-folder per stage, run.json, report.html); not inside the scene.
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -39,28 +42,36 @@ impl RunArgs {
     /// Validated options.
     pub fn options(&self) -> anyhow::Result<RunOptions> {
         if !(self.tau.is_finite() && self.tau >= 0.0) {
-            bail!(
+            anyhow::bail!(
                 "--tau must be a finite number ≥ 0 (metres), got {}",
                 self.tau
             );
         }
-        if !(-1.0..=1.0).contains(&self.gamma) {
-            bail!("--gamma must lie in [-1, 1], got {}", self.gamma);
+        let lift = LiftOptions { gamma: self.gamma };
+        lift.validate()?;
+        if self.top_k > crate::render::cache::MAX_LIST {
+            anyhow::bail!(
+                "--top-k {} exceeds the longest possible contribution list ({}); 0 keeps all",
+                self.top_k,
+                crate::render::cache::MAX_LIST
+            );
         }
         Ok(RunOptions {
             tau_m: self.tau,
             single_pass: self.single_pass,
-            lift: LiftOptions::new(self.top_k, self.gamma),
+            top_k: self.top_k,
+            lift,
             test_every: self.test_every,
+            local_origin: self.local_origin,
             force: self.force,
         })
     }
 }
 
-/// Prints the stage table and the headline metrics of a run.
-pub fn print_run(reports: &[run::StageReport], metrics: Option<&serde_json::Value>) {
+/// Prints the stage table and the metrics tables of a run.
+pub fn print_run(s: &RunSummary) {
     println!("{:<10} {:>9}  output", "stage", "seconds");
-    for r in reports {
+    for r in &s.stages {
         println!(
             "{:<10} {:>9.2}  {}{}",
             r.stage,
@@ -69,62 +80,20 @@ pub fn print_run(reports: &[run::StageReport], metrics: Option<&serde_json::Valu
             if r.resumed { "  (resumed)" } else { "" }
         );
     }
-    if let Some(m) = metrics {
-        let p = |v: &serde_json::Value| {
-            v.as_f64()
-                .map_or("   –".to_string(), |x| format!("{:5.1}", 100.0 * x))
-        };
-        let (pa, d) = (&m["paper"], &m["dataset"]);
+    if let Some(e) = &s.eval {
         println!(
-            "\n{:<18} | {:>5} {:>5} {:>5} {:>5} | {:>5} | {:>5} {:>5} {:>5} {:>6} {:>5} {:>6} {:>5}",
-            "metrics (%)",
-            "IoU",
-            "Acc",
-            "Prec",
-            "Rec",
-            "mIoU",
-            "Door",
-            "Roof",
-            "Wall",
-            "Window",
-            "Car",
-            "Person",
-            "Tree"
+            "\n{} test views, {} predictions\n{}",
+            e.images,
+            e.mode.as_deref().unwrap_or("?"),
+            e.tables
         );
-        let classes = ["door", "roof", "wall", "window", "car", "person", "tree"];
-        let mut row = format!(
-            "{:<18} | {} {} {} {} | {} |",
-            "paper (per image)",
-            p(&pa["coarse"]["iou"]["mean"]),
-            p(&pa["coarse"]["accuracy"]["mean"]),
-            p(&pa["coarse"]["precision"]["mean"]),
-            p(&pa["coarse"]["recall"]["mean"]),
-            p(&pa["miou"]["mean"])
-        );
-        for c in classes {
-            row.push_str(&format!(" {:>5}", p(&pa["iou"][c]["mean"])));
-        }
-        println!("{row}");
-        let cm = &d["coarse"];
-        let mut row = format!(
-            "{:<18} | {} {} {} {} | {} |",
-            "dataset",
-            p(&cm["iou"]),
-            p(&cm["accuracy"]),
-            p(&cm["precision"]),
-            p(&cm["recall"]),
-            p(&d["fine"]["miou"])
-        );
-        for c in classes {
-            row.push_str(&format!(" {:>5}", p(&d["fine"]["iou"][c])));
-        }
-        println!("{row}");
     }
+    println!("report: {}", s.report.display());
 }
 
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let opts = args.options()?;
-    let (reports, metrics) = run::run(&args.scene, &args.out, &opts)?;
-    print_run(&reports, metrics.as_ref());
+    let s = run::run(&args.scene, &args.out, &opts)?;
+    print_run(&s);
     Ok(())
 }

@@ -6,11 +6,29 @@ use clap::Args;
 
 use crate::synth::{self, Preset, SynthConfig};
 
+/// The presets on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PresetArg {
+    /// The 2 bundled buildings, 14 views.
+    Small,
+    /// The 27-building Ingolstadt block, 128 views.
+    Street,
+}
+
+impl From<PresetArg> for Preset {
+    fn from(p: PresetArg) -> Preset {
+        match p {
+            PresetArg::Small => Preset::Small,
+            PresetArg::Street => Preset::Street,
+        }
+    }
+}
+
 #[derive(Debug, Args)]
 pub struct SynthArgs {
-    /// Preset: `small` (bundled data/, ~14 views) or `street` (27-building Ingolstadt block).
+    /// Preset: `small` (the 2 bundled buildings, 14 views) or `street` (27-building Ingolstadt block).
     #[arg(long, value_enum)]
-    preset: Option<Preset>,
+    preset: Option<PresetArg>,
     /// TOML configuration (docs/synth.md); its keys override the preset's.
     #[arg(long)]
     config: Option<PathBuf>,
@@ -27,7 +45,7 @@ pub struct SynthArgs {
 
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     let base = match args.preset {
-        Some(p) => SynthConfig::preset(p),
+        Some(p) => SynthConfig::preset(p.into()),
         None => SynthConfig::default(),
     };
     let mut cfg = match &args.config {
@@ -41,6 +59,15 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         cfg.citygml = args.citygml.clone();
     }
     if cfg.citygml.is_empty() {
+        if args.preset == Some(PresetArg::Street) {
+            anyhow::bail!(
+                "the street preset reads the 27-building Ingolstadt block, found neither at \
+                 ../shared/data/citygml/ingolstadt_north nor beside the executable: give --citygml DIR"
+            );
+        }
+        if args.preset == Some(PresetArg::Small) {
+            crate::bundled::citygml_dir()?;
+        }
         anyhow::bail!(
             "no CityGML input: give --citygml FILES…, a --preset, or `citygml` in --config"
         );
@@ -50,11 +77,11 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         .with_context(|| format!("synth into {}", args.out.display()))?;
     println!(
         "gs4city synth (SIMULATED scene): {} Gaussians, {} views ({} test), {} objects, {:.1} s → {}",
-        s["gaussians"],
-        s["views"],
-        s["test_views"].as_array().map_or(0, |a| a.len()),
-        s["objects"].as_array().map_or(0, |a| a.len()),
-        s["timings"]["total_s"].as_f64().unwrap_or(0.0),
+        s.gaussians,
+        s.views,
+        s.test_views.len(),
+        s.objects.as_array().map_or(0, |a| a.len()),
+        s.timing.get("total_s").copied().unwrap_or(0.0),
         args.out.display()
     );
     Ok(())

@@ -385,6 +385,9 @@ pub struct DatasetJson {
 /// `metrics.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct MetricsJson {
+    /// Which predictions were scored (`run --mode`: `vote` or `learned`), where known.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mode: Option<String>,
     pub definitions: BTreeMap<&'static str, &'static str>,
     pub fine_classes: Vec<&'static str>,
     pub confusion_columns: Vec<&'static str>,
@@ -443,6 +446,7 @@ pub fn metrics_json(ev: &Evaluation) -> MetricsJson {
         ("f1", p.f1),
     ]);
     MetricsJson {
+        mode: None,
         definitions: definitions(),
         fine_classes: FINE.iter().map(|&c| classes::name(c)).collect(),
         confusion_columns: FINE
@@ -602,54 +606,82 @@ fn capitalise(s: &str) -> String {
 // ---------------------------------------------------------------------------------------
 // The stage
 
-/// What `run` reports (for `summary.json`).
-#[derive(Debug, Clone, Serialize)]
+/// The stage's `summary.json`: the headline numbers and the rendered tables.
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct EvalSummary {
+    /// Which predictions were scored (`vote` or `learned`), where known.
+    pub mode: Option<String>,
+    pub pred: PathBuf,
+    pub gt: PathBuf,
+    /// The views evaluated when restricted (`--views`, a run's test views).
+    pub views: Option<Vec<String>>,
     pub images: usize,
     pub resized_predictions: usize,
     pub predictions_without_gt: usize,
     pub coarse_skipped_no_valid_gt: usize,
     pub fine_skipped_no_fine_gt: usize,
-    pub paper: BTreeMap<&'static str, Option<f64>>,
-    pub dataset: BTreeMap<&'static str, Option<f64>>,
+    /// Paper protocol: `coarse_iou`, `coarse_accuracy`, `coarse_precision`, `coarse_recall`,
+    /// `miou` (fractions; null where undefined).
+    pub paper: BTreeMap<String, Option<f64>>,
+    /// Dataset level, the same keys.
+    pub dataset: BTreeMap<String, Option<f64>>,
+    /// Per-class IoU (paper protocol), by fine class name.
+    pub paper_iou: BTreeMap<String, Option<f64>>,
+    /// Table 1 and Table 2 of the paper as printed ([`tables`]).
+    pub tables: String,
     pub seconds: f64,
     pub warnings: Vec<String>,
 }
 
-/// Evaluates `pred` against `gt`, writes `<out>/metrics.json`; returns the summary and the
-/// full metrics (for printing).
-pub fn run(pred: &Path, gt: &Path, out: &Path) -> Result<(EvalSummary, MetricsJson), EvalError> {
-    run_for(pred, gt, out, None)
+impl EvalSummary {
+    /// Reads an eval folder's `summary.json`.
+    pub fn read(dir: &Path) -> Result<Self, fsutil::FsError> {
+        fsutil::read_json(&dir.join("summary.json"))
+    }
 }
 
-/// As [`run`], restricted to the GT views named in `stems`; predictions of other views are ignored.
+/// Evaluates `pred` against `gt`, writes `<out>/metrics.json` and `<out>/summary.json`;
+/// returns the summary and the full metrics.
+pub fn run(pred: &Path, gt: &Path, out: &Path) -> Result<(EvalSummary, MetricsJson), EvalError> {
+    run_for(pred, gt, out, None, None)
+}
+
+/// As [`run`], restricted to the GT views named in `stems` (predictions of other views are
+/// ignored), recording `mode` (which predictions these are) in both files.
 pub fn run_for(
     pred: &Path,
     gt: &Path,
     out: &Path,
     stems: Option<&[String]>,
+    mode: Option<&str>,
 ) -> Result<(EvalSummary, MetricsJson), EvalError> {
     let t0 = Instant::now();
+    fsutil::create_dir(out)?;
+    let _ = std::fs::remove_file(out.join("summary.json"));
     let mut ev = evaluate_dirs_for(pred, gt, stems)?;
     if stems.is_some() {
         ev.predictions_without_gt.clear();
         ev.warnings.retain(|w| !w.contains("without ground truth"));
     }
-    let m = metrics_json(&ev);
-    fsutil::create_dir(out)?;
+    let mut m = metrics_json(&ev);
+    m.mode = mode.map(String::from);
     fsutil::write_json(&out.join("metrics.json"), &m)?;
     let headline = |coarse: [Option<f64>; 4], miou: Option<f64>| {
         BTreeMap::from([
-            ("coarse_iou", coarse[0]),
-            ("coarse_accuracy", coarse[1]),
-            ("coarse_precision", coarse[2]),
-            ("coarse_recall", coarse[3]),
-            ("miou", miou),
+            ("coarse_iou".to_string(), coarse[0]),
+            ("coarse_accuracy".to_string(), coarse[1]),
+            ("coarse_precision".to_string(), coarse[2]),
+            ("coarse_recall".to_string(), coarse[3]),
+            ("miou".to_string(), miou),
         ])
     };
     let pc = |k: &str| m.paper.coarse[k].mean;
     let dc = &m.dataset.coarse.metrics;
     let summary = EvalSummary {
+        mode: mode.map(String::from),
+        pred: pred.to_path_buf(),
+        gt: gt.to_path_buf(),
+        views: stems.map(|s| s.to_vec()),
         images: m.images,
         resized_predictions: m.resized_predictions,
         predictions_without_gt: m.predictions_without_gt.len(),
@@ -663,9 +695,32 @@ pub fn run_for(
             [dc.iou, dc.accuracy, dc.precision, dc.recall],
             m.dataset.fine.miou,
         ),
+        paper_iou: FINE
+            .iter()
+            .map(|&c| {
+                (
+                    classes::name(c).to_string(),
+                    m.paper.iou[classes::name(c)].mean,
+                )
+            })
+            .collect(),
+        tables: tables(&m),
         seconds: t0.elapsed().as_secs_f64(),
         warnings: ev.warnings.clone(),
     };
+    fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::progress::done(
+        "eval",
+        &format!(
+            "{} views, fine mIoU {} (paper protocol)",
+            summary.images,
+            m.paper
+                .miou
+                .mean
+                .map_or("—".to_string(), |v| format!("{:.1} %", 100.0 * v))
+        ),
+        summary.seconds,
+    );
     Ok((summary, m))
 }
 

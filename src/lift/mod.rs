@@ -1,30 +1,36 @@
-//! The `lift` stage: the closed-form weighted vote (FlashSplat) that lifts the city-model
-//! labels of the training views (`M_city` of the raycast stage) into the Gaussians.
+//! The `lift` stage: the closed-form weighted vote (FlashSplat) that lifts per-view label maps —
+//! the fused maps of the `fuse` stage, or `M_city` of the raycast alone — into the Gaussians,
+//! through the contributions cache.
 //!
-//! For every Gaussian `i` and label `n` (a city-model entity id, or background for pixels the
-//! city model does not cover) the vote accumulates `A[i][n] = Σ_views Σ_pixels α_i·T_i · [M(p) = n]`
-//! over the pixels the Gaussian contributes to. The labels are then L1-normalised per Gaussian,
-//! a bias `γ` is added to the background entry, and the argmax is taken. Views are processed in
-//! name order and pixels in raster order, so the result does not depend on the thread count.
-use std::collections::HashMap;
+//! For every Gaussian `i` and label `n` (a fused label id, or background −1 for pixels no label
+//! covers) the vote accumulates `A[i][n] = Σ_views Σ_pixels α_i·T_i · [M(p) = n]` (in `f64`) over
+//! the pixels whose cached list holds the Gaussian. The votes are L1-normalised per Gaussian, a
+//! bias `γ` is added to the background entry, and the argmax is taken (ties: the smaller id).
+//! Views are processed in name order and pixels in raster order, so the result does not depend
+//! on the thread count. Test views are predicted per pixel from the same cache: the label whose
+//! Gaussians carry the most weight, where the transmitted remainder `1 − α` and the truncated mass
+//! vote for "none".
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::camera::View;
 use crate::citymodel::Entity;
 use crate::classes;
-use crate::render::{self, ContributionMode, PreparedScene, RenderOptions};
+use crate::labels::LabelTable;
+use crate::progress::Bar;
+use crate::render::cache::{Cache, CacheError, ViewContrib};
 
-/// The background label (a pixel without city model).
+/// The background label (a pixel no label covers).
 pub const BACKGROUND: i32 = -1;
 
 /// Errors of the lift stage.
 #[derive(Debug, thiserror::Error)]
 pub enum LiftError {
     #[error(transparent)]
-    Render(#[from] render::RenderError),
+    Cache(#[from] CacheError),
     #[error(transparent)]
     Npy(#[from] crate::npy::NpyError),
     #[error("{path}: {why}")]
@@ -32,229 +38,85 @@ pub enum LiftError {
     #[error("invalid option: {0}")]
     Options(String),
     #[error(transparent)]
-    Colmap(#[from] crate::colmap::ColmapError),
-    #[error(transparent)]
     Ply(#[from] crate::splat::PlyError),
-    #[error(transparent)]
-    CityModel(#[from] crate::citymodel::CityModelError),
     #[error(transparent)]
     Fs(#[from] crate::fsutil::FsError),
     #[error(transparent)]
     Image(#[from] crate::imageio::ImageError),
 }
 
-/// Everything `gs4city lift` needs.
-#[derive(Debug, Clone)]
-pub struct LiftConfig {
-    pub ply: PathBuf,
-    pub colmap: PathBuf,
-    pub raycast: PathBuf,
-    pub citymodel: PathBuf,
-    pub out: PathBuf,
-    pub options: LiftOptions,
-    /// Every `test_every`-th view (sorted by name, index 0 first) is a test view (3DGS `--eval`
-    /// convention); 0 = no test views.
-    pub test_every: usize,
-    /// Contribution list length used to predict the test-view maps.
-    pub predict_k: usize,
-}
-
-impl LiftOptions {
-    /// From command-line values: `top_k` contributions per pixel (0 = all) and γ.
-    pub fn new(top_k: usize, gamma: f32) -> LiftOptions {
-        let contributions = if top_k == 0 {
-            ContributionMode::All
-        } else {
-            ContributionMode::TopK(top_k)
-        };
-        LiftOptions {
-            contributions,
-            gamma,
-        }
-    }
-}
-
-/// The test-view stems recorded in a lift output folder's `summary.json` (empty when absent).
-pub fn test_views(lift_dir: &Path) -> Vec<String> {
-    let summary: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(lift_dir.join("summary.json")).unwrap_or_default())
-            .unwrap_or_default();
-    summary["test_views"]
-        .as_array()
-        .map(|v| {
-            v.iter()
-                .filter_map(|s| s.as_str().map(String::from))
-                .collect()
-        })
-        .unwrap_or_default()
-}
-
-/// Splits views (sorted by name) into (train, test): index `i % every == 0` is a test view.
-pub fn split_views(mut views: Vec<View>, every: usize) -> (Vec<View>, Vec<View>) {
-    views.sort_by(|a, b| a.name.cmp(&b.name));
-    if every == 0 {
-        return (views, Vec::new());
-    }
-    let (mut train, mut test) = (Vec::new(), Vec::new());
-    for (i, v) in views.into_iter().enumerate() {
-        if i % every == 0 {
-            test.push(v)
-        } else {
-            train.push(v)
-        }
-    }
-    (train, test)
-}
-
-/// Runs the stage: vote over the training views, write the semantic PLY
-/// (`point_cloud_semantic.ply`: the input properties plus `instance_id feature_id surface_id
-/// part_id class_id` and `label_confidence`), `gaussians.npy` (int32 N×5: class, instance,
-/// feature, surface, part), per test view `<stem>.class.npy`, `<stem>.instance.npy` and
-/// `<stem>.class.png`, and `summary.json` last.
-pub fn run(cfg: &LiftConfig) -> Result<serde_json::Value, LiftError> {
-    let t0 = Instant::now();
-    let views = crate::colmap::read_model(&cfg.colmap)?;
-    let (train, test) = split_views(views, cfg.test_every);
-    if train.is_empty() {
-        return Err(LiftError::Options(
-            "no training views (every view is a test view)".into(),
-        ));
-    }
-    let (mut gaussians, _report) = crate::splat::read_ply(&cfg.ply, &Default::default())?;
-    let scene = PreparedScene::new(&gaussians)?;
-    let entities = crate::citymodel::read_semantics(&cfg.citymodel.join("semantics.json"))?;
-    let chain = hierarchy(&entities);
-    let t_load = t0.elapsed().as_secs_f64();
-
-    let (assignments, stats) = lift(&scene, &train, &cfg.raycast, &cfg.options)?;
-    let mut labels = Vec::with_capacity(assignments.len());
-    for a in &assignments {
-        labels.push(
-            match usize::try_from(a.label).ok().and_then(|i| chain.get(i)) {
-                Some(l) => *l,
-                None if a.label < 0 => GaussianLabel::NONE,
-                None => {
-                    return Err(LiftError::Labels {
-                        path: cfg.raycast.clone(),
-                        why: format!(
-                            "label {} is not an entity of {}",
-                            a.label,
-                            cfg.citymodel.join("semantics.json").display()
-                        ),
-                    });
-                }
-            },
-        );
-    }
-
-    crate::fsutil::create_dir(&cfg.out)?;
-    let t = Instant::now();
-    let int_prop = |name: &str, f: &dyn Fn(&GaussianLabel) -> i32| crate::splat::ExtraProperty {
-        name: name.to_string(),
-        kind: crate::splat::ScalarKind::I32,
-        values: labels.iter().map(|l| f(l) as f64).collect(),
-    };
-    let new_props = vec![
-        int_prop("instance_id", &|l| l.instance),
-        int_prop("feature_id", &|l| l.feature),
-        int_prop("surface_id", &|l| l.surface),
-        int_prop("part_id", &|l| l.part),
-        int_prop("class_id", &|l| l.class),
-        crate::splat::ExtraProperty {
-            name: "label_confidence".into(),
-            kind: crate::splat::ScalarKind::F32,
-            values: assignments.iter().map(|a| a.confidence as f64).collect(),
-        },
-    ];
-    gaussians
-        .extras
-        .retain(|e| !new_props.iter().any(|p| p.name == e.name));
-    gaussians.extras.extend(new_props);
-    crate::splat::write_ply(
-        &cfg.out.join("point_cloud_semantic.ply"),
-        &gaussians,
-        crate::splat::PlyEncoding::BinaryLittleEndian,
-    )?;
-    let table: Vec<i32> = labels
-        .iter()
-        .flat_map(|l| [l.class, l.instance, l.feature, l.surface, l.part])
-        .collect();
-    crate::npy::write(&cfg.out.join("gaussians.npy"), &[labels.len(), 5], &table)?;
-    let t_write = t.elapsed().as_secs_f64();
-
-    let t = Instant::now();
-    let mut test_stems = Vec::new();
-    for v in &test {
-        let (class, inst) = predict_view(&scene, &v.camera, &labels, cfg.predict_k)?;
-        let (w, h) = (
-            v.camera.intrinsics.width as usize,
-            v.camera.intrinsics.height as usize,
-        );
-        let stem = v.stem();
-        crate::npy::write(&cfg.out.join(format!("{stem}.class.npy")), &[h, w], &class)?;
-        crate::npy::write(
-            &cfg.out.join(format!("{stem}.instance.npy")),
-            &[h, w],
-            &inst,
-        )?;
-        let img = ndarray::Array3::from_shape_fn((h, w, 3), |(y, x, c)| {
-            classes::color(class[y * w + x])[c]
-        });
-        crate::imageio::write_png(&cfg.out.join(format!("{stem}.class.png")), &img)?;
-        test_stems.push(stem);
-    }
-    let t_predict = t.elapsed().as_secs_f64();
-
-    let mut per_class = std::collections::BTreeMap::new();
-    for l in &labels {
-        *per_class.entry(classes::name(l.class)).or_insert(0usize) += 1;
-    }
-    let summary = serde_json::json!({
-        "gaussians": labels.len(),
-        "assigned": labels.iter().filter(|l| l.instance >= 0).count(),
-        "gaussians_per_class": per_class,
-        "train_views": train.iter().map(|v| v.stem()).collect::<Vec<_>>(),
-        "test_views": test_stems,
-        "options": cfg.options,
-        "predict_k": cfg.predict_k,
-        "stats": stats,
-        "timing": {
-            "load_s": t_load,
-            "render_s": stats.render_s,
-            "accumulate_s": stats.accumulate_s,
-            "assign_s": stats.assign_s,
-            "write_s": t_write,
-            "predict_test_views_s": t_predict,
-            "total_s": t0.elapsed().as_secs_f64(),
-        },
-    });
-    crate::fsutil::write_json(&cfg.out.join("summary.json"), &summary)?;
-    Ok(summary)
-}
-
 /// Options of the vote.
-#[derive(Debug, Clone, Copy, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct LiftOptions {
-    /// Contribution lists per pixel: `TopK(k)` bounds memory and time; `All` is exact.
-    pub contributions: ContributionMode,
     /// Background bias γ ∈ [−1, 1], added to the normalised background vote.
     pub gamma: f32,
 }
 
 impl Default for LiftOptions {
     fn default() -> Self {
-        LiftOptions {
-            contributions: ContributionMode::TopK(16),
-            gamma: 0.0,
+        LiftOptions { gamma: 0.0 }
+    }
+}
+
+impl LiftOptions {
+    /// Checks γ.
+    pub fn validate(&self) -> Result<(), LiftError> {
+        if !(-1.0..=1.0).contains(&self.gamma) {
+            return Err(LiftError::Options(format!(
+                "gamma must lie in [-1, 1], got {}",
+                self.gamma
+            )));
         }
+        Ok(())
+    }
+}
+
+/// Where the per-view label maps come from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum LabelMaps {
+    /// `M_city`: channel 3 of a raycast folder's `<stem>.ids.npy` (4×H×W).
+    City(PathBuf),
+    /// A fuse folder's `<stem>.ids.npy` (H×W).
+    Fused(PathBuf),
+}
+
+impl LabelMaps {
+    /// The label map of view `stem` (`width × height`, row-major).
+    pub fn read(&self, stem: &str, width: usize, height: usize) -> Result<Vec<i32>, LiftError> {
+        let (path, channels) = match self {
+            LabelMaps::City(d) => (d.join(format!("{stem}.ids.npy")), 4),
+            LabelMaps::Fused(d) => (d.join(format!("{stem}.ids.npy")), 1),
+        };
+        let (shape, data) = crate::npy::read::<i32>(&path)?;
+        let ok = if channels == 4 {
+            shape == [4, height, width]
+        } else {
+            shape == [height, width]
+        };
+        if !ok {
+            return Err(LiftError::Labels {
+                path,
+                why: format!(
+                    "shape {shape:?}, expected {} for this camera",
+                    if channels == 4 {
+                        format!("[4, {height}, {width}] (feature, surface, part, city)")
+                    } else {
+                        format!("[{height}, {width}]")
+                    }
+                ),
+            });
+        }
+        let npx = width * height;
+        Ok(data[(channels - 1) * npx..].to_vec())
     }
 }
 
 /// Per-Gaussian label votes: a few inline slots, and per Gaussian an overflow list for the
-/// rare rest (looked up by Gaussian, so reading all votes stays linear).
+/// rare rest (looked up by Gaussian, so reading all votes stays linear). Weights are `f64`:
+/// a Gaussian can collect millions of small terms.
 pub struct Votes {
-    slots: Vec<[(i32, f32); SLOTS]>,
-    overflow: HashMap<u32, Vec<(i32, f32)>>,
+    slots: Vec<[(i32, f64); SLOTS]>,
+    overflow: HashMap<u32, Vec<(i32, f64)>>,
 }
 
 const SLOTS: usize = 4;
@@ -271,7 +133,7 @@ impl Votes {
 
     /// Adds weight `w` for `label` to Gaussian `g`.
     #[inline]
-    pub fn add(&mut self, g: u32, label: i32, w: f32) {
+    pub fn add(&mut self, g: u32, label: i32, w: f64) {
         let s = &mut self.slots[g as usize];
         for slot in s.iter_mut() {
             if slot.0 == label {
@@ -291,8 +153,8 @@ impl Votes {
     }
 
     /// All `(label, weight)` votes of Gaussian `g`, in a deterministic order.
-    pub fn of(&self, g: u32) -> Vec<(i32, f32)> {
-        let mut v: Vec<(i32, f32)> = self.slots[g as usize]
+    pub fn of(&self, g: u32) -> Vec<(i32, f64)> {
+        let mut v: Vec<(i32, f64)> = self.slots[g as usize]
             .iter()
             .copied()
             .filter(|s| s.0 != EMPTY)
@@ -307,12 +169,17 @@ impl Votes {
         v
     }
 
-    /// Accumulates one view: `labels[p]` is the pixel's label (entity id or background).
-    pub fn accumulate(&mut self, contributions: &render::Contributions, labels: &[i32]) {
+    /// Votes kept in overflow lists.
+    pub fn overflow_votes(&self) -> usize {
+        self.overflow.values().map(Vec::len).sum()
+    }
+
+    /// Accumulates one view: `labels[p]` is pixel `p`'s label (or background).
+    pub fn accumulate(&mut self, c: &ViewContrib, labels: &[i32]) {
         for (p, &label) in labels.iter().enumerate() {
-            let (ids, ws) = contributions.pixel(p);
+            let (ids, ws) = c.pixel(p);
             for (&g, &w) in ids.iter().zip(ws) {
-                self.add(g, label, w);
+                self.add(g, label, f64::from(w));
             }
         }
     }
@@ -321,21 +188,22 @@ impl Votes {
 /// The label chosen for one Gaussian.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Assignment {
-    /// Entity id, or −1 (background, or no vote at all).
+    /// Label id, or −1 (background, or no vote at all).
     pub label: i32,
     /// Normalised vote of the winning label (0 when there was no vote).
     pub confidence: f32,
     /// Total vote weight.
-    pub weight: f32,
+    pub weight: f64,
 }
 
 /// Chooses, per Gaussian, the label with the largest normalised vote (+γ on background).
 /// Ties go to the smaller label id.
 pub fn assign(votes: &Votes, n: usize, gamma: f32) -> Vec<Assignment> {
+    let gamma = f64::from(gamma);
     (0..n as u32)
         .map(|g| {
             let v = votes.of(g);
-            let total: f32 = v.iter().map(|x| x.1).sum();
+            let total: f64 = v.iter().map(|x| x.1).sum();
             if total <= 0.0 {
                 return Assignment {
                     label: BACKGROUND,
@@ -343,9 +211,9 @@ pub fn assign(votes: &Votes, n: usize, gamma: f32) -> Vec<Assignment> {
                     weight: 0.0,
                 };
             }
-            let mut best = (BACKGROUND, f32::NEG_INFINITY);
+            let mut best = (BACKGROUND, f64::NEG_INFINITY);
             let mut bg_seen = false;
-            let mut consider = |label: i32, score: f32| {
+            let mut consider = |label: i32, score: f64| {
                 if score > best.1 || (score == best.1 && label < best.0) {
                     best = (label, score);
                 }
@@ -367,163 +235,80 @@ pub fn assign(votes: &Votes, n: usize, gamma: f32) -> Vec<Assignment> {
                 .map_or(0.0, |x| x.1 / total);
             Assignment {
                 label: best.0,
-                confidence: conf,
+                confidence: conf as f32,
                 weight: total,
             }
         })
         .collect()
 }
 
-/// Per-Gaussian hierarchy and class of an assigned entity label.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct GaussianLabel {
-    pub instance: i32,
-    pub feature: i32,
-    pub surface: i32,
-    pub part: i32,
-    pub class: i32,
-}
-
-impl GaussianLabel {
-    pub const NONE: GaussianLabel = GaussianLabel {
-        instance: -1,
-        feature: -1,
-        surface: -1,
-        part: -1,
-        class: -1,
-    };
-}
-
-/// The hierarchy chain of each entity: nearest feature/surface/part ancestor-or-self.
-pub fn hierarchy(entities: &[Entity]) -> Vec<GaussianLabel> {
-    let classes = classes::table(entities);
-    let mut out: Vec<GaussianLabel> = Vec::with_capacity(entities.len());
-    for (i, e) in entities.iter().enumerate() {
-        let mut l = match e.parent {
-            Some(p) if (p as usize) < i => out[p as usize],
-            _ => GaussianLabel::NONE,
-        };
-        let id = i as i32;
-        match e.level {
-            crate::citygml::Level::Feature => {
-                l.feature = id;
-                l.surface = -1;
-                l.part = -1;
-            }
-            crate::citygml::Level::Surface => {
-                l.surface = id;
-                l.part = -1;
-            }
-            crate::citygml::Level::Part => l.part = id,
-        }
-        l.instance = id;
-        l.class = classes[i];
-        out.push(l);
-    }
-    out
-}
-
-/// Timings and counts of a lift.
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct LiftStats {
-    pub train_views: usize,
-    pub render_s: f64,
+/// Timings and counts of a vote.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct VoteStats {
+    pub views: usize,
+    pub load_s: f64,
     pub accumulate_s: f64,
     pub assign_s: f64,
     pub contributions: u64,
     pub overflow_votes: usize,
 }
 
-/// Reads the `M_city` channel (index 3) of a raycast `<stem>.ids.npy` (4×H×W int32).
-pub fn read_city_labels(path: &Path, width: usize, height: usize) -> Result<Vec<i32>, LiftError> {
-    let (shape, data) = crate::npy::read::<i32>(path)?;
-    if shape != [4, height, width] {
-        return Err(LiftError::Labels {
-            path: path.to_path_buf(),
-            why: format!(
-                "shape {shape:?}, expected [4, {height}, {width}] (feature, surface, part, city) for this camera"
-            ),
-        });
-    }
-    Ok(data[3 * width * height..].to_vec())
-}
-
-/// Runs the vote over the training `views`, reading each view's labels from
-/// `raycast_dir/<stem>.ids.npy`; returns one assignment per Gaussian.
-pub fn lift(
-    scene: &PreparedScene,
+/// Runs the vote over `views` (their cached lists and label maps); one assignment per Gaussian.
+pub fn vote(
+    cache: &Cache,
     views: &[View],
-    raycast_dir: &Path,
+    maps: &LabelMaps,
     opts: &LiftOptions,
-) -> Result<(Vec<Assignment>, LiftStats), LiftError> {
-    if !(-1.0..=1.0).contains(&opts.gamma) {
-        return Err(LiftError::Options(format!(
-            "gamma must lie in [-1, 1], got {}",
-            opts.gamma
-        )));
-    }
-    if opts.contributions == ContributionMode::None {
-        return Err(LiftError::Options(
-            "the vote needs contribution lists (TopK or All)".into(),
-        ));
-    }
-    let mut votes = Votes::new(scene.len());
-    let mut stats = LiftStats {
-        train_views: views.len(),
+) -> Result<(Vec<Assignment>, VoteStats), LiftError> {
+    opts.validate()?;
+    let n = cache.summary.gaussians;
+    let mut votes = Votes::new(n);
+    let mut stats = VoteStats {
+        views: views.len(),
         ..Default::default()
     };
-    let ropts = RenderOptions {
-        features: false,
-        contributions: opts.contributions,
-        ..Default::default()
+    let bar = Bar::new("lift", views.len() as u64, "views");
+    let load = |v: &View| -> Result<(ViewContrib, Vec<i32>), LiftError> {
+        let c = cache.load(&v.stem())?;
+        let labels = maps.read(&v.stem(), c.width, c.height)?;
+        Ok((c, labels))
     };
-    for view in views {
-        let k = &view.camera.intrinsics;
-        let labels = read_city_labels(
-            &raycast_dir.join(format!("{}.ids.npy", view.stem())),
-            k.width as usize,
-            k.height as usize,
-        )?;
-        let t = Instant::now();
-        let out = render::render_view(scene, &view.camera, &ropts)?;
-        stats.render_s += t.elapsed().as_secs_f64();
-        let t = Instant::now();
-        if let Some(c) = &out.contributions {
-            stats.contributions += c.ids.len() as u64;
-            votes.accumulate(c, &labels);
-        }
-        stats.accumulate_s += t.elapsed().as_secs_f64();
-    }
+    // Load view i+1 while view i is accumulated (the accumulation order stays fixed).
     let t = Instant::now();
-    let a = assign(&votes, scene.len(), opts.gamma);
+    let mut next = views.first().map(&load).transpose()?;
+    stats.load_s += t.elapsed().as_secs_f64();
+    for i in 0..views.len() {
+        let (c, labels) = next.take().expect("loaded");
+        let (loaded, acc_s) = rayon::join(
+            || views.get(i + 1).map(&load).transpose(),
+            || {
+                let t = Instant::now();
+                votes.accumulate(&c, &labels);
+                t.elapsed().as_secs_f64()
+            },
+        );
+        stats.accumulate_s += acc_s;
+        stats.contributions += c.entries() as u64;
+        next = loaded?;
+        bar.inc(1);
+    }
+    bar.finish();
+    let t = Instant::now();
+    let a = assign(&votes, n, opts.gamma);
     stats.assign_s = t.elapsed().as_secs_f64();
-    stats.overflow_votes = votes.overflow.values().map(Vec::len).sum();
+    stats.overflow_votes = votes.overflow_votes();
     Ok((a, stats))
 }
 
-/// Per-pixel predicted label maps of one view: for each pixel, the label whose Gaussians carry
-/// the largest total weight, where the transmitted remainder and unlabelled Gaussians vote for
-/// −1. Returns `(class map, instance map)`.
-pub fn predict_view(
-    scene: &PreparedScene,
-    camera: &crate::camera::Camera,
-    labels: &[GaussianLabel],
-    k: usize,
-) -> Result<(Vec<i32>, Vec<i32>), LiftError> {
-    let ropts = RenderOptions {
-        features: false,
-        contributions: ContributionMode::TopK(k),
-        ..Default::default()
-    };
-    let out = render::render_view(scene, camera, &ropts)?;
-    let c = out
-        .contributions
-        .as_ref()
-        .expect("contributions were requested");
-    let n = out.width * out.height;
-    let mut class = vec![-1; n];
-    let mut inst = vec![-1; n];
-    let mut acc: Vec<(i32, f32)> = Vec::with_capacity(k + 2);
+/// Per-pixel predicted label and class maps of one cached view: for each pixel the label whose
+/// Gaussians carry the largest weight, where `1 − α`, the truncated mass and unlabelled
+/// Gaussians vote for −1; the class map is computed the same way over the Gaussians' classes.
+/// Returns `(class map, label map)`.
+pub fn predict(c: &ViewContrib, label: &[i32], class: &[i32]) -> (Vec<i32>, Vec<i32>) {
+    let n = c.pixels();
+    let mut class_map = vec![-1; n];
+    let mut label_map = vec![-1; n];
+    let mut acc: Vec<(i32, f32)> = Vec::new();
     let pick = |acc: &mut Vec<(i32, f32)>, rest: f32| -> i32 {
         acc.sort_by_key(|x| x.0);
         let mut best = (
@@ -546,23 +331,244 @@ pub fn predict_view(
     };
     for p in 0..n {
         let (ids, ws) = c.pixel(p);
-        let rest = 1.0 - out.alpha[p] + c.residual[p];
+        let rest = 1.0 - c.alpha[p] + c.lists.residual[p];
         acc.clear();
-        acc.extend(
-            ids.iter()
-                .zip(ws)
-                .map(|(&g, &w)| (labels[g as usize].class, w)),
-        );
-        class[p] = pick(&mut acc, rest);
+        acc.extend(ids.iter().zip(ws).map(|(&g, &w)| (class[g as usize], w)));
+        class_map[p] = pick(&mut acc, rest);
         acc.clear();
-        acc.extend(
-            ids.iter()
-                .zip(ws)
-                .map(|(&g, &w)| (labels[g as usize].instance, w)),
-        );
-        inst[p] = pick(&mut acc, rest);
+        acc.extend(ids.iter().zip(ws).map(|(&g, &w)| (label[g as usize], w)));
+        label_map[p] = pick(&mut acc, rest);
     }
-    Ok((class, inst))
+    (class_map, label_map)
+}
+
+/// Writes the test-view predictions `<stem>.class.npy`, `<stem>.instance.npy` (int32 H×W: class
+/// and label per pixel) and `<stem>.class.png` into `out` from per-pixel maps made by `predict`.
+pub fn write_prediction(
+    out: &Path,
+    stem: &str,
+    width: usize,
+    height: usize,
+    class_map: &[i32],
+    label_map: &[i32],
+) -> Result<(), LiftError> {
+    crate::npy::write(
+        &out.join(format!("{stem}.class.npy")),
+        &[height, width],
+        class_map,
+    )?;
+    crate::npy::write(
+        &out.join(format!("{stem}.instance.npy")),
+        &[height, width],
+        label_map,
+    )?;
+    let img = ndarray::Array3::from_shape_fn((height, width, 3), |(y, x, c)| {
+        classes::color(class_map[y * width + x])[c]
+    });
+    crate::imageio::write_png(&out.join(format!("{stem}.class.png")), &img)?;
+    Ok(())
+}
+
+/// Per-Gaussian results written by `lift` and `train`.
+pub struct GaussianLabels<'a> {
+    /// Fused label id per Gaussian (−1 none).
+    pub label: &'a [i32],
+    /// Class id per Gaussian (−1 none).
+    pub class: &'a [i32],
+    /// Extra per-Gaussian float properties for `semantic.ply` (e.g. `label_confidence`,
+    /// `obj_dc_0..15`).
+    pub extra: Vec<(String, Vec<f32>)>,
+}
+
+/// Writes `gaussians.npy` (int32 N×2: label, class) and `semantic.ply` (the input PLY plus
+/// `label`, `class`, the city hierarchy `feature_id surface_id part_id` of city labels, and the
+/// extra float properties).
+pub fn write_gaussians(
+    ply: &Path,
+    out: &Path,
+    g: &GaussianLabels<'_>,
+    labels: &LabelTable,
+    entities: &[Entity],
+) -> Result<(), LiftError> {
+    let (mut gaussians, _) = crate::splat::read_ply(ply, &Default::default())?;
+    let n = gaussians.len();
+    if g.label.len() != n || g.class.len() != n {
+        return Err(LiftError::Labels {
+            path: ply.to_path_buf(),
+            why: format!(
+                "{n} Gaussians in the PLY, {} labels: the PLY changed since the cache was built",
+                g.label.len()
+            ),
+        });
+    }
+    let chain = crate::citymodel::chains(entities);
+    let hier = |l: i32| -> crate::mesh::FaceLabel {
+        labels
+            .get(l)
+            .and_then(|x| x.entity)
+            .and_then(|e| chain.get(e as usize).copied())
+            .unwrap_or(crate::mesh::FaceLabel::NONE)
+    };
+    let int_prop = |name: &str, f: &dyn Fn(usize) -> i32| crate::splat::ExtraProperty {
+        name: name.to_string(),
+        kind: crate::splat::ScalarKind::I32,
+        values: (0..n).map(|i| f64::from(f(i))).collect(),
+    };
+    let mut props = vec![
+        int_prop("label", &|i| g.label[i]),
+        int_prop("class", &|i| g.class[i]),
+        int_prop("feature_id", &|i| hier(g.label[i]).feature),
+        int_prop("surface_id", &|i| hier(g.label[i]).surface),
+        int_prop("part_id", &|i| hier(g.label[i]).part),
+    ];
+    for (name, values) in &g.extra {
+        props.push(crate::splat::ExtraProperty {
+            name: name.clone(),
+            kind: crate::splat::ScalarKind::F32,
+            values: values.iter().map(|&v| f64::from(v)).collect(),
+        });
+    }
+    gaussians
+        .extras
+        .retain(|e| !props.iter().any(|p| p.name == e.name));
+    gaussians.extras.extend(props);
+    crate::splat::write_ply(
+        &out.join("semantic.ply"),
+        &gaussians,
+        crate::splat::PlyEncoding::BinaryLittleEndian,
+    )?;
+    let table: Vec<i32> = (0..n).flat_map(|i| [g.label[i], g.class[i]]).collect();
+    crate::npy::write(&out.join("gaussians.npy"), &[n, 2], &table)?;
+    Ok(())
+}
+
+/// Everything the stage reads.
+pub struct LiftInputs<'a> {
+    /// The pre-trained 3DGS PLY the cache was built from.
+    pub ply: &'a Path,
+    pub cache: &'a Cache,
+    pub train: &'a [View],
+    pub test: &'a [View],
+    pub maps: &'a LabelMaps,
+    pub labels: &'a LabelTable,
+    pub entities: &'a [Entity],
+}
+
+/// Timing of the stage.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LiftTiming {
+    pub vote_s: f64,
+    pub write_s: f64,
+    pub predict_s: f64,
+    pub total_s: f64,
+}
+
+/// The stage's `summary.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LiftSummary {
+    pub gaussians: usize,
+    /// Gaussians with a label.
+    pub assigned: usize,
+    pub gaussians_per_class: BTreeMap<String, usize>,
+    pub train_views: Vec<String>,
+    pub test_views: Vec<String>,
+    pub options: LiftOptions,
+    pub labels_source: LabelMaps,
+    pub stats: VoteStats,
+    pub timing: LiftTiming,
+}
+
+impl LiftSummary {
+    /// Reads a lift folder's `summary.json`.
+    pub fn read(dir: &Path) -> Result<Self, crate::fsutil::FsError> {
+        crate::fsutil::read_json(&dir.join("summary.json"))
+    }
+}
+
+/// Runs the stage: the vote over the training views, `gaussians.npy`, `semantic.ply`, the
+/// test-view predictions, and `summary.json` (last).
+pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftSummary, LiftError> {
+    let t0 = Instant::now();
+    if inp.train.is_empty() {
+        return Err(LiftError::Options(
+            "no training views (every view is a test view)".into(),
+        ));
+    }
+    crate::fsutil::create_dir(out)?;
+    let _ = std::fs::remove_file(out.join("summary.json"));
+    let (assignments, stats) = vote(inp.cache, inp.train, inp.maps, opts)?;
+    let t_vote = t0.elapsed().as_secs_f64();
+    let label: Vec<i32> = assignments.iter().map(|a| a.label).collect();
+    let class: Vec<i32> = label.iter().map(|&l| inp.labels.class_of(l)).collect();
+    if let Some(l) = label
+        .iter()
+        .find(|&&l| l >= 0 && inp.labels.get(l).is_none())
+    {
+        return Err(LiftError::Labels {
+            path: match inp.maps {
+                LabelMaps::City(d) | LabelMaps::Fused(d) => d.clone(),
+            },
+            why: format!("label {l} of a label map is not in the label table"),
+        });
+    }
+    let t = Instant::now();
+    write_gaussians(
+        inp.ply,
+        out,
+        &GaussianLabels {
+            label: &label,
+            class: &class,
+            extra: vec![(
+                "label_confidence".into(),
+                assignments.iter().map(|a| a.confidence).collect(),
+            )],
+        },
+        inp.labels,
+        inp.entities,
+    )?;
+    let write_s = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    for v in inp.test {
+        let c = inp.cache.load(&v.stem())?;
+        let (cm, lm) = predict(&c, &label, &class);
+        write_prediction(out, &v.stem(), c.width, c.height, &cm, &lm)?;
+    }
+    let predict_s = t.elapsed().as_secs_f64();
+    let mut per_class = BTreeMap::new();
+    for &c in &class {
+        *per_class
+            .entry(classes::name(c).to_string())
+            .or_insert(0usize) += 1;
+    }
+    let summary = LiftSummary {
+        gaussians: label.len(),
+        assigned: label.iter().filter(|&&l| l >= 0).count(),
+        gaussians_per_class: per_class,
+        train_views: inp.train.iter().map(|v| v.stem()).collect(),
+        test_views: inp.test.iter().map(|v| v.stem()).collect(),
+        options: *opts,
+        labels_source: inp.maps.clone(),
+        stats,
+        timing: LiftTiming {
+            vote_s: t_vote,
+            write_s,
+            predict_s,
+            total_s: t0.elapsed().as_secs_f64(),
+        },
+    };
+    crate::fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::progress::done(
+        "lift",
+        &format!(
+            "{} of {} Gaussians labelled from {} views, {} test views predicted",
+            summary.assigned,
+            summary.gaussians,
+            inp.train.len(),
+            inp.test.len()
+        ),
+        summary.timing.total_s,
+    );
+    Ok(summary)
 }
 
 #[cfg(test)]
@@ -577,7 +583,7 @@ mod tests {
         v.add(1, 7, 0.3);
         v.add(1, BACKGROUND, 0.5);
         for l in 10..20 {
-            v.add(2, l, 0.01 * l as f32); // overflows the inline slots
+            v.add(2, l, 0.01 * f64::from(l)); // overflows the inline slots
         }
         let a = assign(&v, 3, 0.0);
         assert_eq!(a[0].label, 7);
@@ -597,5 +603,21 @@ mod tests {
                 weight: 0.0
             }
         );
+    }
+
+    #[test]
+    fn long_sums_stay_exact_in_f64() {
+        // 30 million votes of 1e-7 (= 3.0) for one label and one vote of 2.5 for another: a
+        // sequential f32 sum stalls at 2.0 (NumPy `cumsum(dtype=float32)` gives 2.0), which
+        // would hand the Gaussian to the wrong label.
+        let mut v = Votes::new(1);
+        for _ in 0..30_000_000 {
+            v.add(0, 1, 1e-7);
+        }
+        v.add(0, 2, 2.5);
+        let votes = v.of(0);
+        let w1 = votes.iter().find(|x| x.0 == 1).unwrap().1;
+        assert!((w1 - 3.0).abs() < 1e-6, "{w1}");
+        assert_eq!(assign(&v, 1, 0.0)[0].label, 1);
     }
 }

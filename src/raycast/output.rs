@@ -86,8 +86,8 @@ fn overlay(ids: &ViewIds, image: Option<&Array3<u8>>) -> Array3<u8> {
     out
 }
 
-/// Runs the stage: builds the scenes once, raycasts every view and writes its files into
-/// `out_dir`. `images_dir/<name>` is used for the overlay when it exists and has the
+/// Runs the stage: builds the scenes once, raycasts every view and writes its files and
+/// `summary.json` (last) into `out_dir`. `images_dir/<name>` is used for the overlay when it exists and has the
 /// view's size.
 pub fn run(
     mesh: &TriMesh,
@@ -120,8 +120,11 @@ pub fn run(
             why: "two views share this file stem; their outputs would collide".into(),
         });
     }
+    let t0 = Instant::now();
     let scene = TwoPassScene::build(mesh)?;
     fsutil::create_dir(out_dir)?;
+    let _ = std::fs::remove_file(out_dir.join("summary.json"));
+    let bar = crate::progress::Bar::new("raycast", views.len() as u64, "views");
     let (faces, part_faces) = scene.face_counts();
     let mut per_view = Vec::with_capacity(views.len());
     let (mut rays, mut seconds) = (0u64, 0.0f64);
@@ -168,8 +171,10 @@ pub fn run(
             seconds: dt,
             overlay_blended: image.is_some(),
         });
+        bar.inc(1);
     }
-    Ok(RaycastSummary {
+    bar.finish();
+    let summary = RaycastSummary {
         views: views.len(),
         rays,
         raycast_seconds: seconds,
@@ -184,7 +189,31 @@ pub fn run(
         tau_scene_units: opts.tau,
         single_pass: opts.single_pass,
         per_view,
-    })
+    };
+    fsutil::write_json(&out_dir.join("summary.json"), &summary)?;
+    crate::progress::done(
+        "raycast",
+        &format!(
+            "{} views, {:.1} M rays ({:.1} Mrays/s){}",
+            summary.views,
+            summary.rays as f64 / 1e6,
+            summary.rays_per_second / 1e6,
+            if opts.single_pass {
+                ", single pass"
+            } else {
+                ""
+            }
+        ),
+        t0.elapsed().as_secs_f64(),
+    );
+    Ok(summary)
+}
+
+impl RaycastSummary {
+    /// Reads a raycast folder's `summary.json`.
+    pub fn read(dir: &Path) -> Result<Self, fsutil::FsError> {
+        fsutil::read_json(&dir.join("summary.json"))
+    }
 }
 
 #[cfg(test)]

@@ -5,8 +5,11 @@ use std::path::{Path, PathBuf};
 
 use ndarray::Array3;
 
+use crate::camera::View;
 use crate::classes;
-use crate::run::{Scene, StageReport};
+use crate::eval::EvalSummary;
+use crate::run::StageReport;
+use crate::scene::Scene;
 
 /// Errors of report writing.
 #[derive(Debug, thiserror::Error)]
@@ -65,22 +68,24 @@ fn esc(s: &str) -> String {
         .replace('>', "&gt;")
 }
 
-fn pct(v: &serde_json::Value) -> String {
-    v.as_f64()
-        .map_or("–".into(), |x| format!("{:.1}", 100.0 * x))
+/// What a report shows.
+pub struct ReportInputs<'a> {
+    pub scene: &'a Scene,
+    /// The run folder (`report.html` and `report/` are written into it).
+    pub out: &'a Path,
+    /// The views shown (the test views).
+    pub views: &'a [View],
+    /// The folder of the scored predictions (`<stem>.class.npy`).
+    pub predictions: &'a Path,
+    pub stages: &'a [StageReport],
+    pub eval: Option<&'a EvalSummary>,
 }
 
 /// Writes `out/report.html` and `out/report/<stem>.png`; returns the report path.
-pub fn write(
-    scene: &Scene,
-    out: &Path,
-    stages: &[StageReport],
-    metrics: Option<&serde_json::Value>,
-) -> Result<PathBuf, ReportError> {
+pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
+    let (scene, out) = (r.scene, r.out);
     let dir = out.join("report");
     crate::fsutil::create_dir(&dir)?;
-    let test = crate::lift::test_views(&out.join("lift"));
-    let views = crate::colmap::read_model(&scene.sparse)?;
 
     let mut html = String::new();
     let _ = write!(
@@ -93,62 +98,25 @@ pub fn write(
         esc(&scene.root.display().to_string()),
         esc(&out.display().to_string())
     );
-    if let Some(m) = metrics {
-        html.push_str("<h2>Metrics (test views)</h2><table><tr><th>protocol</th><th>coarse IoU</th><th>Acc.</th><th>Prec.</th><th>Rec.</th><th>mIoU</th>");
-        for c in ["door", "roof", "wall", "window", "car", "person", "tree"] {
-            let _ = write!(html, "<th>{c}</th>");
-        }
-        html.push_str("</tr>");
-        let (p, d) = (&m["paper"], &m["dataset"]);
-        let rows = [
-            (
-                "paper (per image)",
-                [
-                    &p["coarse"]["iou"]["mean"],
-                    &p["coarse"]["accuracy"]["mean"],
-                    &p["coarse"]["precision"]["mean"],
-                    &p["coarse"]["recall"]["mean"],
-                    &p["miou"]["mean"],
-                ],
-                "paper",
-            ),
-            (
-                "dataset",
-                [
-                    &d["coarse"]["iou"],
-                    &d["coarse"]["accuracy"],
-                    &d["coarse"]["precision"],
-                    &d["coarse"]["recall"],
-                    &d["fine"]["miou"],
-                ],
-                "dataset",
-            ),
-        ];
-        for (label, vals, proto) in rows {
-            let _ = write!(html, "<tr><td>{label}</td>");
-            for v in vals {
-                let _ = write!(html, "<td>{}</td>", pct(v));
-            }
-            for c in ["door", "roof", "wall", "window", "car", "person", "tree"] {
-                let v = if proto == "paper" {
-                    &p["iou"][c]["mean"]
-                } else {
-                    &d["fine"]["iou"][c]
-                };
-                let _ = write!(html, "<td>{}</td>", pct(v));
-            }
-            html.push_str("</tr>");
-        }
-        html.push_str("</table><p>Values in %. Non-building classes cannot be predicted by the city-model vote alone and count as 0 where present.</p>");
-    }
-    html.push_str(
-        "<h2>Time per stage</h2><table><tr><th>stage</th><th>seconds</th><th>resumed</th></tr>",
-    );
-    for st in stages {
+    if let Some(e) = r.eval {
         let _ = write!(
             html,
-            "<tr><td>{}</td><td>{:.2}</td><td>{}</td></tr>",
-            st.stage, st.seconds, st.resumed
+            "<h2>Metrics ({} test views{})</h2><pre>{}</pre>",
+            e.images,
+            e.mode
+                .as_deref()
+                .map_or(String::new(), |m| format!(", {m} predictions")),
+            esc(&e.tables)
+        );
+    }
+    html.push_str(
+        "<h2>Time per stage</h2><table><tr><th>stage</th><th>seconds now</th><th>resumed</th><th>seconds when computed</th></tr>",
+    );
+    for st in r.stages {
+        let _ = write!(
+            html,
+            "<tr><td>{}</td><td>{:.2}</td><td>{}</td><td>{:.2}</td></tr>",
+            st.stage, st.seconds, st.resumed, st.compute_seconds
         );
     }
     html.push_str("</table><h2>Test views: image | ground truth | prediction</h2><p>");
@@ -160,10 +128,8 @@ pub fn write(
         );
     }
     html.push_str("</p>");
-    for stem in &test {
-        let Some(v) = views.iter().find(|v| &v.stem() == stem) else {
-            continue;
-        };
+    for v in r.views {
+        let stem = &v.stem();
         let (w, h) = (
             v.camera.intrinsics.width as usize,
             v.camera.intrinsics.height as usize,
@@ -178,7 +144,7 @@ pub fn write(
                 why: format!("image is {:?}, camera is {w}×{h}", img.dim()),
             });
         }
-        let pred = read_map(&out.join(format!("lift/{stem}.class.npy")), h, w)?;
+        let pred = read_map(&r.predictions.join(format!("{stem}.class.npy")), h, w)?;
         let gt = match scene
             .gt
             .as_ref()

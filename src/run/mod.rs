@@ -1,21 +1,49 @@
-//! The `run` stage: a whole scene folder through citymodel → raycast → lift (→ eval when the
-//! scene has `gt/`), one output folder per stage. A stage whose folder holds a `stage.json`
-//! with the same fingerprint (its options and the size/mtime of its inputs, chained through
-//! the upstream stages' fingerprints) is complete and valid, and is resumed rather than rerun.
+//! The `run` stage: a scene folder through every stage into a run folder `R` (DESIGN.md,
+//! "Wave 2 contract"): `R/citymodel` → `R/raycast` → `R/render` (the contributions cache) →
+//! `R/lift` → `R/eval` (when the scene has `gt/`), `R/report.html` and `R/run.json`.
+//!
+//! Each stage is a library function from typed inputs to a typed summary; this module only wires
+//! them: it passes paths and typed summaries, never reads a stage's JSON by key. The run store
+//! ([`store`]) decides what is resumed and makes every stage folder appear atomically.
+pub mod store;
+
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
-use crate::citymodel::{self, Alignment};
-use crate::lift::{self, LiftConfig, LiftOptions};
-use crate::{colmap, fsutil, raycast};
+use crate::camera::View;
+use crate::citymodel::{self, Alignment, CitymodelSummary};
+use crate::eval::EvalSummary;
+use crate::labels::LabelTable;
+use crate::lift::{self, LabelMaps, LiftOptions, LiftSummary};
+use crate::raycast::{self, RaycastSummary};
+use crate::render::cache::{self, Cache, CacheOptions, CacheSummary};
+use crate::scene::{Scene, SceneError, Split};
+use crate::{classes, colmap, fsutil};
+pub use store::StageReport;
+use store::{Store, StoreError};
+
+/// The stage folders of a run, in order.
+pub const STAGES: [&str; 8] = [
+    "citymodel",
+    "raycast",
+    "render",
+    "masks",
+    "associate",
+    "fuse",
+    "lift",
+    "eval",
+];
 
 /// Errors of the run stage.
 #[derive(Debug, thiserror::Error)]
 pub enum RunError {
-    #[error("scene {scene}: {why}")]
-    Scene { scene: PathBuf, why: String },
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    #[error("{0}")]
+    Refused(String),
+    #[error(transparent)]
+    Store(#[from] StoreError),
     #[error(transparent)]
     CityModel(#[from] citymodel::CityModelError),
     #[error(transparent)]
@@ -25,23 +53,38 @@ pub enum RunError {
     #[error(transparent)]
     Raycast(#[from] raycast::RaycastError),
     #[error(transparent)]
+    Render(#[from] crate::render::RenderError),
+    #[error(transparent)]
+    Cache(#[from] cache::CacheError),
+    #[error(transparent)]
+    Labels(#[from] crate::labels::LabelsError),
+    #[error(transparent)]
     Lift(#[from] lift::LiftError),
     #[error(transparent)]
     Eval(#[from] crate::eval::EvalError),
     #[error(transparent)]
+    Ply(#[from] crate::splat::PlyError),
+    #[error(transparent)]
     Fs(#[from] fsutil::FsError),
     #[error(transparent)]
     Mesh(#[from] crate::mesh::MeshError),
+    #[error(transparent)]
+    Report(#[from] crate::report::ReportError),
 }
 
-/// Options of a run.
-#[derive(Debug, Clone, Serialize)]
+/// Every option of a run (recorded in `run.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RunOptions {
-    /// Part-pass depth tolerance in metres.
+    /// Part-pass depth tolerance τ in metres (× the alignment scale in the scene frame).
     pub tau_m: f64,
     pub single_pass: bool,
+    /// Contribution-list length of the cache (0 = complete lists).
+    pub top_k: usize,
     pub lift: LiftOptions,
+    /// Every `test_every`-th view (by name) is a test view; 0 = none.
     pub test_every: usize,
+    /// Run without `citymodel/alignment.json` (the CityGML coordinates minus a local origin).
+    pub local_origin: bool,
     /// Rerun every stage even when its output is complete.
     pub force: bool,
 }
@@ -51,182 +94,86 @@ impl Default for RunOptions {
         RunOptions {
             tau_m: 0.5,
             single_pass: false,
+            top_k: 16,
             lift: LiftOptions::default(),
             test_every: 8,
+            local_origin: false,
             force: false,
         }
     }
 }
 
-/// What happened to one stage.
-#[derive(Debug, Clone, Serialize)]
-pub struct StageReport {
-    pub stage: String,
-    pub resumed: bool,
-    pub seconds: f64,
-    pub out: PathBuf,
+/// What a run did.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunSummary {
+    pub scene: PathBuf,
+    pub options: RunOptions,
+    pub stages: Vec<StageReport>,
+    pub test_views: Vec<String>,
+    /// The evaluation, when the scene has ground truth.
+    pub eval: Option<EvalSummary>,
+    pub report: PathBuf,
 }
 
-/// The scene folder's parts (DESIGN.md).
-#[derive(Debug, Clone)]
-pub struct Scene {
-    pub root: PathBuf,
-    pub gml: Vec<PathBuf>,
-    pub alignment: Option<PathBuf>,
-    pub sparse: PathBuf,
-    pub images: Option<PathBuf>,
-    pub ply: PathBuf,
-    pub gt: Option<PathBuf>,
-}
-
-impl Scene {
-    /// Finds and checks the parts of a scene folder.
-    pub fn open(root: &Path) -> Result<Scene, RunError> {
-        let bad = |why: String| RunError::Scene {
-            scene: root.to_path_buf(),
-            why,
-        };
-        if !root.is_dir() {
-            return Err(bad("not a directory".into()));
-        }
-        let cm = root.join("citymodel");
-        let mut gml: Vec<PathBuf> = std::fs::read_dir(&cm)
-            .map_err(|e| bad(format!("citymodel/: {e}")))?
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| {
-                p.extension()
-                    .is_some_and(|x| x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml"))
-            })
-            .collect();
-        gml.sort();
-        if gml.is_empty() {
-            return Err(bad("citymodel/ holds no .gml files".into()));
-        }
-        let alignment = Some(cm.join("alignment.json")).filter(|p| p.is_file());
-        let sparse = [root.join("sparse/0"), root.join("sparse")]
-            .into_iter()
-            .find(|p| p.join("images.bin").is_file() || p.join("images.txt").is_file())
-            .ok_or_else(|| bad("no COLMAP model in sparse/0 (images.bin or images.txt)".into()))?;
-        let ply = root.join("point_cloud.ply");
-        if !ply.is_file() {
-            return Err(bad("no point_cloud.ply (the pre-trained 3DGS scene)".into()));
-        }
-        let images = Some(root.join("images")).filter(|p| p.is_dir());
-        let gt = Some(root.join("gt")).filter(|p| p.is_dir());
-        Ok(Scene {
-            root: root.to_path_buf(),
-            gml,
-            alignment,
-            sparse,
-            images,
-            ply,
-            gt,
+/// Every file directly in `dir` (sorted; none when it does not exist).
+fn files_in(dir: &Path) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map(|d| {
+            d.filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.is_file())
+                .collect()
         })
-    }
+        .unwrap_or_default();
+    v.sort();
+    v
 }
 
-/// FNV-1a 64 of a string.
-fn fnv(s: &str) -> String {
-    let mut h: u64 = 0xcbf29ce484222325;
-    for b in s.bytes() {
-        h ^= b as u64;
-        h = h.wrapping_mul(0x100000001b3);
-    }
-    format!("{h:016x}")
-}
-
-/// Fingerprint of a stage: its name, options and the size/mtime of each input path (files,
-/// or every file directly in an input directory), plus upstream fingerprints.
-fn fingerprint(
-    stage: &str,
-    options: &serde_json::Value,
-    inputs: &[&Path],
-    upstream: &[&str],
-) -> String {
-    let mut s = format!("{stage}\n{options}\n");
-    for p in inputs {
-        let mut files = vec![p.to_path_buf()];
-        if p.is_dir() {
-            files = std::fs::read_dir(p)
-                .map(|d| d.filter_map(|e| e.ok().map(|e| e.path())).collect())
-                .unwrap_or_default();
-            files.sort();
-        }
-        for f in files {
-            let m = std::fs::metadata(&f).ok();
-            let (len, mtime) = m.map_or((0, 0), |m| {
-                (
-                    m.len(),
-                    m.modified()
-                        .ok()
-                        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
-                        .map_or(0, |d| d.as_nanos()),
-                )
-            });
-            s.push_str(&format!("{}\t{len}\t{mtime}\n", f.display()));
-        }
-    }
-    for u in upstream {
-        s.push_str(u);
-        s.push('\n');
-    }
-    fnv(&s)
-}
-
-fn is_done(dir: &Path, fp: &str) -> bool {
-    std::fs::read(dir.join("stage.json"))
-        .ok()
-        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
-        .is_some_and(|v| v["fingerprint"] == fp && dir.join("summary.json").is_file())
-}
-
-fn mark_done(dir: &Path, stage: &str, fp: &str) -> Result<(), RunError> {
-    fsutil::write_json(
-        &dir.join("stage.json"),
-        &serde_json::json!({ "stage": stage, "fingerprint": fp }),
-    )?;
-    Ok(())
-}
-
-/// Runs (or resumes) every stage of a scene into `out`; returns the per-stage reports and,
-/// when the scene has ground truth, the metrics.
-pub fn run(
-    scene_dir: &Path,
-    out: &Path,
-    opts: &RunOptions,
-) -> Result<(Vec<StageReport>, Option<serde_json::Value>), RunError> {
+/// Runs (or resumes) every stage of the scene folder `scene_dir` into `out`.
+pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary, RunError> {
+    // Validate before anything is written.
+    store::check_out_dir(scene_dir, out, &STAGES).map_err(RunError::Refused)?;
     let scene = Scene::open(scene_dir)?;
-    fsutil::create_dir(out)?;
-    let mut reports = Vec::new();
-    let mut stage = |name: &str,
-                     fp: &str,
-                     body: &mut dyn FnMut(&Path) -> Result<(), RunError>|
-     -> Result<(), RunError> {
-        let dir = out.join(name);
-        let t = Instant::now();
-        let resumed = !opts.force && is_done(&dir, fp);
-        if !resumed {
-            fsutil::create_dir(&dir)?;
-            let _ = std::fs::remove_file(dir.join("stage.json"));
-            body(&dir)?;
-            mark_done(&dir, name, fp)?;
-        }
-        reports.push(StageReport {
-            stage: name.into(),
-            resumed,
-            seconds: t.elapsed().as_secs_f64(),
-            out: dir,
-        });
-        Ok(())
-    };
+    if scene.alignment.is_none() && !opts.local_origin {
+        return Err(RunError::Refused(format!(
+            "{}: no citymodel/alignment.json, so the transform from the CityGML coordinates to the \
+             3DGS scene frame is unknown; write one (`gs4city align`) or pass --local-origin to use \
+             the CityGML coordinates minus a local origin",
+            scene.root.display()
+        )));
+    }
+    if let Some(a) = &scene.alignment {
+        Alignment::read(a)?;
+    }
+    if !(opts.tau_m.is_finite() && opts.tau_m >= 0.0) {
+        return Err(RunError::Refused(format!(
+            "tau must be a finite number ≥ 0 (metres), got {}",
+            opts.tau_m
+        )));
+    }
+    let views = colmap::read_model(&scene.sparse)?;
+    let split = Split::new(views.clone(), opts.test_every);
+    if split.train.is_empty() {
+        return Err(RunError::Refused(
+            "no training views: every view is a test view (--test-every 1?)".into(),
+        ));
+    }
+    if scene.gt.is_some() && split.test.is_empty() {
+        return Err(RunError::Refused(
+            "the scene has gt/ but there are no test views to evaluate (--test-every 0?)".into(),
+        ));
+    }
+    let mut st = Store::open(
+        out,
+        &scene.root,
+        serde_json::to_value(opts).unwrap_or_default(),
+        opts.force,
+    )?;
+    let sparse_files = files_in(&scene.sparse);
 
     // 1. citymodel
-    let mut inputs: Vec<&Path> = scene.gml.iter().map(|p| p.as_path()).collect();
-    if let Some(a) = &scene.alignment {
-        inputs.push(a);
-    }
-    let fp_cm = fingerprint("citymodel", &serde_json::json!({}), &inputs, &[]);
-    stage("citymodel", &fp_cm, &mut |dir| {
+    let mut inputs = scene.gml.clone();
+    inputs.extend(scene.alignment.clone());
+    let cm: CitymodelSummary = st.stage("citymodel", &opts.local_origin, &inputs, &[], |dir| {
         let alignment = scene
             .alignment
             .as_deref()
@@ -234,78 +181,108 @@ pub fn run(
             .transpose()?;
         let o = citymodel::run(&scene.gml, &citymodel::Options { alignment })?;
         citymodel::write(&o, dir)?;
-        Ok(())
+        Ok::<_, RunError>(o.summary)
     })?;
-    let cm_dir = out.join("citymodel");
+    let cm_dir = st.dir("citymodel");
 
-    // 2. raycast (all views)
-    let rc_opts = serde_json::json!({ "tau_m": opts.tau_m, "single_pass": opts.single_pass });
-    let fp_rc = fingerprint("raycast", &rc_opts, &[&scene.sparse], &[&fp_cm]);
-    stage("raycast", &fp_rc, &mut |dir| {
-        let summary: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(cm_dir.join("summary.json")).map_err(|e| {
-                RunError::Scene {
-                    scene: scene.root.clone(),
-                    why: format!("{}: {e}", cm_dir.join("summary.json").display()),
-                }
-            })?)
-            .map_err(|e| RunError::Scene {
-                scene: scene.root.clone(),
-                why: format!("citymodel summary.json: {e}"),
-            })?;
-        let scale = summary["alignment"]["scale"].as_f64().unwrap_or(1.0);
-        let mesh = crate::mesh::TriMesh::read_ply(&cm_dir.join("mesh.ply"))?;
-        let views = colmap::read_model(&scene.sparse)?;
-        let ro = raycast::RaycastOptions {
-            tau: opts.tau_m * scale,
-            single_pass: opts.single_pass,
-        };
-        let s = raycast::run(&mesh, &views, &ro, scene.images.as_deref(), dir)?;
-        fsutil::write_json(&dir.join("summary.json"), &s)?;
-        Ok(())
-    })?;
-
-    // 3. lift
-    let lift_opts = serde_json::json!({ "lift": opts.lift, "test_every": opts.test_every });
-    let fp_lift = fingerprint("lift", &lift_opts, &[&scene.ply, &scene.sparse], &[&fp_rc]);
-    stage("lift", &fp_lift, &mut |dir| {
-        lift::run(&LiftConfig {
-            ply: scene.ply.clone(),
-            colmap: scene.sparse.clone(),
-            raycast: out.join("raycast"),
-            citymodel: cm_dir.clone(),
-            out: dir.to_path_buf(),
-            options: opts.lift,
-            test_every: opts.test_every,
-            predict_k: 16,
-        })?;
-        Ok(())
-    })?;
-
-    // 4. eval on the test views, when the scene has ground truth
-    let mut metrics: Option<serde_json::Value> = None;
-    if let Some(gt) = &scene.gt {
-        let fp_eval = fingerprint("eval", &serde_json::json!({}), &[gt], &[&fp_lift]);
-        let stems = lift::test_views(&out.join("lift"));
-        if stems.is_empty() {
-            return Err(RunError::Scene {
-                scene: scene.root.clone(),
-                why: "gt/ exists but there are no test views to evaluate (--test-every 0?)".into(),
-            });
-        }
-        stage("eval", &fp_eval, &mut |dir| {
-            let (summary, _) = crate::eval::run_for(&out.join("lift"), gt, dir, Some(&stems))?;
-            fsutil::write_json(&dir.join("summary.json"), &summary)?;
-            Ok(())
-        })?;
-        metrics = serde_json::from_slice(
-            &std::fs::read(out.join("eval/metrics.json")).unwrap_or_default(),
-        )
-        .ok();
+    // 2. raycast (every view)
+    let ro = raycast::RaycastOptions {
+        tau: opts.tau_m * cm.alignment.scale,
+        single_pass: opts.single_pass,
+    };
+    let mut inputs = sparse_files.clone();
+    if let Some(d) = &scene.images {
+        inputs.extend(files_in(d));
     }
-    fsutil::write_json(
-        &out.join("summary.json"),
-        &serde_json::json!({ "scene": scene.root, "options": opts, "stages": reports, "metrics": metrics.as_ref().map(|m| serde_json::json!({"paper": m["paper"], "dataset": m["dataset"]})) }),
+    let _rc: RaycastSummary = st.stage("raycast", &ro, &inputs, &["citymodel"], |dir| {
+        let mesh = crate::mesh::TriMesh::read_ply(&cm_dir.join("mesh.ply"))?;
+        Ok::<_, RunError>(raycast::run(
+            &mesh,
+            &views,
+            &ro,
+            scene.images.as_deref(),
+            dir,
+        )?)
+    })?;
+    let rc_dir = st.dir("raycast");
+
+    // 3. render: the contributions cache of every view
+    let co = CacheOptions { top_k: opts.top_k };
+    let mut inputs = vec![scene.ply.clone()];
+    inputs.extend(sparse_files.iter().cloned());
+    let _cs: CacheSummary = st.stage("render", &co, &inputs, &[], |dir| {
+        let (g, _) = crate::splat::read_ply(&scene.ply, &Default::default())?;
+        let prepared = crate::render::PreparedScene::new(&g)?;
+        Ok::<_, RunError>(cache::build(&prepared, &views, &co, dir)?)
+    })?;
+    let cache = Cache::open(&st.dir("render"))?;
+
+    // 4. lift: the vote of M_city over the training views
+    let lift_opts = (opts.lift, opts.test_every);
+    let lift_s: LiftSummary = st.stage(
+        "lift",
+        &lift_opts,
+        std::slice::from_ref(&scene.ply),
+        &["citymodel", "raycast", "render"],
+        |dir| {
+            let entities = citymodel::read_semantics(&cm_dir.join("semantics.json"))?;
+            let labels = LabelTable::city(&entities, &classes::table(&entities))?;
+            Ok::<_, RunError>(lift::run(
+                &lift::LiftInputs {
+                    ply: &scene.ply,
+                    cache: &cache,
+                    train: &split.train,
+                    test: &split.test,
+                    maps: &LabelMaps::City(rc_dir.clone()),
+                    labels: &labels,
+                    entities: &entities,
+                },
+                &opts.lift,
+                dir,
+            )?)
+        },
     )?;
-    Ok((reports, metrics))
+    let pred_dir = st.dir("lift");
+
+    // 5. eval on the test views, when the scene has ground truth
+    let mut eval_summary = None;
+    if let Some(gt) = &scene.gt {
+        let stems = split.test_stems();
+        let inputs: Vec<PathBuf> = stems
+            .iter()
+            .map(|s| gt.join(format!("{s}.class.npy")))
+            .filter(|p| p.is_file())
+            .collect();
+        let mode = "vote";
+        let e: EvalSummary = st.stage("eval", &(mode, &stems), &inputs, &["lift"], |dir| {
+            Ok::<_, RunError>(crate::eval::run_for(&pred_dir, gt, dir, Some(&stems), Some(mode))?.0)
+        })?;
+        eval_summary = Some(e);
+    }
+    let _ = lift_s;
+
+    // Report (rewritten every time: it lists what this invocation resumed).
+    let report = crate::report::write(&crate::report::ReportInputs {
+        scene: &scene,
+        out,
+        views: &split.test,
+        predictions: &pred_dir,
+        stages: &st.reports,
+        eval: eval_summary.as_ref(),
+    })?;
+    let summary = RunSummary {
+        scene: scene.root.clone(),
+        options: opts.clone(),
+        stages: st.reports.clone(),
+        test_views: split.test_stems(),
+        eval: eval_summary,
+        report,
+    };
+    fsutil::write_json(&out.join("summary.json"), &summary)?;
+    Ok(summary)
+}
+
+/// The views of `names` in `views` (for callers that hold stems).
+pub fn views_named<'a>(views: &'a [View], stems: &[String]) -> Vec<&'a View> {
+    views.iter().filter(|v| stems.contains(&v.stem())).collect()
 }

@@ -55,26 +55,6 @@ pub struct CityInfo {
     pub polygons_skipped: usize,
 }
 
-/// Per object its `(feature, surface, part)` entity ids (nearest ancestor-or-self per level),
-/// as `citymodel` labels faces.
-fn labels(m: &CityModel, base: i32) -> Vec<[i32; 3]> {
-    let mut out = vec![[-1; 3]; m.objects.len()];
-    for (i, o) in m.objects.iter().enumerate() {
-        let mut l = o.parent.map(|p| out[p]).unwrap_or([-1; 3]);
-        let id = base + i as i32;
-        match o.class.level() {
-            Level::Feature => l = [id, -1, -1],
-            Level::Surface => {
-                l[1] = id;
-                l[2] = -1;
-            }
-            Level::Part => l[2] = id,
-        }
-        out[i] = l;
-    }
-    out
-}
-
 /// Base colour of a class (sRGB-ish 0..1).
 pub fn palette(class: i32) -> [f64; 3] {
     match class {
@@ -121,10 +101,10 @@ pub fn build(
     let mut images: Vec<Option<Array3<u8>>> = Vec::new();
     let mut image_index: HashMap<PathBuf, usize> = HashMap::new();
     let mut jobs: Vec<PolyJob> = Vec::new();
-    let mut base = 0i32;
+    let mut base = 0usize;
+    let chain = crate::citymodel::chains(entities);
     for (fi, m) in models.iter().enumerate() {
         let dir = files[fi].parent().unwrap_or(Path::new(".")).to_path_buf();
-        let lab = labels(m, base);
         // ring id → (texture image index, uvs)
         let mut ring_uv: HashMap<&str, (usize, &Vec<[f64; 2]>)> = HashMap::new();
         if cfg.textures {
@@ -169,13 +149,14 @@ pub fn build(
             if m.objects[owner].lod_used != Some(lod) {
                 continue;
             }
-            let label = lab[owner];
-            let instance = if label[2] >= 0 {
-                label[2]
-            } else if label[1] >= 0 {
-                label[1]
+            let c = chain[base + owner];
+            let label = [c.feature, c.surface, c.part];
+            let instance = if c.part >= 0 {
+                c.part
+            } else if c.surface >= 0 {
+                c.surface
             } else {
-                label[0]
+                c.feature
             };
             let class = classes::of_entity(entities, instance);
             let ext: Vec<DVec3> = p.exterior.points.iter().map(|q| *q - origin).collect();
@@ -239,7 +220,7 @@ pub fn build(
                 material,
             });
         }
-        base += m.objects.len() as i32;
+        base += m.objects.len();
     }
 
     // Buildings: bbox per root feature.

@@ -217,22 +217,30 @@ pub struct SynthConfig {
 }
 
 /// A named preset.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Preset {
     /// Bundled data (`data/citygml/`): two Ingolstadt buildings, ~14 views.
     Small,
-    /// The 27-building Ingolstadt street block in `../shared/data/citygml/ingolstadt_north`.
+    /// The 27-building Ingolstadt street block ([`street_block`]).
     Street,
 }
 
-/// Resolves a path relative to the working directory, else to the crate folder.
-fn data_path(rel: &str) -> PathBuf {
-    let p = PathBuf::from(rel);
-    if p.exists() {
-        return p;
+/// The 27-building Ingolstadt block of the street preset: `../shared/data/citygml/ingolstadt_north`
+/// relative to the working directory, else `shared/data/citygml/ingolstadt_north` beside an
+/// ancestor folder of the executable (a checkout's `target/release/gs4city` finds the `shared/`
+/// beside the checkout). `None` when neither exists (then `--citygml` must name it).
+pub fn street_block() -> Option<PathBuf> {
+    let rel = Path::new("shared/data/citygml/ingolstadt_north");
+    let cwd = Path::new("..").join(rel);
+    if cwd.is_dir() {
+        return Some(cwd);
     }
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
+    let exe = std::env::current_exe().ok()?;
+    exe.ancestors()
+        .skip(1)
+        .map(|a| a.join(rel))
+        .find(|p| p.is_dir())
 }
 
 impl SynthConfig {
@@ -241,14 +249,15 @@ impl SynthConfig {
         let mut c = SynthConfig::default();
         match p {
             Preset::Small => {
-                c.citygml = vec![data_path("data/citygml")];
+                // The bundled buildings; an unpacking error surfaces as "no CityGML input".
+                c.citygml = crate::bundled::citygml_dir().into_iter().collect();
                 c.splats.density = 60.0;
                 c.cameras.orbit_views = 10;
                 c.cameras.street_views = 4;
                 c.cameras.orbit_radius = [35.0, 50.0];
             }
             Preset::Street => {
-                c.citygml = vec![data_path("../shared/data/citygml/ingolstadt_north")];
+                c.citygml = street_block().into_iter().collect();
                 c.splats.density = 28.0;
                 c.ground.density = 5.0;
                 c.objects.trees = 24;

@@ -246,9 +246,43 @@ fn count_by_class(truth: &[Truth]) -> BTreeMap<String, usize> {
     m
 }
 
-/// Builds the scene and writes the whole folder; returns `summary.json`'s value.
-pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthError> {
+/// `summary.json` of a simulated scene: what was simulated, with the truth (alignment, objects,
+/// masks provenance). Simulation truth: read by tests and benchmarks, never by a stage.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SynthSummary {
+    pub simulated: bool,
+    pub note: String,
+    pub seed: u64,
+    pub citygml: Vec<String>,
+    pub citymodel_copies: Vec<String>,
+    pub gaussians: usize,
+    pub gaussians_per_class: BTreeMap<String, usize>,
+    pub textured_gaussians: usize,
+    pub textures_found: Vec<String>,
+    pub textures_missing: Vec<String>,
+    pub polygons_skipped: usize,
+    pub buildings: usize,
+    pub openings: usize,
+    pub objects: serde_json::Value,
+    pub water: bool,
+    pub floaters: usize,
+    pub views: usize,
+    pub view_names: Vec<String>,
+    pub test_views: Vec<String>,
+    pub pixels_per_class: BTreeMap<String, u64>,
+    pub per_view: Vec<serde_json::Value>,
+    pub alignment_true: serde_json::Value,
+    pub alignment_given: serde_json::Value,
+    pub noise: serde_json::Value,
+    pub simulated_masks: serde_json::Value,
+    pub timing: BTreeMap<String, f64>,
+    pub config: serde_json::Value,
+}
+
+/// Builds the scene and writes the whole folder; returns `summary.json`.
+pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
     let t_all = Instant::now();
+    let _ = std::fs::remove_file(out.join("summary.json"));
     let mut sim = build_scene(cfg)?;
     let t_w = Instant::now();
     for d in ["", "images", "gt", "citymodel", "sparse"] {
@@ -293,7 +327,9 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
     )?;
     let mut n_masks = 0usize;
     let mut prompts = None;
+    let bar = crate::progress::Bar::new("synth", sim.views.len() as u64, "views");
     for (vi, v) in sim.views.iter().enumerate() {
+        bar.inc(1);
         let l = gt::label_view(
             &scene,
             &sim.builder.truth,
@@ -346,6 +382,7 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
             sheet_views.push((l.rgb, l.class));
         }
     }
+    bar.finish();
     if let Some(p) = &prompts {
         crate::sam::write_prompts_json(&out.join("features/prompts.json"), p)?;
     }
@@ -440,36 +477,46 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<serde_json::Value, SynthErro
         .map(|(_, v)| v.name.as_str())
         .collect();
     sim.timings.insert("total_s", t_all.elapsed().as_secs_f64());
-    let summary = json!({
-        "simulated": true,
-        "note": "SIMULATED scene: Gaussians, images and ground truth are synthetic (gs4city synth); only the CityGML files are real.",
-        "seed": cfg.seed,
-        "citygml": sim.files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>(),
-        "citymodel_copies": copied,
-        "gaussians": sim.builder.len(),
-        "gaussians_per_class": count_by_class(&sim.builder.truth),
-        "textured_gaussians": sim.city.textured_gaussians,
-        "textures_found": sim.city.textures_found,
-        "textures_missing": sim.city.textures_missing,
-        "polygons_skipped": sim.city.polygons_skipped,
-        "buildings": sim.city.buildings.len(),
-        "openings": sim.city.openings.len(),
-        "objects": sim.world.objects,
-        "water": sim.world.water,
-        "floaters": sim.world.floaters,
-        "views": n,
-        "view_names": sim.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
-        "test_views": test_views,
-        "pixels_per_class": px_class,
-        "per_view": per_view,
-        "alignment_true": sim.truth_alignment.to_json(),
-        "alignment_given": given.to_json(),
-        "noise": cfg.noise,
-        "simulated_masks": { "masks": n_masks, "mask_noise": cfg.masks, "feature_noise": cfg.features,
-            "note": "SIMULATED Segment-Anything masks and CLIP-like features (docs/sam.md); no SAM or CLIP model was run" },
-        "timings": sim.timings,
-        "config": cfg,
-    });
+    let summary = SynthSummary {
+        simulated: true,
+        note: "SIMULATED scene: Gaussians, images and ground truth are synthetic (gs4city synth); only the CityGML files are real.".into(),
+        seed: cfg.seed,
+        citygml: sim.files.iter().map(|f| f.display().to_string()).collect(),
+        citymodel_copies: copied.into_iter().flatten().collect(),
+        gaussians: sim.builder.len(),
+        gaussians_per_class: count_by_class(&sim.builder.truth),
+        textured_gaussians: sim.city.textured_gaussians,
+        textures_found: sim.city.textures_found.clone(),
+        textures_missing: sim.city.textures_missing.clone(),
+        polygons_skipped: sim.city.polygons_skipped,
+        buildings: sim.city.buildings.len(),
+        openings: sim.city.openings.len(),
+        objects: serde_json::to_value(&sim.world.objects).unwrap_or_default(),
+        water: sim.world.water,
+        floaters: sim.world.floaters,
+        views: n,
+        view_names: sim.views.iter().map(|v| v.name.clone()).collect(),
+        test_views: test_views.iter().map(|s| s.to_string()).collect(),
+        pixels_per_class: px_class,
+        per_view,
+        alignment_true: sim.truth_alignment.to_json(),
+        alignment_given: given.to_json(),
+        noise: serde_json::to_value(&cfg.noise).unwrap_or_default(),
+        simulated_masks: json!({ "masks": n_masks, "mask_noise": cfg.masks, "feature_noise": cfg.features,
+            "note": "SIMULATED Segment-Anything masks and CLIP-like features (docs/sam.md); no SAM or CLIP model was run" }),
+        timing: sim.timings.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+        config: serde_json::to_value(cfg).unwrap_or_default(),
+    };
     crate::fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::progress::done(
+        "synth",
+        &format!(
+            "SIMULATED scene: {} Gaussians, {} views ({} test)",
+            summary.gaussians,
+            summary.views,
+            summary.test_views.len()
+        ),
+        t_all.elapsed().as_secs_f64(),
+    );
     Ok(summary)
 }

@@ -1,0 +1,599 @@
+//! The contributions cache: per view, the per-pixel lists of `(Gaussian id, α·T)` of the
+//! rasterizer (top-k by weight, in depth order, plus the dropped mass), the accumulated alpha and
+//! the expected depth — rendered once, stored one file per view, and reused by every stage that
+//! needs to know which Gaussians make a pixel (masks, associate, lift, train, query). Geometry is
+//! frozen, so a rendered per-Gaussian quantity `x` at pixel `p` is exactly
+//! `Σ_{i ∈ list(p)} w_i·x_i` (+ the truncated rest): forward passes are sparse products with
+//! these lists and backward passes their transposes.
+//!
+//! File `<stem>.contrib` (little endian):
+//! ```text
+//! magic "GS4CCONT", u32 version = 1, u32 width, u32 height, u32 k (0 = all lists kept),
+//! u64 gaussians (ids are < this), u64 entries, 24 reserved bytes         → 64-byte header
+//! u16 count[H·W]                           list length per pixel (row-major; ≤ 2344 by T_min)
+//! u32 id[entries], f32 weight[entries]     the lists, pixel after pixel, each in depth order
+//! f32 residual[H·W]                        α·T mass not kept (top-k), 0 otherwise
+//! f32 alpha[H·W]                           1 − T
+//! f32 depth[H·W]                           expected depth Σw·z/(1−T); NaN where 1−T < 1e-3
+//! ```
+//! Reading checks every size against the file length before allocating, the counts against `k`
+//! and `entries`, ids against `gaussians`, and weights for finiteness.
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use super::{ContributionMode, Contributions, PreparedScene, RenderError, RenderOptions};
+use crate::camera::View;
+use crate::fsutil;
+use crate::progress::Bar;
+
+const MAGIC: &[u8; 8] = b"GS4CCONT";
+const VERSION: u32 = 1;
+const HEADER: usize = 64;
+/// Longest list a pixel can have: `(1 − 1/255)^n ≥ 1e-4` ⇒ `n ≤ 2344`.
+pub const MAX_LIST: usize = 2344;
+
+/// Appends `v` in little-endian byte order.
+fn put<T: bytemuck::Pod + ToLe>(b: &mut Vec<u8>, v: &[T]) {
+    if cfg!(target_endian = "little") {
+        b.extend_from_slice(bytemuck::cast_slice(v));
+    } else {
+        for x in v {
+            b.extend_from_slice(bytemuck::bytes_of(&x.to_le()));
+        }
+    }
+}
+
+/// Reads little-endian values (any alignment of `bytes`; its length is a multiple of the size).
+fn take<T: bytemuck::Pod + ToLe>(bytes: &[u8]) -> Vec<T> {
+    let v: Vec<T> = bytemuck::pod_collect_to_vec(bytes);
+    if cfg!(target_endian = "little") {
+        v
+    } else {
+        v.into_iter().map(|x| x.to_le()).collect()
+    }
+}
+
+/// Byte order swap to/from little endian (its own inverse).
+trait ToLe: Copy {
+    fn to_le(self) -> Self;
+}
+impl ToLe for u16 {
+    fn to_le(self) -> Self {
+        u16::to_le(self)
+    }
+}
+impl ToLe for u32 {
+    fn to_le(self) -> Self {
+        u32::to_le(self)
+    }
+}
+impl ToLe for f32 {
+    fn to_le(self) -> Self {
+        f32::from_bits(self.to_bits().to_le())
+    }
+}
+
+/// Errors of reading a cache file.
+#[derive(Debug, thiserror::Error)]
+pub enum CacheError {
+    #[error("cannot read {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path}: not a gs4city contributions file: {why}")]
+    Format { path: PathBuf, why: String },
+    #[error("{path}: built for {found} Gaussians, the scene has {expected}: the cache is stale")]
+    Stale {
+        path: PathBuf,
+        found: usize,
+        expected: usize,
+    },
+    #[error(transparent)]
+    Fs(#[from] fsutil::FsError),
+}
+
+/// One view's contributions (see the module docs).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewContrib {
+    pub width: usize,
+    pub height: usize,
+    /// List length bound (0 = complete lists).
+    pub k: usize,
+    /// Number of Gaussians of the scene the lists index.
+    pub gaussians: usize,
+    pub lists: Contributions,
+    /// Accumulated alpha `1 − T` per pixel.
+    pub alpha: Vec<f32>,
+    /// Expected depth per pixel, NaN where the alpha is below `DEPTH_MIN_ALPHA`.
+    pub depth: Vec<f32>,
+}
+
+impl ViewContrib {
+    /// Pixel `p`'s `(ids, weights)`.
+    #[inline]
+    pub fn pixel(&self, p: usize) -> (&[u32], &[f32]) {
+        self.lists.pixel(p)
+    }
+
+    /// Number of pixels.
+    pub fn pixels(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// Number of `(id, weight)` entries.
+    pub fn entries(&self) -> usize {
+        self.lists.ids.len()
+    }
+
+    /// Bytes of the file this view is stored in.
+    pub fn file_bytes(&self) -> usize {
+        HEADER + self.pixels() * (2 + 12) + self.entries() * 8
+    }
+
+    /// Renders `view` with lists of at most `k` entries (0 = all).
+    pub fn render(scene: &PreparedScene, view: &View, k: usize) -> Result<Self, RenderError> {
+        let mode = if k == 0 {
+            ContributionMode::All
+        } else {
+            ContributionMode::TopK(k)
+        };
+        let opts = RenderOptions {
+            features: false,
+            contributions: mode,
+            ..Default::default()
+        };
+        let out = super::render_view(scene, &view.camera, &opts).map_err(|e| match e {
+            RenderError::Camera { why, .. } => RenderError::Camera {
+                view: view.name.clone(),
+                why,
+            },
+            e => e,
+        })?;
+        let lists = out.contributions.unwrap_or_default();
+        Ok(ViewContrib {
+            width: out.width,
+            height: out.height,
+            k,
+            gaussians: scene.len(),
+            lists,
+            alpha: out.alpha,
+            depth: out.depth,
+        })
+    }
+
+    /// The file's bytes.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let npx = self.pixels();
+        let mut b = Vec::with_capacity(self.file_bytes());
+        b.extend_from_slice(MAGIC);
+        for v in [
+            VERSION,
+            self.width as u32,
+            self.height as u32,
+            self.k as u32,
+        ] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        b.extend_from_slice(&(self.gaussians as u64).to_le_bytes());
+        b.extend_from_slice(&(self.entries() as u64).to_le_bytes());
+        b.resize(HEADER, 0);
+        let counts: Vec<u16> = self
+            .lists
+            .offsets
+            .windows(2)
+            .map(|w| (w[1] - w[0]) as u16)
+            .collect();
+        debug_assert_eq!(counts.len(), npx);
+        put(&mut b, &counts);
+        put(&mut b, &self.lists.ids);
+        for arr in [
+            &self.lists.weights,
+            &self.lists.residual,
+            &self.alpha,
+            &self.depth,
+        ] {
+            put(&mut b, arr);
+        }
+        b
+    }
+
+    /// Writes the view atomically.
+    pub fn write(&self, path: &Path) -> Result<(), CacheError> {
+        fsutil::write_bytes(path, &self.to_bytes())?;
+        Ok(())
+    }
+
+    /// Reads and checks a file; `expect_gaussians` (when given) must equal the stored count.
+    pub fn read(path: &Path, expect_gaussians: Option<usize>) -> Result<Self, CacheError> {
+        let bytes = std::fs::read(path).map_err(|source| CacheError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let v = Self::from_bytes(path, &bytes)?;
+        if let Some(n) = expect_gaussians
+            && n != v.gaussians
+        {
+            return Err(CacheError::Stale {
+                path: path.to_path_buf(),
+                found: v.gaussians,
+                expected: n,
+            });
+        }
+        Ok(v)
+    }
+
+    /// Parses and checks a file's bytes (`path` names it in errors).
+    pub fn from_bytes(path: &Path, b: &[u8]) -> Result<Self, CacheError> {
+        let bad = |why: String| CacheError::Format {
+            path: path.to_path_buf(),
+            why,
+        };
+        if b.len() < HEADER || &b[..8] != MAGIC {
+            return Err(bad("missing the GS4CCONT header".into()));
+        }
+        let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().expect("4 bytes"));
+        let u64_at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().expect("8 bytes"));
+        let version = u32_at(8);
+        if version != VERSION {
+            return Err(bad(format!(
+                "version {version}, this program reads {VERSION}"
+            )));
+        }
+        let (width, height, k) = (
+            u32_at(12) as usize,
+            u32_at(16) as usize,
+            u32_at(20) as usize,
+        );
+        let (gaussians, entries) = (u64_at(24), u64_at(32));
+        let npx = (width as u64)
+            .checked_mul(height as u64)
+            .filter(|&n| n > 0 && n <= 1 << 31)
+            .ok_or_else(|| bad(format!("image size {width}×{height} is empty or too large")))?;
+        let expected = (HEADER as u64)
+            .checked_add(npx * 14)
+            .and_then(|x| entries.checked_mul(8).and_then(|e| x.checked_add(e)));
+        if expected != Some(b.len() as u64) {
+            return Err(bad(format!(
+                "{} bytes, the header ({width}×{height}, {entries} entries) needs {}",
+                b.len(),
+                expected.map_or("more than 2^64".to_string(), |e| e.to_string())
+            )));
+        }
+        if k > MAX_LIST || gaussians > u64::from(u32::MAX) + 1 {
+            return Err(bad(format!(
+                "k = {k} or {gaussians} Gaussians out of range"
+            )));
+        }
+        let (npx, entries) = (npx as usize, entries as usize);
+        let mut o = HEADER;
+        let counts: Vec<u16> = take(&b[o..o + 2 * npx]);
+        o += 2 * npx;
+        let mut offsets = Vec::with_capacity(npx + 1);
+        offsets.push(0u64);
+        let bound = if k == 0 { MAX_LIST } else { k };
+        for (p, &n) in counts.iter().enumerate() {
+            let n = n as usize;
+            if n > bound {
+                return Err(bad(format!("pixel {p} has {n} entries, more than {bound}")));
+            }
+            offsets.push(offsets[p] + n as u64);
+        }
+        if offsets[npx] != entries as u64 {
+            return Err(bad(format!(
+                "the per-pixel counts sum to {}, the header says {entries}",
+                offsets[npx]
+            )));
+        }
+        let ids: Vec<u32> = take(&b[o..o + 4 * entries]);
+        if let Some(id) = ids.iter().find(|&&id| u64::from(id) >= gaussians) {
+            return Err(bad(format!(
+                "Gaussian id {id} is not below the Gaussian count {gaussians}"
+            )));
+        }
+        o += 4 * entries;
+        let mut floats = |n: usize| {
+            let v: Vec<f32> = take(&b[o..o + 4 * n]);
+            o += 4 * n;
+            v
+        };
+        let weights = floats(entries);
+        let residual = floats(npx);
+        let alpha = floats(npx);
+        let depth = floats(npx);
+        let unit = |x: &f32| x.is_finite() && (0.0..=1.0 + 1e-5).contains(x);
+        if let Some(i) = weights.iter().position(|w| !unit(w)) {
+            return Err(bad(format!("weight {i} is {}", weights[i])));
+        }
+        if let Some(p) = residual
+            .iter()
+            .zip(&alpha)
+            .position(|(r, a)| !unit(r) || !unit(a))
+        {
+            return Err(bad(format!("pixel {p}: residual or alpha outside [0, 1]")));
+        }
+        Ok(ViewContrib {
+            width,
+            height,
+            k,
+            gaussians: gaussians as usize,
+            lists: Contributions {
+                offsets,
+                ids,
+                weights,
+                residual,
+            },
+            alpha,
+            depth,
+        })
+    }
+}
+
+/// Options of the cache.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CacheOptions {
+    /// List length per pixel (0 = all contributions).
+    pub top_k: usize,
+}
+
+impl Default for CacheOptions {
+    fn default() -> Self {
+        CacheOptions { top_k: 16 }
+    }
+}
+
+/// One cached view in [`CacheSummary`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CachedView {
+    pub name: String,
+    pub stem: String,
+    pub width: usize,
+    pub height: usize,
+    pub entries: u64,
+    /// Mean list length over pixels.
+    pub mean_list: f64,
+    /// Mean over covered pixels (alpha ≥ 1e-3) of the dropped mass `residual / alpha`.
+    pub mean_dropped_share: f64,
+    /// Fraction of pixels with alpha ≥ 1e-3.
+    pub coverage: f64,
+    pub bytes: u64,
+    pub render_s: f64,
+}
+
+/// The cache stage's `summary.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CacheSummary {
+    pub gaussians: usize,
+    pub skipped_gaussians: usize,
+    pub options: CacheOptions,
+    pub views: Vec<CachedView>,
+    pub bytes: u64,
+    pub render_s: f64,
+    pub write_s: f64,
+    pub total_s: f64,
+}
+
+impl CacheSummary {
+    /// The summary of a cache folder.
+    pub fn read(dir: &Path) -> Result<Self, fsutil::FsError> {
+        fsutil::read_json(&dir.join("summary.json"))
+    }
+}
+
+/// Path of view `stem`'s cache file in `dir`.
+pub fn cache_file(dir: &Path, stem: &str) -> PathBuf {
+    dir.join(format!("{stem}.contrib"))
+}
+
+/// Renders every view once with lists of at most `opts.top_k` entries and writes
+/// `<stem>.contrib` per view and `summary.json` (last) into `out_dir`.
+pub fn build(
+    scene: &PreparedScene,
+    views: &[View],
+    opts: &CacheOptions,
+    out_dir: &Path,
+) -> Result<CacheSummary, RenderError> {
+    if opts.top_k > MAX_LIST {
+        return Err(RenderError::Scene(format!(
+            "top-k {} exceeds the longest possible list ({MAX_LIST}); use 0 for complete lists",
+            opts.top_k
+        )));
+    }
+    let t0 = Instant::now();
+    fsutil::create_dir(out_dir)?;
+    let _ = std::fs::remove_file(out_dir.join("summary.json"));
+    let mut stems = std::collections::BTreeSet::new();
+    for v in views {
+        if !stems.insert(v.stem()) {
+            return Err(RenderError::Camera {
+                view: v.name.clone(),
+                why: format!("two views share the output stem `{}`", v.stem()),
+            });
+        }
+    }
+    let bar = Bar::new("render", views.len() as u64, "views");
+    let mut summary = CacheSummary {
+        gaussians: scene.len(),
+        skipped_gaussians: scene.skipped,
+        options: *opts,
+        views: Vec::with_capacity(views.len()),
+        bytes: 0,
+        render_s: 0.0,
+        write_s: 0.0,
+        total_s: 0.0,
+    };
+    // Rendering (parallel over tiles) overlaps with writing the previous view's file on a
+    // second thread; at most one finished view waits, so memory stays at two views.
+    let (tx, rx) = std::sync::mpsc::sync_channel::<(PathBuf, Vec<u8>)>(1);
+    let written = std::thread::scope(|sc| -> Result<f64, RenderError> {
+        let writer = sc.spawn(move || -> Result<f64, CacheError> {
+            let mut secs = 0.0;
+            for (path, bytes) in rx {
+                let t = Instant::now();
+                fsutil::write_bytes(&path, &bytes)?;
+                secs += t.elapsed().as_secs_f64();
+            }
+            Ok(secs)
+        });
+        let rendered = (|| -> Result<(), RenderError> {
+            for v in views {
+                let t = Instant::now();
+                let c = ViewContrib::render(scene, v, opts.top_k)?;
+                let render_s = t.elapsed().as_secs_f64();
+                summary.render_s += render_s;
+                let npx = c.pixels();
+                let (mut covered, mut share) = (0usize, 0.0f64);
+                for p in 0..npx {
+                    if c.alpha[p] >= super::DEPTH_MIN_ALPHA {
+                        covered += 1;
+                        share += f64::from(c.lists.residual[p]) / f64::from(c.alpha[p]);
+                    }
+                }
+                summary.bytes += c.file_bytes() as u64;
+                summary.views.push(CachedView {
+                    name: v.name.clone(),
+                    stem: v.stem(),
+                    width: c.width,
+                    height: c.height,
+                    entries: c.entries() as u64,
+                    mean_list: c.entries() as f64 / npx as f64,
+                    mean_dropped_share: if covered > 0 {
+                        share / covered as f64
+                    } else {
+                        0.0
+                    },
+                    coverage: covered as f64 / npx as f64,
+                    bytes: c.file_bytes() as u64,
+                    render_s,
+                });
+                if tx
+                    .send((cache_file(out_dir, &v.stem()), c.to_bytes()))
+                    .is_err()
+                {
+                    break; // the writer failed; its error is reported below
+                }
+                bar.inc(1);
+            }
+            Ok(())
+        })();
+        drop(tx);
+        let w = writer
+            .join()
+            .unwrap_or_else(|_| {
+                Err(CacheError::Format {
+                    path: out_dir.to_path_buf(),
+                    why: "the writer thread panicked".into(),
+                })
+            })
+            .map_err(RenderError::from);
+        rendered?;
+        w
+    })?;
+    summary.write_s = written;
+    bar.finish();
+    summary.total_s = t0.elapsed().as_secs_f64();
+    fsutil::write_json(&out_dir.join("summary.json"), &summary)?;
+    crate::progress::done(
+        "render",
+        &format!(
+            "{} views cached, top-{} lists, {:.0} MB",
+            views.len(),
+            opts.top_k,
+            summary.bytes as f64 / 1e6
+        ),
+        summary.total_s,
+    );
+    Ok(summary)
+}
+
+/// A cache folder written by [`build`].
+#[derive(Debug, Clone)]
+pub struct Cache {
+    pub dir: PathBuf,
+    pub summary: CacheSummary,
+}
+
+impl Cache {
+    /// Opens a cache folder (reads its summary).
+    pub fn open(dir: &Path) -> Result<Cache, CacheError> {
+        Ok(Cache {
+            dir: dir.to_path_buf(),
+            summary: CacheSummary::read(dir)?,
+        })
+    }
+
+    /// Loads view `stem`, checking it indexes the cache's Gaussians.
+    pub fn load(&self, stem: &str) -> Result<ViewContrib, CacheError> {
+        ViewContrib::read(&cache_file(&self.dir, stem), Some(self.summary.gaussians))
+    }
+
+    /// Whether the cache holds view `stem`.
+    pub fn has(&self, stem: &str) -> bool {
+        self.summary.views.iter().any(|v| v.stem == stem)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> ViewContrib {
+        ViewContrib {
+            width: 3,
+            height: 2,
+            k: 2,
+            gaussians: 10,
+            lists: Contributions {
+                offsets: vec![0, 2, 2, 3, 5, 5, 6],
+                ids: vec![1, 4, 9, 0, 2, 7],
+                weights: vec![0.5, 0.25, 0.9, 0.1, 0.2, 0.3],
+                residual: vec![0.1, 0.0, 0.0, 0.05, 0.0, 0.0],
+            },
+            alpha: vec![0.85, 0.0, 0.9, 0.35, 0.0, 0.3],
+            depth: vec![2.0, f32::NAN, 3.0, 1.0, f32::NAN, 5.0],
+        }
+    }
+
+    #[test]
+    fn round_trip_is_exact_and_sizes_agree() {
+        let v = sample();
+        let b = v.to_bytes();
+        assert_eq!(b.len(), v.file_bytes());
+        let r = ViewContrib::from_bytes(Path::new("x"), &b).unwrap();
+        assert_eq!(r.lists, v.lists);
+        assert_eq!(r.alpha, v.alpha);
+        assert_eq!(r.depth[0], 2.0);
+        assert!(r.depth[1].is_nan());
+        assert_eq!(r.pixel(3), (&[0u32, 2][..], &[0.1f32, 0.2][..]));
+    }
+
+    #[test]
+    fn damaged_files_are_refused_with_a_reason() {
+        let b = sample().to_bytes();
+        let e = |b: &[u8]| {
+            ViewContrib::from_bytes(Path::new("v.contrib"), b)
+                .unwrap_err()
+                .to_string()
+        };
+        assert!(e(&b[..b.len() - 1]).contains("bytes"), "truncated");
+        let mut x = b.clone();
+        x[0] = b'X';
+        assert!(e(&x).contains("header"));
+        let mut x = b.clone();
+        x[HEADER] = 3; // pixel 0 claims 3 entries > k = 2
+        assert!(e(&x).contains("more than 2"));
+        let mut x = b.clone();
+        let id0 = HEADER + 12;
+        x[id0..id0 + 4].copy_from_slice(&10u32.to_le_bytes());
+        assert!(e(&x).contains("not below"));
+        let mut x = b.clone();
+        x[12..16].copy_from_slice(&u32::MAX.to_le_bytes()); // width: size check before allocating
+        assert!(e(&x).contains("bytes") || e(&x).contains("too large"));
+        let mut x = b;
+        let w0 = HEADER + 12 + 24;
+        x[w0..w0 + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+        assert!(e(&x).contains("weight 0"));
+    }
+}

@@ -1,0 +1,549 @@
+//! The run store: one folder per stage under the run folder `R`, and `R/run.json` recording, per
+//! completed stage, its fingerprint (program version, options, the identities of the scene files
+//! it read, the outputs of the upstream stages it read) and the size and digest of every file it
+//! wrote.
+//!
+//! * A stage runs in `R/.<stage>.partial/`; only when it has finished is that folder renamed to
+//!   `R/<stage>/` (an older `R/<stage>/` is first moved aside to `R/.<stage>.old/` and removed
+//!   after), and only then is `run.json` rewritten (atomically). A crash therefore leaves either
+//!   the old complete folder with its old record, or no folder: never half old, half new.
+//!   Leftover `.partial`/`.old` folders are removed when the store is opened.
+//! * A stage is resumed only when its record's fingerprint equals the new one **and** every
+//!   recorded output still exists with the recorded size and content (the digest is recomputed
+//!   when the modification time differs). Otherwise it reruns, with a new run id; downstream
+//!   fingerprints include the run ids of their upstream stages, so everything that depends on a
+//!   rerun stage reruns too.
+//! * Scene inputs are identified by path, size and an xxh3-64 content digest (recomputed only
+//!   when size or modification time differ from the last record), so touching a file does not
+//!   force work but changing it does.
+use std::collections::BTreeMap;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::time::{Instant, UNIX_EPOCH};
+
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+
+use crate::fsutil::{self, FsError};
+
+/// Errors of the run store.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Fs(#[from] FsError),
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
+    move |source| StoreError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// Identity of one file: size, modification time and content digest.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FileId {
+    /// Absolute for scene inputs; relative to the stage folder for outputs.
+    pub path: String,
+    pub size: u64,
+    pub mtime_ns: u64,
+    /// xxh3-64 of the content, hex.
+    pub digest: String,
+}
+
+/// What `run.json` keeps of one completed stage.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct StageRecord {
+    pub fingerprint: String,
+    /// Unique per execution: downstream fingerprints include it, so a stage that reruns makes
+    /// every stage that reads it rerun too.
+    pub run_id: String,
+    pub options: serde_json::Value,
+    pub inputs: Vec<FileId>,
+    pub upstream: Vec<String>,
+    pub outputs: Vec<FileId>,
+    pub seconds: f64,
+}
+
+/// `run.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunRecord {
+    pub program: String,
+    pub version: String,
+    pub scene: PathBuf,
+    /// Every option of the run.
+    pub options: serde_json::Value,
+    pub stages: BTreeMap<String, StageRecord>,
+}
+
+/// What happened to one stage in this invocation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageReport {
+    pub stage: String,
+    /// `true`: its complete output was reused.
+    pub resumed: bool,
+    /// Time spent now (near zero when resumed).
+    pub seconds: f64,
+    /// Time of the run that made the output.
+    pub compute_seconds: f64,
+    pub out: PathBuf,
+}
+
+fn mtime_ns(m: &std::fs::Metadata) -> u64 {
+    m.modified()
+        .ok()
+        .and_then(|t| t.duration_since(UNIX_EPOCH).ok())
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// xxh3-64 of a file's content, hex.
+pub fn digest_file(path: &Path) -> Result<String, StoreError> {
+    let mut f = std::fs::File::open(path).map_err(io(path))?;
+    let mut h = xxhash_rust::xxh3::Xxh3::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = f.read(&mut buf).map_err(io(path))?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(format!("{:016x}", h.digest()))
+}
+
+/// The identity of `path` (`shown` is the path recorded); the digest of `previous` is reused
+/// when size and modification time are unchanged.
+fn file_id(path: &Path, shown: String, previous: Option<&FileId>) -> Result<FileId, StoreError> {
+    let m = std::fs::metadata(path).map_err(io(path))?;
+    let (size, mtime_ns) = (m.len(), mtime_ns(&m));
+    let digest = match previous {
+        Some(p) if p.size == size && p.mtime_ns == mtime_ns => p.digest.clone(),
+        _ => digest_file(path)?,
+    };
+    Ok(FileId {
+        path: shown,
+        size,
+        mtime_ns,
+        digest,
+    })
+}
+
+/// Every regular file under `dir`, relative and sorted (symbolic links are not followed).
+fn list_files(dir: &Path) -> Result<Vec<PathBuf>, StoreError> {
+    let mut out = Vec::new();
+    let mut stack = vec![PathBuf::new()];
+    while let Some(rel) = stack.pop() {
+        let here = dir.join(&rel);
+        for e in std::fs::read_dir(&here).map_err(io(&here))? {
+            let e = e.map_err(io(&here))?;
+            let t = e.file_type().map_err(io(&here))?;
+            let r = rel.join(e.file_name());
+            if t.is_dir() {
+                stack.push(r);
+            } else if t.is_file() {
+                out.push(r);
+            }
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+/// Whether every recorded output of a stage folder is present and unchanged.
+fn outputs_intact(dir: &Path, outputs: &[FileId]) -> bool {
+    outputs.iter().all(|o| {
+        let p = dir.join(&o.path);
+        match std::fs::metadata(&p) {
+            Ok(m) if m.is_file() && m.len() == o.size => {
+                mtime_ns(&m) == o.mtime_ns || digest_file(&p).is_ok_and(|d| d == o.digest)
+            }
+            _ => false,
+        }
+    })
+}
+
+/// The run folder and its record.
+pub struct Store {
+    root: PathBuf,
+    record: RunRecord,
+    force: bool,
+    pub reports: Vec<StageReport>,
+}
+
+impl Store {
+    /// Opens (or starts) the run folder `root`: reads `run.json` where it exists and removes
+    /// what an interrupted stage left (`.<stage>.partial`, `.<stage>.old`).
+    pub fn open(
+        root: &Path,
+        scene: &Path,
+        options: serde_json::Value,
+        force: bool,
+    ) -> Result<Store, StoreError> {
+        fsutil::create_dir(root)?;
+        for e in std::fs::read_dir(root).map_err(io(root))? {
+            let e = e.map_err(io(root))?;
+            let name = e.file_name().to_string_lossy().into_owned();
+            if name.starts_with('.') && (name.ends_with(".partial") || name.ends_with(".old")) {
+                let p = e.path();
+                log::debug!("removing what an interrupted stage left: {}", p.display());
+                std::fs::remove_dir_all(&p).map_err(io(&p))?;
+            }
+        }
+        let previous: Option<RunRecord> = fsutil::read_json(&root.join("run.json")).ok();
+        let stages = previous.map(|r| r.stages).unwrap_or_default();
+        Ok(Store {
+            root: root.to_path_buf(),
+            record: RunRecord {
+                program: "gs4city".into(),
+                version: env!("CARGO_PKG_VERSION").into(),
+                scene: scene.to_path_buf(),
+                options,
+                stages,
+            },
+            force,
+            reports: Vec::new(),
+        })
+    }
+
+    /// The folder of `stage`.
+    pub fn dir(&self, stage: &str) -> PathBuf {
+        self.root.join(stage)
+    }
+
+    /// The record of a stage that ran or was resumed in this run.
+    pub fn record(&self, stage: &str) -> Option<&StageRecord> {
+        self.record.stages.get(stage)
+    }
+
+    /// The fingerprint of a stage: program version, stage name, options, input identities and
+    /// the run ids of the upstream stages.
+    fn fingerprint(
+        &self,
+        stage: &str,
+        options: &serde_json::Value,
+        inputs: &[FileId],
+        upstream: &[&str],
+    ) -> String {
+        let mut s = format!(
+            "{} {}\n{stage}\n{options}\n",
+            self.record.program, self.record.version
+        );
+        for f in inputs {
+            s.push_str(&format!("in {} {} {}\n", f.path, f.size, f.digest));
+        }
+        for u in upstream {
+            let id = self
+                .record
+                .stages
+                .get(*u)
+                .map_or("missing", |r| r.run_id.as_str());
+            s.push_str(&format!("upstream {u} {id}\n"));
+        }
+        format!("{:016x}", xxhash_rust::xxh3::xxh3_64(s.as_bytes()))
+    }
+
+    /// Runs `stage` (or resumes it, see the module docs). `inputs` are the scene files it reads,
+    /// `upstream` the stages whose folders it reads; `body` writes into the folder it is given
+    /// and returns the stage's typed summary, which is also its `summary.json` (read back when
+    /// resuming).
+    pub fn stage<T, E, F>(
+        &mut self,
+        stage: &str,
+        options: &impl Serialize,
+        inputs: &[PathBuf],
+        upstream: &[&str],
+        body: F,
+    ) -> Result<T, E>
+    where
+        T: Serialize + DeserializeOwned,
+        E: From<StoreError>,
+        F: FnOnce(&Path) -> Result<T, E>,
+    {
+        let t0 = Instant::now();
+        let options = serde_json::to_value(options).unwrap_or(serde_json::Value::Null);
+        let old = self.record.stages.get(stage).cloned();
+        let mut ids = Vec::with_capacity(inputs.len());
+        for p in inputs {
+            let shown = p.display().to_string();
+            let prev = old
+                .as_ref()
+                .and_then(|r| r.inputs.iter().find(|f| f.path == shown));
+            ids.push(file_id(p, shown, prev)?);
+        }
+        let fp = self.fingerprint(stage, &options, &ids, upstream);
+        let dir = self.dir(stage);
+        if !self.force
+            && let Some(r) = &old
+            && r.fingerprint == fp
+            && outputs_intact(&dir, &r.outputs)
+            && let Ok(summary) = fsutil::read_json::<T>(&dir.join("summary.json"))
+        {
+            log::info!(
+                "{stage}: complete and unchanged, resumed ({})",
+                dir.display()
+            );
+            self.reports.push(StageReport {
+                stage: stage.into(),
+                resumed: true,
+                seconds: t0.elapsed().as_secs_f64(),
+                compute_seconds: r.seconds,
+                out: dir,
+            });
+            return Ok(summary);
+        }
+        // Run into a fresh partial folder.
+        let partial = self.root.join(format!(".{stage}.partial"));
+        if partial.exists() {
+            std::fs::remove_dir_all(&partial).map_err(|e| E::from(io(&partial)(e)))?;
+        }
+        fsutil::create_dir(&partial).map_err(StoreError::from)?;
+        let summary = body(&partial)?;
+        let summary_path = partial.join("summary.json");
+        if !summary_path.is_file() {
+            fsutil::write_json(&summary_path, &summary).map_err(StoreError::from)?;
+        }
+        let mut outputs = Vec::new();
+        for rel in list_files(&partial)? {
+            let p = partial.join(&rel);
+            outputs.push(file_id(&p, rel.display().to_string(), None)?);
+        }
+        // Swap it into place.
+        let aside = self.root.join(format!(".{stage}.old"));
+        if dir.exists() {
+            std::fs::rename(&dir, &aside).map_err(|e| E::from(io(&dir)(e)))?;
+        }
+        std::fs::rename(&partial, &dir).map_err(|e| E::from(io(&dir)(e)))?;
+        if aside.exists() {
+            std::fs::remove_dir_all(&aside).map_err(|e| E::from(io(&aside)(e)))?;
+        }
+        // Outputs moved with the folder: their mtimes are unchanged by a rename.
+        let seconds = t0.elapsed().as_secs_f64();
+        self.record.stages.insert(
+            stage.to_string(),
+            StageRecord {
+                fingerprint: fp,
+                run_id: format!(
+                    "{:x}-{:x}",
+                    std::time::SystemTime::now()
+                        .duration_since(UNIX_EPOCH)
+                        .map_or(0, |d| d.as_nanos()),
+                    std::process::id()
+                ),
+                options,
+                inputs: ids,
+                upstream: upstream.iter().map(|s| s.to_string()).collect(),
+                outputs,
+                seconds,
+            },
+        );
+        self.save().map_err(E::from)?;
+        self.reports.push(StageReport {
+            stage: stage.into(),
+            resumed: false,
+            seconds,
+            compute_seconds: seconds,
+            out: dir,
+        });
+        Ok(summary)
+    }
+
+    /// Writes `run.json` atomically.
+    pub fn save(&self) -> Result<(), StoreError> {
+        fsutil::write_json(&self.root.join("run.json"), &self.record)?;
+        Ok(())
+    }
+}
+
+/// Refuses a run folder equal to or inside the scene folder (checked before anything is
+/// written; `out` need not exist), or one that would put a stage folder onto the scene.
+pub fn check_out_dir(scene: &Path, out: &Path, stages: &[&str]) -> Result<(), String> {
+    let scene_c = scene
+        .canonicalize()
+        .map_err(|e| format!("scene {}: {e}", scene.display()))?;
+    // Canonicalise the deepest existing ancestor of `out`, then append the rest.
+    let abs = if out.is_absolute() {
+        out.to_path_buf()
+    } else {
+        std::env::current_dir()
+            .map_err(|e| format!("current directory: {e}"))?
+            .join(out)
+    };
+    let mut existing = abs.clone();
+    let mut rest = Vec::new();
+    while !existing.exists() {
+        match (existing.file_name(), existing.parent()) {
+            (Some(n), Some(p)) => {
+                rest.push(n.to_os_string());
+                existing = p.to_path_buf();
+            }
+            _ => break,
+        }
+    }
+    let mut out_c = existing.canonicalize().unwrap_or(existing);
+    for n in rest.iter().rev() {
+        if n == ".." {
+            out_c.pop();
+        } else if n != "." {
+            out_c.push(n);
+        }
+    }
+    if out_c.starts_with(&scene_c) {
+        return Err(format!(
+            "--out {} is {} the scene folder {}: a run never writes into its scene; choose a folder outside it",
+            out.display(),
+            if out_c == scene_c {
+                "equal to"
+            } else {
+                "inside"
+            },
+            scene.display()
+        ));
+    }
+    if let Ok(rel) = scene_c.strip_prefix(&out_c)
+        && let Some(first) = rel.components().next()
+        && stages.iter().any(|s| first.as_os_str() == *s)
+    {
+        return Err(format!(
+            "--out {}: the scene {} sits where the run's `{}` stage folder would go",
+            out.display(),
+            scene.display(),
+            first.as_os_str().to_string_lossy()
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmp(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("gs4city-store-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    #[derive(Debug, thiserror::Error)]
+    enum E {
+        #[error(transparent)]
+        S(#[from] StoreError),
+        #[error("boom")]
+        Boom,
+    }
+
+    #[derive(Serialize, Deserialize, PartialEq, Debug)]
+    struct Sum {
+        n: u32,
+    }
+
+    /// A stage that writes `a.txt` = the input's content + options; counts its executions.
+    fn stage_a(store: &mut Store, input: &Path, opt: u32, runs: &mut u32) -> Sum {
+        store
+            .stage::<Sum, E, _>("a", &opt, &[input.to_path_buf()], &[], |dir| {
+                *runs += 1;
+                let text = std::fs::read_to_string(input).unwrap();
+                std::fs::write(dir.join("a.txt"), format!("{text}{opt}")).unwrap();
+                Ok(Sum { n: opt })
+            })
+            .unwrap()
+    }
+
+    fn stage_b(store: &mut Store, runs: &mut u32) -> Sum {
+        let a = store.dir("a");
+        store
+            .stage::<Sum, E, _>("b", &0, &[], &["a"], |dir| {
+                *runs += 1;
+                let t = std::fs::read_to_string(a.join("a.txt")).unwrap();
+                std::fs::write(dir.join("b.txt"), t.to_uppercase()).unwrap();
+                Ok(Sum { n: t.len() as u32 })
+            })
+            .unwrap()
+    }
+
+    #[test]
+    fn resume_rerun_on_change_deletion_and_truncation() {
+        let d = tmp("resume");
+        let input = d.join("in.txt");
+        std::fs::write(&input, "hello").unwrap();
+        let root = d.join("run");
+        let (mut ra, mut rb) = (0, 0);
+        let go = |opt: u32, ra: &mut u32, rb: &mut u32| {
+            let mut s = Store::open(&root, &d, serde_json::json!({}), false).unwrap();
+            let a = stage_a(&mut s, &input, opt, ra);
+            let b = stage_b(&mut s, rb);
+            (a, b)
+        };
+        assert_eq!(go(1, &mut ra, &mut rb), (Sum { n: 1 }, Sum { n: 6 }));
+        assert_eq!((ra, rb), (1, 1));
+        go(1, &mut ra, &mut rb);
+        assert_eq!((ra, rb), (1, 1), "nothing changed: both resumed");
+        go(2, &mut ra, &mut rb);
+        assert_eq!((ra, rb), (2, 2), "an option of a: a and b rerun");
+        std::fs::remove_file(root.join("b/b.txt")).unwrap();
+        go(2, &mut ra, &mut rb);
+        assert_eq!((ra, rb), (2, 3), "an output of b deleted: only b reruns");
+        let f = std::fs::OpenOptions::new()
+            .write(true)
+            .open(root.join("a/a.txt"))
+            .unwrap();
+        f.set_len(2).unwrap();
+        drop(f);
+        go(2, &mut ra, &mut rb);
+        assert_eq!((ra, rb), (3, 4), "an output of a truncated: a and b rerun");
+        assert_eq!(
+            std::fs::read_to_string(root.join("b/b.txt")).unwrap(),
+            "HELLO2"
+        );
+        std::fs::write(&input, "HELLO").unwrap();
+        go(2, &mut ra, &mut rb);
+        assert_eq!((ra, rb), (4, 5), "input content changed");
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn a_failed_stage_leaves_the_old_output_and_no_partial_folder() {
+        let d = tmp("fail");
+        let input = d.join("in.txt");
+        std::fs::write(&input, "x").unwrap();
+        let root = d.join("run");
+        let mut runs = 0;
+        {
+            let mut s = Store::open(&root, &d, serde_json::json!({}), false).unwrap();
+            stage_a(&mut s, &input, 1, &mut runs);
+        }
+        let mut s = Store::open(&root, &d, serde_json::json!({}), true).unwrap();
+        let r: Result<Sum, E> = s.stage("a", &1, std::slice::from_ref(&input), &[], |dir| {
+            std::fs::write(dir.join("a.txt"), "half").unwrap();
+            Err(E::Boom)
+        });
+        assert!(r.is_err());
+        assert_eq!(std::fs::read_to_string(root.join("a/a.txt")).unwrap(), "x1");
+        // The partial folder of the failed attempt is removed when the store is next opened.
+        assert!(root.join(".a.partial").exists());
+        Store::open(&root, &d, serde_json::json!({}), false).unwrap();
+        assert!(!root.join(".a.partial").exists());
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn out_dir_inside_or_equal_to_the_scene_is_refused() {
+        let d = tmp("outdir");
+        let scene = d.join("scene");
+        std::fs::create_dir_all(&scene).unwrap();
+        let stages = ["citymodel", "raycast"];
+        assert!(check_out_dir(&scene, &scene, &stages).is_err());
+        assert!(check_out_dir(&scene, &scene.join("run/x"), &stages).is_err());
+        assert!(check_out_dir(&scene, &scene.join("../scene/./r"), &stages).is_err());
+        assert!(check_out_dir(&scene, &d.join("run"), &stages).is_ok());
+        let nested = d.join("citymodel");
+        std::fs::create_dir_all(&nested).unwrap();
+        assert!(check_out_dir(&nested, &d, &stages).is_err());
+        let _ = std::fs::remove_dir_all(&d);
+    }
+}

@@ -1,0 +1,209 @@
+//! `gs4city run` on a hand-built scene with analytic ground truth (tests/common/wall.rs): the
+//! metrics, and the run store's promises — resume, reruns of exactly what depends on a changed,
+//! deleted or truncated file, no stale predictions, refusal of a run folder inside the scene.
+mod common;
+
+use common::wall;
+use gs4city::run::{RunOptions, RunSummary, run};
+
+fn reruns(s: &RunSummary) -> Vec<&str> {
+    s.stages
+        .iter()
+        .filter(|r| !r.resumed)
+        .map(|r| r.stage.as_str())
+        .collect()
+}
+
+fn miou(s: &RunSummary) -> (Option<f64>, Option<f64>) {
+    let e = s.eval.as_ref().expect("gt/ exists: metrics");
+    (e.paper["miou"], e.dataset["coarse_iou"])
+}
+
+#[test]
+fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
+    let dir = wall::tmp("run-metrics");
+    let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
+    let o = RunOptions {
+        test_every: 4,
+        ..Default::default()
+    };
+    let s = run(&scene, &dir.join("out"), &o).unwrap();
+    let names: Vec<&str> = s.stages.iter().map(|r| r.stage.as_str()).collect();
+    assert_eq!(names, ["citymodel", "raycast", "render", "lift", "eval"]);
+    assert_eq!(s.test_views, ["v00", "v04"]);
+    let e = s.eval.as_ref().unwrap();
+    assert_eq!(e.mode.as_deref(), Some("vote"));
+    // Coarse building/non-building against the analytic truth, and the fine classes present
+    // (wall in both views; the window only in v04: a floater hides it in v00).
+    assert!(e.dataset["coarse_iou"].unwrap() > 0.85, "{e:?}");
+    assert!(e.paper_iou["wall"].unwrap() > 0.85, "{:?}", e.paper_iou);
+    assert!(e.paper_iou["window"].unwrap() > 0.4, "{:?}", e.paper_iou);
+    assert!(e.paper_iou["tree"].is_none(), "absent classes are null");
+    // report.html shows the metrics tables and a panel per test view.
+    let html = std::fs::read_to_string(&s.report).unwrap();
+    assert!(html.contains("Table 1") && html.contains("report/v04.png"));
+    assert!(dir.join("out/report/v00.png").is_file());
+    // run.json records the version, every option, inputs and outputs with digests.
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("out/run.json")).unwrap()).unwrap();
+    assert_eq!(rec["version"], env!("CARGO_PKG_VERSION"));
+    assert_eq!(rec["options"]["top_k"], 16);
+    let lift_outputs = rec["stages"]["lift"]["outputs"].as_array().unwrap();
+    assert!(
+        lift_outputs
+            .iter()
+            .any(|o| o["path"] == "gaussians.npy" && o["digest"].as_str().unwrap().len() == 16)
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
+    let dir = wall::tmp("run-resume");
+    let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
+    let out = dir.join("out");
+    let o = RunOptions::default();
+    let clean = run(&scene, &out, &o).unwrap();
+    let clean_metrics = miou(&clean);
+    let again = run(&scene, &out, &o).unwrap();
+    assert!(reruns(&again).is_empty(), "{:?}", again.stages);
+    // For one output of each stage: delete it, then truncate it; the next run redoes that
+    // stage and exactly the stages that read it, and the metrics equal the clean run's.
+    let cases: [(&str, &str, &[&str]); 5] = [
+        (
+            "citymodel",
+            "mesh.ply",
+            &["citymodel", "raycast", "lift", "eval"],
+        ),
+        ("raycast", "v03.ids.npy", &["raycast", "lift", "eval"]),
+        ("render", "v05.contrib", &["render", "lift", "eval"]),
+        ("lift", "v00.class.npy", &["lift", "eval"]),
+        ("eval", "metrics.json", &["eval"]),
+    ];
+    for (stage, file, expected) in cases {
+        let path = out.join(stage).join(file);
+        std::fs::remove_file(&path).unwrap();
+        let s = run(&scene, &out, &o).unwrap();
+        assert_eq!(reruns(&s), expected, "deleted {stage}/{file}");
+        assert_eq!(miou(&s), clean_metrics);
+        let f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+        let len = f.metadata().unwrap().len();
+        f.set_len(len / 2).unwrap();
+        drop(f);
+        let s = run(&scene, &out, &o).unwrap();
+        assert_eq!(reruns(&s), expected, "truncated {stage}/{file}");
+        assert_eq!(miou(&s), clean_metrics);
+    }
+    // A changed PLY reruns the cache and everything after it; another τ the raycast onwards.
+    let ply = scene.join("point_cloud.ply");
+    let mut bytes = std::fs::read(&ply).unwrap();
+    let n = bytes.len();
+    bytes[n - 1] ^= 1; // the last byte of the last Gaussian's last rotation value
+    std::fs::write(&ply, &bytes).unwrap();
+    let s = run(&scene, &out, &o).unwrap();
+    assert_eq!(reruns(&s), ["render", "lift", "eval"]);
+    let s = run(
+        &scene,
+        &out,
+        &RunOptions {
+            tau_m: 0.3,
+            ..o.clone()
+        },
+    )
+    .unwrap();
+    assert_eq!(reruns(&s), ["raycast", "lift", "eval"]);
+    // Touching an input without changing it reruns nothing (identity = content digest).
+    std::fs::write(&ply, &bytes).unwrap();
+    let s = run(
+        &scene,
+        &out,
+        &RunOptions {
+            tau_m: 0.3,
+            ..o.clone()
+        },
+    )
+    .unwrap();
+    assert!(reruns(&s).is_empty(), "{:?}", s.stages);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn another_test_split_leaves_no_stale_prediction() {
+    let dir = wall::tmp("run-split");
+    let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
+    let out = dir.join("out");
+    let a = run(&scene, &out, &RunOptions::default()).unwrap();
+    assert_eq!(a.test_views, ["v00"]);
+    let b = run(
+        &scene,
+        &out,
+        &RunOptions {
+            test_every: 3,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(b.test_views, ["v00", "v03", "v06"]);
+    assert_eq!(b.eval.as_ref().unwrap().images, 3);
+    let c = run(&scene, &out, &RunOptions::default()).unwrap();
+    assert_eq!(c.eval.as_ref().unwrap().images, 1);
+    let preds: Vec<String> = std::fs::read_dir(out.join("lift"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".class.npy"))
+        .collect();
+    assert_eq!(
+        preds,
+        ["v00.class.npy"],
+        "no prediction of the old split is left"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
+    let dir = wall::tmp("run-refuse");
+    let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
+    let before = common::files(&scene);
+    for out in [scene.clone(), scene.join("run"), scene.join("gt/../x")] {
+        let e = run(&scene, &out, &RunOptions::default())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("scene folder"), "{e}");
+        assert_eq!(
+            common::files(&scene),
+            before,
+            "the scene must stay unchanged"
+        );
+    }
+    std::fs::remove_file(scene.join("citymodel/alignment.json")).unwrap();
+    let e = run(&scene, &dir.join("out"), &RunOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("alignment.json") && e.contains("--local-origin"),
+        "{e}"
+    );
+    assert!(
+        !dir.join("out").exists(),
+        "nothing written before the refusal"
+    );
+    // With --local-origin it runs (the wall's local origin equals its alignment here).
+    let s = run(
+        &scene,
+        &dir.join("out"),
+        &RunOptions {
+            local_origin: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert!(s.eval.unwrap().dataset["coarse_iou"].unwrap() > 0.85);
+    // A scene without point_cloud.ply is one clear error.
+    std::fs::remove_file(scene.join("point_cloud.ply")).unwrap();
+    let e = run(&scene, &dir.join("out2"), &RunOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("point_cloud.ply"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
