@@ -52,7 +52,8 @@ fn main() {
     println!("|---|---|---|---|---|---|---|");
     for &k in &ks {
         let mut votes = Votes::new(n);
-        let (mut secs, mut bytes, mut entries, mut dropped, mut covered) = (0.0, 0usize, 0usize, 0.0, 0usize);
+        let (mut secs, mut bytes, mut entries, mut dropped, mut covered) =
+            (0.0, 0usize, 0usize, 0.0, 0usize);
         let mut kept = Vec::new();
         for v in &chosen {
             let t = Instant::now();
@@ -103,7 +104,11 @@ fn main() {
         };
         println!(
             "| {} | {:.3} | {:.1} | {:.2} | {:.4} | {} | {} |",
-            if k == 0 { "all".to_string() } else { k.to_string() },
+            if k == 0 {
+                "all".to_string()
+            } else {
+                k.to_string()
+            },
             secs / chosen.len() as f64,
             bytes as f64 / chosen.len() as f64 / 1e6,
             entries as f64 / (chosen.len() * npx) as f64,

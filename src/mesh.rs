@@ -95,7 +95,7 @@ impl TriMesh {
             .vertices
             .iter()
             .enumerate()
-            .find(|(_, v)| v.iter().any(|c| !(c.abs() <= lim)))
+            .find(|(_, v)| v.iter().any(|c| !c.is_finite() || c.abs() > lim))
         {
             return Err(format!(
                 "vertex {i} at ({}, {}, {}) is not finite or lies beyond ±{SCENE_COORD_LIMIT:e}, the scene frame's limit",

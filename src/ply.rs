@@ -1119,7 +1119,10 @@ mod tests {
         w.into_bytes()
     }
 
-    fn decode(bytes: &[u8]) -> Result<(Vec<Vec<f64>>, Vec<(Vec<f64>, f64)>), PlyError> {
+    /// Vertex rows, and per face its index list and id.
+    type Decoded = (Vec<Vec<f64>>, Vec<(Vec<f64>, f64)>);
+
+    fn decode(bytes: &[u8]) -> Result<Decoded, PlyError> {
         let mut r = Reader::new(p(), bytes)?;
         let mut v = Vec::new();
         r.read_element("vertex", |row| {

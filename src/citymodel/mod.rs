@@ -507,7 +507,7 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
                 let base_v = mesh.vertices.len() as u32;
                 for v in &t.vertices {
                     let s = alignment.apply(*v + alignment.origin);
-                    if !(s.abs().max_element() <= SCENE_COORD_LIMIT) {
+                    if !s.is_finite() || s.abs().max_element() > SCENE_COORD_LIMIT {
                         return Err(CityModelError::Frame {
                             path: m.path.clone(),
                             line: job.poly.line,
