@@ -20,7 +20,8 @@ pub struct Guard;
 #[cold]
 fn too_big(size: usize) -> ! {
     // No allocation here: a fixed message on unbuffered stderr, then abort.
-    let _ = std::io::stderr().write_all(b"fuzz guard: a single allocation above 1 GiB was requested\n");
+    let _ =
+        std::io::stderr().write_all(b"fuzz guard: a single allocation above 1 GiB was requested\n");
     let _ = size;
     std::process::abort()
 }
