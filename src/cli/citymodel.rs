@@ -40,7 +40,7 @@ fn print_estimate(est: &align::Estimate) {
         est.max
     );
     for w in &est.warnings {
-        eprintln!("warning: {w}");
+        log::warn!("{w}");
     }
 }
 
@@ -48,7 +48,7 @@ pub fn run(args: &CitymodelArgs) -> anyhow::Result<()> {
     // Validate.
     let found = citymodel::collect_files(&args.files)?;
     for w in &found.warnings {
-        eprintln!("warning: {w}");
+        log::warn!("{w}");
     }
     let files = found.files;
     let mut estimate = None;

@@ -436,13 +436,12 @@ fn merge(base: &mut toml::Table, over: toml::Table) {
 
 /// The CityGML files named by `paths`: files as given, folders searched recursively for
 /// `*.gml` / `*.xml` (sorted by path), each file once ([`crate::citymodel::collect_files`]:
-/// symbolic-link loops end, repeated files are read once); its warnings go to stderr.
+/// symbolic-link loops end, repeated files are read once); its warnings go to the log.
 pub fn collect_files(paths: &[PathBuf]) -> Result<Vec<PathBuf>, SynthError> {
     let found =
         crate::citymodel::collect_files(paths).map_err(|e| SynthError::Input(e.to_string()))?;
-    // progress/log: the lead's logging module replaces this line.
     for w in &found.warnings {
-        eprintln!("warning: {w}");
+        log::warn!("{w}");
     }
     Ok(found.files)
 }
