@@ -753,6 +753,55 @@ fn invalid_srs_dimension_entities_and_encodings_are_errors_with_lines() {
     );
 }
 
+/// UTF-16 (with a byte-order mark) and windows-1252 files read as their text says.
+#[test]
+fn citygml_in_utf16_and_windows_1252_reads_the_same_model() {
+    let text = building_gml("", "<gml:name>Caf\u{e9} \u{20ac}5</gml:name>");
+    let utf8 = citygml::read_bytes(Path::new("a.gml"), text.as_bytes()).unwrap();
+    for big in [false, true] {
+        let mut bytes = if big {
+            vec![0xFE, 0xFF]
+        } else {
+            vec![0xFF, 0xFE]
+        };
+        for u in text.encode_utf16() {
+            bytes.extend(if big {
+                u.to_be_bytes()
+            } else {
+                u.to_le_bytes()
+            });
+        }
+        let m = citygml::read_bytes(Path::new("a16.gml"), &bytes).unwrap();
+        assert_eq!(m.polygons, utf8.polygons);
+        assert_eq!(m.objects, utf8.objects);
+        // A lone surrogate is an error naming its line.
+        let at = bytes.len() - 8;
+        bytes[at..at + 2].copy_from_slice(if big { &[0xDC, 0x00] } else { &[0x00, 0xDC] });
+        let e = citygml::read_bytes(Path::new("a16.gml"), &bytes).unwrap_err();
+        let msg = check_message(&e, "a16.gml");
+        assert!(
+            msg.contains("a16.gml:8: the file is not valid UTF-16"),
+            "{msg}"
+        );
+    }
+    // windows-1252: é is 0xE9, € is 0x80.
+    let cp = text
+        .replace("encoding=\"UTF-8\"", "encoding=\"windows-1252\"")
+        .replace('\u{20ac}', "\u{80}");
+    let bytes: Vec<u8> = cp.chars().map(|c| c as u32 as u8).collect();
+    let m = citygml::read_bytes(Path::new("cp.gml"), &bytes).unwrap();
+    assert_eq!(m.polygons, utf8.polygons);
+    let e = citygml::read_bytes(
+        Path::new("x.gml"),
+        text.replace("UTF-8", "EBCDIC").as_bytes(),
+    )
+    .unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("x.gml:1: the XML declaration names encoding \"EBCDIC\"")
+    );
+}
+
 fn replace_bytes(hay: &[u8], from: &[u8], to: &[u8]) -> Vec<u8> {
     let at = hay
         .windows(from.len())
