@@ -2,7 +2,7 @@
 //!
 //! Times per view and Gaussians/s for 100k and 1M seeded random Gaussians (SH degree 3,
 //! a city-like spread 5–150 m in front of the camera) at 660×494 and 1320×988, the phase
-//! split, 1 vs 2 threads, binary PLY load MB/s (fast path vs ply-rs), and a speed-against-
+//! split, 1 vs 2 threads, binary PLY load MB/s (fast path vs the per-property path), and a speed-against-
 //! error table for the top-k contribution knob. Prints Markdown.
 use std::time::Instant;
 
@@ -279,7 +279,7 @@ fn main() {
     );
     for (label, force) in [
         ("read, fast path", false),
-        ("read, ply-rs general path", true),
+        ("read, per-property (general) path", true),
     ] {
         let opts = ReadOptions {
             force_general_path: force,

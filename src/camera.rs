@@ -1,7 +1,46 @@
 //! Calibrated cameras in the COLMAP/OpenCV convention: world-to-camera pose
 //! `x_cam = R · x_world + t`, camera +z forward, +x right, +y down, pixel centres at
 //! integer coordinates + 0.5 in COLMAP (the principal point `cx, cy` is in that frame).
+//!
+//! ## The scene frame and the one camera check
+//! Every stage stores scene coordinates (mesh vertices, Gaussian centres) as `f32` and traces
+//! them with Embree in `f32`. [`SCENE_COORD_LIMIT`] is the largest coordinate magnitude the
+//! scene frame accepts: at 10⁶ units the `f32` spacing is 0.0625 units, so a frame left in
+//! georeferenced coordinates (UTM northing ≈ 5·10⁶ m, ECEF ≈ 6.4·10⁶ m, where `f32` resolves
+//! only 0.5 m) is refused instead of silently losing the detail that separates a window from
+//! its wall; far below it lie the limits of the arithmetic itself (Embree skips geometry
+//! beyond 1.844·10¹⁸ and asserts on rays from ≥ 10²⁰; squared distances overflow `f32` at
+//! 1.8·10¹⁹). `citymodel` recentres georeferenced input (its alignment) and checks the
+//! aligned mesh against this limit.
+//!
+//! [`Camera::validate`] is the one sanity check every consumer of a camera calls (the COLMAP
+//! reader, render, raycast): image size within [`MAX_IMAGE_SIDE`] and [`MAX_IMAGE_PIXELS`],
+//! focal lengths finite with `f / max(w, h)` in [`FOCAL_RATIO_RANGE`], principal point finite
+//! and within [`PRINCIPAL_POINT_RANGE`] image sizes of the image, distortion coefficients
+//! finite with magnitude ≤ [`MAX_DISTORTION_COEFF`], a finite proper rotation, and a camera
+//! centre within [`SCENE_COORD_LIMIT`].
 use glam::{DMat3, DQuat, DVec2, DVec3};
+
+/// Largest accepted coordinate magnitude of the scene frame, in scene units (module docs).
+pub const SCENE_COORD_LIMIT: f64 = 1.0e6;
+/// Largest accepted image side, in pixels.
+pub const MAX_IMAGE_SIDE: u32 = 32_768;
+/// Largest accepted image area: 160 megapixels (a 150 MP aerial camera fits; raycasting
+/// holds ≈ 40 bytes per pixel, so this bounds one view at ≈ 6.4 GB).
+pub const MAX_IMAGE_PIXELS: u64 = 160_000_000;
+/// Accepted focal length relative to the larger image side, `f / max(w, h)`: from 10⁻³
+/// (a field of view of 179.9°) to 10⁵ (0.0006°).
+pub const FOCAL_RATIO_RANGE: (f64, f64) = (1e-3, 1e5);
+/// The principal point may lie this many image widths (heights) outside the image.
+pub const PRINCIPAL_POINT_RANGE: f64 = 10.0;
+/// Largest accepted magnitude of a distortion coefficient.
+pub const MAX_DISTORTION_COEFF: f64 = 1e6;
+
+/// Why a camera cannot be used; the message is a sentence without the file or view name,
+/// which the caller adds.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct CameraError(pub String);
 
 /// Lens distortion of a camera model (COLMAP parameter order).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -114,6 +153,20 @@ impl Distortion {
     }
 }
 
+impl Distortion {
+    /// The coefficients in COLMAP order (empty for [`Distortion::None`]).
+    pub fn coefficients(&self) -> Vec<f64> {
+        match *self {
+            Distortion::None => Vec::new(),
+            Distortion::Radial { k1, k2 } => vec![k1, k2],
+            Distortion::OpenCv { k1, k2, p1, p2 } => vec![k1, k2, p1, p2],
+            Distortion::FullOpenCv { k, p1, p2 } => {
+                vec![k[0], k[1], p1, p2, k[2], k[3], k[4], k[5]]
+            }
+        }
+    }
+}
+
 /// Image size and projection parameters.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Intrinsics {
@@ -124,6 +177,55 @@ pub struct Intrinsics {
     pub cx: f64,
     pub cy: f64,
     pub distortion: Distortion,
+}
+
+impl Intrinsics {
+    /// Checks the image size, focal lengths, principal point and distortion (module docs).
+    pub fn validate(&self) -> Result<(), CameraError> {
+        let (w, h) = (self.width, self.height);
+        let bad = |why: String| Err(CameraError(why));
+        if w == 0 || h == 0 {
+            return bad(format!("image size {w}×{h} is empty"));
+        }
+        let pixels = u64::from(w) * u64::from(h);
+        if w > MAX_IMAGE_SIDE || h > MAX_IMAGE_SIDE || pixels > MAX_IMAGE_PIXELS {
+            return bad(format!(
+                "image size {w}×{h} ({:.1} megapixels) exceeds the limit of {MAX_IMAGE_SIDE} pixels per side and {} megapixels",
+                pixels as f64 / 1e6,
+                MAX_IMAGE_PIXELS / 1_000_000
+            ));
+        }
+        let side = f64::from(w.max(h));
+        let (lo, hi) = FOCAL_RATIO_RANGE;
+        for (name, f) in [("fx", self.fx), ("fy", self.fy)] {
+            if !f.is_finite() || f < lo * side || f > hi * side {
+                return bad(format!(
+                    "focal length {name} = {f} px is outside {}..{} px ({lo:e}..{hi:e} times the larger image side {side} px)",
+                    lo * side,
+                    hi * side
+                ));
+            }
+        }
+        let r = PRINCIPAL_POINT_RANGE;
+        for (name, c, n) in [("cx", self.cx, f64::from(w)), ("cy", self.cy, f64::from(h))] {
+            if !c.is_finite() || c < -r * n || c > (r + 1.0) * n {
+                return bad(format!(
+                    "principal point {name} = {c} px lies more than {r} image sizes outside the image"
+                ));
+            }
+        }
+        if let Some(k) = self
+            .distortion
+            .coefficients()
+            .into_iter()
+            .find(|k| !k.is_finite() || k.abs() > MAX_DISTORTION_COEFF)
+        {
+            return bad(format!(
+                "distortion coefficient {k} is not a finite number of magnitude ≤ {MAX_DISTORTION_COEFF:e}"
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// World-to-camera rigid transform.
@@ -174,6 +276,34 @@ impl Pose {
         self.rotation * p + self.translation
     }
 
+    /// Checks a finite proper rotation (orthonormal within 1e-6, det +1), a finite
+    /// translation and a camera centre within [`SCENE_COORD_LIMIT`].
+    pub fn validate(&self) -> Result<(), CameraError> {
+        if !self.rotation.is_finite() || !self.translation.is_finite() {
+            return Err(CameraError(
+                "the pose holds a value that is not a finite number".into(),
+            ));
+        }
+        let err = (self.rotation.transpose() * self.rotation - DMat3::IDENTITY)
+            .to_cols_array()
+            .iter()
+            .fold(0.0f64, |m, v| m.max(v.abs()));
+        let det = self.rotation.determinant();
+        if err > 1e-6 || det < 0.0 {
+            return Err(CameraError(format!(
+                "the pose rotation is not a rotation (|RᵀR − I| = {err:.1e}, det = {det:.6})"
+            )));
+        }
+        let c = self.center();
+        if c.abs().max_element() > SCENE_COORD_LIMIT {
+            return Err(CameraError(format!(
+                "the camera centre ({:.6e}, {:.6e}, {:.6e}) lies beyond ±{SCENE_COORD_LIMIT:e}, the scene frame's limit (recentre the scene)",
+                c.x, c.y, c.z
+            )));
+        }
+        Ok(())
+    }
+
     /// The unit quaternion `(qw, qx, qy, qz)` of the rotation (COLMAP order).
     pub fn colmap_qvec(&self) -> [f64; 4] {
         let q = DQuat::from_mat3(&self.rotation).normalize();
@@ -190,6 +320,14 @@ pub struct Camera {
 }
 
 impl Camera {
+    /// The shared sanity check of a camera (module docs): [`Intrinsics::validate`] and
+    /// [`Pose::validate`]. Every stage that uses a camera calls it before allocating per-pixel
+    /// buffers or tracing rays.
+    pub fn validate(&self) -> Result<(), CameraError> {
+        self.intrinsics.validate()?;
+        self.pose.validate()
+    }
+
     /// Projects a camera-frame point with the pinhole part only (no distortion);
     /// `None` behind or on the camera plane.
     pub fn project_pinhole(&self, p_cam: DVec3) -> Option<DVec2> {

@@ -11,11 +11,8 @@ use crate::fsutil::{self, FsError};
 /// errors also name the line, image errors the image.
 #[derive(Debug, thiserror::Error)]
 pub enum ColmapError {
-    #[error("cannot read {path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    #[error("cannot read {path}: {err}")]
+    Io { path: PathBuf, err: std::io::Error },
     #[error(
         "{dir}: no COLMAP model (expected cameras.bin + images.bin or cameras.txt + images.txt)"
     )]
@@ -40,11 +37,14 @@ pub enum ColmapError {
         camera_id: u32,
         why: String,
     },
-    #[error("{path}: image {image_id} ({name}): invalid pose (non-finite or zero quaternion)")]
+    #[error("{path}{}: image {image_id} ({name}): {why}", line.map(|l| format!(":{l}")).unwrap_or_default())]
     BadPose {
         path: PathBuf,
+        /// The line in `images.txt` (none in `images.bin`).
+        line: Option<usize>,
         image_id: u32,
         name: String,
+        why: String,
     },
     #[error(
         "{path}: image {image_id} ({name}) refers to camera {camera_id}, which is not in cameras"
@@ -60,6 +60,13 @@ pub enum ColmapError {
         path: PathBuf,
         what: &'static str,
         id: u64,
+    },
+    #[error("{path}: image name {name:?} is used by images {first} and {second}")]
+    DuplicateName {
+        path: PathBuf,
+        name: String,
+        first: u32,
+        second: u32,
     },
     #[error("cannot write COLMAP model: {0}")]
     Write(#[from] FsError),
@@ -223,29 +230,6 @@ pub struct Point3D {
     pub error: f64,
 }
 
-fn validate_camera(path: &Path, cam: &ColmapCamera) -> Result<(), ColmapError> {
-    let k = &cam.intrinsics;
-    let bad = |why: String| ColmapError::BadCamera {
-        path: path.to_path_buf(),
-        camera_id: cam.camera_id,
-        why,
-    };
-    if k.width == 0 || k.height == 0 {
-        return Err(bad(format!("empty image size {}×{}", k.width, k.height)));
-    }
-    if !(k.fx.is_finite() && k.fy.is_finite() && k.fx > 0.0 && k.fy > 0.0) {
-        return Err(bad(format!(
-            "focal length must be finite and positive (fx {}, fy {})",
-            k.fx, k.fy
-        )));
-    }
-    let (_, params) = Model::for_intrinsics(k);
-    if params.iter().any(|v| !v.is_finite()) {
-        return Err(bad("non-finite parameter".into()));
-    }
-    Ok(())
-}
-
 // ---------------------------------------------------------------- binary
 
 struct BinReader<'a> {
@@ -302,9 +286,9 @@ impl<'a> BinReader<'a> {
 }
 
 fn read_file(path: &Path) -> Result<Vec<u8>, ColmapError> {
-    std::fs::read(path).map_err(|source| ColmapError::Io {
+    std::fs::read(path).map_err(|err| ColmapError::Io {
         path: path.to_path_buf(),
-        source,
+        err,
     })
 }
 
@@ -331,43 +315,54 @@ fn parse_cameras_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ColmapCamera>, Col
         for _ in 0..model.num_params() {
             params.push(r.f64(&what)?);
         }
-        let cam = make_camera(path, camera_id, model, width, height, &params)?;
+        let cam = make_camera(camera_id, model, width, height, &params).map_err(|why| {
+            ColmapError::BadCamera {
+                path: path.to_path_buf(),
+                camera_id,
+                why,
+            }
+        })?;
         out.push(cam);
     }
     Ok(out)
 }
 
+/// A camera from its COLMAP fields, checked with [`Intrinsics::validate`]; the error is the
+/// reason (the caller names the file, line and camera).
 fn make_camera(
-    path: &Path,
     camera_id: u32,
     model: Model,
     width: u64,
     height: u64,
     params: &[f64],
-) -> Result<ColmapCamera, ColmapError> {
-    let bad = |why: String| ColmapError::BadCamera {
-        path: path.to_path_buf(),
-        camera_id,
-        why,
-    };
+) -> Result<ColmapCamera, String> {
     if params.len() != model.num_params() {
-        return Err(bad(format!(
+        return Err(format!(
             "{} takes {} parameters, found {}",
             model.name(),
             model.num_params(),
             params.len()
-        )));
+        ));
     }
     let (Ok(width), Ok(height)) = (u32::try_from(width), u32::try_from(height)) else {
-        return Err(bad(format!("image size {width}×{height} is too large")));
+        return Err(format!("image size {width}×{height} is too large"));
     };
     let cam = ColmapCamera {
         camera_id,
         model,
         intrinsics: model.intrinsics(width, height, params),
     };
-    validate_camera(path, &cam)?;
+    cam.intrinsics.validate().map_err(|e| e.0)?;
     Ok(cam)
+}
+
+/// A pose from a COLMAP quaternion and translation, checked with [`Pose::validate`].
+fn make_pose(q: [f64; 4], t: [f64; 3]) -> Result<Pose, String> {
+    let pose = Pose::from_colmap(q, t).ok_or_else(|| {
+        "invalid pose: the quaternion is zero or a value is not a finite number".to_string()
+    })?;
+    pose.validate().map_err(|e| e.0)?;
+    Ok(pose)
 }
 
 fn parse_images_bin(path: &Path, bytes: &[u8]) -> Result<Vec<RawImage>, ColmapError> {
@@ -396,10 +391,12 @@ fn parse_images_bin(path: &Path, bytes: &[u8]) -> Result<Vec<RawImage>, ColmapEr
         let what = || format!("the 2D points of image {image_id} ({name})");
         let np = r.count(24, &what)?;
         r.take(np * 24, &what)?;
-        let pose = Pose::from_colmap(q, t).ok_or_else(|| ColmapError::BadPose {
+        let pose = make_pose(q, t).map_err(|why| ColmapError::BadPose {
             path: path.to_path_buf(),
+            line: None,
             image_id,
             name: name.clone(),
+            why,
         })?;
         out.push(RawImage {
             image_id,
@@ -485,8 +482,8 @@ fn parse_cameras_txt(path: &Path, text: &str) -> Result<Vec<ColmapCamera>, Colma
         let params = it
             .map(|t| field::<f64>(path, line, Some(t), "parameter"))
             .collect::<Result<Vec<_>, _>>()?;
-        let cam = make_camera(path, camera_id, model, width, height, &params)
-            .map_err(|e| parse_err(path, line, e.to_string()))?;
+        let cam = make_camera(camera_id, model, width, height, &params)
+            .map_err(|why| parse_err(path, line, format!("camera {camera_id}: {why}")))?;
         out.push(cam);
     }
     Ok(out)
@@ -529,10 +526,12 @@ fn parse_images_txt(path: &Path, text: &str) -> Result<Vec<RawImage>, ColmapErro
                 ));
             }
         }
-        let pose = Pose::from_colmap(q, t).ok_or_else(|| ColmapError::BadPose {
+        let pose = make_pose(q, t).map_err(|why| ColmapError::BadPose {
             path: path.to_path_buf(),
+            line: Some(line),
             image_id,
-            name: format!("{name}, line {line}"),
+            name: name.clone(),
+            why,
         })?;
         out.push(RawImage {
             image_id,
@@ -573,14 +572,14 @@ fn parse_points_txt(path: &Path, text: &str) -> Result<Vec<Point3D>, ColmapError
 
 // ---------------------------------------------------------------- public API
 
-fn read_text(path: &Path) -> Result<String, ColmapError> {
-    let bytes = read_file(path)?;
-    String::from_utf8(bytes).map_err(|e| {
-        let line = 1 + e.as_bytes()[..e.utf8_error().valid_up_to()]
+/// The bytes of a text-format file as UTF-8, or an error naming the line of the first bad byte.
+fn utf8<'a>(path: &Path, bytes: &'a [u8]) -> Result<&'a str, ColmapError> {
+    std::str::from_utf8(bytes).map_err(|e| {
+        let line = 1 + bytes[..e.valid_up_to()]
             .iter()
             .filter(|&&b| b == b'\n')
             .count();
-        parse_err(path, line, "not UTF-8")
+        parse_err(path, line, "not UTF-8 text")
     })
 }
 
@@ -602,10 +601,11 @@ fn model_ext(dir: &Path) -> Result<&'static str, ColmapError> {
 pub fn read_cameras(sparse_dir: &Path) -> Result<Vec<ColmapCamera>, ColmapError> {
     let ext = model_ext(sparse_dir)?;
     let path = sparse_dir.join(format!("cameras.{ext}"));
+    let bytes = read_file(&path)?;
     if ext == "bin" {
-        parse_cameras_bin(&path, &read_file(&path)?)
+        parse_cameras_bin(&path, &bytes)
     } else {
-        parse_cameras_txt(&path, &read_text(&path)?)
+        parse_cameras_txt(&path, utf8(&path, &bytes)?)
     }
 }
 
@@ -617,10 +617,15 @@ pub fn read_points3d(sparse_dir: &Path) -> Result<Vec<Point3D>, ColmapError> {
     if !path.is_file() {
         return Ok(Vec::new());
     }
-    if ext == "bin" {
-        parse_points_bin(&path, &read_file(&path)?)
+    parse_points(&path, &read_file(&path)?, ext == "bin")
+}
+
+/// Parses the bytes of a `points3D.bin` (`binary`) or `points3D.txt`; `path` names it.
+pub fn parse_points(path: &Path, bytes: &[u8], binary: bool) -> Result<Vec<Point3D>, ColmapError> {
+    if binary {
+        parse_points_bin(path, bytes)
     } else {
-        parse_points_txt(&path, &read_text(&path)?)
+        parse_points_txt(path, utf8(path, bytes)?)
     }
 }
 
@@ -630,15 +635,29 @@ pub fn read_model(sparse_dir: &Path) -> Result<Vec<View>, ColmapError> {
     let ext = model_ext(sparse_dir)?;
     let cam_path = sparse_dir.join(format!("cameras.{ext}"));
     let img_path = sparse_dir.join(format!("images.{ext}"));
-    let (cameras, images) = if ext == "bin" {
+    let (cam_bytes, img_bytes) = (read_file(&cam_path)?, read_file(&img_path)?);
+    parse_model(&cam_path, &cam_bytes, &img_path, &img_bytes, ext == "bin")
+}
+
+/// [`read_model`] on the bytes of `cameras` and `images` (`.bin` when `binary`, else
+/// `.txt`); the paths name them in errors.
+pub fn parse_model(
+    cam_path: &Path,
+    cam_bytes: &[u8],
+    img_path: &Path,
+    img_bytes: &[u8],
+    binary: bool,
+) -> Result<Vec<View>, ColmapError> {
+    let (cam_path, img_path) = (cam_path.to_path_buf(), img_path.to_path_buf());
+    let (cameras, images) = if binary {
         (
-            parse_cameras_bin(&cam_path, &read_file(&cam_path)?)?,
-            parse_images_bin(&img_path, &read_file(&img_path)?)?,
+            parse_cameras_bin(&cam_path, cam_bytes)?,
+            parse_images_bin(&img_path, img_bytes)?,
         )
     } else {
         (
-            parse_cameras_txt(&cam_path, &read_text(&cam_path)?)?,
-            parse_images_txt(&img_path, &read_text(&img_path)?)?,
+            parse_cameras_txt(&cam_path, utf8(&cam_path, cam_bytes)?)?,
+            parse_images_txt(&img_path, utf8(&img_path, img_bytes)?)?,
         )
     };
     let mut by_id = std::collections::BTreeMap::new();
@@ -652,8 +671,18 @@ pub fn read_model(sparse_dir: &Path) -> Result<Vec<View>, ColmapError> {
         }
     }
     let mut seen = std::collections::BTreeSet::new();
+    let mut names: std::collections::HashMap<String, u32> = Default::default();
     let mut views = Vec::with_capacity(images.len());
     for img in images {
+        if let Some(&first) = names.get(&img.name) {
+            return Err(ColmapError::DuplicateName {
+                path: img_path,
+                name: img.name,
+                first,
+                second: img.image_id,
+            });
+        }
+        names.insert(img.name.clone(), img.image_id);
         if !seen.insert(img.image_id) {
             return Err(ColmapError::Duplicate {
                 path: img_path,
@@ -910,7 +939,7 @@ mod tests {
         .unwrap();
         let e = read_model(&dir).unwrap_err().to_string();
         assert!(
-            e.contains("image 5") && e.contains("zero.png") && e.contains("line 4"),
+            e.contains("image 5") && e.contains("zero.png") && e.contains("images.txt:4:"),
             "{e}"
         );
 
@@ -919,10 +948,8 @@ mod tests {
         assert!(e.contains("camera 9") && e.contains("a.png"), "{e}");
 
         std::fs::write(dir.join("images.txt"), "1 1 0 0 nan 0 0 0 1 a.png\n\n").unwrap();
-        assert!(matches!(
-            read_model(&dir).unwrap_err(),
-            ColmapError::BadPose { image_id: 1, .. }
-        ));
+        let e = read_model(&dir).unwrap_err();
+        assert!(matches!(e, ColmapError::BadPose { image_id: 1, .. }), "{e}");
 
         std::fs::write(dir.join("images.txt"), "1 1 0 0 0 0 0 x 1 a.png\n\n").unwrap();
         let e = read_model(&dir).unwrap_err().to_string();

@@ -9,21 +9,21 @@ use serde::Serialize;
 /// Errors of atomic output writing.
 #[derive(Debug, thiserror::Error)]
 pub enum FsError {
-    #[error("cannot write {path}: {source}")]
-    Write { path: PathBuf, source: io::Error },
-    #[error("cannot create directory {path}: {source}")]
-    CreateDir { path: PathBuf, source: io::Error },
-    #[error("cannot read {path}: {source}")]
-    Read { path: PathBuf, source: io::Error },
-    #[error("{path}: {source}")]
+    #[error("cannot write {path}: {err}")]
+    Write { path: PathBuf, err: io::Error },
+    #[error("cannot create directory {path}: {err}")]
+    CreateDir { path: PathBuf, err: io::Error },
+    #[error("cannot read {path}: {err}")]
+    Read { path: PathBuf, err: io::Error },
+    #[error("{path}: {err}")]
     Parse {
         path: PathBuf,
-        source: serde_json::Error,
+        err: serde_json::Error,
     },
-    #[error("cannot serialise JSON for {path}: {source}")]
+    #[error("cannot serialise JSON for {path}: {err}")]
     Json {
         path: PathBuf,
-        source: serde_json::Error,
+        err: serde_json::Error,
     },
 }
 
@@ -43,18 +43,18 @@ where
     F: FnOnce(&mut BufWriter<File>) -> Result<(), E>,
 {
     let tmp = tmp_path(path);
-    let wrap = |source| FsError::Write {
+    let wrap = |err| FsError::Write {
         path: path.to_path_buf(),
-        source,
+        err,
     };
     let file = File::create(&tmp).map_err(wrap)?;
     let mut writer = BufWriter::with_capacity(1 << 20, file);
     let result = fill(&mut writer).and_then(|()| {
         writer.flush().map_err(wrap)?;
-        fs::rename(&tmp, path).map_err(|source| {
+        fs::rename(&tmp, path).map_err(|err| {
             FsError::Write {
                 path: path.to_path_buf(),
-                source,
+                err,
             }
             .into()
         })
@@ -68,18 +68,18 @@ where
 /// Writes raw bytes atomically.
 pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<(), FsError> {
     atomic_write(path, |w| {
-        w.write_all(bytes).map_err(|source| FsError::Write {
+        w.write_all(bytes).map_err(|err| FsError::Write {
             path: path.to_path_buf(),
-            source,
+            err,
         })
     })
 }
 
 /// Writes pretty JSON atomically.
 pub fn write_json<T: Serialize + ?Sized>(path: &Path, value: &T) -> Result<(), FsError> {
-    let mut text = serde_json::to_vec_pretty(value).map_err(|source| FsError::Json {
+    let mut text = serde_json::to_vec_pretty(value).map_err(|err| FsError::Json {
         path: path.to_path_buf(),
-        source,
+        err,
     })?;
     text.push(b'\n');
     write_bytes(path, &text)
@@ -87,21 +87,21 @@ pub fn write_json<T: Serialize + ?Sized>(path: &Path, value: &T) -> Result<(), F
 
 /// Reads a JSON file into `T` (an error names the file, and serde's message the line and column).
 pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, FsError> {
-    let bytes = fs::read(path).map_err(|source| FsError::Read {
+    let bytes = fs::read(path).map_err(|err| FsError::Read {
         path: path.to_path_buf(),
-        source,
+        err,
     })?;
-    serde_json::from_slice(&bytes).map_err(|source| FsError::Parse {
+    serde_json::from_slice(&bytes).map_err(|err| FsError::Parse {
         path: path.to_path_buf(),
-        source,
+        err,
     })
 }
 
 /// Creates `dir` and its parents.
 pub fn create_dir(dir: &Path) -> Result<(), FsError> {
-    fs::create_dir_all(dir).map_err(|source| FsError::CreateDir {
+    fs::create_dir_all(dir).map_err(|err| FsError::CreateDir {
         path: dir.to_path_buf(),
-        source,
+        err,
     })
 }
 
@@ -118,7 +118,7 @@ mod tests {
             w.write_all(b"partial").unwrap();
             Err(FsError::Write {
                 path: target.clone(),
-                source: io::Error::other("boom"),
+                err: io::Error::other("boom"),
             })
         });
         assert!(r.is_err());

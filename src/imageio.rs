@@ -22,19 +22,61 @@ pub enum ImageError {
     Cv { op: &'static str, why: String },
 }
 
-/// Reads an image file (PNG, JPEG, …) as 8-bit RGB, `H×W×3`.
+/// The width and height a PNG or JPEG header declares (`None` for other formats or a header
+/// that cannot be parsed; OpenCV then reports what it finds).
+pub fn declared_size(bytes: &[u8]) -> Option<(u32, u32)> {
+    if bytes.starts_with(b"\x89PNG\r\n\x1a\n") && bytes.get(12..16) == Some(b"IHDR") {
+        let be = |o: usize| Some(u32::from_be_bytes(bytes.get(o..o + 4)?.try_into().ok()?));
+        return Some((be(16)?, be(20)?));
+    }
+    if !bytes.starts_with(&[0xFF, 0xD8]) {
+        return None;
+    }
+    // JPEG: walk the marker segments to the first start-of-frame.
+    let mut i = 2;
+    while i + 4 <= bytes.len() {
+        if bytes[i] != 0xFF {
+            return None;
+        }
+        let marker = bytes[i + 1];
+        match marker {
+            0xFF => i += 1, // fill byte
+            0x01 | 0xD0..=0xD7 => i += 2,
+            0xC0..=0xC3 | 0xC5..=0xC7 | 0xC9..=0xCB | 0xCD..=0xCF => {
+                let h = u16::from_be_bytes([*bytes.get(i + 5)?, *bytes.get(i + 6)?]);
+                let w = u16::from_be_bytes([*bytes.get(i + 7)?, *bytes.get(i + 8)?]);
+                return Some((u32::from(w), u32::from(h)));
+            }
+            _ => {
+                let len = usize::from(u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]));
+                i += 2 + len;
+            }
+        }
+    }
+    None
+}
+
+/// Reads an image file (PNG, JPEG, …) as 8-bit RGB, `H×W×3`. A PNG or JPEG whose header
+/// declares more than `camera::MAX_IMAGE_PIXELS` is refused before it is decoded.
 pub fn read_rgb(path: &Path) -> Result<Array3<u8>, ImageError> {
     let err = |why: String| ImageError::Read {
         path: path.to_path_buf(),
-        why,
+        why: why.replace('\n', " "),
     };
-    let name = path
-        .to_str()
-        .ok_or_else(|| err("path is not UTF-8".into()))?;
-    if !path.is_file() {
-        return Err(err("no such file".into()));
+    let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
+    if let Some((w, h)) = declared_size(&bytes) {
+        let px = u64::from(w) * u64::from(h);
+        let side = crate::camera::MAX_IMAGE_SIDE;
+        if px > crate::camera::MAX_IMAGE_PIXELS || w > side || h > side {
+            return Err(err(format!(
+                "its header declares {w}×{h} pixels ({:.1} megapixels), beyond the limit of {side} pixels per side and {} megapixels",
+                px as f64 / 1e6,
+                crate::camera::MAX_IMAGE_PIXELS / 1_000_000
+            )));
+        }
     }
-    let bgr = imgcodecs::imread(name, imgcodecs::IMREAD_COLOR).map_err(|e| err(e.to_string()))?;
+    let buf = Vector::<u8>::from_slice(&bytes);
+    let bgr = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_COLOR).map_err(|e| err(e.to_string()))?;
     if bgr.empty() {
         return Err(err("OpenCV could not decode it".into()));
     }

@@ -2,8 +2,8 @@
 //! city scenes (the GS4City method), CPU-only.
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
-//! [`mesh`], [`npy`], [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
-//! Stages: [`citymodel`], [`raycast`], [`render`], [`lift`], [`eval`], [`query`]. See ARCHITECTURE.md for the data flow.
+//! [`mesh`], [`ply`] (the PLY format under `splat` and `mesh`), [`npy`], [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
+//! Stages: [`citymodel`], [`refine`], [`raycast`], [`render`], [`lift`], [`train`], [`eval`], [`query`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
 pub mod bundled;
@@ -22,6 +22,7 @@ pub mod lift;
 pub mod masks;
 pub mod mesh;
 pub mod npy;
+pub mod ply;
 pub mod progress;
 pub mod query;
 pub mod raycast;

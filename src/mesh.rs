@@ -1,10 +1,16 @@
 //! The labelled triangle mesh handed from the `citymodel` stage to raycasting, and its
-//! `mesh.ply` file (binary little-endian; DESIGN.md fixes the layout):
-//! `vertex {float x,y,z}`, `face {list uchar int vertex_indices; int feature_id; int surface_id; int part_id}`.
-use std::io::Write;
+//! `mesh.ply` layout on the shared PLY layer [`crate::ply`] (DESIGN.md fixes it; written
+//! binary little-endian): `vertex {float x,y,z}`,
+//! `face {list uchar int vertex_indices; int feature_id; int surface_id; int part_id}`.
+//! Reading accepts any PLY encoding and scalar types that hold these values exactly, and
+//! ignores extra properties and elements.
 use std::path::{Path, PathBuf};
 
+use crate::camera::SCENE_COORD_LIMIT;
 use crate::fsutil::{self, FsError};
+use crate::ply::{
+    self, ElementDef, Encoding, PropertyDef, PropertyKind, Reader, RowWriter, ScalarKind,
+};
 
 /// The hierarchical ids of one face; −1 where a level is missing. Ids index `semantics.json`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
@@ -21,6 +27,11 @@ impl FaceLabel {
         surface: -1,
         part: -1,
     };
+
+    /// The ids in level order (feature, surface, part).
+    pub fn ids(&self) -> [i32; 3] {
+        [self.feature, self.surface, self.part]
+    }
 }
 
 /// A triangle mesh in the scene frame (f32) with one [`FaceLabel`] per face.
@@ -36,20 +47,18 @@ pub struct TriMesh {
 pub enum MeshError {
     #[error(transparent)]
     Fs(#[from] FsError),
-    #[error("cannot read {path}: {source}")]
-    Read {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Ply(#[from] ply::PlyError),
     #[error("{path}: {why}")]
     Format { path: PathBuf, why: String },
 }
 
-const HEADER_TAIL: &str = "property float x\nproperty float y\nproperty float z\n";
-const FACE_PROPS: &str = "property list uchar int vertex_indices\nproperty int feature_id\nproperty int surface_id\nproperty int part_id\nend_header\n";
+/// The names of the label properties, in level order.
+const LABEL_PROPS: [&str; 3] = ["feature_id", "surface_id", "part_id"];
 
 impl TriMesh {
-    /// Checks the invariants: one label per face, every index in range, finite vertices.
+    /// Checks the invariants: one label per face, every index in range, label ids −1 or
+    /// positive, vertices finite and within the scene frame's [`SCENE_COORD_LIMIT`].
     pub fn validate(&self) -> Result<(), String> {
         if self.labels.len() != self.faces.len() {
             return Err(format!(
@@ -58,75 +67,114 @@ impl TriMesh {
                 self.labels.len()
             ));
         }
-        let n = self.vertices.len() as u32;
+        let n = self.vertices.len();
         if let Some((i, f)) = self
             .faces
             .iter()
             .enumerate()
-            .find(|(_, f)| f.iter().any(|&v| v >= n))
+            .find(|(_, f)| f.iter().any(|&v| v as usize >= n))
         {
             return Err(format!(
-                "face {i} references vertex {:?} but there are {n} vertices",
-                f
+                "face {i} uses vertices {}, {}, {} but there are {n} vertices",
+                f[0], f[1], f[2]
             ));
         }
-        if let Some(i) = self
+        if let Some((i, l)) = self
+            .labels
+            .iter()
+            .enumerate()
+            .find(|(_, l)| l.ids().iter().any(|&id| id < -1))
+        {
+            return Err(format!(
+                "face {i} has label ids {}, {}, {}; an id is −1 (none) or an entity index ≥ 0",
+                l.feature, l.surface, l.part
+            ));
+        }
+        let lim = SCENE_COORD_LIMIT as f32;
+        if let Some((i, v)) = self
             .vertices
             .iter()
-            .position(|v| v.iter().any(|c| !c.is_finite()))
+            .enumerate()
+            .find(|(_, v)| v.iter().any(|c| !c.is_finite() || c.abs() > lim))
         {
-            return Err(format!("vertex {i} is not finite"));
+            return Err(format!(
+                "vertex {i} at ({}, {}, {}) is not finite or lies beyond ±{SCENE_COORD_LIMIT:e}, the scene frame's limit",
+                v[0], v[1], v[2]
+            ));
         }
         Ok(())
     }
 
-    /// Encodes the mesh as `mesh.ply` bytes.
+    /// Checks every label id against a semantic table of `entities` rows: each id is −1 or
+    /// an index below `entities`. Call it before raycasting with the `semantics.json` the
+    /// mesh came with (`citymodel::check_mesh_labels` also checks the levels).
+    pub fn check_label_range(&self, entities: usize) -> Result<(), String> {
+        for (i, l) in self.labels.iter().enumerate() {
+            for (level, &id) in ["feature", "surface", "part"].iter().zip(&l.ids()) {
+                if id < -1 || (id >= 0 && id as usize >= entities) {
+                    return Err(format!(
+                        "face {i} has {level} id {id}, but the semantic table has {entities} entities (ids 0..{})",
+                        entities.saturating_sub(1)
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn elements(&self) -> [ElementDef; 2] {
+        let int = |n: &str| PropertyDef::scalar(n, ScalarKind::I32);
+        [
+            ElementDef {
+                name: "vertex".into(),
+                count: self.vertices.len(),
+                properties: ["x", "y", "z"]
+                    .map(|n| PropertyDef::scalar(n, ScalarKind::F32))
+                    .to_vec(),
+            },
+            ElementDef {
+                name: "face".into(),
+                count: self.faces.len(),
+                properties: vec![
+                    PropertyDef::list("vertex_indices", ScalarKind::U8, ScalarKind::I32),
+                    int(LABEL_PROPS[0]),
+                    int(LABEL_PROPS[1]),
+                    int(LABEL_PROPS[2]),
+                ],
+            },
+        ]
+    }
+
+    /// Encodes the mesh as `mesh.ply` bytes (binary little-endian).
     pub fn to_ply_bytes(&self) -> Vec<u8> {
-        let mut out = Vec::with_capacity(64 + self.vertices.len() * 12 + self.faces.len() * 25);
-        out.extend_from_slice(
-            format!(
-                "ply\nformat binary_little_endian 1.0\ncomment gs4city citymodel mesh\nelement vertex {}\n{HEADER_TAIL}element face {}\n{FACE_PROPS}",
-                self.vertices.len(),
-                self.faces.len()
-            )
-            .as_bytes(),
+        let mut w = RowWriter::new(
+            Encoding::BinaryLittleEndian,
+            &["gs4city citymodel mesh"],
+            &self.elements(),
         );
         for v in &self.vertices {
-            for c in v {
-                out.extend_from_slice(&c.to_le_bytes());
+            for &c in v {
+                w.scalar(ScalarKind::F32, f64::from(c));
             }
         }
         for (f, l) in self.faces.iter().zip(&self.labels) {
-            out.push(3);
-            for &i in f {
-                out.extend_from_slice(&(i as i32).to_le_bytes());
-            }
-            for id in [l.feature, l.surface, l.part] {
-                out.extend_from_slice(&id.to_le_bytes());
+            w.list(ScalarKind::U8, ScalarKind::I32, &f.map(f64::from));
+            for id in l.ids() {
+                w.scalar(ScalarKind::I32, f64::from(id));
             }
         }
-        out
+        w.into_bytes()
     }
 
     /// Writes `mesh.ply` atomically.
     pub fn write_ply(&self, path: &Path) -> Result<(), MeshError> {
-        let bytes = self.to_ply_bytes();
-        fsutil::atomic_write(path, |w| {
-            w.write_all(&bytes).map_err(|source| {
-                MeshError::Fs(FsError::Write {
-                    path: path.to_path_buf(),
-                    source,
-                })
-            })
-        })
+        fsutil::write_bytes(path, &self.to_ply_bytes())?;
+        Ok(())
     }
 
-    /// Reads a `mesh.ply` written by [`TriMesh::write_ply`] (the layout DESIGN.md fixes).
+    /// Reads a `mesh.ply` (the layout in the module docs) and validates it.
     pub fn read_ply(path: &Path) -> Result<TriMesh, MeshError> {
-        let bytes = std::fs::read(path).map_err(|source| MeshError::Read {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let bytes = ply::read_file(path)?;
         Self::from_ply_bytes(path, &bytes)
     }
 
@@ -136,73 +184,110 @@ impl TriMesh {
             path: path.to_path_buf(),
             why,
         };
-        let end = find(bytes, b"end_header\n").ok_or_else(|| err("no PLY end_header".into()))? + 11;
-        let header =
-            std::str::from_utf8(&bytes[..end]).map_err(|_| err("header is not text".into()))?;
-        if !header.starts_with("ply\n") || !header.contains("format binary_little_endian 1.0\n") {
-            return Err(err("not a binary little-endian PLY".into()));
-        }
-        let count = |elem: &str| -> Result<usize, MeshError> {
+        let mut reader = Reader::new(path, bytes)?;
+        let header = reader.header().clone();
+        let find = |elem: &str| {
             header
-                .lines()
-                .find_map(|l| l.strip_prefix(&format!("element {elem} ")))
-                .and_then(|n| n.trim().parse().ok())
-                .ok_or_else(|| err(format!("no 'element {elem}' count")))
+                .element(elem)
+                .map(|e| &header.elements[e])
+                .ok_or_else(|| err(format!("no `{elem}` element")))
         };
-        let (nv, nf) = (count("vertex")?, count("face")?);
-        if !header.contains(HEADER_TAIL) || !header.ends_with(FACE_PROPS) {
-            return Err(err("properties differ from the gs4city mesh layout (x y z; vertex_indices feature_id surface_id part_id)".into()));
-        }
-        let body = &bytes[end..];
-        let need = nv * 12 + nf * 25;
-        if body.len() != need {
+        let (vdef, fdef) = (find("vertex")?, find("face")?);
+        let prop = |def: &ElementDef, names: &[&str]| {
+            names.iter().find_map(|n| def.property(n)).ok_or_else(|| {
+                err(format!(
+                    "element `{}` has no property `{}`",
+                    def.name, names[0]
+                ))
+            })
+        };
+        let xyz = [
+            prop(vdef, &["x"])?,
+            prop(vdef, &["y"])?,
+            prop(vdef, &["z"])?,
+        ];
+        let idx = prop(fdef, &["vertex_indices", "vertex_index"])?;
+        let ids = [
+            prop(fdef, &[LABEL_PROPS[0]])?,
+            prop(fdef, &[LABEL_PROPS[1]])?,
+            prop(fdef, &[LABEL_PROPS[2]])?,
+        ];
+        if !matches!(fdef.properties[idx].kind, PropertyKind::List { item, .. } if !item.is_float())
+        {
             return Err(err(format!(
-                "payload has {} bytes, header announces {need}",
-                body.len()
+                "face property `{}` must be a list of integers",
+                fdef.properties[idx].name
             )));
         }
-        let f32_at = |o: usize| f32::from_le_bytes(body[o..o + 4].try_into().expect("4 bytes"));
-        let i32_at = |o: usize| i32::from_le_bytes(body[o..o + 4].try_into().expect("4 bytes"));
-        let vertices = (0..nv)
-            .map(|i| [f32_at(i * 12), f32_at(i * 12 + 4), f32_at(i * 12 + 8)])
-            .collect();
-        let mut faces = Vec::with_capacity(nf);
-        let mut labels = Vec::with_capacity(nf);
-        for i in 0..nf {
-            let o = nv * 12 + i * 25;
-            if body[o] != 3 {
+        for &p in &ids {
+            if !matches!(fdef.properties[p].kind, PropertyKind::Scalar(k) if !k.is_float()) {
                 return Err(err(format!(
-                    "face {i} has {} vertices, expected 3",
-                    body[o]
+                    "face property `{}` must be an integer scalar",
+                    fdef.properties[p].name
                 )));
             }
-            let idx = [i32_at(o + 1), i32_at(o + 5), i32_at(o + 9)];
-            if idx.iter().any(|&v| v < 0 || v as usize >= nv) {
-                return Err(err(format!(
-                    "face {i} has vertex indices {idx:?} outside 0..{nv}"
-                )));
-            }
-            faces.push(idx.map(|v| v as u32));
-            labels.push(FaceLabel {
-                feature: i32_at(o + 13),
-                surface: i32_at(o + 17),
-                part: i32_at(o + 21),
-            });
         }
-        let mesh = TriMesh {
-            vertices,
-            faces,
-            labels,
+        let (nv, nf) = (vdef.count, fdef.count);
+        let mut mesh = TriMesh {
+            vertices: Vec::with_capacity(nv),
+            faces: Vec::with_capacity(nf),
+            labels: Vec::with_capacity(nf),
         };
+        reader.read_element("vertex", |row| {
+            mesh.vertices.push(xyz.map(|p| row.get(p) as f32));
+            Ok::<(), MeshError>(())
+        })?;
+        let row_err = |row: &ply::Row, why: String| {
+            err(format!(
+                "face {}{}: {why}",
+                row.index,
+                ply::at_line(row.line)
+            ))
+        };
+        reader.read_element("face", |row| {
+            let list = row.list(idx);
+            let [a, b, c] = list else {
+                return Err(row_err(
+                    row,
+                    format!("has {} vertices; a mesh.ply face is a triangle", list.len()),
+                ));
+            };
+            let f = [*a, *b, *c];
+            if f.iter().any(|&v| v < 0.0 || v >= nv as f64) {
+                return Err(row_err(
+                    row,
+                    format!(
+                        "vertex indices {}, {}, {} are outside 0..{nv}",
+                        f[0], f[1], f[2]
+                    ),
+                ));
+            }
+            mesh.faces.push(f.map(|v| v as u32));
+            let id = |p: usize| {
+                let v = row.get(p);
+                if (-1.0..=f64::from(i32::MAX)).contains(&v) {
+                    Ok(v as i32)
+                } else {
+                    Err(row_err(
+                        row,
+                        format!(
+                            "`{}` is {v}; an id is −1 (none) or an entity index ≥ 0",
+                            fdef.properties[p].name
+                        ),
+                    ))
+                }
+            };
+            mesh.labels.push(FaceLabel {
+                feature: id(ids[0])?,
+                surface: id(ids[1])?,
+                part: id(ids[2])?,
+            });
+            Ok(())
+        })?;
+        reader.finish()?;
         mesh.validate().map_err(err)?;
         Ok(mesh)
     }
-}
-
-fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
-    hay.windows(needle.len())
-        .take(1 << 16)
-        .position(|w| w == needle)
 }
 
 #[cfg(test)]

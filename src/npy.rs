@@ -10,12 +10,9 @@ use crate::fsutil::{self, FsError};
 pub enum NpyError {
     #[error(transparent)]
     Fs(#[from] FsError),
-    #[error("cannot read {path}: {source}")]
-    Read {
-        path: PathBuf,
-        source: std::io::Error,
-    },
-    #[error("{path}: not a .npy file ({why})")]
+    #[error("cannot read {path}: {err}")]
+    Read { path: PathBuf, err: std::io::Error },
+    #[error("{path}: not a usable .npy file: {why}")]
     Format { path: PathBuf, why: String },
     #[error("{path}: holds dtype {found}, expected {expected}")]
     Dtype {
@@ -23,13 +20,21 @@ pub enum NpyError {
         found: String,
         expected: &'static str,
     },
-    #[error("{path}: shape {shape:?} holds {expected} values but the payload has {found}")]
+    #[error(
+        "{path}: shape {} holds {expected} values but the payload has {found}",
+        shape_text(shape)
+    )]
     Size {
         path: PathBuf,
         shape: Vec<usize>,
         expected: usize,
         found: usize,
     },
+    #[error(
+        "{path}: shape {} holds more values than memory can address",
+        shape_text(shape)
+    )]
+    Overflow { path: PathBuf, shape: Vec<usize> },
 }
 
 /// An element type that `.npy` can hold, stored little-endian.
@@ -66,14 +71,9 @@ npy_element!(f64, "<f8");
 npy_element!(u8, "|u1");
 npy_element!(u16, "<u2");
 
-/// Encodes `data` with `shape` (C order) as `.npy` bytes.
-pub fn encode<T: NpyElement>(shape: &[usize], data: &[T]) -> Vec<u8> {
-    assert_eq!(
-        shape.iter().product::<usize>(),
-        data.len(),
-        "npy::encode: shape does not match data"
-    );
-    let shape_txt = match shape {
+/// A shape as NumPy prints it: `(3, 4)`, `(7,)`, `()`.
+pub fn shape_text(shape: &[usize]) -> String {
+    match shape {
         [n] => format!("({n},)"),
         _ => format!(
             "({})",
@@ -83,7 +83,17 @@ pub fn encode<T: NpyElement>(shape: &[usize], data: &[T]) -> Vec<u8> {
                 .collect::<Vec<_>>()
                 .join(", ")
         ),
-    };
+    }
+}
+
+/// Encodes `data` with `shape` (C order) as `.npy` bytes.
+pub fn encode<T: NpyElement>(shape: &[usize], data: &[T]) -> Vec<u8> {
+    assert_eq!(
+        shape.iter().product::<usize>(),
+        data.len(),
+        "npy::encode: shape does not match data"
+    );
+    let shape_txt = shape_text(shape);
     let mut header = format!(
         "{{'descr': '{}', 'fortran_order': False, 'shape': {}, }}",
         T::DESCR,
@@ -107,10 +117,10 @@ pub fn encode<T: NpyElement>(shape: &[usize], data: &[T]) -> Vec<u8> {
 pub fn write<T: NpyElement>(path: &Path, shape: &[usize], data: &[T]) -> Result<(), NpyError> {
     let bytes = encode(shape, data);
     fsutil::atomic_write(path, |w| {
-        w.write_all(&bytes).map_err(|source| {
+        w.write_all(&bytes).map_err(|err| {
             NpyError::Fs(FsError::Write {
                 path: path.to_path_buf(),
-                source,
+                err,
             })
         })
     })
@@ -118,9 +128,9 @@ pub fn write<T: NpyElement>(path: &Path, shape: &[usize], data: &[T]) -> Result<
 
 /// Reads a `.npy` file of element type `T`; returns `(shape, data)` in C order.
 pub fn read<T: NpyElement>(path: &Path) -> Result<(Vec<usize>, Vec<T>), NpyError> {
-    let bytes = std::fs::read(path).map_err(|source| NpyError::Read {
+    let bytes = std::fs::read(path).map_err(|err| NpyError::Read {
         path: path.to_path_buf(),
-        source,
+        err,
     })?;
     decode(path, &bytes)
 }
@@ -134,7 +144,7 @@ pub fn decode<T: NpyElement>(path: &Path, bytes: &[u8]) -> Result<(Vec<usize>, V
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err(fmt("missing magic"));
     }
-    let (hlen, start) = match bytes[6] {
+    let (hlen, start): (usize, usize) = match bytes[6] {
         1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
         2 | 3 if bytes.len() >= 12 => (
             u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
@@ -142,8 +152,9 @@ pub fn decode<T: NpyElement>(path: &Path, bytes: &[u8]) -> Result<(Vec<usize>, V
         ),
         _ => return Err(fmt("unsupported version")),
     };
-    let header = bytes
-        .get(start..start + hlen)
+    let header = start
+        .checked_add(hlen)
+        .and_then(|end| bytes.get(start..end))
         .ok_or_else(|| fmt("truncated header"))?;
     let header = std::str::from_utf8(header).map_err(|_| fmt("header is not text"))?;
     let descr = dict_value(header, "descr").ok_or_else(|| fmt("no descr"))?;
@@ -166,14 +177,26 @@ pub fn decode<T: NpyElement>(path: &Path, bytes: &[u8]) -> Result<(Vec<usize>, V
     }
     let shape_txt = dict_value(header, "shape").ok_or_else(|| fmt("no shape"))?;
     let inner = shape_txt.trim().trim_start_matches('(');
-    let inner = &inner[..inner.find(')').ok_or_else(|| fmt("bad shape"))?];
+    let bad_shape = || {
+        let end = shape_txt.find(')').map_or(shape_txt.len(), |i| i + 1);
+        let t: String = shape_txt[..end].chars().take(60).collect();
+        fmt(&format!("its shape {t} is not a tuple of whole numbers"))
+    };
+    let inner = &inner[..inner.find(')').ok_or_else(bad_shape)?];
     let shape = inner
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
-        .map(|s| s.parse::<usize>().map_err(|_| fmt("bad shape")))
+        .map(|s| s.parse::<usize>().map_err(|_| bad_shape()))
         .collect::<Result<Vec<_>, _>>()?;
-    let n: usize = shape.iter().product();
+    let n = shape
+        .iter()
+        .try_fold(1usize, |acc, &d| acc.checked_mul(d))
+        .filter(|n| n.checked_mul(T::SIZE).is_some())
+        .ok_or_else(|| NpyError::Overflow {
+            path: path.to_path_buf(),
+            shape: shape.clone(),
+        })?;
     let payload = &bytes[start + hlen..];
     if payload.len() != n * T::SIZE {
         return Err(NpyError::Size {

@@ -67,27 +67,24 @@ pub enum RleError {
 /// Errors of SAM mask files. Each names the file and, where one is at fault, the mask index.
 #[derive(Debug, thiserror::Error)]
 pub enum SamError {
-    #[error("cannot read {path}: {source}")]
-    Read {
-        path: PathBuf,
-        source: std::io::Error,
-    },
-    #[error("{path}: not a JSON list of SAM masks: {source}")]
+    #[error("cannot read {path}: {err}")]
+    Read { path: PathBuf, err: std::io::Error },
+    #[error("{path}: not a JSON list of SAM masks: {err}")]
     Json {
         path: PathBuf,
-        source: serde_json::Error,
+        err: serde_json::Error,
     },
-    #[error("{path}: mask {index}: {source}")]
+    #[error("{path}: mask {index}: {err}")]
     Field {
         path: PathBuf,
         index: usize,
-        source: serde_json::Error,
+        err: serde_json::Error,
     },
-    #[error("{path}: mask {index}: bad RLE: {source}")]
+    #[error("{path}: mask {index}: bad RLE: {err}")]
     Rle {
         path: PathBuf,
         index: usize,
-        source: RleError,
+        err: RleError,
     },
     #[error("{path}: mask {index}: size [h, w] = {found:?} differs from {expected:?} ({what})")]
     Size {
@@ -97,6 +94,27 @@ pub enum SamError {
         expected: [usize; 2],
         what: &'static str,
     },
+    #[error(
+        "{path}: mask {index}: size {h}×{w} exceeds the image limit ({} pixels per side, {} megapixels)",
+        crate::camera::MAX_IMAGE_SIDE,
+        crate::camera::MAX_IMAGE_PIXELS / 1_000_000
+    )]
+    TooLarge {
+        path: PathBuf,
+        index: usize,
+        h: usize,
+        w: usize,
+    },
+    #[error("{path}: prompt {prompt:?}: {why}")]
+    Prompt {
+        path: PathBuf,
+        prompt: String,
+        why: String,
+    },
+    #[error("{path}: {why}")]
+    Features { path: PathBuf, why: String },
+    #[error(transparent)]
+    Npy(#[from] NpyError),
     #[error("{path}: mask {index}: \"area\" is {stated} but its RLE holds {decoded} pixels")]
     Area {
         path: PathBuf,
@@ -105,16 +123,16 @@ pub enum SamError {
         decoded: u64,
     },
     #[error(
-        "{path}: not a prompts file ({{\"dim\": D, \"prompts\": {{text: [D floats]}}}}): {source}"
+        "{path}: not a prompts file ({{\"dim\": D, \"prompts\": {{text: [D floats]}}}}): {err}"
     )]
     Prompts {
         path: PathBuf,
-        source: serde_json::Error,
+        err: serde_json::Error,
     },
-    #[error("cannot serialise SAM masks for {path}: {source}")]
+    #[error("cannot serialise SAM masks for {path}: {err}")]
     Serialize {
         path: PathBuf,
-        source: serde_json::Error,
+        err: serde_json::Error,
     },
     #[error(transparent)]
     Fs(#[from] FsError),
@@ -296,7 +314,9 @@ impl Rle {
         };
         let [h, w] = self.size;
         let sum: u64 = counts.iter().map(|&c| u64::from(c)).sum();
-        let expected = h as u64 * w as u64;
+        // u128: h·w of two usize values cannot overflow it; a product beyond u64 cannot
+        // equal any sum of u32 counts and fails below.
+        let expected = u64::try_from(h as u128 * w as u128).unwrap_or(u64::MAX);
         // pycocotools encodes an empty image as [0]; an empty list is accepted for it too.
         if sum != expected {
             return Err(RleError::Sum {
@@ -477,9 +497,9 @@ pub fn read_sam_json_sized(
     path: &Path,
     image_size: Option<[usize; 2]>,
 ) -> Result<Vec<SamMask>, SamError> {
-    let bytes = std::fs::read(path).map_err(|source| SamError::Read {
+    let bytes = std::fs::read(path).map_err(|err| SamError::Read {
         path: path.to_path_buf(),
-        source,
+        err,
     })?;
     parse_sam_json(path, &bytes, image_size)
 }
@@ -492,16 +512,26 @@ pub fn parse_sam_json(
 ) -> Result<Vec<SamMask>, SamError> {
     let p = || path.to_path_buf();
     let items: Vec<serde_json::Value> =
-        serde_json::from_slice(bytes).map_err(|source| SamError::Json { path: p(), source })?;
+        serde_json::from_slice(bytes).map_err(|err| SamError::Json { path: p(), err })?;
     let mut out = Vec::with_capacity(items.len());
     let mut expected = image_size.map(|s| (s, "the image size"));
     for (index, item) in items.into_iter().enumerate() {
-        let m: SamMask = serde_json::from_value(item).map_err(|source| SamError::Field {
+        let m: SamMask = serde_json::from_value(item).map_err(|err| SamError::Field {
             path: p(),
             index,
-            source,
+            err,
         })?;
         let size = m.segmentation.size;
+        let [h, w] = size;
+        let side = crate::camera::MAX_IMAGE_SIDE as usize;
+        if h > side || w > side || (h as u64) * (w as u64) > crate::camera::MAX_IMAGE_PIXELS {
+            return Err(SamError::TooLarge {
+                path: p(),
+                index,
+                h,
+                w,
+            });
+        }
         match expected {
             Some((e, what)) if e != size => {
                 return Err(SamError::Size {
@@ -515,10 +545,10 @@ pub fn parse_sam_json(
             Some(_) => {}
             None => expected = Some((size, "the size of mask 0")),
         }
-        let decoded = m.segmentation.area().map_err(|source| SamError::Rle {
+        let decoded = m.segmentation.area().map_err(|err| SamError::Rle {
             path: p(),
             index,
-            source,
+            err,
         })?;
         if decoded != m.area {
             return Err(SamError::Area {
@@ -535,9 +565,9 @@ pub fn parse_sam_json(
 
 /// Writes masks as a SAM JSON list (compact, one trailing newline), atomically.
 pub fn write_sam_json(path: &Path, masks: &[SamMask]) -> Result<(), SamError> {
-    let mut text = serde_json::to_vec(masks).map_err(|source| SamError::Serialize {
+    let mut text = serde_json::to_vec(masks).map_err(|err| SamError::Serialize {
         path: path.to_path_buf(),
-        source,
+        err,
     })?;
     text.write_all(b"\n").expect("writing to a Vec cannot fail");
     fsutil::write_bytes(path, &text)?;
@@ -579,16 +609,81 @@ pub fn write_prompts_json(path: &Path, prompts: &Prompts) -> Result<(), SamError
     Ok(())
 }
 
-/// Reads a prompts file (`{"dim": D, "prompts": {text: [D floats]}}`).
+/// Reads a prompts file (`{"dim": D, "prompts": {text: [D floats]}}`) and checks it
+/// ([`parse_prompts_json`]).
 pub fn read_prompts_json(path: &Path) -> Result<Prompts, SamError> {
-    let bytes = std::fs::read(path).map_err(|source| SamError::Read {
+    let bytes = std::fs::read(path).map_err(|err| SamError::Read {
         path: path.to_path_buf(),
-        source,
+        err,
     })?;
-    serde_json::from_slice(&bytes).map_err(|source| SamError::Prompts {
+    parse_prompts_json(path, &bytes)
+}
+
+/// Parses a prompts file: `dim ≥ 1`, every vector has `dim` finite values.
+pub fn parse_prompts_json(path: &Path, bytes: &[u8]) -> Result<Prompts, SamError> {
+    let p: Prompts = serde_json::from_slice(bytes).map_err(|err| SamError::Prompts {
         path: path.to_path_buf(),
-        source,
-    })
+        err,
+    })?;
+    let bad = |prompt: &str, why: String| SamError::Prompt {
+        path: path.to_path_buf(),
+        prompt: prompt.to_string(),
+        why,
+    };
+    if p.dim == 0 && !p.prompts.is_empty() {
+        return Err(SamError::Features {
+            path: path.to_path_buf(),
+            why: "\"dim\" is 0".into(),
+        });
+    }
+    for (text, v) in &p.prompts {
+        if v.len() != p.dim {
+            return Err(bad(
+                text,
+                format!("has {} values, \"dim\" is {}", v.len(), p.dim),
+            ));
+        }
+        if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+            return Err(bad(
+                text,
+                format!("value {k} is {}, not a finite number", v[k]),
+            ));
+        }
+    }
+    Ok(p)
+}
+
+/// Reads per-mask features (`features/<stem>.npy`, float32 `N×D`): returns `(N, D, values
+/// row-major)`. Every value must be finite; `masks`, when given, must equal `N`.
+pub fn read_features(
+    path: &Path,
+    masks: Option<usize>,
+) -> Result<(usize, usize, Vec<f32>), SamError> {
+    let (shape, data) = npy::read::<f32>(path)?;
+    let bad = |why: String| SamError::Features {
+        path: path.to_path_buf(),
+        why,
+    };
+    let [n, d] = shape[..] else {
+        return Err(bad(format!(
+            "shape {} is not 2-D (one row of features per mask)",
+            npy::shape_text(&shape)
+        )));
+    };
+    if let Some(m) = masks
+        && m != n
+    {
+        return Err(bad(format!("{n} feature rows for {m} masks")));
+    }
+    if let Some(k) = data.iter().position(|x| !x.is_finite()) {
+        return Err(bad(format!(
+            "row {}, column {}: {} is not a finite number",
+            k / d.max(1),
+            k % d.max(1),
+            data[k]
+        )));
+    }
+    Ok((n, d, data))
 }
 
 #[cfg(test)]

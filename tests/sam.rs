@@ -88,7 +88,7 @@ fn broken_files_name_file_and_mask() {
             e,
             MasksError::Rle {
                 index: 2,
-                source: RleError::Truncated { .. },
+                err: RleError::Truncated { .. },
                 ..
             }
         ),

@@ -15,10 +15,19 @@ pub use reader::{read, read_bytes};
 /// Errors of CityGML reading; each names the file and the line (and gml:id where there is one).
 #[derive(Debug, thiserror::Error)]
 pub enum CityGmlError {
-    #[error("cannot open {path}: {source}")]
-    Open {
+    #[error("cannot read {path}: {err}")]
+    Open { path: PathBuf, err: std::io::Error },
+    #[error("{path}:{line}: {message}")]
+    Encoding {
         path: PathBuf,
-        source: std::io::Error,
+        line: u64,
+        message: String,
+    },
+    #[error("{path}:{line}: {message}")]
+    Content {
+        path: PathBuf,
+        line: u64,
+        message: String,
     },
     #[error("{path}:{line}: malformed XML: {message}")]
     Xml {

@@ -28,6 +28,17 @@ pub enum Level {
     Part,
 }
 
+impl Level {
+    /// The level's name, as in `semantics.json`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Level::Feature => "feature",
+            Level::Surface => "surface",
+            Level::Part => "part",
+        }
+    }
+}
+
 /// The city-object classes gs4city understands (CityGML 1.0/2.0 `bldg:`, 3.0 `bldg:`/`con:`/core).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize)]
 pub enum Class {
@@ -157,6 +168,15 @@ pub struct Polygon {
 }
 
 impl Polygon {
+    /// A name for messages that already give the line: `polygon <gml:id>`, or
+    /// `polygon #<ordinal> (no gml:id)`.
+    pub fn name(&self) -> String {
+        match &self.id {
+            Some(id) => format!("polygon {id}"),
+            None => format!("polygon #{} (no gml:id)", self.ordinal),
+        }
+    }
+
     /// A name for messages: the gml:id, or the ordinal and line.
     pub fn label(&self) -> String {
         match &self.id {

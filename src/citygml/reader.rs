@@ -3,8 +3,6 @@
 //! One pass collects objects, polygons, xlink references, attributes and appearances with a
 //! stack of open elements; references, the LoD choice and derived ids are resolved after EOF.
 use std::collections::{BTreeMap, HashMap};
-use std::fs::File;
-use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
@@ -16,29 +14,28 @@ use quick_xml::reader::NsReader;
 use super::CityGmlError;
 use super::model::*;
 
-/// Reads a newline index while bytes stream through, so byte offsets map to lines.
-struct LineCounter<R> {
-    inner: R,
-    pos: u64,
-    newlines: Vec<u64>,
+/// Maps byte offsets of the text to 1-based line numbers with a forward cursor: offsets
+/// arrive in increasing order while the XML streams, so the whole file costs one pass and
+/// no memory per line (a step back recounts from the start).
+struct Lines<'a> {
+    text: &'a [u8],
+    pos: usize,
+    line: u64,
 }
 
-impl<R: Read> Read for LineCounter<R> {
-    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-        let n = self.inner.read(buf)?;
-        for (i, &b) in buf[..n].iter().enumerate() {
-            if b == b'\n' {
-                self.newlines.push(self.pos + i as u64);
-            }
+impl Lines<'_> {
+    fn line_of(&mut self, offset: u64) -> u64 {
+        let offset = (offset as usize).min(self.text.len());
+        if offset < self.pos {
+            self.pos = 0;
+            self.line = 1;
         }
-        self.pos += n as u64;
-        Ok(n)
-    }
-}
-
-impl<R> LineCounter<R> {
-    fn line_of(&self, offset: u64) -> u64 {
-        self.newlines.partition_point(|&p| p < offset) as u64 + 1
+        self.line += self.text[self.pos..offset]
+            .iter()
+            .filter(|&&b| b == b'\n')
+            .count() as u64;
+        self.pos = offset;
+        self.line
     }
 }
 
@@ -277,38 +274,153 @@ struct Parser {
     tex_ring: Option<String>,
     stats: ReadStats,
     warnings: Vec<Warning>,
+    /// gml:id → line of its first use.
+    ids: HashMap<String, u64>,
+    /// Entity names declared in the document type (reported, never expanded).
+    dtd_entities: Vec<String>,
 }
 
-/// Reads one CityGML file (1.0, 2.0 or 3.0).
+/// Reads one CityGML file (1.0, 2.0 or 3.0). The file is read whole and decoded to UTF-8
+/// first ([`decode_text`]), so line numbers count the file's own lines in every encoding.
 pub fn read(path: &Path) -> Result<CityModel, CityGmlError> {
-    let file = File::open(path).map_err(|source| CityGmlError::Open {
+    let bytes = std::fs::read(path).map_err(|err| CityGmlError::Open {
         path: path.to_path_buf(),
-        source,
+        err,
     })?;
-    let counter = LineCounter {
-        inner: file,
-        pos: 0,
-        newlines: Vec::new(),
-    };
-    let reader = NsReader::from_reader(BufReader::with_capacity(1 << 16, counter));
-    parse(path, reader)
+    read_bytes(path, &bytes)
 }
 
 /// Reads CityGML from bytes (`path` names the source in messages).
 pub fn read_bytes(path: &Path, bytes: &[u8]) -> Result<CityModel, CityGmlError> {
-    let counter = LineCounter {
-        inner: bytes,
-        pos: 0,
-        newlines: Vec::new(),
-    };
-    let reader = NsReader::from_reader(BufReader::new(counter));
-    parse(path, reader)
+    let text = decode_text(path, bytes)?;
+    parse(path, &text)
 }
 
-fn parse<R: Read>(
+/// The 1-based line of byte `offset` of `bytes`.
+fn line_at(bytes: &[u8], offset: usize) -> u64 {
+    1 + bytes[..offset.min(bytes.len())]
+        .iter()
+        .filter(|&&b| b == b'\n')
+        .count() as u64
+}
+
+/// The `encoding` of the XML declaration, if the text starts with one.
+fn declared_encoding(bytes: &[u8]) -> Option<String> {
+    let head = &bytes[..bytes.len().min(1024)];
+    if !head.starts_with(b"<?xml") {
+        return None;
+    }
+    let end = head.windows(2).position(|w| w == b"?>")?;
+    let decl = std::str::from_utf8(&head[..end]).ok()?;
+    let at = decl.find("encoding")?;
+    let rest = decl[at + 8..].trim_start().strip_prefix('=')?.trim_start();
+    let quote = rest.chars().next().filter(|c| *c == '"' || *c == '\'')?;
+    let value = &rest[1..];
+    Some(value[..value.find(quote)?].to_string())
+}
+
+/// windows-1252 code points of bytes 0x80..=0x9F (the WHATWG table; the five unassigned
+/// bytes map to the C1 controls of the same value).
+const CP1252_HIGH: [u16; 32] = [
+    0x20AC, 0x81, 0x201A, 0x0192, 0x201E, 0x2026, 0x2020, 0x2021, 0x02C6, 0x2030, 0x0160, 0x2039,
+    0x0152, 0x8D, 0x017D, 0x8F, 0x90, 0x2018, 0x2019, 0x201C, 0x201D, 0x2022, 0x2013, 0x2014,
+    0x02DC, 0x2122, 0x0161, 0x203A, 0x0153, 0x9D, 0x017E, 0x0178,
+];
+
+/// The text of a CityGML file as UTF-8: UTF-8 (with or without BOM) as is, UTF-16 with a
+/// BOM, and ISO-8859-1 / windows-1252 when the XML declaration names them, transcoded
+/// (newlines are kept, so line numbers stay the file's own). Invalid UTF-8 is an error that
+/// names the line of the first bad byte; an encoding the reader does not know is an error.
+pub fn decode_text<'a>(
     path: &Path,
-    mut reader: NsReader<BufReader<LineCounter<R>>>,
-) -> Result<CityModel, CityGmlError> {
+    bytes: &'a [u8],
+) -> Result<std::borrow::Cow<'a, [u8]>, CityGmlError> {
+    use std::borrow::Cow;
+    let err = |line: u64, message: String| CityGmlError::Encoding {
+        path: path.to_path_buf(),
+        line,
+        message,
+    };
+    let utf16 = |body: &[u8], big: bool| -> Result<Cow<'a, [u8]>, CityGmlError> {
+        let units = body.chunks(2).map(|c| match (c, big) {
+            ([a, b], true) => u16::from_be_bytes([*a, *b]),
+            ([a, b], false) => u16::from_le_bytes([*a, *b]),
+            _ => 0xDC00, // an odd trailing byte: a lone surrogate, reported below
+        });
+        let mut out = String::with_capacity(body.len() / 2);
+        for c in char::decode_utf16(units) {
+            match c {
+                Ok(c) => out.push(c),
+                Err(_) => {
+                    let line = 1 + out.matches('\n').count() as u64;
+                    return Err(err(line, "the file is not valid UTF-16".into()));
+                }
+            }
+        }
+        Ok(Cow::Owned(out.into_bytes()))
+    };
+    if let Some(body) = bytes.strip_prefix(b"\xFF\xFE") {
+        return utf16(body, false);
+    }
+    if let Some(body) = bytes.strip_prefix(b"\xFE\xFF") {
+        return utf16(body, true);
+    }
+    let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
+    let declared = declared_encoding(bytes);
+    let norm = declared
+        .as_deref()
+        .map(|e| e.trim().to_ascii_lowercase().replace('_', "-"));
+    match norm.as_deref() {
+        None | Some("utf-8" | "utf8" | "us-ascii" | "ascii") => match std::str::from_utf8(bytes) {
+            Ok(_) => Ok(Cow::Borrowed(bytes)),
+            Err(e) => {
+                let at = e.valid_up_to();
+                Err(err(
+                    line_at(bytes, at),
+                    format!(
+                        "the file is not valid UTF-8 (byte {:#04x}); if it is in another encoding, name it in the XML declaration, e.g. encoding=\"ISO-8859-1\"",
+                        bytes[at]
+                    ),
+                ))
+            }
+        },
+        Some("iso-8859-1" | "iso8859-1" | "latin1" | "latin-1" | "l1" | "iso-ir-100") => {
+            Ok(Cow::Owned(
+                bytes
+                    .iter()
+                    .map(|&b| char::from(b))
+                    .collect::<String>()
+                    .into_bytes(),
+            ))
+        }
+        Some("windows-1252" | "cp1252" | "x-cp1252") => Ok(Cow::Owned(
+            bytes
+                .iter()
+                .map(|&b| match b {
+                    0x80..=0x9F => char::from_u32(u32::from(CP1252_HIGH[usize::from(b - 0x80)]))
+                        .unwrap_or('\u{FFFD}'),
+                    _ => char::from(b),
+                })
+                .collect::<String>()
+                .into_bytes(),
+        )),
+        Some(_) => Err(err(
+            1,
+            format!(
+                "the XML declaration names encoding \"{}\"; gs4city reads UTF-8, UTF-16 (with a byte-order mark), ISO-8859-1 and windows-1252",
+                declared.unwrap_or_default()
+            ),
+        )),
+    }
+}
+
+fn parse(path: &Path, text: &[u8]) -> Result<CityModel, CityGmlError> {
+    let mut reader = NsReader::from_reader(text);
+    let mut lines = Lines {
+        text,
+        pos: 0,
+        line: 1,
+    };
     reader.config_mut().expand_empty_elements = true;
     reader.config_mut().check_end_names = true;
     let mut p = Parser {
@@ -346,6 +458,8 @@ fn parse<R: Read>(
         tex_ring: None,
         stats: ReadStats::default(),
         warnings: Vec::new(),
+        ids: HashMap::new(),
+        dtd_entities: Vec::new(),
     };
     let mut buf = Vec::with_capacity(1 << 16);
     loop {
@@ -355,7 +469,7 @@ fn parse<R: Read>(
             Ok(x) => x,
             Err(e) => {
                 let pos = reader.error_position();
-                let line = reader.get_ref().get_ref().line_of(pos);
+                let line = lines.line_of(pos);
                 return Err(CityGmlError::Xml {
                     path: p.path.clone(),
                     line,
@@ -369,35 +483,75 @@ fn parse<R: Read>(
         };
         match event {
             Event::Start(e) => {
-                let line = reader.get_ref().get_ref().line_of(offset);
+                let line = lines.line_of(offset);
                 let attrs = Attrs::read(&reader, &e);
                 p.start(ns, &e, attrs, line)?;
             }
             Event::End(_) => {
-                let line = reader.get_ref().get_ref().line_of(offset);
+                let line = lines.line_of(offset);
                 p.end(line)?;
             }
             Event::Text(t) if p.collecting => p.text.push_str(&t.xml10_content()),
             Event::CData(t) if p.collecting => p.text.push_str(&t.xml10_content()),
-            Event::GeneralRef(r) if p.collecting => {
-                let s = if let Ok(Some(c)) = r.resolve_char_ref() {
-                    c.to_string()
-                } else {
-                    match r.xml10_content().as_ref() {
+            Event::GeneralRef(r) => {
+                let name = r.xml10_content();
+                let s = match r.resolve_char_ref() {
+                    Ok(Some(c)) => c.to_string(),
+                    Err(_) => {
+                        let line = lines.line_of(offset);
+                        return Err(CityGmlError::Content {
+                            path: p.path.clone(),
+                            line,
+                            message: format!("&{name}; is not a valid character reference"),
+                        });
+                    }
+                    Ok(None) => match name.as_ref() {
                         "lt" => "<".into(),
                         "gt" => ">".into(),
                         "amp" => "&".into(),
                         "apos" => "'".into(),
                         "quot" => "\"".into(),
-                        other => format!("&{other};"),
-                    }
+                        other => {
+                            let line = lines.line_of(offset);
+                            let message = if p.dtd_entities.iter().any(|e| e == other) {
+                                format!(
+                                    "entity &{other}; is declared in the document type, but gs4city does not expand document-type entities"
+                                )
+                            } else {
+                                format!(
+                                    "undefined XML entity &{other}; (XML predefines only &lt; &gt; &amp; &apos; &quot;)"
+                                )
+                            };
+                            return Err(CityGmlError::Content {
+                                path: p.path.clone(),
+                                line,
+                                message,
+                            });
+                        }
+                    },
                 };
-                p.text.push_str(&s);
+                if p.collecting {
+                    p.text.push_str(&s);
+                }
+            }
+            Event::DocType(d) => {
+                // Remember declared entity names (they are reported, never expanded).
+                let text: &str = d.as_ref();
+                for decl in text.split("<!ENTITY").skip(1) {
+                    let mut words = decl.split_whitespace();
+                    let name = match words.next() {
+                        Some("%") => words.next(),
+                        n => n,
+                    };
+                    if let Some(n) = name {
+                        p.dtd_entities.push(n.to_string());
+                    }
+                }
             }
             Event::Eof => {
                 let open = p.stack.len();
                 if open > 0 {
-                    let line = reader.get_ref().get_ref().line_of(offset);
+                    let line = lines.line_of(offset);
                     return Err(CityGmlError::Truncated {
                         path: p.path.clone(),
                         line,
@@ -410,7 +564,7 @@ fn parse<R: Read>(
         }
         buf.clear();
     }
-    p.stats.bytes = reader.get_ref().get_ref().pos;
+    p.stats.bytes = text.len() as u64;
     p.finish()
 }
 
@@ -428,6 +582,8 @@ struct Attrs {
     ring: Option<String>,
     cs: Option<String>,
     ts: Option<String>,
+    /// Why a used attribute's value could not be read (e.g. an undefined entity).
+    error: Option<String>,
 }
 
 impl Attrs {
@@ -435,10 +591,16 @@ impl Attrs {
         let mut a = Attrs::default();
         for attr in e.attributes().with_checks(false).flatten() {
             let (ns, local) = reader.resolver().resolve_attribute(attr.key);
-            let value = || {
-                attr.normalized_value(XmlVersion::Implicit1_0)
-                    .map(|v| v.into_owned())
-                    .ok()
+            let mut error = None;
+            let mut value = || match attr.normalized_value(XmlVersion::Implicit1_0) {
+                Ok(v) => Some(v.into_owned()),
+                Err(e) => {
+                    error = Some(format!(
+                        "attribute {}: {e}",
+                        AsRef::<str>::as_ref(&attr.key)
+                    ));
+                    None
+                }
             };
             let is_gml = matches!(&ns, ResolveResult::Bound(n) if n.as_ref().starts_with("http://www.opengis.net/gml"));
             let is_xlink = matches!(&ns, ResolveResult::Bound(n) if n.as_ref() == "http://www.w3.org/1999/xlink");
@@ -455,6 +617,9 @@ impl Attrs {
                 "cs" => a.cs = value(),
                 "ts" => a.ts = value(),
                 _ => {}
+            }
+            if a.error.is_none() {
+                a.error = error;
             }
         }
         a
@@ -479,6 +644,34 @@ impl Parser {
             id,
             message,
         });
+    }
+
+    /// A gml:id used a second time: a warning; a city object gets a unique name so the
+    /// hierarchy table stays unambiguous.
+    fn duplicate_id(&mut self, id: &str, first: u64, line: u64, is_object: bool) {
+        if !is_object {
+            self.warn(
+                line,
+                Some(id.to_string()),
+                format!("gml:id \"{id}\" is already used at line {first}; gml:ids must be unique in a file, so references to it are ambiguous"),
+            );
+            return;
+        }
+        let o = self.objects.len() - 1;
+        let mut n = 2;
+        let mut unique = format!("{id}~{n}");
+        while self.ids.contains_key(&unique) {
+            n += 1;
+            unique = format!("{id}~{n}");
+        }
+        self.ids.insert(unique.clone(), line);
+        let class = self.objects[o].class.name();
+        self.objects[o].object_id = unique.clone();
+        self.warn(
+            line,
+            Some(id.to_string()),
+            format!("gml:id \"{id}\" is already used at line {first}; this {class} is called \"{unique}\" in the hierarchy table"),
+        );
     }
 
     fn current_object(&self) -> Option<usize> {
@@ -506,18 +699,48 @@ impl Parser {
             }
             self.version = version;
         }
-        if let Some(d) = a
-            .srs_dimension
-            .as_deref()
-            .and_then(|d| d.trim().parse::<usize>().ok())
-        {
+        if let Some(why) = &a.error {
+            return Err(CityGmlError::Content {
+                path: self.path.clone(),
+                line,
+                message: why.clone(),
+            });
+        }
+        if let Some(d) = a.srs_dimension.as_deref() {
+            let Some(d) = d
+                .trim()
+                .parse::<usize>()
+                .ok()
+                .filter(|d| (1..=3).contains(d))
+            else {
+                return Err(CityGmlError::Content {
+                    path: self.path.clone(),
+                    line,
+                    message: format!(
+                        "srsDimension=\"{d}\" is not a valid dimension (gs4city reads 2 or 3)"
+                    ),
+                });
+            };
             self.dim_stack.push((self.stack.len(), d));
         }
+        let duplicate_of = match &a.gml_id {
+            Some(id) => match self.ids.get(id) {
+                Some(&first) => Some(first),
+                None => {
+                    self.ids.insert(id.clone(), line);
+                    None
+                }
+            },
+            None => None,
+        };
         if self.srs_name.is_none() {
             self.srs_name = a.srs_name.clone();
         }
         let parent_is_object = matches!(self.stack.last(), Some(Tag::Object));
         let tag = self.classify(ns, local, &a, parent_is_object, line)?;
+        if let (Some(first), Some(id)) = (duplicate_of, &a.gml_id) {
+            self.duplicate_id(id, first, line, matches!(tag, Tag::Object));
+        }
         if matches!(tag, Tag::Unknown) {
             if self.unknown_depth == 0 {
                 let prefix = match ns {
@@ -1114,8 +1337,13 @@ impl Parser {
             }
         }
         if let Some(why) = pb.bad {
-            let label = poly.label();
-            self.warn(pb.line, pb.id.clone(), format!("{label} skipped: {why}"));
+            // The warning names the file, line and gml:id already.
+            let what = if poly.id.is_some() {
+                "polygon".to_string()
+            } else {
+                poly.name()
+            };
+            self.warn(pb.line, pb.id.clone(), format!("{what} skipped: {why}"));
             poly.owner = None;
         }
         if let Some(id) = &poly.id {

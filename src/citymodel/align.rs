@@ -1,6 +1,11 @@
 //! Georeferenced CRS → scene frame: `p_scene = s · R · (p_geo − origin) + t` (DESIGN.md),
 //! evaluated in f64; `alignment.json` reading/writing; estimation of a similarity from ≥ 3
 //! point pairs (Umeyama's least-squares similarity, rotation by Horn's quaternion method).
+//!
+//! An alignment is refused when its scale lies outside [`SCALE_RANGE`] or a value is not
+//! finite. Estimation refuses collinear or coincident points (geo or scene side) and point
+//! pairs that fit a mirror image much better than any rotation (a flipped axis), and warns,
+//! in [`Estimate::warnings`], when the residuals are large against the spread of the points.
 use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DVec3};
@@ -9,11 +14,8 @@ use serde::{Deserialize, Serialize};
 /// Errors of alignment reading and estimation.
 #[derive(Debug, thiserror::Error)]
 pub enum AlignError {
-    #[error("cannot read {path}: {source}")]
-    Read {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    #[error("cannot read {path}: {err}")]
+    Read { path: PathBuf, err: std::io::Error },
     #[error("{path}: {why}")]
     Invalid { path: PathBuf, why: String },
     #[error("{path}:{line}: {why}")]
@@ -23,6 +25,13 @@ pub enum AlignError {
         why: String,
     },
 }
+
+/// The accepted alignment scales (scene units per CRS unit).
+pub const SCALE_RANGE: (f64, f64) = (1e-9, 1e9);
+
+/// Estimation warns when the RMS residual exceeds this fraction of the RMS spread of the
+/// scene points.
+pub const RESIDUAL_WARN_FRACTION: f64 = 0.05;
 
 /// A similarity transform with a georeferenced origin subtracted first.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -109,18 +118,19 @@ impl Alignment {
                 "rotation must be 3×3 (3 rows of 3, or 9 numbers, row-major)".into(),
             ));
         }
-        let all = j
-            .origin
-            .iter()
-            .chain(&j.translation)
-            .chain(&flat)
-            .chain(std::iter::once(&j.scale));
-        if all.clone().any(|v| !v.is_finite()) {
-            return Err(bad("non-finite value".into()));
+        for (name, values) in [
+            ("origin", &j.origin[..]),
+            ("translation", &j.translation[..]),
+            ("rotation", &flat[..]),
+            ("scale", std::slice::from_ref(&j.scale)),
+        ] {
+            if values.iter().any(|v| !v.is_finite()) {
+                return Err(bad(format!(
+                    "\"{name}\" holds a value that is not a finite number"
+                )));
+            }
         }
-        if j.scale <= 0.0 {
-            return Err(bad(format!("scale must be > 0, got {}", j.scale)));
-        }
+        check_scale(j.scale).map_err(bad)?;
         let rotation = DMat3::from_cols_array(&[
             flat[0], flat[3], flat[6], flat[1], flat[4], flat[7], flat[2], flat[5], flat[8],
         ]);
@@ -144,9 +154,9 @@ impl Alignment {
 
     /// Reads `alignment.json`.
     pub fn read(path: &Path) -> Result<Alignment, AlignError> {
-        let text = std::fs::read_to_string(path).map_err(|source| AlignError::Read {
+        let text = std::fs::read_to_string(path).map_err(|err| AlignError::Read {
             path: path.to_path_buf(),
-            source,
+            err,
         })?;
         Alignment::from_json_str(path, &text)
     }
@@ -240,6 +250,17 @@ impl Alignment {
     }
 }
 
+/// `Ok` when `scale` lies in [`SCALE_RANGE`]; else the reason.
+fn check_scale(scale: f64) -> Result<(), String> {
+    let (lo, hi) = SCALE_RANGE;
+    if !(lo..=hi).contains(&scale) {
+        return Err(format!(
+            "scale {scale} is outside {lo:e}..{hi:e} (scene units per CRS unit)"
+        ));
+    }
+    Ok(())
+}
+
 /// An estimated alignment and its residuals (scene units) per point pair.
 #[derive(Debug, Clone)]
 pub struct Estimate {
@@ -247,21 +268,34 @@ pub struct Estimate {
     pub residuals: Vec<f64>,
     pub rms: f64,
     pub max: f64,
+    /// Sentences about a fit that is usable but suspicious (large residuals).
+    pub warnings: Vec<String>,
 }
 
 /// Reads point pairs: 6 numbers per line `geo_x geo_y geo_z scene_x scene_y scene_z`
 /// (comma- or whitespace-separated); `#` comments and a non-numeric header line are skipped.
 pub fn read_pairs(path: &Path) -> Result<Vec<(DVec3, DVec3)>, AlignError> {
-    let text = std::fs::read_to_string(path).map_err(|source| AlignError::Read {
+    let text = std::fs::read_to_string(path).map_err(|err| AlignError::Read {
         path: path.to_path_buf(),
-        source,
+        err,
     })?;
+    parse_pairs(path, &text)
+}
+
+/// [`read_pairs`] on text (`path` names the source in errors).
+pub fn parse_pairs(path: &Path, text: &str) -> Result<Vec<(DVec3, DVec3)>, AlignError> {
+    const NAMES: [&str; 6] = ["geo_x", "geo_y", "geo_z", "scene_x", "scene_y", "scene_z"];
     let mut pairs = Vec::new();
     for (i, line) in text.lines().enumerate() {
         let line = line.split('#').next().unwrap_or("").trim();
         if line.is_empty() {
             continue;
         }
+        let csv = |why: String| AlignError::Csv {
+            path: path.to_path_buf(),
+            line: i + 1,
+            why,
+        };
         let toks: Vec<&str> = line
             .split(|c: char| c == ',' || c == ';' || c.is_whitespace())
             .filter(|t| !t.is_empty())
@@ -271,18 +305,24 @@ pub fn read_pairs(path: &Path) -> Result<Vec<(DVec3, DVec3)>, AlignError> {
             if pairs.is_empty() && i == 0 {
                 continue; // header
             }
-            return Err(AlignError::Csv {
-                path: path.to_path_buf(),
-                line: i + 1,
-                why: format!("expected 6 numbers, got '{line}'"),
-            });
+            let bad = toks
+                .iter()
+                .find(|t| t.parse::<f64>().is_err())
+                .map(|t| t.chars().take(40).collect::<String>())
+                .unwrap_or_default();
+            return Err(csv(format!("\"{bad}\" is not a number")));
         };
-        if vals.len() != 6 || vals.iter().any(|v| !v.is_finite()) {
-            return Err(AlignError::Csv {
-                path: path.to_path_buf(),
-                line: i + 1,
-                why: format!("expected 6 finite numbers, got {}", vals.len()),
-            });
+        if vals.len() != 6 {
+            return Err(csv(format!(
+                "expected 6 numbers (geo_x geo_y geo_z scene_x scene_y scene_z), found {}",
+                vals.len()
+            )));
+        }
+        if let Some(k) = vals.iter().position(|v| !v.is_finite()) {
+            return Err(csv(format!(
+                "{} is {}, not a finite number",
+                NAMES[k], vals[k]
+            )));
         }
         pairs.push((
             DVec3::new(vals[0], vals[1], vals[2]),
@@ -292,39 +332,20 @@ pub fn read_pairs(path: &Path) -> Result<Vec<(DVec3, DVec3)>, AlignError> {
     Ok(pairs)
 }
 
-/// Least-squares similarity (Umeyama 1991) mapping `geo` onto `scene`; the origin is the
-/// centroid of the geo points, so all arithmetic runs on small centred f64 numbers.
-pub fn estimate(path: &Path, pairs: &[(DVec3, DVec3)]) -> Result<Estimate, AlignError> {
-    let bad = |why: String| AlignError::Invalid {
-        path: path.to_path_buf(),
-        why,
-    };
-    if pairs.len() < 3 {
-        return Err(bad(format!(
-            "need at least 3 point pairs, got {}",
-            pairs.len()
-        )));
-    }
-    let n = pairs.len() as f64;
-    let mu_a = pairs.iter().map(|p| p.0).sum::<DVec3>() / n;
-    let mu_b = pairs.iter().map(|p| p.1).sum::<DVec3>() / n;
-    let a: Vec<DVec3> = pairs.iter().map(|p| p.0 - mu_a).collect();
-    let b: Vec<DVec3> = pairs.iter().map(|p| p.1 - mu_b).collect();
-    // Degeneracy: the geo points must span a plane (not a line or a point).
-    let cov = a.iter().fold(DMat3::ZERO, |m, p| m + outer(*p, *p));
-    let eig = jacobi_eigen::<3>(mat3_to_arr(&cov));
-    let mut ev = eig.0;
+/// Eigenvalues (descending) of the scatter matrix of centred points.
+fn spread(points: &[DVec3]) -> [f64; 3] {
+    let cov = points.iter().fold(DMat3::ZERO, |m, p| m + outer(*p, *p));
+    let mut ev = jacobi_eigen::<3>(mat3_to_arr(&cov)).0;
     ev.sort_by(|x, y| y.total_cmp(x));
-    if ev[1].is_nan() || ev[1] <= 1e-10 * ev[0].max(1e-300) {
-        return Err(bad(
-            "point pairs are (nearly) collinear or coincident: the rotation is not determined"
-                .into(),
-        ));
-    }
+    ev
+}
+
+/// The least-squares rotation (Horn) and scale mapping centred `a` onto centred `b`.
+fn fit_rotation_scale(a: &[DVec3], b: &[DVec3]) -> (DMat3, f64) {
     // Horn: S = Σ a bᵀ, N (4×4) whose top eigenvector is the rotation quaternion.
     let s = a
         .iter()
-        .zip(&b)
+        .zip(b)
         .fold(DMat3::ZERO, |m, (p, q)| m + outer(*p, *q));
     let s = mat3_to_arr(&s); // s[i][j] = Σ a_i b_j
     let (sxx, sxy, sxz, syx, syy, syz, szx, szy, szz) = (
@@ -345,13 +366,73 @@ pub fn estimate(path: &Path, pairs: &[(DVec3, DVec3)]) -> Result<Estimate, Align
     let var_a: f64 = a.iter().map(|p| p.length_squared()).sum();
     let scale = a
         .iter()
-        .zip(&b)
+        .zip(b)
         .map(|(p, q)| q.dot(rotation * *p))
         .sum::<f64>()
         / var_a;
-    if scale.is_nan() || scale <= 0.0 {
+    (rotation, scale)
+}
+
+/// RMS of `|s·R·a − b|` over centred point sets.
+fn rms_residual(a: &[DVec3], b: &[DVec3], rotation: DMat3, scale: f64) -> f64 {
+    let sum: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(p, q)| (scale * (rotation * *p) - *q).length_squared())
+        .sum();
+    (sum / a.len() as f64).sqrt()
+}
+
+/// Least-squares similarity (Umeyama 1991) mapping `geo` onto `scene`; the origin is the
+/// centroid of the geo points, so all arithmetic runs on small centred f64 numbers. Refuses
+/// degenerate and mirrored pairs and warns about large residuals (module docs).
+pub fn estimate(path: &Path, pairs: &[(DVec3, DVec3)]) -> Result<Estimate, AlignError> {
+    let bad = |why: String| AlignError::Invalid {
+        path: path.to_path_buf(),
+        why,
+    };
+    if pairs.len() < 3 {
         return Err(bad(format!(
-            "estimated scale {scale} is not positive (mirrored point pairs?)"
+            "need at least 3 point pairs, got {}",
+            pairs.len()
+        )));
+    }
+    let n = pairs.len() as f64;
+    let mu_a = pairs.iter().map(|p| p.0).sum::<DVec3>() / n;
+    let mu_b = pairs.iter().map(|p| p.1).sum::<DVec3>() / n;
+    let a: Vec<DVec3> = pairs.iter().map(|p| p.0 - mu_a).collect();
+    let b: Vec<DVec3> = pairs.iter().map(|p| p.1 - mu_b).collect();
+    // Degeneracy: each side must span a plane (not a line or a point).
+    for (side, pts) in [("geo", &a), ("scene", &b)] {
+        let ev = spread(pts);
+        if !ev[1].is_finite() || ev[1] <= 1e-10 * ev[0].max(1e-300) {
+            return Err(bad(format!(
+                "the {side} points are (nearly) collinear or coincident: the rotation is not determined"
+            )));
+        }
+    }
+    let (rotation, scale) = fit_rotation_scale(&a, &b);
+    if !scale.is_finite() || scale <= 0.0 {
+        return Err(bad(format!(
+            "the estimated scale {scale} is not positive: the point pairs do not correspond"
+        )));
+    }
+    check_scale(scale).map_err(|why| bad(format!("the estimated {why}")))?;
+    let rms_proper = rms_residual(&a, &b, rotation, scale);
+    // A flipped axis: the mirrored geo points (x → −x) fit far better than any rotation.
+    // (For coplanar points a mirror is also a rotation, so both fits agree.)
+    let flip = DVec3::new(-1.0, 1.0, 1.0);
+    let a_m: Vec<DVec3> = a.iter().map(|p| *p * flip).collect();
+    let (rot_m, scale_m) = fit_rotation_scale(&a_m, &b);
+    let rms_mirror = if scale_m > 0.0 {
+        rms_residual(&a_m, &b, rot_m, scale_m)
+    } else {
+        f64::INFINITY
+    };
+    let spread_b = (b.iter().map(|q| q.length_squared()).sum::<f64>() / n).sqrt();
+    if rms_mirror < 0.5 * rms_proper && rms_proper > 1e-9 * spread_b {
+        return Err(bad(format!(
+            "the point pairs fit a mirror image far better than any rotation (RMS {rms_mirror:.4} against {rms_proper:.4} scene units): one axis is flipped between the geo and scene coordinates (a left-handed frame or swapped columns?)"
         )));
     }
     let alignment = Alignment {
@@ -366,11 +447,25 @@ pub fn estimate(path: &Path, pairs: &[(DVec3, DVec3)]) -> Result<Estimate, Align
         .collect();
     let rms = (residuals.iter().map(|r| r * r).sum::<f64>() / n).sqrt();
     let max = residuals.iter().copied().fold(0.0, f64::max);
+    let mut warnings = Vec::new();
+    if rms > RESIDUAL_WARN_FRACTION * spread_b {
+        let worst = residuals
+            .iter()
+            .enumerate()
+            .max_by(|x, y| x.1.total_cmp(y.1))
+            .map(|(i, _)| i + 1)
+            .unwrap_or(1);
+        warnings.push(format!(
+            "the alignment fits poorly: the RMS residual {rms:.4} is {:.0} % of the spread of the scene points ({spread_b:.4}); the worst is pair {worst} ({max:.4}); check that each pair names the same point in both frames",
+            100.0 * rms / spread_b
+        ));
+    }
     Ok(Estimate {
         alignment,
         residuals,
         rms,
         max,
+        warnings,
     })
 }
 

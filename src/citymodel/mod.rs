@@ -11,6 +11,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::camera::SCENE_COORD_LIMIT;
 use crate::citygml::{self, CityGmlError, CityModel, Class, Level};
 use crate::fsutil::{self, FsError};
 use crate::mesh::{FaceLabel, MeshError, TriMesh};
@@ -32,6 +33,17 @@ pub enum CityModelError {
     Semantics { path: PathBuf, why: String },
     #[error("no CityGML input files")]
     NoInput,
+    #[error("{path}: {why}")]
+    Input { path: PathBuf, why: String },
+    #[error("{path}:{line}: {polygon}: {why}")]
+    Frame {
+        path: PathBuf,
+        line: u64,
+        polygon: String,
+        why: String,
+    },
+    #[error("{path}: {why}")]
+    Labels { path: PathBuf, why: String },
     #[error("no polygon of {0} could be triangulated: nothing to write")]
     Empty(String),
 }
@@ -73,6 +85,111 @@ pub struct Output {
     pub entities: Vec<Entity>,
     pub summary: CitymodelSummary,
     pub alignment: Alignment,
+}
+
+/// The CityGML files found by [`collect_files`] and what the search noticed.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct InputFiles {
+    /// Files in a reproducible order: inputs in the order given, each folder's files sorted.
+    pub files: Vec<PathBuf>,
+    /// Sentences about inputs that were skipped or read once although named twice.
+    pub warnings: Vec<String>,
+}
+
+/// Expands `inputs` into CityGML files: files as given, folders searched recursively for
+/// `*.gml` / `*.xml` (case-insensitive). Symbolic links are followed, but a folder is
+/// searched once (by canonical path), so link loops and links to `.` cannot recurse; a
+/// file reached twice (named twice, or through a link) is read once, with a warning.
+/// Missing inputs and folders without CityGML files are errors.
+pub fn collect_files(inputs: &[PathBuf]) -> Result<InputFiles, CityModelError> {
+    let mut out = InputFiles::default();
+    let mut seen_files: BTreeMap<PathBuf, PathBuf> = BTreeMap::new();
+    let mut seen_dirs: BTreeMap<PathBuf, PathBuf> = BTreeMap::new();
+    let input_err = |path: &Path, why: String| CityModelError::Input {
+        path: path.to_path_buf(),
+        why,
+    };
+    for input in inputs {
+        let meta = std::fs::metadata(input)
+            .map_err(|e| input_err(input, format!("cannot use this input: {e}")))?;
+        let mut found = Vec::new();
+        if meta.is_dir() {
+            let searched = walk_dir(input, &mut seen_dirs, &mut found, &mut out.warnings)?;
+            if searched && found.is_empty() {
+                return Err(input_err(
+                    input,
+                    "no .gml or .xml files below this folder".into(),
+                ));
+            }
+            found.sort();
+        } else {
+            found.push(input.clone());
+        }
+        for f in found {
+            let canon = std::fs::canonicalize(&f)
+                .map_err(|e| input_err(&f, format!("cannot resolve this path: {e}")))?;
+            match seen_files.get(&canon) {
+                Some(first) => out.warnings.push(format!(
+                    "{} is the same file as {}: it is read once",
+                    f.display(),
+                    first.display()
+                )),
+                None => {
+                    seen_files.insert(canon, f.clone());
+                    out.files.push(f);
+                }
+            }
+        }
+    }
+    if out.files.is_empty() {
+        return Err(CityModelError::NoInput);
+    }
+    Ok(out)
+}
+
+/// Searches `dir` unless its canonical path was searched already; returns whether it was.
+fn walk_dir(
+    dir: &Path,
+    seen_dirs: &mut BTreeMap<PathBuf, PathBuf>,
+    out: &mut Vec<PathBuf>,
+    warnings: &mut Vec<String>,
+) -> Result<bool, CityModelError> {
+    let err = |path: &Path, e: std::io::Error| CityModelError::Input {
+        path: path.to_path_buf(),
+        why: format!("cannot list this folder: {e}"),
+    };
+    let canon = std::fs::canonicalize(dir).map_err(|e| err(dir, e))?;
+    if let Some(first) = seen_dirs.get(&canon) {
+        warnings.push(format!(
+            "{} leads to {}, which is already searched (a symbolic-link loop or a second link): skipped",
+            dir.display(),
+            first.display()
+        ));
+        return Ok(false);
+    }
+    seen_dirs.insert(canon, dir.to_path_buf());
+    let mut entries = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(|e| err(dir, e))? {
+        entries.push(entry.map_err(|e| err(dir, e))?.path());
+    }
+    entries.sort();
+    for path in entries {
+        match std::fs::metadata(&path) {
+            Ok(m) if m.is_dir() => {
+                walk_dir(&path, seen_dirs, out, warnings)?;
+            }
+            Ok(_) => {
+                if path
+                    .extension()
+                    .is_some_and(|e| e.eq_ignore_ascii_case("gml") || e.eq_ignore_ascii_case("xml"))
+                {
+                    out.push(path);
+                }
+            }
+            Err(e) => warnings.push(format!("{} cannot be read ({e}): skipped", path.display())),
+        }
+    }
+    Ok(true)
 }
 
 /// One input file in [`CitymodelSummary`].
@@ -236,7 +353,27 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
     let t_parse = t0.elapsed().as_secs_f64();
 
     // Hierarchy table: entity ids are global, in file order then document order.
-    let mut entities = Vec::new();
+    let mut entities: Vec<Entity> = Vec::new();
+    let mut first_source: std::collections::HashMap<&str, &Path> = Default::default();
+    let mut cross_file_duplicates: Vec<String> = Vec::new();
+    for m in &models {
+        for o in m.objects.iter().filter(|o| o.has_gml_id) {
+            match first_source.get(o.object_id.as_str()) {
+                Some(first) if *first != m.path.as_path() => cross_file_duplicates.push(format!(
+                    "{}:{}: {} \"{}\" is also defined in {}: the same object appears twice in the hierarchy table",
+                    m.path.display(),
+                    o.line,
+                    o.class.name(),
+                    o.object_id,
+                    first.display()
+                )),
+                Some(_) => {}
+                None => {
+                    first_source.insert(&o.object_id, &m.path);
+                }
+            }
+        }
+    }
     let mut base = Vec::with_capacity(models.len());
     for m in &models {
         base.push(entities.len() as i32);
@@ -263,9 +400,13 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
     }
 
     // Alignment: given, or a local origin at the bounding-box minimum (whole metres).
+    let mut warnings: Vec<String> = cross_file_duplicates;
     let alignment = match opts.alignment {
         Some(a) => a,
         None => {
+            warnings.push(
+                "no alignment given: the mesh is in a local frame (CityGML coordinates minus a whole-metre origin), not in the frame of any camera model".into(),
+            );
             let mut lo = DVec3::splat(f64::INFINITY);
             for m in &models {
                 for p in m.used_polygons() {
@@ -325,7 +466,6 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
     let mut mesh = TriMesh::default();
     let mut skipped: Vec<Skipped> = Vec::new();
     let mut repairs: BTreeMap<&'static str, usize> = BTreeMap::new();
-    let mut warnings: Vec<String> = Vec::new();
     let mut worst_planarity = (0.0f64, String::new());
     let mut holes_used = 0usize;
     for (job, res) in jobs.iter().zip(results) {
@@ -351,22 +491,33 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
                     let key = match r {
                         Repair::DuplicatePoints(_) => "duplicate_points_removed",
                         Repair::DegenerateHole(_) => "degenerate_holes_dropped",
+                        Repair::HoleNotInside { .. } => "holes_not_inside_dropped",
                         Repair::SelfIntersection => "self_intersections_split",
                     };
                     *repairs.entry(key).or_default() += 1;
                     if !matches!(r, Repair::DuplicatePoints(_)) {
                         warnings.push(format!(
-                            "{}:{}: {}: {:?}",
+                            "{}:{}: {}: {r}",
                             m.path.display(),
                             job.poly.line,
-                            job.poly.label(),
-                            r
+                            job.poly.name(),
                         ));
                     }
                 }
                 let base_v = mesh.vertices.len() as u32;
                 for v in &t.vertices {
                     let s = alignment.apply(*v + alignment.origin);
+                    if !s.is_finite() || s.abs().max_element() > SCENE_COORD_LIMIT {
+                        return Err(CityModelError::Frame {
+                            path: m.path.clone(),
+                            line: job.poly.line,
+                            polygon: job.poly.name(),
+                            why: format!(
+                                "a vertex lands at ({:e}, {:e}, {:e}) in the scene frame, beyond ±{SCENE_COORD_LIMIT:e} (camera::SCENE_COORD_LIMIT, the f32 frame's limit): check the alignment's scale and translation",
+                                s.x, s.y, s.z
+                            ),
+                        });
+                    }
                     mesh.vertices.push([s.x as f32, s.y as f32, s.z as f32]);
                 }
                 for tri in &t.triangles {
@@ -558,18 +709,29 @@ fn summarize(
     }
 }
 
-/// Reads the `entities` of a `semantics.json` written by [`write`]; ids must equal row indices.
+/// Reads the `entities` of a `semantics.json` written by [`write`] and checks the table:
+/// ids equal row indices, every parent comes before its child (so the hierarchy has no
+/// cycle and every ancestor walk ends), and `building` is the root of the parent chain.
 pub fn read_semantics(path: &Path) -> Result<Vec<Entity>, CityModelError> {
     let bad = |why: String| CityModelError::Semantics {
         path: path.to_path_buf(),
         why,
     };
-    let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+    let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read: {e}")))?;
+    parse_semantics(path, &text)
+}
+
+/// [`read_semantics`] on text (`path` names the source in errors).
+pub fn parse_semantics(path: &Path, text: &str) -> Result<Vec<Entity>, CityModelError> {
+    let bad = |why: String| CityModelError::Semantics {
+        path: path.to_path_buf(),
+        why,
+    };
     #[derive(serde::Deserialize)]
     struct File {
         entities: Vec<Entity>,
     }
-    let f: File = serde_json::from_str(&text)
+    let f: File = serde_json::from_str(text)
         .map_err(|e| bad(format!("not a gs4city semantics.json: {e}")))?;
     for (i, e) in f.entities.iter().enumerate() {
         if e.id != i as i32 {
@@ -579,25 +741,55 @@ pub fn read_semantics(path: &Path) -> Result<Vec<Entity>, CityModelError> {
             )));
         }
         if let Some(p) = e.parent
-            && (p < 0 || p >= e.id)
+            && !(0..e.id).contains(&p)
         {
             return Err(bad(format!(
-                "entity {} (id {}) has parent {p}: a parent must be listed before its children",
+                "entity {} (id {}) names parent {p}, which is not an entity listed before it (a parent comes first; anything else could form a cycle)",
                 e.object_id, e.id
             )));
         }
-        if e.parent
-            .is_some_and(|p| p < 0 || p as usize >= f.entities.len())
-            || e.building < 0
-            || e.building as usize >= f.entities.len()
-        {
+        let mut root = e.id;
+        while let Some(p) = f.entities[root as usize].parent {
+            root = p; // strictly decreasing ids: ends
+        }
+        if e.building != root {
             return Err(bad(format!(
-                "entity {} refers to an entity that does not exist",
-                e.object_id
+                "entity {} (id {}) names building {}, but the root of its parent chain is {root}",
+                e.object_id, e.id, e.building
             )));
         }
     }
     Ok(f.entities)
+}
+
+/// Checks a mesh's face labels against its hierarchy table: every id is −1 or a row of
+/// `entities`, and the row's level matches (feature / surface / part). Call it before
+/// raycasting; `path` names the mesh in the error.
+pub fn check_mesh_labels(
+    path: &Path,
+    mesh: &TriMesh,
+    entities: &[Entity],
+) -> Result<(), CityModelError> {
+    let bad = |why: String| CityModelError::Labels {
+        path: path.to_path_buf(),
+        why,
+    };
+    mesh.check_label_range(entities.len()).map_err(bad)?;
+    let levels = [Level::Feature, Level::Surface, Level::Part];
+    for (i, l) in mesh.labels.iter().enumerate() {
+        for (&id, level) in l.ids().iter().zip(levels) {
+            if id >= 0 && entities[id as usize].level != level {
+                let e = &entities[id as usize];
+                return Err(bad(format!(
+                    "face {i}: its {} id {id} is entity {}, a {}",
+                    level.name(),
+                    e.object_id,
+                    e.level.name()
+                )));
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Writes `mesh.ply`, `semantics.json`, `alignment.json` and (last, as the completion

@@ -48,8 +48,44 @@ pub enum Repair {
     DuplicatePoints(usize),
     /// An interior ring with < 3 distinct points or zero area was dropped.
     DegenerateHole(usize),
+    /// An interior ring with a vertex outside the exterior ring (beyond a tolerance of
+    /// 10⁻³ of the polygon's size) was dropped: filling by the even-odd rule would turn its
+    /// outside part into an extra island. `crossing`: other vertices lie inside.
+    HoleNotInside { hole: usize, crossing: bool },
     /// Ring edges crossed each other; they were split at the crossings (even-odd rule).
     SelfIntersection,
+}
+
+impl std::fmt::Display for Repair {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Repair::DuplicatePoints(n) => write!(f, "{n} repeated consecutive points removed"),
+            Repair::DegenerateHole(k) => write!(
+                f,
+                "interior ring {} has fewer than 3 distinct points or no area: ignored",
+                k + 1
+            ),
+            Repair::HoleNotInside {
+                hole,
+                crossing: false,
+            } => write!(
+                f,
+                "interior ring {} lies outside the exterior ring: ignored (a hole must lie inside its polygon)",
+                hole + 1
+            ),
+            Repair::HoleNotInside {
+                hole,
+                crossing: true,
+            } => write!(
+                f,
+                "interior ring {} crosses the exterior ring: ignored (a hole must lie inside its polygon)",
+                hole + 1
+            ),
+            Repair::SelfIntersection => f.write_str(
+                "ring edges cross each other: split at the crossings and filled by the even-odd rule",
+            ),
+        }
+    }
 }
 
 /// The triangles of one polygon, in the polygon's local frame (`point − origin`).
@@ -144,6 +180,22 @@ fn plane_basis(n: DVec3) -> (DVec3, DVec3) {
     (u, v)
 }
 
+/// Distance from `p` to the closed ring's edges.
+fn distance_to_ring(p: DVec2, ring: &[DVec2]) -> f64 {
+    let mut best = f64::INFINITY;
+    for i in 0..ring.len() {
+        let (a, b) = (ring[i], ring[(i + 1) % ring.len()]);
+        let ab = b - a;
+        let t = if ab.length_squared() > 0.0 {
+            ((p - a).dot(ab) / ab.length_squared()).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        best = best.min((a + ab * t - p).length());
+    }
+    best
+}
+
 fn point_in_rings(p: DVec2, rings: &[Vec<DVec2>]) -> bool {
     let mut inside = false;
     for ring in rings {
@@ -199,12 +251,33 @@ pub fn triangulate(
         DVec2::new(d.dot(u), d.dot(v))
     };
 
+    let ext2 = vec![ext.iter().map(|&p| project(p)).collect::<Vec<DVec2>>()];
+    let tol = 1e-3 * scale;
     let mut rings3: Vec<Vec<DVec3>> = vec![ext];
     for (k, hole) in interiors.iter().enumerate() {
         let (h, removed) = dedup_ring(hole);
         dups += removed;
         if h.len() < 3 || newell(&h).length() <= 1e-12 * scale * scale {
             repairs.push(Repair::DegenerateHole(k));
+            continue;
+        }
+        // Vertices on the exterior ring (within `tol`) count as inside.
+        let (mut inside, mut outside) = (0usize, 0usize);
+        for q in h.iter().map(|&p| project(p)) {
+            if distance_to_ring(q, &ext2[0]) <= tol {
+                continue;
+            }
+            if point_in_rings(q, &ext2) {
+                inside += 1;
+            } else {
+                outside += 1;
+            }
+        }
+        if outside > 0 {
+            repairs.push(Repair::HoleNotInside {
+                hole: k,
+                crossing: inside > 0,
+            });
             continue;
         }
         rings3.push(h);
@@ -240,9 +313,17 @@ pub fn triangulate(
     for (r2, r3) in rings2.iter().zip(&rings3) {
         let mut hs = Vec::with_capacity(r2.len());
         for (p2, p3) in r2.iter().zip(r3) {
-            let h = cdt
-                .insert(Point2::new(p2.x, p2.y))
-                .map_err(|e| SkipReason::Cdt(format!("{e:?}")))?;
+            let h = cdt.insert(Point2::new(p2.x, p2.y)).map_err(|e| {
+                SkipReason::Cdt(match e {
+                    spade::InsertionError::NAN => "a coordinate is not a number".into(),
+                    spade::InsertionError::TooLarge => {
+                        "a coordinate is too large for the triangulator".into()
+                    }
+                    spade::InsertionError::TooSmall => {
+                        "a coordinate is too small (subnormal) for the triangulator".into()
+                    }
+                })
+            })?;
             if h.index() == pos3.len() {
                 pos3.push(*p3 - centroid);
             }

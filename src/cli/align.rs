@@ -55,6 +55,9 @@ fn print_estimate(est: &align::Estimate) {
         est.rms,
         est.max
     );
+    for w in &est.warnings {
+        log::warn!("{w}");
+    }
 }
 
 /// Point-pair estimation (also used by `gs4city citymodel --align-points`).
@@ -111,7 +114,11 @@ fn load_city(dir: &Path, initial: Option<&Path>) -> anyhow::Result<City> {
                 .is_some_and(|x| x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml"))
         });
     if has_gml {
-        let files = super::citymodel::collect_files(&[dir.to_path_buf()])?;
+        let found = citymodel::collect_files(&[dir.to_path_buf()])?;
+        for w in &found.warnings {
+            log::warn!("{w}");
+        }
+        let files = found.files;
         let out = citymodel::run(
             &files,
             &citymodel::Options {

@@ -1,7 +1,6 @@
 //! `gs4city citymodel`.
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use anyhow::{Context, bail};
 use clap::Args;
 
 use crate::citymodel::{self, Alignment};
@@ -22,48 +21,13 @@ pub struct CitymodelArgs {
     out: PathBuf,
 }
 
-/// Expands directories into the CityGML files below them (sorted, so runs are reproducible).
-pub(super) fn collect_files(inputs: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
-    let mut files = Vec::new();
-    for input in inputs {
-        if input.is_dir() {
-            let mut found = Vec::new();
-            walk(input, &mut found).with_context(|| format!("cannot list {}", input.display()))?;
-            if found.is_empty() {
-                bail!(
-                    "{}: no .gml or .xml files below this directory",
-                    input.display()
-                );
-            }
-            found.sort();
-            files.extend(found);
-        } else if input.is_file() {
-            files.push(input.clone());
-        } else {
-            bail!("{}: no such file or directory", input.display());
-        }
-    }
-    Ok(files)
-}
-
-fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
-    for entry in std::fs::read_dir(dir)? {
-        let path = entry?.path();
-        if path.is_dir() {
-            walk(&path, out)?;
-        } else if path
-            .extension()
-            .is_some_and(|e| e.eq_ignore_ascii_case("gml") || e.eq_ignore_ascii_case("xml"))
-        {
-            out.push(path);
-        }
-    }
-    Ok(())
-}
-
 pub fn run(args: &CitymodelArgs) -> anyhow::Result<()> {
     // Validate.
-    let files = collect_files(&args.files)?;
+    let found = citymodel::collect_files(&args.files)?;
+    for w in &found.warnings {
+        log::warn!("{w}");
+    }
+    let files = found.files;
     let mut estimate = None;
     let alignment = match (&args.align, &args.align_points) {
         (Some(path), _) => Some(Alignment::read(path)?),

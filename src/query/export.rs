@@ -8,11 +8,9 @@
 //! ([`crate::splat`]): INRIA property order, binary little endian, every property kept.
 use std::path::Path;
 
-use ply_rs::parser::Parser;
-use ply_rs::ply::{DefaultElement, Encoding, PropertyType, ScalarType};
-
 use crate::fsutil;
-use crate::splat::{self, ExtraProperty, Gaussians, PlyEncoding, PlyError};
+use crate::ply::{self, Encoding, Header};
+use crate::splat::{self, ExtraProperty, Gaussians, PlyEncoding};
 
 /// The Gaussians `i` with `keep[i] == want`, in input order, every field copied.
 pub fn subset(g: &Gaussians, keep: &[bool], want: bool) -> Gaussians {
@@ -50,15 +48,6 @@ pub struct ExportCounts {
     pub removed: usize,
 }
 
-fn scalar_size(t: &ScalarType) -> usize {
-    match t {
-        ScalarType::Char | ScalarType::UChar => 1,
-        ScalarType::Short | ScalarType::UShort => 2,
-        ScalarType::Int | ScalarType::UInt | ScalarType::Float => 4,
-        ScalarType::Double => 8,
-    }
-}
-
 fn count_mismatch(ply: &Path, found: usize, expected: usize) -> super::QueryError {
     super::QueryError::Inputs(format!(
         "{} holds {found} Gaussians, the run's labels have {expected}: the PLY is not the one the run was made from",
@@ -73,36 +62,33 @@ pub fn split_bytes(
     bytes: &[u8],
     keep: &[bool],
 ) -> Result<Option<[Vec<u8>; 2]>, super::QueryError> {
-    let mut cursor: &[u8] = bytes;
-    let header = Parser::<DefaultElement>::new()
-        .read_header(&mut cursor)
-        .map_err(|e| PlyError::Header {
+    let header = Header::parse(path, bytes).map_err(splat::PlyError::from)?;
+    let header_len = header.len;
+    let Some(def) = header.elements.first() else {
+        return Err(splat::PlyError::from(ply::PlyError::Layout {
             path: path.into(),
-            why: e.to_string(),
-        })?;
-    let header_len = bytes.len() - cursor.len();
-    let Some((first, def)) = header.elements.iter().next() else {
-        return Err(PlyError::NoVertex { path: path.into() }.into());
+            why: "no element in the header (a 3DGS PLY starts with `element vertex`)".into(),
+        })
+        .into());
     };
-    if header.encoding != Encoding::BinaryLittleEndian || first != "vertex" {
+    if header.encoding != Encoding::BinaryLittleEndian || def.name != "vertex" {
         return Ok(None);
     }
-    let mut stride = 0;
-    for p in def.properties.values() {
-        match &p.data_type {
-            PropertyType::Scalar(t) => stride += scalar_size(t),
-            PropertyType::List(..) => return Ok(None),
-        }
-    }
+    let Some(stride) = def.fixed_stride().filter(|&s| s > 0) else {
+        return Ok(None);
+    };
     if def.count != keep.len() {
         return Err(count_mismatch(path, def.count, keep.len()));
     }
-    if stride == 0 || cursor.len() < def.count * stride {
-        return Err(PlyError::Truncated {
+    let cursor = &bytes[header_len..];
+    if cursor.len() < def.count * stride {
+        return Err(splat::PlyError::from(ply::PlyError::Truncated {
             path: path.into(),
-            vertex: cursor.len() / stride.max(1),
+            element: "vertex".into(),
+            row: cursor.len() / stride,
             count: def.count,
-        }
+            line: None,
+        })
         .into());
     }
     // The header text with the vertex count replaced and later elements dropped.
@@ -148,10 +134,7 @@ pub fn export(
     selected: &[bool],
     out: &Path,
 ) -> Result<ExportCounts, super::QueryError> {
-    let bytes = std::fs::read(ply).map_err(|source| PlyError::Io {
-        path: ply.into(),
-        source,
-    })?;
+    let bytes = ply::read_file(ply).map_err(splat::PlyError::from)?;
     if let Some([a, b]) = split_bytes(ply, &bytes, selected)? {
         let (ra, rb) = rayon::join(
             || fsutil::write_bytes(&out.join("extract.ply"), &a),

@@ -81,6 +81,10 @@ impl RaycastOptions {
     }
 }
 
+/// The largest entity id a mesh label may hold (2²⁴ − 1: a dense per-surface table of this
+/// size takes 16 MB; all 30 real CityGML files of `../shared/data/citygml` hold 3,193 entities).
+pub const MAX_LABEL_ID: i32 = (1 << 24) - 1;
+
 /// The two committed Embree scenes of a mesh plus the face labels.
 pub struct TwoPassScene {
     global: CommittedScene,
@@ -95,9 +99,24 @@ pub struct TwoPassScene {
 }
 
 impl TwoPassScene {
-    /// Validates the mesh and builds the global and part scenes.
+    /// Validates the mesh ([`TriMesh::validate`]: finite vertices within the scene frame's
+    /// `camera::SCENE_COORD_LIMIT`, which keeps every coordinate far inside what Embree
+    /// accepts; label ids −1 or ≥ 0) and builds the global and part scenes. Label ids must
+    /// also stay below [`MAX_LABEL_ID`] (the per-surface table is dense); checking them
+    /// against the semantic table is `citymodel::check_mesh_labels`.
     pub fn build(mesh: &TriMesh) -> Result<TwoPassScene, RaycastError> {
         mesh.validate().map_err(RaycastError::Mesh)?;
+        if let Some((i, l)) = mesh
+            .labels
+            .iter()
+            .enumerate()
+            .find(|(_, l)| l.ids().iter().any(|&id| id > MAX_LABEL_ID))
+        {
+            return Err(RaycastError::Mesh(format!(
+                "face {i} has label ids {}, {}, {}, beyond the largest supported id {MAX_LABEL_ID}",
+                l.feature, l.surface, l.part
+            )));
+        }
         let t0 = Instant::now();
         let device = Device::new()?;
         let mut global = Scene::new(&device)?;

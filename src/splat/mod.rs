@@ -3,10 +3,14 @@
 //! scalars), stored raw so that a read → write round trip is bit-exact, with the INRIA
 //! activations (`exp` scale, `sigmoid` opacity, normalised quaternion) available on demand.
 //!
-//! This is a reader module: it depends on no pipeline stage. The PLY codec lives in [`ply`].
+//! This is a reader module: it depends on no pipeline stage. The 3DGS layout lives in [`ply`],
+//! on top of the shared PLY format layer [`crate::ply`].
 pub mod ply;
 
-pub use ply::{InvalidPolicy, PlyEncoding, PlyError, PlyReport, ReadOptions, read_ply, write_ply};
+pub use ply::{
+    InvalidPolicy, LOG_SCALE_RANGE, MAX_ABS_SH, PlyEncoding, PlyError, PlyReport, ReadOptions,
+    ScalarKind, read_ply, read_ply_bytes, write_ply,
+};
 
 /// Number of `f_rest_*` coefficients (all three colour channels) for SH degree 0..=3.
 pub const REST_COUNTS: [usize; 4] = [0, 9, 24, 45];
@@ -14,50 +18,6 @@ pub const REST_COUNTS: [usize; 4] = [0, 9, 24, 45];
 /// The SH degree whose `f_rest_*` count is `rest`, if any (0, 9, 24, 45 → 0..=3).
 pub fn sh_degree_for_rest_count(rest: usize) -> Option<u8> {
     REST_COUNTS.iter().position(|&n| n == rest).map(|d| d as u8)
-}
-
-/// The PLY scalar type of an extra property, kept so that writing restores it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-pub enum ScalarKind {
-    I8,
-    U8,
-    I16,
-    U16,
-    I32,
-    U32,
-    F32,
-    F64,
-}
-
-impl ScalarKind {
-    /// Bytes per value in a binary PLY.
-    pub fn size(self) -> usize {
-        match self {
-            ScalarKind::I8 | ScalarKind::U8 => 1,
-            ScalarKind::I16 | ScalarKind::U16 => 2,
-            ScalarKind::I32 | ScalarKind::U32 | ScalarKind::F32 => 4,
-            ScalarKind::F64 => 8,
-        }
-    }
-
-    /// The PLY header type name.
-    pub fn ply_name(self) -> &'static str {
-        match self {
-            ScalarKind::I8 => "char",
-            ScalarKind::U8 => "uchar",
-            ScalarKind::I16 => "short",
-            ScalarKind::U16 => "ushort",
-            ScalarKind::I32 => "int",
-            ScalarKind::U32 => "uint",
-            ScalarKind::F32 => "float",
-            ScalarKind::F64 => "double",
-        }
-    }
-
-    /// Whether the type is a float type.
-    pub fn is_float(self) -> bool {
-        matches!(self, ScalarKind::F32 | ScalarKind::F64)
-    }
 }
 
 /// An extra per-vertex scalar property (e.g. `obj_dc_0`, `semantic_id`), preserved on write.

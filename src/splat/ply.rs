@@ -1,44 +1,53 @@
-//! Reading and writing 3DGS PLY files (ASCII, binary little- and big-endian).
-//!
-//! The header (and every non-fast case) goes through `ply-rs`. Binary little-endian files
-//! whose `vertex` element comes first and holds only scalars take a direct byte-decoding
-//! fast path (measured in `benches/render.rs`); both paths feed the same row assembler, so
+//! The 3DGS layout of a PLY file (INRIA): one `vertex` element of scalars, read and written
+//! through the shared PLY layer [`crate::ply`] (ASCII, binary little- and big-endian).
+//! Binary little-endian files whose vertex properties are all `float` take the layer's
+//! fast path (measured in `benches/ply.rs`); every path feeds the same row assembler, so
 //! they accept and reject exactly the same files.
 //!
-//! Always errors (the file is unusable): I/O failure, bad header, no `vertex` element, a
-//! missing core property (`x y z f_dc_0..2 opacity scale_0..2 rot_0..3`; normals are
-//! optional), a list property on `vertex`, an `f_rest_*` count other than 0/9/24/45 or a
-//! gap in their numbering, a truncated or unparsable payload (with the vertex index).
+//! Always errors (the file is unusable): I/O failure, a bad header or payload (see
+//! [`crate::ply`]), no `vertex` element, a missing core property (`x y z f_dc_0..2 opacity
+//! scale_0..2 rot_0..3`; normals are optional), a list property on `vertex`, an `f_rest_*`
+//! count other than 0/9/24/45 or a gap in their numbering, data after the last element.
 //!
-//! Per-Gaussian defects — a NaN/±Inf core value or an all-zero quaternion — are errors
-//! naming the file and vertex index under [`InvalidPolicy::Error`] (the default). Under
-//! [`InvalidPolicy::Drop`] such a Gaussian is dropped and counted in [`PlyReport`]; this is
-//! safe because a Gaussian has no links to others. Extra properties are never checked
-//! (NaN there is kept as is).
+//! Per-Gaussian defects are checked once here, at load, so that no later stage meets them
+//! (the ranges are [`LOG_SCALE_RANGE`], [`MAX_ABS_SH`] and the scene frame's
+//! [`crate::camera::SCENE_COORD_LIMIT`]):
+//! * every core value (position, normal, SH, opacity, scale, rotation) is finite;
+//! * `|x|, |y|, |z| ≤ SCENE_COORD_LIMIT` (the f32 scene frame; see `camera`);
+//! * `scale_i ∈ LOG_SCALE_RANGE` = [−40, 20]: the activated scale `exp(scale)` stays a finite,
+//!   non-zero `f32` and the projected covariance `exp(2·scale)·(f/z)²` cannot overflow;
+//! * `|f_dc_*|, |f_rest_*| ≤ MAX_ABS_SH` = 10⁶: the SH colour sum (≤ 48 terms) stays far from
+//!   `f32` overflow (real models hold |f_dc| ≲ 5, |f_rest| ≲ 1);
+//! * the opacity logit may be any finite number (`sigmoid` saturates, it cannot overflow);
+//! * the quaternion `rot_0..3` is not all zero.
+//!
+//! Under [`InvalidPolicy::Error`] (the default) such a Gaussian is an error naming the file,
+//! the vertex (and line in ASCII) and the property. Under [`InvalidPolicy::Drop`] it is
+//! dropped and counted in [`PlyReport`]; this is safe because a Gaussian has no links to
+//! others. Extra properties are never checked (NaN there is kept as is).
 //!
 //! Core properties are stored as `f32` (INRIA's type); extras keep their PLY type.
-//! Only the `vertex` element is written back; other elements are ignored on reading.
-use std::io::{BufRead, Write};
+//! Only the `vertex` element is written back; other elements are checked and ignored on
+//! reading.
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use ply_rs::parser::Parser;
-use ply_rs::ply::{
-    DefaultElement, ElementDef, Encoding, Header, Property, PropertyType, ScalarType,
-};
-
-use super::{ExtraProperty, Gaussians, ScalarKind, sh_degree_for_rest_count};
+use super::{ExtraProperty, Gaussians, sh_degree_for_rest_count};
+use crate::camera::SCENE_COORD_LIMIT;
 use crate::fsutil::{self, FsError};
+use crate::ply::{self, ElementDef, PropertyDef, PropertyKind, Reader, Row, RowWriter, at_line};
+pub use crate::ply::{Encoding as PlyEncoding, ScalarKind};
+
+/// Accepted raw (log) scales `scale_i`, inclusive.
+pub const LOG_SCALE_RANGE: (f32, f32) = (-40.0, 20.0);
+/// Largest accepted `|f_dc_*|`, `|f_rest_*|`.
+pub const MAX_ABS_SH: f32 = 1e6;
 
 /// Errors of 3DGS PLY reading and writing; every variant names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum PlyError {
-    #[error("cannot read {path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
-    #[error("{path}: bad PLY header: {why}")]
-    Header { path: PathBuf, why: String },
+    #[error(transparent)]
+    Format(#[from] ply::PlyError),
     #[error("{path}: no `vertex` element")]
     NoVertex { path: PathBuf },
     #[error("{path}: vertex property `{name}` is missing")]
@@ -47,37 +56,39 @@ pub enum PlyError {
     ListProperty { path: PathBuf, name: String },
     #[error("{path}: {found} `f_rest_*` properties; SH degree 0/1/2/3 needs 0/9/24/45")]
     ShCount { path: PathBuf, found: usize },
-    #[error("{path}: payload ends at vertex {vertex} of {count}")]
-    Truncated {
-        path: PathBuf,
-        vertex: usize,
-        count: usize,
-    },
-    #[error("{path}: vertex {vertex}: cannot parse: {why}")]
-    Parse {
-        path: PathBuf,
-        vertex: usize,
-        why: String,
-    },
-    #[error("{path}: vertex {vertex}: property `{name}` is {value} (not finite)")]
+    #[error("{path}: vertex {vertex}{}: `{name}` is {value:?}, not a finite number", at_line(*line))]
     NonFinite {
         path: PathBuf,
         vertex: usize,
+        line: Option<usize>,
         name: String,
-        value: f64,
+        value: f32,
     },
-    #[error("{path}: vertex {vertex}: zero quaternion (rot_0..3 all 0)")]
-    ZeroQuaternion { path: PathBuf, vertex: usize },
+    #[error("{path}: vertex {vertex}{}: `{name}` is {value:?}, outside {range}", at_line(*line))]
+    OutOfRange {
+        path: PathBuf,
+        vertex: usize,
+        line: Option<usize>,
+        name: String,
+        value: f32,
+        range: &'static str,
+    },
+    #[error("{path}: vertex {vertex}{}: zero quaternion (rot_0..3 all 0)", at_line(*line))]
+    ZeroQuaternion {
+        path: PathBuf,
+        vertex: usize,
+        line: Option<usize>,
+    },
     #[error("cannot write {path}: {why}")]
     Invalid { path: PathBuf, why: String },
     #[error(transparent)]
     Fs(#[from] FsError),
 }
 
-/// What to do with a Gaussian that has a NaN/Inf core value or a zero quaternion.
+/// What to do with a Gaussian that fails a per-Gaussian check (module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 pub enum InvalidPolicy {
-    /// Fail with [`PlyError::NonFinite`] / [`PlyError::ZeroQuaternion`].
+    /// Fail with [`PlyError::NonFinite`] / [`PlyError::OutOfRange`] / [`PlyError::ZeroQuaternion`].
     #[default]
     Error,
     /// Drop the Gaussian and count it in [`PlyReport`].
@@ -88,16 +99,9 @@ pub enum InvalidPolicy {
 #[derive(Debug, Clone, Copy, Default)]
 pub struct ReadOptions {
     pub invalid: InvalidPolicy,
-    /// Use `ply-rs` for every payload, even where the fast path applies (for benchmarks).
+    /// Decode every property one by one even where the all-`float` little-endian fast path
+    /// applies (for benchmarks and cross-checks).
     pub force_general_path: bool,
-}
-
-/// PLY payload encodings.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
-pub enum PlyEncoding {
-    Ascii,
-    BinaryLittleEndian,
-    BinaryBigEndian,
 }
 
 /// What reading found besides the Gaussians.
@@ -108,8 +112,10 @@ pub struct PlyReport {
     pub vertices: usize,
     pub sh_degree: u8,
     pub dropped_non_finite: usize,
+    /// Dropped for a value outside its range (position, log scale, SH; module docs).
+    pub dropped_out_of_range: usize,
     pub dropped_zero_quaternion: usize,
-    /// Whether the binary little-endian fast path decoded the payload.
+    /// Whether the binary little-endian all-`float` fast path decoded the payload.
     pub fast_path: bool,
 }
 
@@ -128,25 +134,11 @@ enum Slot {
 
 struct Layout {
     names: Vec<String>,
-    kinds: Vec<ScalarKind>,
     slots: Vec<Slot>,
     has_normals: bool,
     sh_degree: u8,
     rest: usize,
     extras: Vec<(String, ScalarKind)>,
-}
-
-fn scalar_kind(t: &ScalarType) -> ScalarKind {
-    match t {
-        ScalarType::Char => ScalarKind::I8,
-        ScalarType::UChar => ScalarKind::U8,
-        ScalarType::Short => ScalarKind::I16,
-        ScalarType::UShort => ScalarKind::U16,
-        ScalarType::Int => ScalarKind::I32,
-        ScalarType::UInt => ScalarKind::U32,
-        ScalarType::Float => ScalarKind::F32,
-        ScalarType::Double => ScalarKind::F64,
-    }
 }
 
 fn core_slot(name: &str) -> Option<Slot> {
@@ -181,15 +173,15 @@ fn core_slot(name: &str) -> Option<Slot> {
 
 fn layout(path: &Path, def: &ElementDef) -> Result<Layout, PlyError> {
     let mut names = Vec::new();
-    let mut kinds = Vec::new();
     let mut slots = Vec::new();
     let mut extras = Vec::new();
     let mut seen_rest = Vec::new();
     let mut seen = std::collections::HashSet::new();
-    for (name, p) in &def.properties {
-        let kind = match &p.data_type {
-            PropertyType::Scalar(t) => scalar_kind(t),
-            PropertyType::List(..) => {
+    for p in &def.properties {
+        let name = &p.name;
+        let kind = match p.kind {
+            PropertyKind::Scalar(k) => k,
+            PropertyKind::List { .. } => {
                 return Err(PlyError::ListProperty {
                     path: path.into(),
                     name: name.clone(),
@@ -210,7 +202,6 @@ fn layout(path: &Path, def: &ElementDef) -> Result<Layout, PlyError> {
             }
         };
         names.push(name.clone());
-        kinds.push(kind);
         slots.push(slot);
     }
     let rest = seen_rest.len();
@@ -244,13 +235,19 @@ fn layout(path: &Path, def: &ElementDef) -> Result<Layout, PlyError> {
     }
     Ok(Layout {
         names,
-        kinds,
         slots,
         has_normals: n_normals == 3,
         sh_degree,
         rest,
         extras,
     })
+}
+
+/// Why a Gaussian is refused (module docs).
+enum Defect {
+    NonFinite(usize, f32),
+    OutOfRange(usize, f32, &'static str),
+    ZeroQuaternion,
 }
 
 /// Collects rows into [`Gaussians`], checking core values.
@@ -261,6 +258,7 @@ struct Assembler<'a> {
     g: Gaussians,
     normals: Vec<[f32; 3]>,
     dropped_non_finite: usize,
+    dropped_out_of_range: usize,
     dropped_zero_quaternion: usize,
     // Scratch for one Gaussian.
     pos: [f32; 3],
@@ -299,8 +297,9 @@ impl<'a> Assembler<'a> {
             layout,
             policy,
             g,
-            normals: Vec::new(),
+            normals: Vec::with_capacity(if layout.has_normals { capacity } else { 0 }),
             dropped_non_finite: 0,
+            dropped_out_of_range: 0,
             dropped_zero_quaternion: 0,
             pos: [0.0; 3],
             nrm: [0.0; 3],
@@ -313,45 +312,50 @@ impl<'a> Assembler<'a> {
         }
     }
 
-    /// Stores property `p` (index in header order) of the current vertex.
+    /// Takes one row (all properties in header order), checks it, then keeps or drops it.
     #[inline]
-    fn set(&mut self, p: usize, v: f64) {
-        let f = v as f32;
-        match self.layout.slots[p] {
-            Slot::Pos(i) => self.pos[i] = f,
-            Slot::Normal(i) => self.nrm[i] = f,
-            Slot::Dc(i) => self.dc[i] = f,
-            Slot::Rest(i) => self.rest[i] = f,
-            Slot::Opacity => self.opacity = f,
-            Slot::Scale(i) => self.scale[i] = f,
-            Slot::Rot(i) => self.rot[i] = f,
-            Slot::Extra(i) => self.extra[i] = v,
+    fn row(&mut self, row: &Row) -> Result<(), PlyError> {
+        for (&slot, &v) in self.layout.slots.iter().zip(row.values()) {
+            let f = v as f32;
+            match slot {
+                Slot::Pos(i) => self.pos[i] = f,
+                Slot::Normal(i) => self.nrm[i] = f,
+                Slot::Dc(i) => self.dc[i] = f,
+                Slot::Rest(i) => self.rest[i] = f,
+                Slot::Opacity => self.opacity = f,
+                Slot::Scale(i) => self.scale[i] = f,
+                Slot::Rot(i) => self.rot[i] = f,
+                Slot::Extra(i) => self.extra[i] = v,
+            }
         }
-    }
-
-    /// Finishes vertex `vertex`: checks it, then keeps or drops it.
-    fn finish(&mut self, vertex: usize) -> Result<(), PlyError> {
-        if let Some(p) = self.first_non_finite() {
+        if let Some(defect) = self.defect() {
             if self.policy == InvalidPolicy::Drop {
-                self.dropped_non_finite += 1;
+                match defect {
+                    Defect::NonFinite(..) => self.dropped_non_finite += 1,
+                    Defect::OutOfRange(..) => self.dropped_out_of_range += 1,
+                    Defect::ZeroQuaternion => self.dropped_zero_quaternion += 1,
+                }
                 return Ok(());
             }
-            let (name, value) = p;
-            return Err(PlyError::NonFinite {
-                path: self.path.into(),
-                vertex,
-                name,
-                value,
-            });
-        }
-        if self.rot.iter().all(|&r| r == 0.0) {
-            if self.policy == InvalidPolicy::Drop {
-                self.dropped_zero_quaternion += 1;
-                return Ok(());
-            }
-            return Err(PlyError::ZeroQuaternion {
-                path: self.path.into(),
-                vertex,
+            let (path, vertex, line) = (self.path.into(), row.index, row.line);
+            let name = |p: usize| self.layout.names[p].clone();
+            return Err(match defect {
+                Defect::NonFinite(p, value) => PlyError::NonFinite {
+                    path,
+                    vertex,
+                    line,
+                    name: name(p),
+                    value,
+                },
+                Defect::OutOfRange(p, value, range) => PlyError::OutOfRange {
+                    path,
+                    vertex,
+                    line,
+                    name: name(p),
+                    value,
+                    range,
+                },
+                Defect::ZeroQuaternion => PlyError::ZeroQuaternion { path, vertex, line },
             });
         }
         self.g.positions.push(self.pos);
@@ -369,82 +373,80 @@ impl<'a> Assembler<'a> {
         Ok(())
     }
 
-    fn first_non_finite(&self) -> Option<(String, f64)> {
-        let all_finite = self.pos.iter().all(|v| v.is_finite())
+    /// The first defect of the current Gaussian, if any (fast check first, then the slow
+    /// path names the property).
+    #[inline]
+    fn defect(&self) -> Option<Defect> {
+        let lim = SCENE_COORD_LIMIT as f32;
+        let (lo, hi) = LOG_SCALE_RANGE;
+        let ok = self.pos.iter().all(|v| v.abs() <= lim)
             && self.nrm.iter().all(|v| v.is_finite())
-            && self.dc.iter().all(|v| v.is_finite())
-            && self.rest.iter().all(|v| v.is_finite())
+            && self.dc.iter().all(|v| v.abs() <= MAX_ABS_SH)
+            && self.rest.iter().all(|v| v.abs() <= MAX_ABS_SH)
             && self.opacity.is_finite()
-            && self.scale.iter().all(|v| v.is_finite())
-            && self.rot.iter().all(|v| v.is_finite());
-        if all_finite {
+            && self.scale.iter().all(|v| (lo..=hi).contains(v))
+            && self.rot.iter().all(|v| v.is_finite())
+            && self.rot.iter().any(|&r| r != 0.0);
+        if ok {
             return None;
         }
-        // Slow path: name the property.
+        // Non-finite values first (a NaN is not "out of range", it is not a number).
+        let mut out_of_range = None;
         for (p, slot) in self.layout.slots.iter().enumerate() {
-            let v = match *slot {
-                Slot::Pos(i) => self.pos[i],
-                Slot::Normal(i) => self.nrm[i],
-                Slot::Dc(i) => self.dc[i],
-                Slot::Rest(i) => self.rest[i],
-                Slot::Opacity => self.opacity,
-                Slot::Scale(i) => self.scale[i],
-                Slot::Rot(i) => self.rot[i],
+            let (v, range_ok, range) = match *slot {
+                Slot::Pos(i) => (
+                    self.pos[i],
+                    self.pos[i].abs() <= lim,
+                    "±1e6, the f32 scene frame's limit (camera::SCENE_COORD_LIMIT)",
+                ),
+                Slot::Normal(i) => (self.nrm[i], true, ""),
+                Slot::Dc(i) => (
+                    self.dc[i],
+                    self.dc[i].abs() <= MAX_ABS_SH,
+                    "±1e6 (MAX_ABS_SH)",
+                ),
+                Slot::Rest(i) => (
+                    self.rest[i],
+                    self.rest[i].abs() <= MAX_ABS_SH,
+                    "±1e6 (MAX_ABS_SH)",
+                ),
+                Slot::Opacity => (self.opacity, true, ""),
+                Slot::Scale(i) => (
+                    self.scale[i],
+                    (lo..=hi).contains(&self.scale[i]),
+                    "the log-scale range −40..20 (exp(scale) must stay a finite, non-zero f32)",
+                ),
+                Slot::Rot(i) => (self.rot[i], true, ""),
                 Slot::Extra(_) => continue,
             };
             if !v.is_finite() {
-                return Some((self.layout.names[p].clone(), f64::from(v)));
+                return Some(Defect::NonFinite(p, v));
+            }
+            if !range_ok && out_of_range.is_none() {
+                out_of_range = Some(Defect::OutOfRange(p, v, range));
             }
         }
-        None
+        out_of_range.or(Some(Defect::ZeroQuaternion))
     }
 
-    fn into_gaussians(mut self) -> (Gaussians, usize, usize) {
+    fn finish(mut self) -> (Gaussians, [usize; 3]) {
         if self.layout.has_normals {
             self.g.normals = Some(self.normals);
         }
         (
             self.g,
-            self.dropped_non_finite,
-            self.dropped_zero_quaternion,
+            [
+                self.dropped_non_finite,
+                self.dropped_out_of_range,
+                self.dropped_zero_quaternion,
+            ],
         )
-    }
-}
-
-fn property_value(p: &Property) -> Option<f64> {
-    Some(match *p {
-        Property::Char(v) => f64::from(v),
-        Property::UChar(v) => f64::from(v),
-        Property::Short(v) => f64::from(v),
-        Property::UShort(v) => f64::from(v),
-        Property::Int(v) => f64::from(v),
-        Property::UInt(v) => f64::from(v),
-        Property::Float(v) => f64::from(v),
-        Property::Double(v) => v,
-        _ => return None,
-    })
-}
-
-#[inline]
-fn decode_le(kind: ScalarKind, b: &[u8]) -> f64 {
-    match kind {
-        ScalarKind::I8 => f64::from(b[0] as i8),
-        ScalarKind::U8 => f64::from(b[0]),
-        ScalarKind::I16 => f64::from(i16::from_le_bytes([b[0], b[1]])),
-        ScalarKind::U16 => f64::from(u16::from_le_bytes([b[0], b[1]])),
-        ScalarKind::I32 => f64::from(i32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-        ScalarKind::U32 => f64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-        ScalarKind::F32 => f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
-        ScalarKind::F64 => f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]),
     }
 }
 
 /// Reads a 3DGS PLY file.
 pub fn read_ply(path: &Path, options: &ReadOptions) -> Result<(Gaussians, PlyReport), PlyError> {
-    let bytes = std::fs::read(path).map_err(|source| PlyError::Io {
-        path: path.into(),
-        source,
-    })?;
+    let bytes = ply::read_file(path)?;
     read_ply_bytes(path, &bytes, options)
 }
 
@@ -454,173 +456,34 @@ pub fn read_ply_bytes(
     bytes: &[u8],
     options: &ReadOptions,
 ) -> Result<(Gaussians, PlyReport), PlyError> {
-    let parser = Parser::<DefaultElement>::new();
-    let mut cursor: &[u8] = bytes;
-    let header: Header = parser
-        .read_header(&mut cursor)
-        .map_err(|e| PlyError::Header {
-            path: path.into(),
-            why: e.to_string(),
-        })?;
-    let vertex_pos = header
-        .elements
-        .keys()
-        .position(|k| k == "vertex")
+    let mut reader = Reader::new(path, bytes)?;
+    reader.set_generic(options.force_general_path);
+    let header = reader.header();
+    let vertex = header
+        .element("vertex")
         .ok_or_else(|| PlyError::NoVertex { path: path.into() })?;
-    let def = header.elements.get("vertex").expect("position found it");
-    let layout = layout(path, def)?;
-    let count = def.count;
-    let encoding = match header.encoding {
-        Encoding::Ascii => PlyEncoding::Ascii,
-        Encoding::BinaryLittleEndian => PlyEncoding::BinaryLittleEndian,
-        Encoding::BinaryBigEndian => PlyEncoding::BinaryBigEndian,
-    };
-    // Cap the preallocation by what the payload could hold (a lying header must not OOM).
-    let capacity = count.min(cursor.len() / layout.kinds.len().max(1));
-    let mut asm = Assembler::new(path, &layout, options.invalid, capacity);
-    let fast = encoding == PlyEncoding::BinaryLittleEndian
-        && vertex_pos == 0
-        && !options.force_general_path;
-    if fast {
-        let offsets: Vec<usize> = layout
-            .kinds
-            .iter()
-            .scan(0, |acc, k| {
-                let o = *acc;
-                *acc += k.size();
-                Some(o)
-            })
-            .collect();
-        let stride: usize = layout.kinds.iter().map(|k| k.size()).sum();
-        let all_f32 = layout.kinds.iter().all(|&k| k == ScalarKind::F32);
-        for vertex in 0..count {
-            let start = vertex * stride;
-            let row = cursor
-                .get(start..start + stride)
-                .ok_or_else(|| PlyError::Truncated {
-                    path: path.into(),
-                    vertex,
-                    count,
-                })?;
-            if all_f32 {
-                for (p, b) in row.chunks_exact(4).enumerate() {
-                    asm.set(p, f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])));
-                }
-            } else {
-                for (p, (&o, &k)) in offsets.iter().zip(&layout.kinds).enumerate() {
-                    asm.set(p, decode_le(k, &row[o..o + k.size()]));
-                }
-            }
-            asm.finish(vertex)?;
-        }
-    } else {
-        let io_err = |e: std::io::Error| PlyError::Io {
-            path: path.into(),
-            source: e,
-        };
-        // Skip elements before `vertex`.
-        for (name, e) in header.elements.iter().take(vertex_pos) {
-            if header.encoding == Encoding::Ascii {
-                for _ in 0..e.count {
-                    let mut skip = String::new();
-                    cursor.read_line(&mut skip).map_err(io_err)?;
-                }
-                continue;
-            }
-            parser
-                .read_payload_for_element(&mut cursor, e, &header)
-                .map_err(|e| PlyError::Parse {
-                    path: path.into(),
-                    vertex: 0,
-                    why: format!("element `{name}` before `vertex`: {e}"),
-                })?;
-        }
-        let mut line = String::new();
-        for vertex in 0..count {
-            let elem = match header.encoding {
-                Encoding::Ascii => {
-                    // Own tokenizer: ply-rs' ASCII grammar rejects `nan`/`inf`, which must be
-                    // reported as NonFinite (core) or kept (extras).
-                    line.clear();
-                    let n = cursor.read_line(&mut line).map_err(io_err)?;
-                    if n == 0 {
-                        return Err(PlyError::Truncated {
-                            path: path.into(),
-                            vertex,
-                            count,
-                        });
-                    }
-                    let mut tokens = line.split_ascii_whitespace();
-                    for (p, &kind) in layout.kinds.iter().enumerate() {
-                        let tok = tokens.next().ok_or_else(|| PlyError::Parse {
-                            path: path.into(),
-                            vertex,
-                            why: format!("no value for `{}`", layout.names[p]),
-                        })?;
-                        let v = match kind {
-                            ScalarKind::F32 => tok.parse::<f32>().map(f64::from).ok(),
-                            ScalarKind::F64 => tok.parse::<f64>().ok(),
-                            _ => tok.parse::<i64>().ok().map(|v| v as f64),
-                        };
-                        let v = v.ok_or_else(|| PlyError::Parse {
-                            path: path.into(),
-                            vertex,
-                            why: format!(
-                                "`{tok}` is not a {} (`{}`)",
-                                kind.ply_name(),
-                                layout.names[p]
-                            ),
-                        })?;
-                        asm.set(p, v);
-                    }
-                    if tokens.next().is_some() {
-                        return Err(PlyError::Parse {
-                            path: path.into(),
-                            vertex,
-                            why: "more values than properties".into(),
-                        });
-                    }
-                    asm.finish(vertex)?;
-                    continue;
-                }
-                Encoding::BinaryLittleEndian => parser.read_little_endian_element(&mut cursor, def),
-                Encoding::BinaryBigEndian => parser.read_big_endian_element(&mut cursor, def),
-            };
-            let elem = elem.map_err(|e| {
-                if e.kind() == std::io::ErrorKind::UnexpectedEof {
-                    PlyError::Truncated {
-                        path: path.into(),
-                        vertex,
-                        count,
-                    }
-                } else {
-                    PlyError::Parse {
-                        path: path.into(),
-                        vertex,
-                        why: e.to_string(),
-                    }
-                }
-            })?;
-            for (p, name) in layout.names.iter().enumerate() {
-                let v = elem
-                    .get(name)
-                    .and_then(property_value)
-                    .ok_or_else(|| PlyError::Parse {
-                        path: path.into(),
-                        vertex,
-                        why: format!("no value for `{name}`"),
-                    })?;
-                asm.set(p, v);
-            }
-            asm.finish(vertex)?;
-        }
-    }
-    let (g, dropped_non_finite, dropped_zero_quaternion) = asm.into_gaussians();
+    let def = header.elements[vertex].clone();
+    let encoding = header.encoding;
+    let layout = layout(path, &def)?;
+    let fast = reader.fast_path(vertex);
+    // The header check bounds `count` by the payload size, so this capacity is backed by data.
+    let mut asm = Assembler::new(path, &layout, options.invalid, def.count);
+    reader.read_element("vertex", |row| asm.row(row))?;
+    reader.finish()?;
+    let (
+        g,
+        [
+            dropped_non_finite,
+            dropped_out_of_range,
+            dropped_zero_quaternion,
+        ],
+    ) = asm.finish();
     let report = PlyReport {
         encoding,
-        vertices: count,
+        vertices: def.count,
         sh_degree: g.sh_degree,
         dropped_non_finite,
+        dropped_out_of_range,
         dropped_zero_quaternion,
         fast_path: fast,
     };
@@ -628,9 +491,9 @@ pub fn read_ply_bytes(
 }
 
 /// The property names and kinds written for `g`, in INRIA order, extras last.
-fn written_properties(g: &Gaussians) -> Vec<(String, ScalarKind)> {
-    let f = |s: String| (s, ScalarKind::F32);
-    let mut props: Vec<(String, ScalarKind)> = ["x", "y", "z"].map(|s| f(s.into())).to_vec();
+fn written_properties(g: &Gaussians) -> Vec<PropertyDef> {
+    let f = |s: String| PropertyDef::scalar(s, ScalarKind::F32);
+    let mut props: Vec<PropertyDef> = ["x", "y", "z"].map(|s| f(s.into())).to_vec();
     if g.normals.is_some() {
         props.extend(["nx", "ny", "nz"].map(|s| f(s.into())));
     }
@@ -639,7 +502,11 @@ fn written_properties(g: &Gaussians) -> Vec<(String, ScalarKind)> {
     props.push(f("opacity".into()));
     props.extend((0..3).map(|i| f(format!("scale_{i}"))));
     props.extend((0..4).map(|i| f(format!("rot_{i}"))));
-    props.extend(g.extras.iter().map(|e| (e.name.clone(), e.kind)));
+    props.extend(
+        g.extras
+            .iter()
+            .map(|e| PropertyDef::scalar(e.name.clone(), e.kind)),
+    );
     props
 }
 
@@ -658,87 +525,44 @@ fn row_values(g: &Gaussians, i: usize, out: &mut Vec<f64>) {
     out.extend(g.extras.iter().map(|e| e.values[i]));
 }
 
-fn encode_le(kind: ScalarKind, v: f64, out: &mut Vec<u8>) {
-    match kind {
-        ScalarKind::I8 => out.extend((v as i8).to_le_bytes()),
-        ScalarKind::U8 => out.extend((v as u8).to_le_bytes()),
-        ScalarKind::I16 => out.extend((v as i16).to_le_bytes()),
-        ScalarKind::U16 => out.extend((v as u16).to_le_bytes()),
-        ScalarKind::I32 => out.extend((v as i32).to_le_bytes()),
-        ScalarKind::U32 => out.extend((v as u32).to_le_bytes()),
-        ScalarKind::F32 => out.extend((v as f32).to_le_bytes()),
-        ScalarKind::F64 => out.extend(v.to_le_bytes()),
-    }
-}
-
-fn format_ascii(kind: ScalarKind, v: f64, out: &mut String) {
-    use std::fmt::Write as _;
-    // Debug formatting of floats is the shortest text that parses back to the same value.
-    let _ = match kind {
-        ScalarKind::F32 => write!(out, "{:?}", v as f32),
-        ScalarKind::F64 => write!(out, "{v:?}"),
-        _ => write!(out, "{}", v as i64),
-    };
-}
-
 /// Writes `g` as a 3DGS PLY (atomically), INRIA property order, extras after `rot_3`.
-/// `encoding` must be ASCII or binary little-endian.
 pub fn write_ply(path: &Path, g: &Gaussians, encoding: PlyEncoding) -> Result<(), PlyError> {
     g.check().map_err(|e| PlyError::Invalid {
         path: path.into(),
         why: e.to_string(),
     })?;
     let props = written_properties(g);
-    let format = match encoding {
-        PlyEncoding::Ascii => "ascii",
-        PlyEncoding::BinaryLittleEndian => "binary_little_endian",
-        PlyEncoding::BinaryBigEndian => {
-            return Err(PlyError::Invalid {
-                path: path.into(),
-                why: "writing binary big-endian is not supported".into(),
-            });
-        }
+    let kinds: Vec<ScalarKind> = props
+        .iter()
+        .map(|p| match p.kind {
+            PropertyKind::Scalar(k) => k,
+            PropertyKind::List { .. } => unreachable!("3DGS properties are scalars"),
+        })
+        .collect();
+    let element = ElementDef {
+        name: "vertex".into(),
+        count: g.len(),
+        properties: props,
     };
-    let mut head = format!("ply\nformat {format} 1.0\nelement vertex {}\n", g.len());
-    for (name, kind) in &props {
-        head.push_str(&format!("property {} {name}\n", kind.ply_name()));
-    }
-    head.push_str("end_header\n");
-    let werr = |source| FsError::Write {
+    let werr = |err| FsError::Write {
         path: path.into(),
-        source,
+        err,
     };
     fsutil::atomic_write(path, |w| -> Result<(), PlyError> {
-        w.write_all(head.as_bytes()).map_err(werr)?;
+        let mut out = RowWriter::new(encoding, &[], std::slice::from_ref(&element));
         let mut row = Vec::new();
-        let mut buf = Vec::with_capacity(1 << 16);
-        let mut text = String::new();
         for i in 0..g.len() {
             row_values(g, i, &mut row);
-            match encoding {
-                PlyEncoding::Ascii => {
-                    text.clear();
-                    for (j, (&v, (_, kind))) in row.iter().zip(&props).enumerate() {
-                        if j > 0 {
-                            text.push(' ');
-                        }
-                        format_ascii(*kind, v, &mut text);
-                    }
-                    text.push('\n');
-                    buf.extend_from_slice(text.as_bytes());
-                }
-                _ => {
-                    for (&v, (_, kind)) in row.iter().zip(&props) {
-                        encode_le(*kind, v, &mut buf);
-                    }
-                }
+            for (&v, &kind) in row.iter().zip(&kinds) {
+                out.scalar(kind, v);
             }
-            if buf.len() > 1 << 16 {
-                w.write_all(&buf).map_err(werr)?;
-                buf.clear();
+            out.end_row();
+            if out.len() > 1 << 16 {
+                out.drain_to(w).map_err(werr)?;
             }
         }
-        w.write_all(&buf).map_err(werr)?;
+        out.drain_to(w).map_err(werr)?;
+        w.flush().map_err(werr)?;
         Ok(())
     })
 }
@@ -818,41 +642,52 @@ mod tests {
     #[test]
     fn round_trip_is_bit_exact_with_extras_all_degrees_and_encodings() {
         for degree in 0..=3u8 {
-            let g = sample(37, degree, u64::from(degree));
-            for enc in [PlyEncoding::BinaryLittleEndian, PlyEncoding::Ascii] {
-                let p = tmp(&format!("rt{degree}{enc:?}.ply"));
-                write_ply(&p, &g, enc).unwrap();
-                for force_general_path in [false, true] {
-                    let opts = ReadOptions {
-                        force_general_path,
-                        ..Default::default()
-                    };
-                    let (back, report) = read_ply(&p, &opts).unwrap();
-                    assert_eq!(report.sh_degree, degree);
-                    assert_eq!(
-                        report.fast_path,
-                        enc == PlyEncoding::BinaryLittleEndian && !force_general_path
-                    );
-                    let (a, b) = (bits(&back), bits(&g));
-                    assert_eq!(a.len(), b.len());
-                    let diff = a.iter().zip(&b).position(|(x, y)| x != y);
-                    assert_eq!(
-                        diff,
-                        None,
-                        "degree {degree} {enc:?} general={force_general_path}: {:?}",
-                        diff.map(|d| (f64::from_bits(a[d]), f64::from_bits(b[d])))
-                    );
-                    assert_eq!(
-                        back.extras.iter().map(|e| e.kind).collect::<Vec<_>>(),
-                        g.extras.iter().map(|e| e.kind).collect::<Vec<_>>()
-                    );
-                    assert!(
-                        back.extra("maybe")
-                            .unwrap()
-                            .values
-                            .iter()
-                            .all(|v| v.is_nan())
-                    );
+            for mixed in [true, false] {
+                let mut g = sample(37, degree, u64::from(degree));
+                if !mixed {
+                    // Only `float` properties: binary little-endian takes the fast path.
+                    g.extras.retain(|e| e.kind == ScalarKind::F32);
+                }
+                for enc in [
+                    PlyEncoding::BinaryLittleEndian,
+                    PlyEncoding::BinaryBigEndian,
+                    PlyEncoding::Ascii,
+                ] {
+                    let p = tmp(&format!("rt{degree}{mixed}{enc:?}.ply"));
+                    write_ply(&p, &g, enc).unwrap();
+                    for force_general_path in [false, true] {
+                        let opts = ReadOptions {
+                            force_general_path,
+                            ..Default::default()
+                        };
+                        let (back, report) = read_ply(&p, &opts).unwrap();
+                        assert_eq!(report.sh_degree, degree);
+                        assert_eq!(report.encoding, enc);
+                        assert_eq!(
+                            report.fast_path,
+                            enc == PlyEncoding::BinaryLittleEndian && !force_general_path && !mixed
+                        );
+                        let (a, b) = (bits(&back), bits(&g));
+                        assert_eq!(a.len(), b.len());
+                        let diff = a.iter().zip(&b).position(|(x, y)| x != y);
+                        assert_eq!(
+                            diff,
+                            None,
+                            "degree {degree} {enc:?} general={force_general_path}: {:?}",
+                            diff.map(|d| (f64::from_bits(a[d]), f64::from_bits(b[d])))
+                        );
+                        assert_eq!(
+                            back.extras.iter().map(|e| e.kind).collect::<Vec<_>>(),
+                            g.extras.iter().map(|e| e.kind).collect::<Vec<_>>()
+                        );
+                        assert!(
+                            back.extra("maybe")
+                                .unwrap()
+                                .values
+                                .iter()
+                                .all(|v| v.is_nan())
+                        );
+                    }
                 }
             }
         }
@@ -937,24 +772,48 @@ mod tests {
             assert!(
                 matches!(
                     e,
-                    PlyError::Truncated {
-                        vertex: 9,
+                    PlyError::Format(ply::PlyError::Truncated {
+                        row: 9,
                         count: 10,
                         ..
-                    }
+                    })
                 ),
                 "{e}"
             );
+            assert!(e.to_string().contains("vertex 9 of 10"), "{e}");
         }
+        // ASCII: 3 rows declared, 2 given. Too few bytes for 3 rows: refused from the header.
         let rows = vec![good_row(), good_row()];
         let p = ascii_file("trunc_ascii.ply", &CORE, &rows, 3);
         let e = read_ply(&p, &ReadOptions::default()).unwrap_err();
-        assert!(matches!(e, PlyError::Truncated { vertex: 2, .. }), "{e}");
+        assert!(
+            matches!(e, PlyError::Format(ply::PlyError::Size { .. })),
+            "{e}"
+        );
+        assert!(e.to_string().contains("3 `vertex` rows"), "{e}");
+        // Enough bytes (blank lines) but only 2 rows: the reader names row 2 and its line.
+        let mut text = std::fs::read_to_string(&p).unwrap();
+        text.push_str(&"\n".repeat(60));
+        std::fs::write(&p, text).unwrap();
+        let e = read_ply(&p, &ReadOptions::default()).unwrap_err();
+        assert!(
+            matches!(e, PlyError::Format(ply::PlyError::Truncated { row: 2, .. })),
+            "{e}"
+        );
         let mut short = good_row();
         short.pop();
         let p = ascii_file("short_ascii.ply", &CORE, &[good_row(), short], 2);
         let e = read_ply(&p, &ReadOptions::default()).unwrap_err();
-        assert!(matches!(e, PlyError::Parse { vertex: 1, .. }), "{e}");
+        assert!(
+            matches!(e, PlyError::Format(ply::PlyError::Row { row: 1, .. })),
+            "{e}"
+        );
+        // Header: ply, format, element, 14 properties, end_header = 18 lines; row 1 is line 20.
+        assert!(
+            e.to_string()
+                .ends_with("short_ascii.ply: vertex 1 (line 20): no value for `rot_3`"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -1049,7 +908,10 @@ mod tests {
         );
         std::fs::write(&p, &bytes[..bytes.len() - 3]).unwrap();
         let e = read_ply(&p, &ReadOptions::default()).unwrap_err();
-        assert!(matches!(e, PlyError::Truncated { vertex: 1, .. }), "{e}");
+        assert!(
+            matches!(e, PlyError::Format(ply::PlyError::Truncated { row: 1, .. })),
+            "{e}"
+        );
     }
 
     #[test]
@@ -1058,7 +920,7 @@ mod tests {
         std::fs::write(&p, b"not a ply at all").unwrap();
         assert!(matches!(
             read_ply(&p, &ReadOptions::default()),
-            Err(PlyError::Header { .. })
+            Err(PlyError::Format(ply::PlyError::Header { .. }))
         ));
         let mut text = header(&CORE, 0, "binary_little_endian");
         text = text.replace("end_header", "property list uchar int idx\nend_header");
@@ -1072,11 +934,17 @@ mod tests {
         std::fs::write(&p, text).unwrap();
         assert!(matches!(
             read_ply(&p, &ReadOptions::default()),
-            Err(PlyError::Truncated { vertex: 0, .. })
+            Err(PlyError::Format(ply::PlyError::Truncated { row: 0, .. }))
         ));
-        assert!(matches!(
-            read_ply(&tmp("nope.ply"), &ReadOptions::default()),
-            Err(PlyError::Io { .. })
-        ));
+        let e = read_ply(&tmp("nope.ply"), &ReadOptions::default()).unwrap_err();
+        assert!(matches!(e, PlyError::Format(ply::PlyError::Io { .. })));
+        // The OS reason appears once.
+        let mut msg = e.to_string();
+        let mut src = std::error::Error::source(&e);
+        while let Some(s) = src {
+            msg.push_str(&format!(": {s}"));
+            src = s.source();
+        }
+        assert_eq!(msg.matches("os error 2").count(), 1, "{msg}");
     }
 }

@@ -435,42 +435,13 @@ fn merge(base: &mut toml::Table, over: toml::Table) {
 }
 
 /// The CityGML files named by `paths`: files as given, folders searched recursively for
-/// `*.gml` (sorted by path).
+/// `*.gml` / `*.xml` (sorted by path), each file once ([`crate::citymodel::collect_files`]:
+/// symbolic-link loops end, repeated files are read once); its warnings go to the log.
 pub fn collect_files(paths: &[PathBuf]) -> Result<Vec<PathBuf>, SynthError> {
-    let mut out = Vec::new();
-    for p in paths {
-        if p.is_dir() {
-            let mut found = Vec::new();
-            walk(p, &mut found)?;
-            found.sort();
-            out.extend(found);
-        } else if p.is_file() {
-            out.push(p.clone());
-        } else {
-            return Err(SynthError::Input(format!(
-                "CityGML input {} does not exist",
-                p.display()
-            )));
-        }
+    let found =
+        crate::citymodel::collect_files(paths).map_err(|e| SynthError::Input(e.to_string()))?;
+    for w in &found.warnings {
+        log::warn!("{w}");
     }
-    if out.is_empty() {
-        return Err(SynthError::Input("no CityGML files given".into()));
-    }
-    Ok(out)
-}
-
-fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> Result<(), SynthError> {
-    let rd =
-        std::fs::read_dir(dir).map_err(|e| SynthError::Input(format!("{}: {e}", dir.display())))?;
-    for e in rd {
-        let p = e
-            .map_err(|e| SynthError::Input(format!("{}: {e}", dir.display())))?
-            .path();
-        if p.is_dir() {
-            walk(&p, out)?;
-        } else if p.extension().is_some_and(|x| x.eq_ignore_ascii_case("gml")) {
-            out.push(p);
-        }
-    }
-    Ok(())
+    Ok(found.files)
 }
