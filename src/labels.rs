@@ -85,7 +85,10 @@ impl LabelTable {
             }
             let ok = match l.source {
                 Source::City => l.id >= 0 && l.id < delta && l.entity == Some(l.id),
-                Source::Image => l.id >= delta && l.group.map(|g| i64::from(g) + i64::from(delta)) == Some(i64::from(l.id)),
+                Source::Image => {
+                    l.id >= delta
+                        && l.group.map(|g| i64::from(g) + i64::from(delta)) == Some(i64::from(l.id))
+                }
             };
             if !ok {
                 return Err(format!(
@@ -102,7 +105,10 @@ impl LabelTable {
     }
 
     /// The city-only table: one label per entity, with the class of `classes[entity]`.
-    pub fn city(entities: &[crate::citymodel::Entity], classes: &[i32]) -> Result<LabelTable, LabelsError> {
+    pub fn city(
+        entities: &[crate::citymodel::Entity],
+        classes: &[i32],
+    ) -> Result<LabelTable, LabelsError> {
         let delta = delta_for(entities.len())?;
         let labels = entities
             .iter()
@@ -160,7 +166,12 @@ mod tests {
         assert_eq!(delta_for(10_000).unwrap(), 10_000);
         assert_eq!(delta_for(10_001).unwrap(), 100_000);
         assert_eq!(delta_for(70_000).unwrap(), 100_000);
-        assert!(delta_for(1_000_000_001).unwrap_err().to_string().contains("2^31"));
+        assert!(
+            delta_for(1_000_000_001)
+                .unwrap_err()
+                .to_string()
+                .contains("2^31")
+        );
     }
 
     #[test]

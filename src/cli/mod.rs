@@ -4,6 +4,7 @@ mod citymodel;
 mod demo;
 mod eval;
 mod lift;
+mod masks;
 mod raycast;
 mod render;
 mod run;
@@ -36,6 +37,8 @@ enum Command {
     Render(render::RenderArgs),
     /// Lift per-view labels into the Gaussians (closed-form weighted vote over the cache), predict test views.
     Lift(lift::LiftArgs),
+    /// Filter the scene's SAM masks against the city model (paper §3.2; depth test; mask-free source).
+    Masks(masks::MasksArgs),
     /// A scene folder through every stage (citymodel → raycast → render cache → lift → eval), resuming complete stages; report.html.
     Run(run::RunArgs),
     /// The demo: bundled data → simulated scene → every stage → report.html.
@@ -63,6 +66,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Render(args) => render::run(&args),
         Command::Eval(args) => eval::run(&args),
         Command::Lift(args) => lift::run(&args),
+        Command::Masks(args) => masks::run(&args),
         Command::Run(args) => run::run(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),
