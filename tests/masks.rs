@@ -510,6 +510,7 @@ fn low_overlap_check_drops_a_low_overlap_building_mask() {
     list[7] = SamMask::from_mask(&m, 0.9, 0.97, vec![]);
     write_sam_json(&f.scene.join(format!("masks/{STEM}.json")), &list).unwrap();
     let mut o = opts(Test::Geometry);
+    o.low_overlap_check = false; // the paper's rule
     run(&f, &o, "nocheck", true).unwrap();
     assert_eq!(rules(&f, "nocheck").0[&7], "low_overlap");
     o.low_overlap_check = true;
@@ -523,7 +524,11 @@ fn low_overlap_check_drops_a_low_overlap_building_mask() {
 fn mask_free_source_finds_the_person_as_one_component() {
     let f = fixture("maskfree", false);
     std::fs::remove_dir_all(f.scene.join("masks")).unwrap();
-    let s = run(&f, &opts(Test::Auto), "free", true).unwrap();
+    let o = MasksOptions {
+        open_px: 0,
+        ..opts(Test::Auto)
+    };
+    let s = run(&f, &o, "free", true).unwrap();
     assert_eq!(s.source, Source::Depth);
     let (_, kept) = rules(&f, "free");
     assert_eq!(kept.len(), 1, "{kept:?}");
@@ -533,6 +538,10 @@ fn mask_free_source_finds_the_person_as_one_component() {
         (-1, "depth_component", -1)
     );
     assert_eq!(k.sam.segmentation.decode().unwrap(), mask_of(PERSON_R));
+    // The default opening (radius 3, a 7×7 ellipse) removes anything thinner than 7 pixels:
+    // the 5-pixel-wide person too.
+    let s = run(&f, &opts(Test::Auto), "free_open", true).unwrap();
+    assert_eq!(s.kept, 0);
     // Without a cache the mask-free source refuses clearly.
     let e = run(&f, &opts(Test::Auto), "free2", false)
         .unwrap_err()

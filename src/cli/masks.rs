@@ -60,21 +60,35 @@ pub struct MasksArgs {
     /// Radius (pixels) of the local city surface the 3DGS depth is compared with.
     #[arg(long, default_value_t = MasksOptions::default().surface_radius_px)]
     surface_radius: usize,
+    /// Do not subtract each city surface's median 3DGS − city depth offset (it absorbs most of
+    /// a misalignment).
+    #[arg(long)]
+    no_surface_bias: bool,
+    /// Pixels a surface needs for its own depth offset (else its building's, else none).
+    #[arg(long, default_value_t = MasksOptions::default().bias_min_px)]
+    bias_min_px: usize,
+    /// The surface offsets are clamped to ± this many metres (× the alignment scale).
+    #[arg(long, default_value_t = MasksOptions::default().bias_max_m)]
+    bias_max: f64,
     /// Share of a mask's depth-evidence pixels that must be in front to call it an occluder.
     #[arg(long, default_value_t = MasksOptions::default().occluder_share)]
     occluder_share: f64,
     /// Share of a mask's pixels that need depth evidence for the depth test to decide.
     #[arg(long, default_value_t = MasksOptions::default().min_evidence)]
     min_evidence: f64,
-    /// Also drop low-overlap masks that the features or the depth show to be building.
+    /// Keep every low-overlap mask unchecked (the paper's rule); by default low-overlap masks
+    /// that the features or the depth show to be building are dropped.
     #[arg(long)]
-    low_overlap_check: bool,
+    keep_low_overlap: bool,
     /// Mask-free source: minimum 3DGS alpha of a pixel.
     #[arg(long, default_value_t = MasksOptions::default().min_alpha)]
     min_alpha: f64,
     /// Mask-free source: relative depth jump that splits two neighbouring pixels.
     #[arg(long, default_value_t = MasksOptions::default().split_rel)]
     split_rel: f64,
+    /// Mask-free source: radius (pixels) of the morphological opening of the candidate pixels.
+    #[arg(long, default_value_t = MasksOptions::default().open_px)]
+    open_px: usize,
     /// Overlay PNGs (kept masks coloured by rule) for this many views.
     #[arg(long, default_value_t = MasksOptions::default().overlays)]
     overlays: usize,
@@ -98,11 +112,15 @@ pub fn run(args: &MasksArgs) -> anyhow::Result<()> {
         tau_occ_m: args.tau_occ,
         tau_rel: args.tau_rel,
         surface_radius_px: args.surface_radius,
+        surface_bias: !args.no_surface_bias,
+        bias_min_px: args.bias_min_px,
+        bias_max_m: args.bias_max,
         occluder_share: args.occluder_share,
         min_evidence: args.min_evidence,
-        low_overlap_check: args.low_overlap_check,
+        low_overlap_check: !args.keep_low_overlap,
         min_alpha: args.min_alpha,
         split_rel: args.split_rel,
+        open_px: args.open_px,
         overlays: args.overlays,
     };
     opts.validate()?;

@@ -38,6 +38,14 @@ pub struct DepthTest {
     pub tau_rel: f32,
     /// Window radius `r` (pixels) of the local city surface.
     pub radius: usize,
+    /// Subtract each city surface's median 3DGS − city depth offset first (see [`classify`]).
+    pub bias: bool,
+    /// A surface needs this many pixels with both depths for its own offset (else its
+    /// building's, else none).
+    pub bias_min_px: usize,
+    /// Offsets are clamped to `±bias_max` (scene units): a misalignment of a few decimetres
+    /// moves a surface by about that much, an occluder covering most of a surface by metres.
+    pub bias_max: f32,
 }
 
 impl DepthTest {
@@ -46,10 +54,12 @@ impl DepthTest {
     }
 }
 
-/// Sliding minimum and maximum of the finite values of `d` (`h×w`, row-major) over
+/// Sliding minimum and maximum of the finite city depths `d` (`h×w`, row-major) over
 /// `(2r+1)²` windows (clamped at the border); `+∞`/`−∞` where a window holds none.
-/// Separable: a row pass then a column pass, `O(h·w·r)`.
-pub fn window_min_max(d: &[f32], h: usize, w: usize, r: usize) -> (Vec<f32>, Vec<f32>) {
+/// Separable: a row pass then a column pass, `O(h·w·r)`. Every building counts (restricting
+/// the window to the centre pixel's building was measured: it turns the blur of a nearer
+/// neighbour's 3DGS across a seam into false occluders, `docs/masks.md`).
+pub fn local_surface(d: &[f32], h: usize, w: usize, r: usize) -> (Vec<f32>, Vec<f32>) {
     let n = h * w;
     let lo0: Vec<f32> = d
         .iter()
@@ -92,11 +102,82 @@ pub fn window_min_max(d: &[f32], h: usize, w: usize, r: usize) -> (Vec<f32>, Vec
     (lo, hi)
 }
 
+fn median(v: &mut [f32]) -> f32 {
+    let m = v.len() / 2;
+    *v.select_nth_unstable_by(m, f32::total_cmp).1
+}
+
+/// The per-pixel depth offset `b`: the median of `gs − city` over the pixels (with both
+/// depths) of the pixel's city surface (raycast surface id; the building's id where it has
+/// none), when that surface has at least `min_px` of them; else the building's median under
+/// the same condition; else 0; clamped to `±max`. A rigid misalignment of the city model
+/// shifts each planar surface's depth smoothly; its median absorbs most of that shift, while
+/// occluders — usually a minority of a surface's pixels — stay outliers. Where an occluder
+/// covers most of a surface the median is the occluder's, and the clamp keeps it from
+/// swallowing it.
+pub fn surface_bias(
+    city: &[f32],
+    gs: &[f32],
+    feature: &[i32],
+    surface: &[i32],
+    min_px: usize,
+    max: f32,
+) -> Vec<f32> {
+    use std::collections::BTreeMap;
+    let mut by_surface: BTreeMap<i32, Vec<f32>> = BTreeMap::new();
+    let mut by_feature: BTreeMap<i32, Vec<f32>> = BTreeMap::new();
+    for p in 0..city.len() {
+        if city[p].is_finite() && gs[p].is_finite() {
+            let d = gs[p] - city[p];
+            let key = if surface[p] >= 0 {
+                surface[p]
+            } else {
+                feature[p]
+            };
+            by_surface.entry(key).or_default().push(d);
+            by_feature.entry(feature[p]).or_default().push(d);
+        }
+    }
+    let med = |m: BTreeMap<i32, Vec<f32>>| -> BTreeMap<i32, f32> {
+        m.into_iter()
+            .filter(|(_, v)| v.len() >= min_px.max(1))
+            .map(|(k, mut v)| (k, median(&mut v)))
+            .collect()
+    };
+    let (ms, mf) = (med(by_surface), med(by_feature));
+    (0..city.len())
+        .map(|p| {
+            let key = if surface[p] >= 0 {
+                surface[p]
+            } else {
+                feature[p]
+            };
+            ms.get(&key)
+                .or_else(|| mf.get(&feature[p]))
+                .copied()
+                .unwrap_or(0.0)
+                .clamp(-max, max)
+        })
+        .collect()
+}
+
 /// The depth state of every pixel (row-major, `h×w`): [`NONE`], [`SURFACE`], [`FRONT`] or
 /// [`BEHIND`]. A pixel has evidence when the city model is hit there and the 3DGS depth is
-/// finite.
-pub fn classify(city: &[f32], gs: &[f32], h: usize, w: usize, t: &DepthTest) -> Vec<u8> {
-    let (lo, hi) = window_min_max(city, h, w, t.radius);
+/// finite; the 3DGS depth (less the surface offset when `t.bias`) is compared with the
+/// [`local_surface`] range widened by the tolerance.
+pub fn classify(
+    city: &[f32],
+    gs: &[f32],
+    feature: &[i32],
+    surface: &[i32],
+    h: usize,
+    w: usize,
+    t: &DepthTest,
+) -> Vec<u8> {
+    let (lo, hi) = local_surface(city, h, w, t.radius);
+    let bias = t
+        .bias
+        .then(|| surface_bias(city, gs, feature, surface, t.bias_min_px, t.bias_max));
     city.iter()
         .zip(gs)
         .enumerate()
@@ -104,6 +185,7 @@ pub fn classify(city: &[f32], gs: &[f32], h: usize, w: usize, t: &DepthTest) -> 
             if !c.is_finite() || !g.is_finite() {
                 return NONE;
             }
+            let g = g - bias.as_ref().map_or(0.0, |b| b[p]);
             let tol = t.tol(c);
             if g < lo[p] - tol {
                 FRONT
@@ -260,6 +342,11 @@ pub struct ComponentParams {
     pub tau: f32,
     /// Components smaller than this (pixels) are dropped.
     pub min_area: usize,
+    /// Radius of the morphological opening (erode, then dilate; OpenCV, elliptical kernel)
+    /// applied to the candidate pixels first: strips thinner than about `2·open_px` pixels —
+    /// the 3DGS spilling a few pixels over a nearer city-model silhouette at close range —
+    /// vanish. 0 = none.
+    pub open_px: usize,
 }
 
 /// One component of the mask-free source: its pixels as a window at `(y0, x0)`.
@@ -286,9 +373,16 @@ pub fn components(
     p: &ComponentParams,
 ) -> Result<Vec<Component>, MasksError> {
     let n = h * w;
-    let fg: Vec<bool> = (0..n)
+    let mut fg: Vec<bool> = (0..n)
         .map(|i| states[i] == FRONT && alpha[i] >= p.min_alpha && gs[i].is_finite())
         .collect();
+    if p.open_px > 0 {
+        let m = Array2::from_shape_vec((h, w), fg.clone()).expect("h·w values");
+        let opened = imageio::dilate(&imageio::erode(&m, p.open_px)?, p.open_px)?;
+        for (f, o) in fg.iter_mut().zip(opened.iter()) {
+            *f &= *o;
+        }
+    }
     let jump = |a: f32, b: f32| (a - b).abs() > p.tau.max(p.split_rel * a.min(b));
     let mut held = vec![false; n];
     for y in 0..h {
@@ -408,7 +502,7 @@ mod tests {
     }
 
     #[test]
-    fn window_min_max_equals_brute_force_with_nans() {
+    fn local_surface_equals_brute_force_with_nans() {
         let (h, w) = (7, 9);
         let d: Vec<f32> = (0..h * w)
             .map(|i| {
@@ -420,32 +514,78 @@ mod tests {
             })
             .collect();
         for r in 0..4 {
-            assert_eq!(window_min_max(&d, h, w, r), brute(&d, h, w, r), "r {r}");
+            assert_eq!(local_surface(&d, h, w, r), brute(&d, h, w, r), "r {r}");
+        }
+    }
+
+    fn test(radius: usize, bias: bool) -> DepthTest {
+        DepthTest {
+            tau: 0.5,
+            tau_rel: 0.0,
+            radius,
+            bias,
+            bias_min_px: 3,
+            bias_max: 2.0,
         }
     }
 
     #[test]
     fn states_against_the_local_surface() {
         // A wall at 10 m whose right half is a recessed window at 10.15 m; one pixel column
-        // without a city hit; 3DGS: on the wall, on the window, 2 m in front, 1 m behind.
+        // without a city hit; 3DGS: on the wall, 1 m in front, on the window, 0.15 m behind
+        // the window's polygon, no hit, 1.5 m behind.
         let (h, w) = (1, 6);
         let city = [10.0, 10.0, 10.15, 10.15, f32::NAN, 10.0];
         let gs = [10.05, 9.0, 10.15, 10.3, 8.0, 11.5];
-        let t = DepthTest {
-            tau: 0.5,
-            tau_rel: 0.0,
-            radius: 1,
-        };
+        let f = [0, 0, 0, 0, -1, 0];
+        let s = [1, 1, 1, 1, -1, 1];
         assert_eq!(
-            classify(&city, &gs, h, w, &t),
+            classify(&city, &gs, &f, &s, h, w, &test(1, false)),
             vec![SURFACE, FRONT, SURFACE, SURFACE, NONE, BEHIND]
         );
-        // Radius 0: the window pixel compares with its own hit only.
-        let t0 = DepthTest { radius: 0, ..t };
-        assert_eq!(classify(&city, &gs, h, w, &t0)[3], SURFACE);
         // A relative tolerance of 10 % makes the 1 m offset "on the surface".
-        let tr = DepthTest { tau_rel: 0.1, ..t };
-        assert_eq!(classify(&city, &gs, h, w, &tr)[1], SURFACE);
+        let tr = DepthTest {
+            tau_rel: 0.1,
+            ..test(1, false)
+        };
+        assert_eq!(classify(&city, &gs, &f, &s, h, w, &tr)[1], SURFACE);
+    }
+
+    #[test]
+    fn the_surface_offset_absorbs_a_misalignment_but_not_an_occluder() {
+        // A misaligned roof: the 3DGS lies 1 m in front of the city surface everywhere, and a
+        // tree 4 m in front over two of its eight pixels.
+        let (h, w) = (1, 8);
+        let city = [20.0f32; 8];
+        let mut gs = [19.0f32; 8];
+        gs[5] = 16.0;
+        gs[6] = 16.0;
+        let f = [0; 8];
+        let s = [3; 8];
+        let without = classify(&city, &gs, &f, &s, h, w, &test(0, false));
+        assert!(without.iter().all(|&v| v == FRONT));
+        let with = classify(&city, &gs, &f, &s, h, w, &test(0, true));
+        assert_eq!(
+            with,
+            vec![
+                SURFACE, SURFACE, SURFACE, SURFACE, SURFACE, FRONT, FRONT, SURFACE
+            ]
+        );
+        // Offsets per surface, the building's for a small surface, none under the minimum.
+        let s2 = [3, 3, 3, 3, 3, 3, 4, 4];
+        let b = surface_bias(&city, &gs, &f, &s2, 3, 2.0);
+        assert_eq!(b, vec![-1.0; 8]);
+        let b = surface_bias(&city, &gs, &f, &s2, 9, 2.0);
+        assert_eq!(b, vec![0.0; 8]);
+        // A tree covering six of eight pixels: the median is the tree's (−4), clamped to −2,
+        // so the tree stays in front (16 − (−2) = 18 < 20 − 0.5).
+        let mut gs2 = [16.0f32; 8];
+        gs2[0] = 20.0;
+        gs2[1] = 20.0;
+        let b = surface_bias(&city, &gs2, &f, &s, 3, 2.0);
+        assert_eq!(b, vec![-2.0; 8]);
+        let st = classify(&city, &gs2, &f, &s, h, w, &test(0, true));
+        assert_eq!(st[2..], [FRONT; 6]);
     }
 
     #[test]
@@ -499,6 +639,7 @@ mod tests {
             split_rel: 0.1,
             tau: 0.5,
             min_area: 2,
+            open_px: 0,
         };
         let c = components(&states, &gs, &alpha, h, w, &p).unwrap();
         assert_eq!(c.len(), 2, "{c:?}");

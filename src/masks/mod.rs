@@ -241,6 +241,13 @@ pub struct MasksOptions {
     pub tau_rel: f64,
     /// Radius (pixels) of the local city surface the 3DGS depth is compared with.
     pub surface_radius_px: usize,
+    /// Subtract each city surface's median 3DGS − city depth offset before the comparison
+    /// (absorbs most of a misalignment; [`geometry::surface_bias`]).
+    pub surface_bias: bool,
+    /// Pixels a surface needs for its own offset (else its building's, else none).
+    pub bias_min_px: usize,
+    /// Offsets are clamped to ± this many metres (× the alignment scale).
+    pub bias_max_m: f64,
     /// Share of a mask's evidence pixels that must be in front for `occluder`.
     pub occluder_share: f64,
     /// Share of a mask's pixels that must have depth evidence for the depth test to decide.
@@ -251,6 +258,8 @@ pub struct MasksOptions {
     pub min_alpha: f64,
     /// Mask-free source: relative 3DGS depth jump that splits two neighbours.
     pub split_rel: f64,
+    /// Mask-free source: radius (pixels) of the morphological opening of the candidates.
+    pub open_px: usize,
     /// Overlay PNGs for this many views (evenly spaced over the sorted views).
     pub overlays: usize,
 }
@@ -268,11 +277,15 @@ impl Default for MasksOptions {
             tau_occ_m: 0.5,
             tau_rel: 0.0,
             surface_radius_px: 2,
+            surface_bias: true,
+            bias_min_px: 64,
+            bias_max_m: 1.0,
             occluder_share: 0.5,
             min_evidence: 0.1,
-            low_overlap_check: false,
+            low_overlap_check: true,
             min_alpha: 0.5,
             split_rel: 0.05,
+            open_px: 3,
             overlays: 4,
         }
     }
@@ -301,15 +314,16 @@ impl MasksOptions {
         for (k, v) in [
             ("tau_occ_m", self.tau_occ_m),
             ("tau_rel", self.tau_rel),
+            ("bias_max_m", self.bias_max_m),
             ("split_rel", self.split_rel),
         ] {
             if !v.is_finite() || v < 0.0 {
                 return bad(format!("{k} = {v} must be finite and not negative"));
             }
         }
-        if self.surface_radius_px > 64 {
+        if self.surface_radius_px > 16 {
             return bad(format!(
-                "surface_radius_px = {} is over 64",
+                "surface_radius_px = {} is over 16",
                 self.surface_radius_px
             ));
         }
@@ -357,6 +371,8 @@ pub struct ViewSummary {
 /// Timings of the stage (seconds; per-view parts summed over views and threads).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct MasksTiming {
+    /// Reading the Gaussian centres (median depth only).
+    pub ply_s: f64,
     pub load_s: f64,
     pub decide_s: f64,
     pub write_s: f64,
@@ -491,8 +507,12 @@ pub fn run(
         tau: (opts.tau_occ_m * scale) as f32,
         tau_rel: opts.tau_rel as f32,
         radius: opts.surface_radius_px,
+        bias: opts.surface_bias,
+        bias_min_px: opts.bias_min_px,
+        bias_max: (opts.bias_max_m * scale) as f32,
     };
     let needs_depth = source == Source::Depth || matches!(test, Test::Geometry | Test::Both);
+    let t_ply = Instant::now();
     let positions = match (needs_depth, opts.gs_depth, inp.cache) {
         (true, GsDepth::Median, Some(cache)) => {
             let (g, _) = crate::splat::read_ply(&inp.scene.ply, &Default::default())?;
@@ -511,6 +531,7 @@ pub fn run(
         }
         _ => None,
     };
+    let ply_s = t_ply.elapsed().as_secs_f64();
     let mut stems: Vec<String> = inp.views.iter().map(View::stem).collect();
     stems.sort();
     let k = opts.overlays.min(stems.len());
@@ -539,7 +560,10 @@ pub fn run(
         .collect::<Result<_, _>>()?;
     bar.finish();
     let mut views: Vec<ViewSummary> = Vec::with_capacity(results.len());
-    let mut timing = MasksTiming::default();
+    let mut timing = MasksTiming {
+        ply_s,
+        ..Default::default()
+    };
     let mut rules = BTreeMap::new();
     for r in results {
         timing.load_s += r.load_s;
@@ -671,7 +695,8 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
             Some(pos) => geometry::median_depth(&c, &geometry::view_z(pos, &v.camera.pose)),
             None => c.depth,
         };
-        let s = geometry::classify(&city, &gs, h, w, &plan.depth);
+        let surface = &ids[h * w..2 * h * w];
+        let s = geometry::classify(&city, &gs, feature, surface, h, w, &plan.depth);
         gs_depth_alpha = Some((gs, c.alpha));
         Some(s)
     } else {
@@ -924,6 +949,7 @@ fn depth_source(
             split_rel: opts.split_rel as f32,
             tau: plan.depth.tau,
             min_area: min_area as usize,
+            open_px: opts.open_px,
         },
     )?;
     let mut kept = Vec::with_capacity(comps.len());
