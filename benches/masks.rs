@@ -395,33 +395,61 @@ fn main() {
         );
     }
     if a.sweep {
-        println!(
-            "\nGeometry test: τ_occ (m) × ρ (occluders = non-building with R_ov ≥ {RHO_EVAL} whatever ρ)\n"
-        );
-        println!("| τ_occ | ρ | kept | precision | non-building recall | occluder recall |");
-        println!("|---|---|---|---|---|---|");
         let pool_threads = rayon::current_num_threads();
-        for tau in [0.25, 0.5, 1.0, 2.0] {
-            for rho in [0.5, 0.8, 0.9] {
-                let o = MasksOptions {
-                    test: Test::Geometry,
-                    tau_occ_m: tau,
-                    rho,
-                    ..base.clone()
-                };
+        let mut sweep = |title: &str, head: &str, runs: Vec<(String, MasksOptions)>| {
+            println!("\n{title}\n\n| {head} | kept | precision | non-building recall | occluder recall |");
+            println!("|{}---|---|---|---|", "---|".repeat(head.matches('|').count() + 1));
+            for (label, o) in runs {
                 let out = a.out.join("sweep");
                 timed(&c, &o, &out, pool_threads, 1);
                 let s = score_sam(&out, &truths, &o);
                 println!(
-                    "| {tau} | {rho} | {} | {:.3} | {:.3} | {:.3} |",
+                    "| {label} | {} | {:.3} | {:.3} | {:.3} |",
                     s.kept,
                     s.precision(),
                     s.nb_recall(),
                     s.occ_recall()
                 );
-                json.push(serde_json::json!({"sweep": {"tau_occ_m": tau, "rho": rho}, "score": s}));
+                json.push(serde_json::json!({"sweep": title, "setting": label, "score": s}));
+            }
+        };
+        sweep(
+            "Geometry test, τ_occ (metres):",
+            "τ_occ",
+            [0.25, 0.5, 1.0, 2.0]
+                .iter()
+                .map(|&t| {
+                    (
+                        format!("{t}"),
+                        MasksOptions {
+                            test: Test::Geometry,
+                            tau_occ_m: t,
+                            ..base.clone()
+                        },
+                    )
+                })
+                .collect(),
+        );
+        let rhos = [0.5, 0.8, 0.9, 1.0];
+        let mut runs = Vec::new();
+        for (name, test) in [("paper rule (features)", Test::Features), ("geometry", Test::Geometry)] {
+            for rho in rhos {
+                runs.push((
+                    format!("{name}, low overlap unchecked | {rho}"),
+                    MasksOptions {
+                        test,
+                        rho,
+                        low_overlap_check: false,
+                        ..base.clone()
+                    },
+                ));
             }
         }
+        sweep(
+            &format!("ρ with low-overlap masks kept unchecked (occluders: R_ov ≥ {RHO_EVAL} whatever ρ; with the low-overlap check ρ changes nothing measurable):"),
+            "test | ρ",
+            runs,
+        );
     }
     std::fs::create_dir_all(&a.out).unwrap();
     std::fs::write(

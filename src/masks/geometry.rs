@@ -102,9 +102,32 @@ pub fn local_surface(d: &[f32], h: usize, w: usize, r: usize) -> (Vec<f32>, Vec<
     (lo, hi)
 }
 
-fn median(v: &mut [f32]) -> f32 {
-    let m = v.len() / 2;
-    *v.select_nth_unstable_by(m, f32::total_cmp).1
+/// Median of the values of each key (`0..nkeys`) that has at least `min_px` of them (NaN for
+/// the others): a counting sort by key, then a selection per key — `O(n + nkeys)`.
+fn medians_by_key(items: &[(u32, f32)], nkeys: usize, min_px: usize) -> Vec<f32> {
+    let mut start = vec![0usize; nkeys + 1];
+    for &(k, _) in items {
+        start[k as usize + 1] += 1;
+    }
+    for k in 0..nkeys {
+        start[k + 1] += start[k];
+    }
+    let mut fill = start.clone();
+    let mut buf = vec![0f32; items.len()];
+    for &(k, v) in items {
+        buf[fill[k as usize]] = v;
+        fill[k as usize] += 1;
+    }
+    (0..nkeys)
+        .map(|k| {
+            let v = &mut buf[start[k]..start[k + 1]];
+            if v.len() < min_px.max(1) {
+                return f32::NAN;
+            }
+            let m = v.len() / 2;
+            *v.select_nth_unstable_by(m, f32::total_cmp).1
+        })
+        .collect()
 }
 
 /// The per-pixel depth offset `b`: the median of `gs − city` over the pixels (with both
@@ -123,40 +146,33 @@ pub fn surface_bias(
     min_px: usize,
     max: f32,
 ) -> Vec<f32> {
-    use std::collections::BTreeMap;
-    let mut by_surface: BTreeMap<i32, Vec<f32>> = BTreeMap::new();
-    let mut by_feature: BTreeMap<i32, Vec<f32>> = BTreeMap::new();
+    // Ids are entity indices (≥ 0); a hit without a feature id has no offset.
+    let key = |p: usize| if surface[p] >= 0 { surface[p] } else { feature[p] };
+    let (mut by_surface, mut by_feature) = (Vec::new(), Vec::new());
+    let mut nkeys = 0usize;
     for p in 0..city.len() {
-        if city[p].is_finite() && gs[p].is_finite() {
+        if city[p].is_finite() && gs[p].is_finite() && feature[p] >= 0 {
             let d = gs[p] - city[p];
-            let key = if surface[p] >= 0 {
-                surface[p]
-            } else {
-                feature[p]
-            };
-            by_surface.entry(key).or_default().push(d);
-            by_feature.entry(feature[p]).or_default().push(d);
+            let k = key(p) as u32;
+            by_surface.push((k, d));
+            by_feature.push((feature[p] as u32, d));
+            nkeys = nkeys.max(k as usize + 1).max(feature[p] as usize + 1);
         }
     }
-    let med = |m: BTreeMap<i32, Vec<f32>>| -> BTreeMap<i32, f32> {
-        m.into_iter()
-            .filter(|(_, v)| v.len() >= min_px.max(1))
-            .map(|(k, mut v)| (k, median(&mut v)))
-            .collect()
-    };
-    let (ms, mf) = (med(by_surface), med(by_feature));
+    let ms = medians_by_key(&by_surface, nkeys, min_px);
+    let mf = medians_by_key(&by_feature, nkeys, min_px);
     (0..city.len())
         .map(|p| {
-            let key = if surface[p] >= 0 {
-                surface[p]
+            if feature[p] < 0 {
+                return 0.0;
+            }
+            let s = ms.get(key(p) as usize).copied().unwrap_or(f32::NAN);
+            let b = if s.is_nan() {
+                mf.get(feature[p] as usize).copied().unwrap_or(f32::NAN)
             } else {
-                feature[p]
+                s
             };
-            ms.get(&key)
-                .or_else(|| mf.get(&feature[p]))
-                .copied()
-                .unwrap_or(0.0)
-                .clamp(-max, max)
+            if b.is_nan() { 0.0 } else { b.clamp(-max, max) }
         })
         .collect()
 }
@@ -200,12 +216,12 @@ pub fn classify(
 
 /// View-space z (the camera-axis depth the rasterizer sorts by) of every Gaussian centre.
 pub fn view_z(positions: &[[f32; 3]], pose: &Pose) -> Vec<f32> {
+    // Only the third row of `world_to_camera` (`R·p + t`).
+    let r = pose.rotation.row(2);
+    let tz = pose.translation.z;
     positions
         .iter()
-        .map(|p| {
-            pose.world_to_camera(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-                .z as f32
-        })
+        .map(|p| (r.dot(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64)) + tz) as f32)
         .collect()
 }
 
@@ -586,6 +602,24 @@ mod tests {
         assert_eq!(b, vec![-2.0; 8]);
         let st = classify(&city, &gs2, &f, &s, h, w, &test(0, true));
         assert_eq!(st[2..], [FRONT; 6]);
+    }
+
+    #[test]
+    fn view_z_is_the_camera_z_of_world_to_camera() {
+        let pose = Pose::look_at(
+            DVec3::new(3.0, -7.0, 2.0),
+            DVec3::new(0.5, 1.0, 1.0),
+            DVec3::Z,
+        )
+        .unwrap();
+        let pts = [[0.0f32, 0.0, 0.0], [1.5, 2.5, -0.5], [-4.0, 8.0, 3.0]];
+        let z = view_z(&pts, &pose);
+        for (p, z) in pts.iter().zip(z) {
+            let e = pose
+                .world_to_camera(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+                .z;
+            assert!((z as f64 - e).abs() < 1e-5, "{z} {e}");
+        }
     }
 
     #[test]

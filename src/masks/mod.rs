@@ -373,7 +373,10 @@ pub struct ViewSummary {
 pub struct MasksTiming {
     /// Reading the Gaussian centres (median depth only).
     pub ply_s: f64,
+    /// Reading the per-view files (raycast, cache, SAM list, features).
     pub load_s: f64,
+    /// The 3DGS median depth and the depth states.
+    pub depth_s: f64,
     pub decide_s: f64,
     pub write_s: f64,
     pub overlay_s: f64,
@@ -441,6 +444,7 @@ struct Plan<'a> {
 struct ViewOut {
     summary: ViewSummary,
     load_s: f64,
+    depth_s: f64,
     decide_s: f64,
     write_s: f64,
     overlay_s: f64,
@@ -567,6 +571,7 @@ pub fn run(
     let mut rules = BTreeMap::new();
     for r in results {
         timing.load_s += r.load_s;
+        timing.depth_s += r.depth_s;
         timing.decide_s += r.decide_s;
         timing.write_s += r.write_s;
         timing.overlay_s += r.overlay_s;
@@ -678,6 +683,7 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
         plan.source == Source::Depth || matches!(plan.test, Test::Geometry | Test::Both);
     // Depth states and (for the mask-free source) the 3DGS depth and alpha.
     let mut gs_depth_alpha = None;
+    let mut depth_s = 0.0;
     let states = if needs_depth {
         let city = read_npy::<f32>(&inp.raycast.join(format!("{stem}.depth.npy")), &[h, w])?;
         let cache = inp.cache.expect("checked in run");
@@ -691,12 +697,14 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
                 ),
             });
         }
+        let t = Instant::now();
         let gs = match &plan.positions {
             Some(pos) => geometry::median_depth(&c, &geometry::view_z(pos, &v.camera.pose)),
             None => c.depth,
         };
         let surface = &ids[h * w..2 * h * w];
         let s = geometry::classify(&city, &gs, feature, surface, h, w, &plan.depth);
+        depth_s = t.elapsed().as_secs_f64();
         gs_depth_alpha = Some((gs, c.alpha));
         Some(s)
     } else {
@@ -734,7 +742,7 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
         }
         _ => None,
     };
-    let load_s = t0.elapsed().as_secs_f64();
+    let load_s = t0.elapsed().as_secs_f64() - depth_s;
     let t1 = Instant::now();
     let codes = ViewCodes::new(feature, states.as_deref(), h, w);
     let min_area = opts.min_area_px(h, w);
@@ -786,6 +794,7 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
             seconds: t0.elapsed().as_secs_f64(),
         },
         load_s,
+        depth_s,
         decide_s,
         write_s,
         overlay_s,

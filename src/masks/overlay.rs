@@ -1,5 +1,7 @@
-//! Overlay PNGs of the masks stage: the view's image, darkened, with every kept mask filled
-//! in the colour of the rule that kept it and outlined in white.
+//! Overlay PNGs of the masks stage: the view's image in darkened grey, with every kept mask
+//! filled in the colour of the rule that kept it and outlined in white (blue `low_overlap`,
+//! orange `features_foreground`, red `occluder`, magenta `occluder_and_features`, green
+//! `depth_component`).
 use std::path::Path;
 
 use ndarray::Array3;
@@ -27,10 +29,21 @@ pub fn write(
     w: usize,
     kept: &[KeptMask],
 ) -> Result<(), MasksError> {
-    let mut out = match image {
-        Some(img) if img.dim() == (h, w, 3) => img.mapv(|v| (v as f32 * 0.6) as u8),
-        _ => Array3::<u8>::zeros((h, w, 3)),
-    };
+    // The image in darkened grey, so that the rule colours stand out.
+    let mut out = Array3::<u8>::zeros((h, w, 3));
+    if let Some(img) = image.filter(|i| i.dim() == (h, w, 3)) {
+        for y in 0..h {
+            for x in 0..w {
+                let l = 0.299 * img[[y, x, 0]] as f32
+                    + 0.587 * img[[y, x, 1]] as f32
+                    + 0.114 * img[[y, x, 2]] as f32;
+                let g = (l * 0.55) as u8;
+                for c in 0..3 {
+                    out[[y, x, c]] = g;
+                }
+            }
+        }
+    }
     // Large masks first, so small ones stay visible on top.
     let mut order: Vec<usize> = (0..kept.len()).collect();
     order.sort_by_key(|&i| (std::cmp::Reverse(kept[i].sam.area), i));
@@ -61,7 +74,7 @@ pub fn write(
                 out[[y, x, ch]] = if edge {
                     255
                 } else {
-                    (out[[y, x, ch]] as f32 * 0.45 + c[ch] as f32 * 0.55) as u8
+                    (out[[y, x, ch]] as f32 * 0.35 + c[ch] as f32 * 0.65) as u8
                 };
             }
         }
