@@ -3,9 +3,10 @@
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
 //! [`mesh`], [`npy`], [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
-//! Stages: [`citymodel`], [`raycast`], [`render`], [`lift`], [`eval`]. See ARCHITECTURE.md for the data flow.
+//! Stages: [`citymodel`], [`raycast`], [`render`], [`associate`], [`fuse`], [`lift`], [`eval`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
+pub mod associate;
 pub mod bundled;
 pub mod camera;
 pub mod citygml;
@@ -16,6 +17,7 @@ pub mod colmap;
 pub mod embree;
 pub mod eval;
 pub mod fsutil;
+pub mod fuse;
 pub mod imageio;
 pub mod labels;
 pub mod lift;

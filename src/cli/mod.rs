@@ -1,8 +1,10 @@
 //! The command line: one subcommand per stage (DESIGN.md). Only this module uses `anyhow`.
 //! Each subcommand parses its arguments, validates them into a config, then runs.
+mod associate;
 mod citymodel;
 mod demo;
 mod eval;
+mod fuse;
 mod lift;
 mod raycast;
 mod render;
@@ -34,6 +36,10 @@ enum Command {
     /// Render a 3DGS PLY (CPU, INRIA forward pass) into COLMAP views → PNG, depth .npy, features;
     /// or (--cache) the per-pixel contribution lists every later stage reuses.
     Render(render::RenderArgs),
+    /// Link the kept masks of all views into scene-consistent groups through the Gaussians (memory bank).
+    Associate(associate::AssociateArgs),
+    /// Fuse associated groups with the city-model ids (image priority, offset Δ) → fused label maps, labels.json.
+    Fuse(fuse::FuseArgs),
     /// Lift per-view labels into the Gaussians (closed-form weighted vote over the cache), predict test views.
     Lift(lift::LiftArgs),
     /// A scene folder through every stage (citymodel → raycast → render cache → lift → eval), resuming complete stages; report.html.
@@ -63,6 +69,8 @@ pub fn main() -> anyhow::Result<()> {
         Command::Render(args) => render::run(&args),
         Command::Eval(args) => eval::run(&args),
         Command::Lift(args) => lift::run(&args),
+        Command::Associate(args) => associate::run(&args),
+        Command::Fuse(args) => fuse::run(&args),
         Command::Run(args) => run::run(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),
