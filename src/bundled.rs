@@ -46,7 +46,11 @@ pub struct BundleError {
 }
 
 fn cache_root() -> PathBuf {
-    let from_env = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty()).map(PathBuf::from);
+    let from_env = |k: &str| {
+        std::env::var_os(k)
+            .filter(|v| !v.is_empty())
+            .map(PathBuf::from)
+    };
     from_env("XDG_CACHE_HOME")
         .or_else(|| from_env("HOME").map(|h| h.join(".cache")))
         .unwrap_or_else(std::env::temp_dir)
@@ -65,10 +69,13 @@ fn digest() -> String {
 
 /// The folder holding the bundled CityGML files (and `textures/`), unpacked if needed.
 pub fn citygml_dir() -> Result<PathBuf, BundleError> {
-    let dir = cache_root().join(format!("bundle-{}", digest())).join("citygml");
-    if FILES.iter().all(|(n, b)| {
-        std::fs::metadata(dir.join(n)).is_ok_and(|m| m.len() == b.len() as u64)
-    }) {
+    let dir = cache_root()
+        .join(format!("bundle-{}", digest()))
+        .join("citygml");
+    if FILES
+        .iter()
+        .all(|(n, b)| std::fs::metadata(dir.join(n)).is_ok_and(|m| m.len() == b.len() as u64))
+    {
         return Ok(dir);
     }
     unpack(&dir)?;
@@ -85,7 +92,11 @@ fn unpack(dir: &Path) -> Result<(), BundleError> {
         let parent = path.parent().unwrap_or(dir);
         std::fs::create_dir_all(parent).map_err(err(parent))?;
         // Temporary name + rename: a concurrent or interrupted unpack never leaves a short file.
-        let tmp = parent.join(format!(".{}.{}", std::process::id(), name.replace('/', "_")));
+        let tmp = parent.join(format!(
+            ".{}.{}",
+            std::process::id(),
+            name.replace('/', "_")
+        ));
         std::fs::write(&tmp, bytes).map_err(err(&tmp))?;
         std::fs::rename(&tmp, &path).map_err(err(&path))?;
     }

@@ -68,9 +68,7 @@ pub fn image_id(delta: i32, group: usize) -> Result<i32, LabelsError> {
         .ok()
         .and_then(|g| g.checked_add(delta))
         .ok_or_else(|| {
-            LabelsError::Overflow(format!(
-                "group {group} + Δ = {delta} does not fit in int32"
-            ))
+            LabelsError::Overflow(format!("group {group} + Δ = {delta} does not fit in int32"))
         })
 }
 
@@ -97,7 +95,10 @@ impl LabelTable {
             }
             let ok = match l.source {
                 Source::City => l.id >= 0 && l.id < delta && l.entity == Some(l.id),
-                Source::Image => l.id >= delta && l.group.map(|g| i64::from(g) + i64::from(delta)) == Some(i64::from(l.id)),
+                Source::Image => {
+                    l.id >= delta
+                        && l.group.map(|g| i64::from(g) + i64::from(delta)) == Some(i64::from(l.id))
+                }
             };
             if !ok {
                 return Err(format!(
@@ -114,7 +115,10 @@ impl LabelTable {
     }
 
     /// The city-only table: one label per entity, with the class of `classes[entity]`.
-    pub fn city(entities: &[crate::citymodel::Entity], classes: &[i32]) -> Result<LabelTable, LabelsError> {
+    pub fn city(
+        entities: &[crate::citymodel::Entity],
+        classes: &[i32],
+    ) -> Result<LabelTable, LabelsError> {
         let delta = delta_for(entities.len())?;
         let labels = entities
             .iter()
@@ -200,7 +204,12 @@ mod tests {
         assert_eq!(delta_for(10_000).unwrap(), 10_000);
         assert_eq!(delta_for(10_001).unwrap(), 100_000);
         assert_eq!(delta_for(70_000).unwrap(), 100_000);
-        assert!(delta_for(1_000_000_001).unwrap_err().to_string().contains("2^31"));
+        assert!(
+            delta_for(1_000_000_001)
+                .unwrap_err()
+                .to_string()
+                .contains("2^31")
+        );
     }
 
     #[test]

@@ -81,8 +81,9 @@ impl Bar {
             return Bar(ProgressBar::hidden());
         }
         let bar = multi().add(ProgressBar::new(len));
-        let template =
-            format!("{{prefix:>10}} [{{bar:30}}] {{pos}}/{{len}} {unit} {{elapsed}} (eta {{eta}}) {{msg}}");
+        let template = format!(
+            "{{prefix:>10}} [{{bar:30}}] {{pos}}/{{len}} {unit} {{elapsed}} (eta {{eta}}) {{msg}}"
+        );
         bar.set_style(
             ProgressStyle::with_template(&template)
                 .unwrap_or_else(|_| ProgressStyle::default_bar())

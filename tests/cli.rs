@@ -182,14 +182,20 @@ fn citymodel_raycast_render_lift_through_the_binary() {
         &d("rd"),
     ]);
     assert!(ok, "{log}");
-    assert!(!dir.join("rd/img1.png").exists(), "only the views asked for");
+    assert!(
+        !dir.join("rd/img1.png").exists(),
+        "only the views asked for"
+    );
     // img2 looks from (12, −30, 6) at (10, 0, 6): the centre ray meets the opaque wall plane
     // y = 0 at depth 30·cos(atan(2/30)) ≈ 29.93 along the axis … the expected depth there.
     let (shape, depth) = npy::read::<f32>(&dir.join("rd/img2.depth.npy")).unwrap();
     assert_eq!(shape, vec![64, 96]);
     let axis = (DVec3::new(10.0, 0.0, 6.0) - DVec3::new(12.0, -30.0, 6.0)).length();
     let z = depth[32 * 96 + 48] as f64;
-    assert!((z - axis).abs() < 0.05, "centre depth {z}, expected ≈ {axis}");
+    assert!(
+        (z - axis).abs() < 0.05,
+        "centre depth {z}, expected ≈ {axis}"
+    );
     // Colour: f_dc (0.5, 0.2, 0.1) → 0.5 + C0·f_dc = (0.641, 0.556, 0.528) on an opaque wall.
     let img = gs4city::imageio::read_rgb(&dir.join("rd/img0.png")).unwrap();
     let px = img.slice(ndarray::s![32, 48, ..]).to_vec();
@@ -237,7 +243,11 @@ fn citymodel_raycast_render_lift_through_the_binary() {
     };
     assert_eq!(pixel(DVec3::new(10.0, 0.0, 6.0)), gs4city::classes::WINDOW);
     assert_eq!(pixel(DVec3::new(3.0, 0.0, 2.0)), gs4city::classes::WALL);
-    assert_eq!(pixel(DVec3::new(10.0, 0.0, 14.0)), -1, "above the wall: nothing");
+    assert_eq!(
+        pixel(DVec3::new(10.0, 0.0, 14.0)),
+        -1,
+        "above the wall: nothing"
+    );
 
     // Bad arguments: one clear error each, naming what is wrong.
     let (ok, log) = gs4city(&[

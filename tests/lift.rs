@@ -36,7 +36,13 @@ fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
     )
     .unwrap();
     let prepared = PreparedScene::new(&s.gaussians).unwrap();
-    cache::build(&prepared, &views, &CacheOptions { top_k }, &dir.join("cache")).unwrap();
+    cache::build(
+        &prepared,
+        &views,
+        &CacheOptions { top_k },
+        &dir.join("cache"),
+    )
+    .unwrap();
     let cache = Cache::open(&dir.join("cache")).unwrap();
     let split = Split::new(views, 4);
     let labels = LabelTable::city(&cm.entities, &classes::table(&cm.entities)).unwrap();
@@ -73,8 +79,16 @@ fn weighted_vote_recovers_wall_window_and_background() {
     let (l, s) = lift_wall("vote", 0.0, 16);
     let (mut right, mut total) = ([0usize; 3], [0usize; 3]);
     let unseen = l.pred.iter().filter(|&&p| p == -2).count();
-    assert!(unseen < s.judged.len() / 10, "{unseen} Gaussians without votes");
-    for (p, t) in l.pred.iter().zip(&s.judged).filter(|(p, t)| **p != -2 && **t != -3) {
+    assert!(
+        unseen < s.judged.len() / 10,
+        "{unseen} Gaussians without votes"
+    );
+    for (p, t) in l
+        .pred
+        .iter()
+        .zip(&s.judged)
+        .filter(|(p, t)| **p != -2 && **t != -3)
+    {
         let k = match *t {
             classes::WALL => 0,
             classes::WINDOW => 1,
@@ -88,14 +102,21 @@ fn weighted_vote_recovers_wall_window_and_background() {
     assert!(frac(1) > 0.9, "window {right:?}/{total:?}");
     // Floaters between a camera and the wall receive the wall's label on the pixels they
     // cover: the city-model vote alone cannot tell occluders (mask fusion, paper §3.2, does).
-    assert!(frac(2) > 0.85, "most floaters stay unlabelled {right:?}/{total:?}");
+    assert!(
+        frac(2) > 0.85,
+        "most floaters stay unlabelled {right:?}/{total:?}"
+    );
     // Test views (every 4th: v00, v04): predicted maps against the analytic truth.
     assert_eq!(l.summary.test_views, ["v00", "v04"]);
     let (shape, class) = npy::read::<i32>(&l.dir.join("lift/v04.class.npy")).unwrap();
     assert_eq!(shape, vec![120, 160]);
     let truth = wall::truth(&wall::views()[4], &s.floaters);
     let iou = |c: i32| {
-        let inter = class.iter().zip(&truth).filter(|(p, t)| **p == c && **t == c).count();
+        let inter = class
+            .iter()
+            .zip(&truth)
+            .filter(|(p, t)| **p == c && **t == c)
+            .count();
         let union = class
             .iter()
             .zip(&truth)
@@ -104,14 +125,25 @@ fn weighted_vote_recovers_wall_window_and_background() {
         inter as f64 / union as f64
     };
     assert!(iou(classes::WALL) > 0.9, "wall IoU {}", iou(classes::WALL));
-    assert!(iou(classes::WINDOW) > 0.6, "window IoU {}", iou(classes::WINDOW));
+    assert!(
+        iou(classes::WINDOW) > 0.6,
+        "window IoU {}",
+        iou(classes::WINDOW)
+    );
     // The semantic PLY keeps the input and adds the label properties (DESIGN: label, class).
     let (g, _) =
         gs4city::splat::read_ply(&l.dir.join("lift/semantic.ply"), &Default::default()).unwrap();
     let names: Vec<&str> = g.extras.iter().map(|e| e.name.as_str()).collect();
     assert_eq!(
         names,
-        ["label", "class", "feature_id", "surface_id", "part_id", "label_confidence"]
+        [
+            "label",
+            "class",
+            "feature_id",
+            "surface_id",
+            "part_id",
+            "label_confidence"
+        ]
     );
     // Window Gaussians carry the hierarchy chain building → wall → window (entities 0, 1, 2).
     let k = l.pred.iter().position(|&p| p == classes::WINDOW).unwrap();
@@ -129,7 +161,12 @@ fn gamma_one_sends_everything_to_background_and_all_equals_topk_here() {
     assert!(one.pred.iter().all(|&p| p < 0), "γ = 1 must win every vote");
     let (all, _) = lift_wall("all", 0.0, 0);
     let (top, _) = lift_wall("top16", 0.0, 16);
-    let same = all.pred.iter().zip(&top.pred).filter(|(x, y)| x == y).count();
+    let same = all
+        .pred
+        .iter()
+        .zip(&top.pred)
+        .filter(|(x, y)| x == y)
+        .count();
     assert!(
         same as f64 > 0.99 * all.pred.len() as f64,
         "top-16 vs all: {same}/{}",

@@ -69,8 +69,11 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
     assert_eq!(rec["version"], env!("CARGO_PKG_VERSION"));
     assert_eq!(rec["options"]["top_k"], 16);
     let lift_outputs = rec["stages"]["lift"]["outputs"].as_array().unwrap();
-    assert!(lift_outputs.iter().any(|o| o["path"] == "gaussians.npy"
-        && o["digest"].as_str().unwrap().len() == 16));
+    assert!(
+        lift_outputs
+            .iter()
+            .any(|o| o["path"] == "gaussians.npy" && o["digest"].as_str().unwrap().len() == 16)
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -87,7 +90,11 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
     // For one output of each stage: delete it, then truncate it; the next run redoes that
     // stage and exactly the stages that read it, and the metrics equal the clean run's.
     let cases: [(&str, &str, &[&str]); 5] = [
-        ("citymodel", "mesh.ply", &["citymodel", "raycast", "lift", "eval"]),
+        (
+            "citymodel",
+            "mesh.ply",
+            &["citymodel", "raycast", "lift", "eval"],
+        ),
         ("raycast", "v03.ids.npy", &["raycast", "lift", "eval"]),
         ("render", "v05.contrib", &["render", "lift", "eval"]),
         ("lift", "v00.class.npy", &["lift", "eval"]),
@@ -165,7 +172,11 @@ fn another_test_split_leaves_no_stale_prediction() {
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .filter(|n| n.ends_with(".class.npy"))
         .collect();
-    assert_eq!(preds, ["v00.class.npy"], "no prediction of the old split is left");
+    assert_eq!(
+        preds,
+        ["v00.class.npy"],
+        "no prediction of the old split is left"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -185,8 +196,14 @@ fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
     let e = run(&scene, &dir.join("out"), &RunOptions::default())
         .unwrap_err()
         .to_string();
-    assert!(e.contains("alignment.json") && e.contains("--local-origin"), "{e}");
-    assert!(!dir.join("out").exists(), "nothing written before the refusal");
+    assert!(
+        e.contains("alignment.json") && e.contains("--local-origin"),
+        "{e}"
+    );
+    assert!(
+        !dir.join("out").exists(),
+        "nothing written before the refusal"
+    );
     // With --local-origin it runs (the wall's local origin equals its alignment here).
     let s = run(
         &scene,

@@ -106,8 +106,12 @@ pub struct WeightedLimits {
     /// on the mask's pixels (> 0.5: it belongs to at most one mask of a view).
     pub min_share: f32,
     /// … and that mass is at least this many pixels' worth (hidden Gaussians behind an object
-    /// carry almost none).
+    /// carry almost none) …
     pub min_mass: f32,
+    /// … and its centre projects into the mask: a Gaussian on the hidden side of an object
+    /// whose footprint tail shows beside the object's silhouette puts most of its visible mass
+    /// on the neighbouring mask, but it lies inside the object.
+    pub centre_inside: bool,
 }
 
 impl Default for WeightedLimits {
@@ -115,6 +119,7 @@ impl Default for WeightedLimits {
         WeightedLimits {
             min_share: 0.5,
             min_mass: 0.1,
+            centre_inside: true,
         }
     }
 }
@@ -138,15 +143,38 @@ fn pixels_per_mask(vm: &ViewMasks) -> (Vec<usize>, Vec<u32>) {
     (start, px)
 }
 
-/// The α·T candidates of every mask of a view (file order): per mask, the Gaussians whose mass
-/// inside the mask passes [`WeightedLimits`], weighted by that mass (in pixels).
-pub fn weighted(c: &ViewContrib, vm: &ViewMasks, lim: &WeightedLimits) -> Vec<Candidate> {
-    debug_assert_eq!(c.pixels(), vm.label.len());
-    // Mass of every Gaussian over the whole view.
+/// The α·T mass of every Gaussian over a whole view (in pixels' worth of colour).
+pub fn view_mass(c: &ViewContrib) -> Vec<f32> {
     let mut total = vec![0f32; c.gaussians];
     for (&g, &w) in c.lists.ids.iter().zip(&c.lists.weights) {
         total[g as usize] += w;
     }
+    total
+}
+
+/// Bitset (64 Gaussians per word) of the Gaussians whose view mass is at least `min_mass`.
+pub fn visible_set(total: &[f32], min_mass: f32) -> Vec<u64> {
+    let mut bits = vec![0u64; total.len().div_ceil(64)];
+    for (g, &t) in total.iter().enumerate() {
+        if t >= min_mass && t > 0.0 {
+            bits[g / 64] |= 1 << (g % 64);
+        }
+    }
+    bits
+}
+
+/// The α·T candidates of every mask of a view (file order): per mask, the Gaussians whose mass
+/// inside the mask passes [`WeightedLimits`], weighted by that mass (in pixels). `total` is
+/// [`view_mass`] of the view, `centre` the mask each Gaussian's centre projects into
+/// ([`centre_masks`]; needed when `lim.centre_inside`).
+pub fn weighted(
+    c: &ViewContrib,
+    total: &[f32],
+    centre: Option<&[i32]>,
+    vm: &ViewMasks,
+    lim: &WeightedLimits,
+) -> Vec<Candidate> {
+    debug_assert_eq!(c.pixels(), vm.label.len());
     let (start, px) = pixels_per_mask(vm);
     let mut acc = vec![0f32; c.gaussians];
     let mut touched: Vec<u32> = Vec::new();
@@ -167,7 +195,9 @@ pub fn weighted(c: &ViewContrib, vm: &ViewMasks, lim: &WeightedLimits) -> Vec<Ca
             let mut out = Candidate::default();
             for &g in &touched {
                 let a = std::mem::take(&mut acc[g as usize]);
-                if a >= lim.min_mass && a > lim.min_share * total[g as usize] {
+                let inside =
+                    !lim.centre_inside || centre.is_some_and(|c| c[g as usize] == m as i32);
+                if a >= lim.min_mass && a > lim.min_share * total[g as usize] && inside {
                     out.ids.push(g);
                     out.weights.push(a);
                 }
@@ -175,6 +205,27 @@ pub fn weighted(c: &ViewContrib, vm: &ViewMasks, lim: &WeightedLimits) -> Vec<Ca
             out
         })
         .collect()
+}
+
+/// Per Gaussian, the mask its centre projects into (through the lens model, to the pixel
+/// containing it), −1 outside every mask, behind the camera or outside the image.
+pub fn centre_masks(centres: &[[f32; 3]], camera: &Camera, vm: &ViewMasks) -> Vec<i32> {
+    centres
+        .iter()
+        .map(|c| match centre_pixel(c, camera, vm.width, vm.height) {
+            Some((p, _)) => vm.label[p],
+            None => -1,
+        })
+        .collect()
+}
+
+/// The row-major pixel containing a projected centre and its camera depth.
+fn centre_pixel(c: &[f32; 3], camera: &Camera, w: usize, h: usize) -> Option<(usize, f64)> {
+    let p = glam::DVec3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]));
+    let q = camera.pose.world_to_camera(p);
+    let uv = camera.project(q)?;
+    (uv.x >= 0.0 && uv.y >= 0.0 && uv.x < w as f64 && uv.y < h as f64)
+        .then(|| (uv.y as usize * w + uv.x as usize, q.z))
 }
 
 /// Options of the projected-centre candidates (the reference projector's).
@@ -211,21 +262,16 @@ pub fn projected(
     // (mask, cell, depth bits, id): positive f32 depths order like their bit patterns.
     let mut hits: Vec<(u32, u32, u32, u32)> = Vec::new();
     for (g, c) in centres.iter().enumerate() {
-        let p = glam::DVec3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]));
-        let q = camera.pose.world_to_camera(p);
-        let Some(uv) = camera.project(q) else {
+        let Some((p, z)) = centre_pixel(c, camera, w, h) else {
             continue;
         };
-        if !(uv.x >= 0.0 && uv.y >= 0.0 && uv.x < w as f64 && uv.y < h as f64) {
-            continue;
-        }
-        let (x, y) = (uv.x as usize, uv.y as usize);
-        let m = vm.label[y * w + x];
+        let m = vm.label[p];
         if m < 0 {
             continue;
         }
+        let (x, y) = (p % w, p / w);
         let cell = (y / ch) * grid + x / cw;
-        hits.push((m as u32, cell as u32, (q.z as f32).to_bits(), g as u32));
+        hits.push((m as u32, cell as u32, (z as f32).to_bits(), g as u32));
     }
     hits.sort_unstable();
     let mut out = vec![Candidate::default(); vm.visible.len()];
@@ -272,10 +318,7 @@ mod tests {
         seen.sort_unstable();
         assert_eq!(seen, vec![0, 1, 5, 7, 11]);
         let vm = composite(&[&big, &small], 4, 3).unwrap();
-        assert_eq!(
-            vm.label,
-            vec![0, 0, -1, -1, -1, 1, -1, 0, -1, -1, -1, 1]
-        );
+        assert_eq!(vm.label, vec![0, 0, -1, -1, -1, 1, -1, 0, -1, -1, -1, 1]);
         assert_eq!(vm.visible, vec![3, 2]);
         // Order of the list does not matter: the smaller mask still wins.
         let vm2 = composite(&[&small, &big], 4, 3).unwrap();
@@ -307,13 +350,34 @@ mod tests {
             label: vec![0, 0, -1],
             visible: vec![2],
         };
-        let cand = weighted(&c, &vm, &WeightedLimits::default());
+        let total = view_mass(&c);
+        let loose_centre = WeightedLimits {
+            centre_inside: false,
+            ..Default::default()
+        };
+        let cand = weighted(&c, &total, None, &vm, &loose_centre);
         assert_eq!(cand[0].ids, vec![0]);
         assert!((cand[0].weights[0] - 0.9).abs() < 1e-6);
         let loose = WeightedLimits {
             min_share: 0.3,
             min_mass: 0.01,
+            centre_inside: false,
         };
-        assert_eq!(weighted(&c, &vm, &loose)[0].ids, vec![0, 1, 2]);
+        assert_eq!(
+            weighted(&c, &total, None, &vm, &loose)[0].ids,
+            vec![0, 1, 2]
+        );
+        // Centres: Gaussian 1's centre projects outside the mask.
+        let strict = WeightedLimits {
+            centre_inside: true,
+            ..loose
+        };
+        let centre = [0, -1, 0, -1];
+        assert_eq!(
+            weighted(&c, &total, Some(&centre), &vm, &strict)[0].ids,
+            vec![0, 2]
+        );
+        // Visible: Gaussians 0 (0.9), 1 (0.8), 3 (0.9); not 2 (0.05).
+        assert_eq!(visible_set(&total, 0.1), vec![0b1011]);
     }
 }

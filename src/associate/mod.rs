@@ -80,11 +80,19 @@ pub struct AssociateOptions {
     pub projected: ProjectedLimits,
     /// Run the consolidation pass (order robustness, [`bank`]).
     pub consolidate: bool,
-    /// Masks from distinct views needed to merge two groups in the consolidation pass.
+    /// Masks from distinct views needed to merge two groups in the consolidation pass …
     pub merge_support: usize,
+    /// … and at least this share of the smaller group's views.
+    pub merge_fraction: f64,
+    /// Histogram intersection of two masks' normalised candidate weights above which they stay
+    /// linked when pass-1 groups are split.
+    pub tau_link: f64,
     /// Visit the views in a seeded random order instead of by name (only to measure how much
     /// the order matters).
     pub shuffle_seed: Option<u64>,
+    /// Fill (beyond the paper): a pixel no kept mask labels takes the group whose Gaussians
+    /// make at least this share of its colour (α·T), where some group does; `None` = off.
+    pub fill: Option<f32>,
 }
 
 impl Default for AssociateOptions {
@@ -99,7 +107,10 @@ impl Default for AssociateOptions {
             projected: ProjectedLimits::default(),
             consolidate: true,
             merge_support: 2,
+            merge_fraction: 0.3,
+            tau_link: 0.25,
             shuffle_seed: None,
+            fill: Some(0.5),
         }
     }
 }
@@ -125,6 +136,11 @@ impl AssociateOptions {
             ));
         }
         let p = &self.projected;
+        if let Some(f) = self.fill
+            && !(f > 0.0 && f <= 1.0)
+        {
+            return bad(format!("fill must lie in (0, 1], got {f}"));
+        }
         if !(p.front_fraction > 0.0 && p.front_fraction <= 1.0) || p.grid == 0 || p.grid > 4096 {
             return bad(format!(
                 "projected limits out of range: front_fraction {} (0 < · ≤ 1), grid {} (1–4096)",
@@ -211,7 +227,12 @@ pub fn ids_file(dir: &Path, stem: &str) -> PathBuf {
 }
 
 /// Reads view `stem`'s group map (`height × width`).
-pub fn read_ids(dir: &Path, stem: &str, width: usize, height: usize) -> Result<Vec<i32>, AssociateError> {
+pub fn read_ids(
+    dir: &Path,
+    stem: &str,
+    width: usize,
+    height: usize,
+) -> Result<Vec<i32>, AssociateError> {
     let path = ids_file(dir, stem);
     let (shape, data) = npy::read::<i32>(&path)?;
     if shape != [height, width] {
@@ -266,8 +287,10 @@ pub struct AssociateSummary {
     pub groups_per_class: BTreeMap<String, usize>,
     /// Gaussians owned by a kept group.
     pub gaussians_in_groups: usize,
-    /// Pixels labelled with a group, over all views.
+    /// Pixels labelled with a group, over all views (filled ones included).
     pub labelled_pixels: u64,
+    /// Of those, pixels labelled by the fill.
+    pub filled_pixels: u64,
     pub timing: AssociateTiming,
     pub warnings: Vec<String>,
 }
@@ -335,7 +358,9 @@ pub(crate) fn mask_features(
         why,
     };
     if shape.len() != 2 || shape[1] == 0 {
-        return Err(bad(format!("shape {shape:?}, expected [masks, D] with D ≥ 1")));
+        return Err(bad(format!(
+            "shape {shape:?}, expected [masks, D] with D ≥ 1"
+        )));
     }
     let (rows, d) = (shape[0], shape[1]);
     let mut zero = 0;
@@ -355,12 +380,18 @@ pub(crate) fn mask_features(
         if let Some(j) = row.iter().position(|x| !x.is_finite()) {
             return Err(bad(format!("row {r}, column {j} is {}", row[j])));
         }
-        let norm = row.iter().map(|&x| f64::from(x) * f64::from(x)).sum::<f64>().sqrt();
+        let norm = row
+            .iter()
+            .map(|&x| f64::from(x) * f64::from(x))
+            .sum::<f64>()
+            .sqrt();
         if norm < 1e-12 {
             zero += 1;
             out.push(None);
         } else {
-            out.push(Some(row.iter().map(|&x| (f64::from(x) / norm) as f32).collect()));
+            out.push(Some(
+                row.iter().map(|&x| (f64::from(x) / norm) as f32).collect(),
+            ));
         }
     }
     Ok((d, out, zero))
@@ -368,6 +399,8 @@ pub(crate) fn mask_features(
 
 /// What the per-view phase yields for the bank.
 struct ViewWork {
+    /// Gaussians visible in the view (only for the fill).
+    visible: Option<Vec<u64>>,
     observations: Vec<bank::Observation>,
     masks: usize,
     hidden: usize,
@@ -375,6 +408,26 @@ struct ViewWork {
     with_features: usize,
     zero_features: usize,
     dim: Option<usize>,
+}
+
+/// Loads a cache view and checks its size against the camera.
+fn load_cache_view(
+    inp: &AssociateInputs<'_>,
+    stem: &str,
+    w: usize,
+    h: usize,
+) -> Result<crate::render::cache::ViewContrib, AssociateError> {
+    let c = inp.cache.load(stem)?;
+    if (c.width, c.height) != (w, h) {
+        return Err(AssociateError::Invalid {
+            path: crate::render::cache::cache_file(&inp.cache.dir, stem),
+            why: format!(
+                "{}×{} pixels, the camera has {w}×{h}: the cache is stale",
+                c.width, c.height
+            ),
+        });
+    }
+    Ok(c)
 }
 
 /// Reads one view and computes its observations.
@@ -401,25 +454,30 @@ fn view_work(
         }
         _ => (None, vec![None; kept.len()], 0),
     };
-    let cands = match opts.candidates {
-        CandidateMode::Weighted => {
-            let c = inp.cache.load(&stem)?;
-            if (c.width, c.height) != (w, h) {
-                return Err(AssociateError::Invalid {
-                    path: crate::render::cache::cache_file(&inp.cache.dir, &stem),
-                    why: format!(
-                        "{}×{} pixels, the camera has {w}×{h}: the cache is stale",
-                        c.width, c.height
-                    ),
-                });
-            }
-            candidates::weighted(&c, &vm, &opts.weighted)
+    // The cache view (α·T candidates, and the visible Gaussians for the fill).
+    let need_cache = opts.candidates == CandidateMode::Weighted || opts.fill.is_some();
+    let cache_view = if need_cache {
+        Some(load_cache_view(inp, &stem, w, h)?)
+    } else {
+        None
+    };
+    let total = cache_view.as_ref().map(candidates::view_mass);
+    let cands = match (opts.candidates, &cache_view, &total) {
+        (CandidateMode::Weighted, Some(c), Some(t)) => {
+            let centre = opts
+                .weighted
+                .centre_inside
+                .then(|| candidates::centre_masks(centres, &view.camera, &vm));
+            candidates::weighted(c, t, centre.as_deref(), &vm, &opts.weighted)
         }
-        CandidateMode::Projected => {
-            candidates::projected(centres, &view.camera, &vm, &opts.projected)
-        }
+        _ => candidates::projected(centres, &view.camera, &vm, &opts.projected),
+    };
+    let visible = match (&total, opts.fill) {
+        (Some(t), Some(_)) => Some(candidates::visible_set(t, opts.weighted.min_mass)),
+        _ => None,
     };
     let mut out = ViewWork {
+        visible,
         observations: Vec::new(),
         masks: kept.len(),
         hidden: 0,
@@ -460,6 +518,90 @@ fn view_work(
     Ok(out)
 }
 
+/// Members of the groups for the fill: Gaussian `g` of owner `k` (vote ownership) is a member
+/// when, over the views where `g` is visible and `k` has a mask, `g` lies in `k`'s mask in at
+/// least half. A Gaussian a group absorbed by accident — a wall Gaussian seen through a tree
+/// once, a road Gaussian under an under-segmented mask — lies outside the group's masks in most
+/// views that see both, and is not a member.
+fn fill_members(fin: &bank::Finished, visible: &[Option<Vec<u64>>], views: usize) -> Vec<i32> {
+    let n = fin.owner.len();
+    let mut inside = vec![0u16; n];
+    let mut seen = vec![0u16; n];
+    let mut present: Vec<Vec<usize>> = vec![Vec::new(); views];
+    for (o, &gi) in fin.observations.iter().zip(&fin.group_of) {
+        present[o.view as usize].push(gi);
+        for &g in &o.candidate.ids {
+            if fin.owner[g as usize] == gi as i32 {
+                inside[g as usize] = inside[g as usize].saturating_add(1);
+            }
+        }
+    }
+    for (v, bits) in visible.iter().enumerate() {
+        let Some(bits) = bits else { continue };
+        let groups: std::collections::HashSet<usize> = present[v].iter().copied().collect();
+        for (word, &b) in bits.iter().enumerate() {
+            let mut b = b;
+            while b != 0 {
+                let g = word * 64 + b.trailing_zeros() as usize;
+                b &= b - 1;
+                let k = fin.owner[g];
+                if k >= 0 && groups.contains(&(k as usize)) {
+                    seen[g] = seen[g].saturating_add(1);
+                }
+            }
+        }
+    }
+    (0..n)
+        .map(|g| {
+            let k = fin.owner[g];
+            if k >= 0 && inside[g] > 0 && 2 * u32::from(inside[g]) >= u32::from(seen[g]) {
+                k
+            } else {
+                -1
+            }
+        })
+        .collect()
+}
+
+/// The fill: every pixel of `map` still −1 takes the group whose owned Gaussians carry at least
+/// `share` of the pixel's α·T mass (the largest such group; ties: the smaller id). Returns the
+/// number of pixels filled.
+fn fill(map: &mut [i32], c: &crate::render::cache::ViewContrib, owner: &[i32], share: f32) -> u64 {
+    let mut filled = 0;
+    let mut acc: Vec<(i32, f32)> = Vec::with_capacity(16);
+    for (p, m) in map.iter_mut().enumerate() {
+        if *m >= 0 {
+            continue;
+        }
+        acc.clear();
+        let (ids, ws) = c.pixel(p);
+        for (&g, &w) in ids.iter().zip(ws) {
+            let k = owner[g as usize];
+            if k < 0 {
+                continue;
+            }
+            match acc.iter_mut().find(|e| e.0 == k) {
+                Some(e) => e.1 += w,
+                None => acc.push((k, w)),
+            }
+        }
+        let best = acc
+            .iter()
+            .copied()
+            .fold(None::<(i32, f32)>, |b, x| match b {
+                Some(b) if b.1 > x.1 || (b.1 == x.1 && b.0 < x.0) => Some(b),
+                _ => Some(x),
+            });
+        if let Some((k, w)) = best
+            && w >= share
+        {
+            *m = k;
+            filled += 1;
+        }
+    }
+    filled
+}
+
 /// Runs the stage: association, filters, per-view group maps, `groups.json`, `features.npy`,
 /// and `summary.json` (last).
 pub fn run(
@@ -489,7 +631,9 @@ pub fn run(
     let _ = std::fs::remove_file(out.join("summary.json"));
 
     let t = Instant::now();
-    let centres = crate::splat::read_ply(inp.ply, &Default::default())?.0.positions;
+    let centres = crate::splat::read_ply(inp.ply, &Default::default())?
+        .0
+        .positions;
     let n = centres.len();
     if n != inp.cache.summary.gaussians {
         return Err(AssociateError::Invalid {
@@ -515,6 +659,8 @@ pub fn run(
             tau_sim: opts.tau_sim,
             consolidate: opts.consolidate,
             merge_support: opts.merge_support,
+            merge_fraction: opts.merge_fraction,
+            tau_link: opts.tau_link,
         },
     );
     let bar = Bar::new("associate", views.len() as u64, "views");
@@ -522,6 +668,7 @@ pub fn run(
     let (mut masks_total, mut hidden, mut no_cand, mut with_f, mut zero_f) = (0, 0, 0, 0, 0);
     let mut dim: Option<usize> = None;
     let mut offered = 0usize;
+    let mut visible: Vec<Option<Vec<u64>>> = vec![None; views.len()];
     let chunk = rayon::current_num_threads().max(1) * 2;
     for block in order.chunks(chunk) {
         let t = Instant::now();
@@ -550,6 +697,7 @@ pub fn run(
             no_cand += wk.without_candidates;
             with_f += wk.with_features;
             zero_f += wk.zero_features;
+            visible[vi as usize] = wk.visible;
             for o in wk.observations {
                 bank.offer(o);
                 offered += 1;
@@ -604,6 +752,16 @@ pub fn run(
             nearest_camera_distance: nearest,
         });
     }
+    // Fill members per Gaussian (kept group ids).
+    let owner: Vec<i32> = if opts.fill.is_some() {
+        fill_members(&fin, &visible, views.len())
+            .iter()
+            .map(|&o| if o >= 0 { keep_id[o as usize] } else { -1 })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    drop(visible);
     // Group id per (canonical view, mask index).
     let mut per_view: Vec<Vec<(u32, i32)>> = vec![Vec::new(); views.len()];
     let mut masks_dropped = 0;
@@ -618,7 +776,7 @@ pub fn run(
 
     // Transfer back to every view.
     let t = Instant::now();
-    let labelled: Vec<Result<u64, AssociateError>> = views
+    let labelled: Vec<Result<(u64, u64), AssociateError>> = views
         .par_iter()
         .zip(&per_view)
         .map(|(v, assigned)| {
@@ -633,18 +791,25 @@ pub fn run(
             for &(m, id) in assigned {
                 id_of[m as usize] = id;
             }
-            let map: Vec<i32> = vm
+            let mut map: Vec<i32> = vm
                 .label
                 .iter()
                 .map(|&l| if l >= 0 { id_of[l as usize] } else { -1 })
                 .collect();
+            let mut filled = 0u64;
+            if let Some(share) = opts.fill {
+                let c = load_cache_view(inp, &stem, w, h)?;
+                filled = fill(&mut map, &c, &owner, share);
+            }
             npy::write(&ids_file(out, &stem), &[h, w], &map)?;
-            Ok(map.iter().filter(|&&x| x >= 0).count() as u64)
+            Ok((map.iter().filter(|&&x| x >= 0).count() as u64, filled))
         })
         .collect();
-    let mut labelled_pixels = 0;
+    let (mut labelled_pixels, mut filled_pixels) = (0, 0);
     for l in labelled {
-        labelled_pixels += l?;
+        let (a, b) = l?;
+        labelled_pixels += a;
+        filled_pixels += b;
     }
     let groups_file = GroupsFile {
         feature_dim: dim,
@@ -653,7 +818,11 @@ pub fn run(
     fsutil::write_json(&out.join("groups.json"), &groups_file)?;
     let features_path = out.join("features.npy");
     match dim {
-        Some(d) => npy::write(&features_path, &[groups_file.groups.len(), d], &group_features)?,
+        Some(d) => npy::write(
+            &features_path,
+            &[groups_file.groups.len(), d],
+            &group_features,
+        )?,
         None => {
             let _ = std::fs::remove_file(&features_path);
         }
@@ -690,6 +859,7 @@ pub fn run(
         groups_per_class: per_class,
         gaussians_in_groups: groups_file.groups.iter().map(|g| g.gaussians).sum(),
         labelled_pixels,
+        filled_pixels,
         timing: AssociateTiming {
             ply_s,
             views_s,

@@ -75,7 +75,10 @@ pub fn run(args: &FuseArgs) -> anyhow::Result<()> {
         s.image_labels,
         s.delta,
         match &s.snap {
-            Some(st) => format!(", {} masks snapped ({} px to parts, {} px to surfaces)", st.snapped, st.pixels_to_part, st.pixels_to_surface),
+            Some(st) => format!(
+                ", {} masks snapped ({} px to parts, {} px to surfaces)",
+                st.snapped, st.pixels_to_part, st.pixels_to_surface
+            ),
             None => String::new(),
         },
         s.timing.total_s,

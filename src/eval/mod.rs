@@ -697,7 +697,12 @@ pub fn run_for(
         ),
         paper_iou: FINE
             .iter()
-            .map(|&c| (classes::name(c).to_string(), m.paper.iou[classes::name(c)].mean))
+            .map(|&c| {
+                (
+                    classes::name(c).to_string(),
+                    m.paper.iou[classes::name(c)].mean,
+                )
+            })
             .collect(),
         tables: tables(&m),
         seconds: t0.elapsed().as_secs_f64(),

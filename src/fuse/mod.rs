@@ -220,7 +220,8 @@ fn fuse_view(
                 if !path.is_file() {
                     return Err(FuseError::Invalid {
                         path,
-                        why: "missing: the masks stage wrote no kept-mask file for this view".into(),
+                        why: "missing: the masks stage wrote no kept-mask file for this view"
+                            .into(),
                     });
                 }
                 crate::masks::read_kept(&path)?
@@ -316,7 +317,13 @@ pub fn run(inp: &FuseInputs<'_>, opts: &FuseOptions, out: &Path) -> Result<FuseS
     let group_class: Vec<i32> = groups
         .groups
         .iter()
-        .map(|g| if g.class >= 0 { g.class } else { classes::OTHER })
+        .map(|g| {
+            if g.class >= 0 {
+                g.class
+            } else {
+                classes::OTHER
+            }
+        })
         .collect();
     let table = LabelTable::fused(inp.entities, &class, &group_class)?;
     let delta = table.delta;

@@ -255,18 +255,40 @@ mod tests {
         assert_eq!((st.pixels_to_part, st.pixels_to_surface), (8, 8));
         for y in 0..h {
             for x in 0..w {
-                let expect = if (3..7).contains(&y) && (6..10).contains(&x) { 2 } else { 1 };
+                let expect = if (3..7).contains(&y) && (6..10).contains(&x) {
+                    2
+                } else {
+                    1
+                };
                 assert_eq!(fused[y * w + x], expect, "pixel ({y}, {x})");
             }
         }
         // Kept by the filter, or covered by an image group: nothing moves.
         let mut f2 = city.clone();
         let kept: HashSet<i64> = [0].into_iter().collect();
-        let st = snap_view(&mut f2, &group, &ray, &sam, &kept, &class, &building, &SnapLimits::default());
+        let st = snap_view(
+            &mut f2,
+            &group,
+            &ray,
+            &sam,
+            &kept,
+            &class,
+            &building,
+            &SnapLimits::default(),
+        );
         assert_eq!((st.considered, f2 == city), (0, true));
         let mut f3 = city.clone();
         let covered = vec![0; h * w];
-        snap_view(&mut f3, &covered, &ray, &sam, &HashSet::new(), &class, &building, &SnapLimits::default());
+        snap_view(
+            &mut f3,
+            &covered,
+            &ray,
+            &sam,
+            &HashSet::new(),
+            &class,
+            &building,
+            &SnapLimits::default(),
+        );
         assert_eq!(f3, city);
         // A window mask that agrees with the raycast (IoU 1) is left alone.
         let mut aligned = Array2::from_elem((h, w), false);
@@ -277,7 +299,16 @@ mod tests {
         }
         let sam2 = vec![SamMask::from_mask(&aligned, 0.9, 0.95, vec![])];
         let mut f4 = city.clone();
-        let st = snap_view(&mut f4, &group, &ray, &sam2, &HashSet::new(), &class, &building, &SnapLimits::default());
+        let st = snap_view(
+            &mut f4,
+            &group,
+            &ray,
+            &sam2,
+            &HashSet::new(),
+            &class,
+            &building,
+            &SnapLimits::default(),
+        );
         assert_eq!((st.agreed, st.snapped), (1, 0));
         assert_eq!(f4, city);
     }

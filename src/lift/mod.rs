@@ -500,7 +500,10 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
     let t_vote = t0.elapsed().as_secs_f64();
     let label: Vec<i32> = assignments.iter().map(|a| a.label).collect();
     let class: Vec<i32> = label.iter().map(|&l| inp.labels.class_of(l)).collect();
-    if let Some(l) = label.iter().find(|&&l| l >= 0 && inp.labels.get(l).is_none()) {
+    if let Some(l) = label
+        .iter()
+        .find(|&&l| l >= 0 && inp.labels.get(l).is_none())
+    {
         return Err(LiftError::Labels {
             path: match inp.maps {
                 LabelMaps::City(d) | LabelMaps::Fused(d) => d.clone(),
@@ -533,7 +536,9 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
     let predict_s = t.elapsed().as_secs_f64();
     let mut per_class = BTreeMap::new();
     for &c in &class {
-        *per_class.entry(classes::name(c).to_string()).or_insert(0usize) += 1;
+        *per_class
+            .entry(classes::name(c).to_string())
+            .or_insert(0usize) += 1;
     }
     let summary = LiftSummary {
         gaussians: label.len(),

@@ -198,7 +198,11 @@ pub fn run(
             summary.views,
             summary.rays as f64 / 1e6,
             summary.rays_per_second / 1e6,
-            if opts.single_pass { ", single pass" } else { "" }
+            if opts.single_pass {
+                ", single pass"
+            } else {
+                ""
+            }
         ),
         t0.elapsed().as_secs_f64(),
     );

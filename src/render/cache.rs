@@ -169,7 +169,12 @@ impl ViewContrib {
         let npx = self.pixels();
         let mut b = Vec::with_capacity(self.file_bytes());
         b.extend_from_slice(MAGIC);
-        for v in [VERSION, self.width as u32, self.height as u32, self.k as u32] {
+        for v in [
+            VERSION,
+            self.width as u32,
+            self.height as u32,
+            self.k as u32,
+        ] {
             b.extend_from_slice(&v.to_le_bytes());
         }
         b.extend_from_slice(&(self.gaussians as u64).to_le_bytes());
@@ -184,7 +189,12 @@ impl ViewContrib {
         debug_assert_eq!(counts.len(), npx);
         put(&mut b, &counts);
         put(&mut b, &self.lists.ids);
-        for arr in [&self.lists.weights, &self.lists.residual, &self.alpha, &self.depth] {
+        for arr in [
+            &self.lists.weights,
+            &self.lists.residual,
+            &self.alpha,
+            &self.depth,
+        ] {
             put(&mut b, arr);
         }
         b
@@ -228,9 +238,15 @@ impl ViewContrib {
         let u64_at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().expect("8 bytes"));
         let version = u32_at(8);
         if version != VERSION {
-            return Err(bad(format!("version {version}, this program reads {VERSION}")));
+            return Err(bad(format!(
+                "version {version}, this program reads {VERSION}"
+            )));
         }
-        let (width, height, k) = (u32_at(12) as usize, u32_at(16) as usize, u32_at(20) as usize);
+        let (width, height, k) = (
+            u32_at(12) as usize,
+            u32_at(16) as usize,
+            u32_at(20) as usize,
+        );
         let (gaussians, entries) = (u64_at(24), u64_at(32));
         let npx = (width as u64)
             .checked_mul(height as u64)
@@ -291,7 +307,11 @@ impl ViewContrib {
         if let Some(i) = weights.iter().position(|w| !unit(w)) {
             return Err(bad(format!("weight {i} is {}", weights[i])));
         }
-        if let Some(p) = residual.iter().zip(&alpha).position(|(r, a)| !unit(r) || !unit(a)) {
+        if let Some(p) = residual
+            .iter()
+            .zip(&alpha)
+            .position(|(r, a)| !unit(r) || !unit(a))
+        {
             return Err(bad(format!("pixel {p}: residual or alpha outside [0, 1]")));
         }
         Ok(ViewContrib {
@@ -448,7 +468,10 @@ pub fn build(
                     bytes: c.file_bytes() as u64,
                     render_s,
                 });
-                if tx.send((cache_file(out_dir, &v.stem()), c.to_bytes())).is_err() {
+                if tx
+                    .send((cache_file(out_dir, &v.stem()), c.to_bytes()))
+                    .is_err()
+                {
                     break; // the writer failed; its error is reported below
                 }
                 bar.inc(1);
@@ -458,10 +481,12 @@ pub fn build(
         drop(tx);
         let w = writer
             .join()
-            .unwrap_or_else(|_| Err(CacheError::Format {
-                path: out_dir.to_path_buf(),
-                why: "the writer thread panicked".into(),
-            }))
+            .unwrap_or_else(|_| {
+                Err(CacheError::Format {
+                    path: out_dir.to_path_buf(),
+                    why: "the writer thread panicked".into(),
+                })
+            })
             .map_err(RenderError::from);
         rendered?;
         w
@@ -547,7 +572,11 @@ mod tests {
     #[test]
     fn damaged_files_are_refused_with_a_reason() {
         let b = sample().to_bytes();
-        let e = |b: &[u8]| ViewContrib::from_bytes(Path::new("v.contrib"), b).unwrap_err().to_string();
+        let e = |b: &[u8]| {
+            ViewContrib::from_bytes(Path::new("v.contrib"), b)
+                .unwrap_err()
+                .to_string()
+        };
         assert!(e(&b[..b.len() - 1]).contains("bytes"), "truncated");
         let mut x = b.clone();
         x[0] = b'X';

@@ -174,7 +174,11 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     let mut inputs = scene.gml.clone();
     inputs.extend(scene.alignment.clone());
     let cm: CitymodelSummary = st.stage("citymodel", &opts.local_origin, &inputs, &[], |dir| {
-        let alignment = scene.alignment.as_deref().map(Alignment::read).transpose()?;
+        let alignment = scene
+            .alignment
+            .as_deref()
+            .map(Alignment::read)
+            .transpose()?;
         let o = citymodel::run(&scene.gml, &citymodel::Options { alignment })?;
         citymodel::write(&o, dir)?;
         Ok::<_, RunError>(o.summary)
@@ -192,7 +196,13 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     }
     let _rc: RaycastSummary = st.stage("raycast", &ro, &inputs, &["citymodel"], |dir| {
         let mesh = crate::mesh::TriMesh::read_ply(&cm_dir.join("mesh.ply"))?;
-        Ok::<_, RunError>(raycast::run(&mesh, &views, &ro, scene.images.as_deref(), dir)?)
+        Ok::<_, RunError>(raycast::run(
+            &mesh,
+            &views,
+            &ro,
+            scene.images.as_deref(),
+            dir,
+        )?)
     })?;
     let rc_dir = st.dir("raycast");
 

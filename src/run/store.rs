@@ -237,7 +237,11 @@ impl Store {
             s.push_str(&format!("in {} {} {}\n", f.path, f.size, f.digest));
         }
         for u in upstream {
-            let id = self.record.stages.get(*u).map_or("missing", |r| r.run_id.as_str());
+            let id = self
+                .record
+                .stages
+                .get(*u)
+                .map_or("missing", |r| r.run_id.as_str());
             s.push_str(&format!("upstream {u} {id}\n"));
         }
         format!("{:016x}", xxhash_rust::xxh3::xxh3_64(s.as_bytes()))
@@ -279,7 +283,10 @@ impl Store {
             && outputs_intact(&dir, &r.outputs)
             && let Ok(summary) = fsutil::read_json::<T>(&dir.join("summary.json"))
         {
-            log::info!("{stage}: complete and unchanged, resumed ({})", dir.display());
+            log::info!(
+                "{stage}: complete and unchanged, resumed ({})",
+                dir.display()
+            );
             self.reports.push(StageReport {
                 stage: stage.into(),
                 resumed: true,
@@ -389,7 +396,11 @@ pub fn check_out_dir(scene: &Path, out: &Path, stages: &[&str]) -> Result<(), St
         return Err(format!(
             "--out {} is {} the scene folder {}: a run never writes into its scene; choose a folder outside it",
             out.display(),
-            if out_c == scene_c { "equal to" } else { "inside" },
+            if out_c == scene_c {
+                "equal to"
+            } else {
+                "inside"
+            },
             scene.display()
         ));
     }
@@ -485,7 +496,10 @@ mod tests {
         drop(f);
         go(2, &mut ra, &mut rb);
         assert_eq!((ra, rb), (3, 4), "an output of a truncated: a and b rerun");
-        assert_eq!(std::fs::read_to_string(root.join("b/b.txt")).unwrap(), "HELLO2");
+        assert_eq!(
+            std::fs::read_to_string(root.join("b/b.txt")).unwrap(),
+            "HELLO2"
+        );
         std::fs::write(&input, "HELLO").unwrap();
         go(2, &mut ra, &mut rb);
         assert_eq!((ra, rb), (4, 5), "input content changed");

@@ -156,7 +156,10 @@ pub fn views() -> Vec<View> {
 /// within 0.3 m of an outline are −1; rays that miss the wall are class 11 (non-building).
 pub fn truth(view: &View, floaters: &[[f32; 3]]) -> Vec<i32> {
     let cam = &view.camera;
-    let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
+    let (w, h) = (
+        cam.intrinsics.width as usize,
+        cam.intrinsics.height as usize,
+    );
     let o = cam.pose.center();
     let rt = cam.pose.rotation.transpose();
     let mut out = vec![-1; w * h];
