@@ -31,13 +31,13 @@ fn groups_per_object(b: &Built, out: &Path) -> Vec<BTreeSet<i32>> {
     let mut per = vec![BTreeSet::new(); OBJECTS];
     for (v, view) in b.views.iter().enumerate() {
         let ids = boxes::read_map(&out.join(format!("{}.ids.npy", view.stem())));
-        for o in 0..OBJECTS {
+        for (o, set) in per.iter_mut().enumerate() {
             if boxes::object_mask(&b.truth[v], o, 20).is_none() {
                 continue;
             }
             for (p, &t) in b.truth[v].iter().enumerate() {
                 if t == o as i32 {
-                    per[o].insert(ids[p]);
+                    set.insert(ids[p]);
                 }
             }
         }

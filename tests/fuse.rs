@@ -364,3 +364,132 @@ fn bad_inputs_are_errors_naming_the_file() {
     );
     assert!(!b.dir.join("bad2/summary.json").exists());
 }
+
+#[path = "common/standin.rs"]
+mod standin;
+
+/// Digest of every file of `dir` (summary.json without its timings).
+fn digests(dir: &Path) -> std::collections::BTreeMap<String, u64> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .map(|p| {
+            let name = p.file_name().unwrap().to_string_lossy().into_owned();
+            let bytes = std::fs::read(&p).unwrap();
+            let h = if name == "summary.json" {
+                let mut v: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
+                v.as_object_mut().unwrap().remove("timing");
+                xxhash_rust::xxh3::xxh3_64(v.to_string().as_bytes())
+            } else {
+                xxhash_rust::xxh3::xxh3_64(&bytes)
+            };
+            (name, h)
+        })
+        .collect()
+}
+
+#[test]
+fn outputs_do_not_depend_on_simulation_truth() {
+    // A small SIMULATED scene (synth), the core pipeline on it, then stand-in masks → associate
+    // → fuse (with snapping) twice: with the simulation truth in the scene folder, and after
+    // deleting gt/, masks/*.sim.json, masks/README.json and summary.json.
+    let dir = boxes::tmp("truth");
+    let scene = dir.join("scene");
+    let run = dir.join("run");
+    let cfg = dir.join("tiny.toml");
+    std::fs::write(
+        &cfg,
+        "[cameras]\nwidth = 240\nheight = 180\norbit_views = 8\nstreet_views = 2\n\n[splats]\ndensity = 15.0\n\n[objects]\ntree_gaussians = 400\n",
+    )
+    .unwrap();
+    let bin = env!("CARGO_BIN_EXE_gs4city");
+    let ok = |args: &[&std::ffi::OsStr]| {
+        let st = std::process::Command::new(bin)
+            .args(args)
+            .arg("-q")
+            .status()
+            .unwrap();
+        assert!(st.success(), "{args:?}");
+    };
+    ok(&[
+        "synth".as_ref(),
+        "--preset".as_ref(),
+        "small".as_ref(),
+        "--config".as_ref(),
+        cfg.as_os_str(),
+        "--out".as_ref(),
+        scene.as_os_str(),
+    ]);
+    ok(&[
+        "run".as_ref(),
+        "--scene".as_ref(),
+        scene.as_os_str(),
+        "--out".as_ref(),
+        run.as_os_str(),
+    ]);
+    let views = gs4city::colmap::read_model(&scene.join("sparse/0")).unwrap();
+    let split = gs4city::scene::Split::new(views, 8);
+    let entities =
+        gs4city::citymodel::read_semantics(&run.join("citymodel/semantics.json")).unwrap();
+    let cache = gs4city::render::cache::Cache::open(&run.join("render")).unwrap();
+    let pass = |tag: &str| -> PathBuf {
+        let out = dir.join(tag);
+        let masks = out.join("masks");
+        standin::standin_masks(
+            &scene,
+            &run.join("raycast"),
+            &split.train,
+            &masks,
+            true,
+            0.7,
+        );
+        let a = associate::run(
+            &associate::AssociateInputs {
+                views: &split.train,
+                masks: &masks,
+                features: Some(&scene.join("features")),
+                cache: &cache,
+                ply: &scene.join("point_cloud.ply"),
+                scale: 1.0,
+            },
+            &AssociateOptions::default(),
+            &out.join("associate"),
+        )
+        .unwrap();
+        assert!(a.groups > 0, "{a:?}");
+        fuse::run(
+            &fuse::FuseInputs {
+                views: &split.train,
+                associate: &out.join("associate"),
+                raycast: &run.join("raycast"),
+                entities: &entities,
+                sam: Some(&scene.join("masks")),
+                features: Some(&scene.join("features")),
+                kept: Some(&masks),
+            },
+            &FuseOptions {
+                snap: true,
+                ..Default::default()
+            },
+            &out.join("fuse"),
+        )
+        .unwrap();
+        out
+    };
+    let first = pass("with-truth");
+    std::fs::remove_dir_all(scene.join("gt")).unwrap();
+    std::fs::remove_file(scene.join("summary.json")).unwrap();
+    std::fs::remove_file(scene.join("masks/README.json")).unwrap();
+    for e in std::fs::read_dir(scene.join("masks")).unwrap() {
+        let p = e.unwrap().path();
+        if p.to_string_lossy().ends_with(".sim.json") {
+            std::fs::remove_file(p).unwrap();
+        }
+    }
+    let second = pass("without-truth");
+    for sub in ["masks", "associate", "fuse"] {
+        let (a, b) = (digests(&first.join(sub)), digests(&second.join(sub)));
+        assert!(a.len() > 3, "{sub}: {a:?}");
+        assert_eq!(a, b, "{sub}");
+    }
+}

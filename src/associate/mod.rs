@@ -125,11 +125,11 @@ impl AssociateOptions {
         if !(-1.0..1.0).contains(&self.tau_sim) {
             return bad(format!("tau_sim must lie in [-1, 1), got {}", self.tau_sim));
         }
-        if !(self.far_field_m > 0.0) {
+        if self.far_field_m.is_nan() || self.far_field_m <= 0.0 {
             return bad(format!("far_field_m must be > 0, got {}", self.far_field_m));
         }
         let w = &self.weighted;
-        if !(0.0..1.0).contains(&w.min_share) || !(w.min_mass >= 0.0 && w.min_mass.is_finite()) {
+        if !((0.0..1.0).contains(&w.min_share) && w.min_mass >= 0.0 && w.min_mass.is_finite()) {
             return bad(format!(
                 "weighted limits out of range: min_share {} (0 ≤ · < 1), min_mass {} (≥ 0)",
                 w.min_share, w.min_mass
@@ -346,12 +346,12 @@ fn composite_view(
     })
 }
 
+/// Dimension, per-mask unit features (None: no feature), count of all-zero rows.
+pub(crate) type MaskFeatures = (usize, Vec<Option<Vec<f32>>>, usize);
+
 /// Per-mask features of a view (`features/<stem>.npy`), rows at the kept masks' source indices,
 /// normalised. Returns the dimension, the features and the count of zero rows (no feature).
-pub(crate) fn mask_features(
-    path: &Path,
-    sources: &[i64],
-) -> Result<(usize, Vec<Option<Vec<f32>>>, usize), AssociateError> {
+pub(crate) fn mask_features(path: &Path, sources: &[i64]) -> Result<MaskFeatures, AssociateError> {
     let (shape, data) = npy::read::<f32>(path)?;
     let bad = |why: String| AssociateError::Invalid {
         path: path.to_path_buf(),
@@ -727,7 +727,7 @@ pub fn run(
             dropped_views += 1;
             continue;
         }
-        if !(nearest <= far) {
+        if nearest.is_nan() || nearest > far {
             dropped_far += 1;
             continue;
         }

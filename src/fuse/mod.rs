@@ -59,20 +59,11 @@ pub enum FuseError {
 }
 
 /// Options of the stage.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct FuseOptions {
     /// City-part snapping (needs the scene's SAM lists and the masks stage's kept masks).
     pub snap: bool,
     pub snap_limits: SnapLimits,
-}
-
-impl Default for FuseOptions {
-    fn default() -> Self {
-        FuseOptions {
-            snap: false,
-            snap_limits: SnapLimits::default(),
-        }
-    }
 }
 
 /// Everything the stage reads.
@@ -241,8 +232,7 @@ fn fuse_view(
             },
             &sam,
             &kept,
-            class,
-            building,
+            &snap::Entities { class, building },
             &opts.snap_limits,
         );
     }

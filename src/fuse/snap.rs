@@ -82,19 +82,24 @@ pub struct RayChannels<'a> {
     pub part: &'a [i32],
 }
 
+/// Per entity (indexed by entity id): its class and its building.
+pub struct Entities<'a> {
+    pub class: &'a [i32],
+    pub building: &'a [i32],
+}
+
 /// Snaps one view: `fused` is changed in place where `group` (the associate map) is −1.
-/// `sam` is the view's SAM list, `kept` the source indices the masks stage kept, `class` the
-/// class per entity and `building` the building per entity.
+/// `sam` is the view's SAM list, `kept` the source indices the masks stage kept.
 pub fn snap_view(
     fused: &mut [i32],
     group: &[i32],
     ray: &RayChannels<'_>,
     sam: &[SamMask],
     kept: &HashSet<i64>,
-    class: &[i32],
-    building: &[i32],
+    ents: &Entities<'_>,
     lim: &SnapLimits,
 ) -> SnapStats {
+    let (class, building) = (ents.class, ents.building);
     let mut st = SnapStats::default();
     let ent = |id: i32, t: &[i32]| -> i32 {
         usize::try_from(id)
@@ -246,8 +251,10 @@ mod tests {
             &ray,
             &sam,
             &HashSet::new(),
-            &class,
-            &building,
+            &Entities {
+                class: &class,
+                building: &building,
+            },
             &SnapLimits::default(),
         );
         // IoU = 8 / 24 = 0.33 < 0.6: snapped. 8 pixels become window, 8 fall back to wall.
@@ -272,8 +279,10 @@ mod tests {
             &ray,
             &sam,
             &kept,
-            &class,
-            &building,
+            &Entities {
+                class: &class,
+                building: &building,
+            },
             &SnapLimits::default(),
         );
         assert_eq!((st.considered, f2 == city), (0, true));
@@ -285,8 +294,10 @@ mod tests {
             &ray,
             &sam,
             &HashSet::new(),
-            &class,
-            &building,
+            &Entities {
+                class: &class,
+                building: &building,
+            },
             &SnapLimits::default(),
         );
         assert_eq!(f3, city);
@@ -305,8 +316,10 @@ mod tests {
             &ray,
             &sam2,
             &HashSet::new(),
-            &class,
-            &building,
+            &Entities {
+                class: &class,
+                building: &building,
+            },
             &SnapLimits::default(),
         );
         assert_eq!((st.agreed, st.snapped), (1, 0));

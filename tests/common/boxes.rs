@@ -177,7 +177,7 @@ pub fn truth(view: &View) -> Vec<i32> {
 
 /// A unit feature for object `o`: its class prototype (the two cars share one).
 pub fn feature(o: usize) -> Vec<f32> {
-    let mut f = vec![0.05f32; DIM];
+    let mut f = [0.05f32; DIM];
     f[match CLASS[o] {
         8 => 0,
         7 => 1,
@@ -235,7 +235,7 @@ pub fn build(name: &str, skip: impl Fn(usize, usize) -> bool) -> Built {
         let mut kept = Vec::new();
         let mut list = Vec::new();
         let mut feats = Vec::new();
-        for o in 0..OBJECTS {
+        for (o, &class) in CLASS.iter().enumerate() {
             let Some(m) = object_mask(&t, o, 20) else {
                 continue;
             };
@@ -248,7 +248,7 @@ pub fn build(name: &str, skip: impl Fn(usize, usize) -> bool) -> Built {
                     source_index: index,
                     r_ov: 0.0,
                     rule: "test".into(),
-                    class: CLASS[o],
+                    class,
                 });
             }
         }
