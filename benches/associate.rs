@@ -90,6 +90,14 @@ fn config(name: &str) -> (AssociateOptions, FuseOptions, Variant) {
             }
             "single_pass" => a.consolidate = false,
             "snap" => f.snap = true,
+            "nosnap" => f.snap = false,
+            "paper" => {
+                // The paper's association: projected centres, one pass, no fill, no snapping.
+                a.candidates = CandidateMode::Projected;
+                a.consolidate = false;
+                a.fill = None;
+                f.snap = false;
+            }
             "noclip" => clip = false,
             "nofill" => a.fill = None,
             "q50" => q = 50,

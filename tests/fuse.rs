@@ -212,7 +212,10 @@ fn city_features_average_the_masks_over_each_entity() {
             features: Some(&feat2),
             kept: Some(&b.masks),
         },
-        &FuseOptions::default(),
+        &FuseOptions {
+            snap: false,
+            ..Default::default()
+        },
         &out,
     )
     .unwrap();

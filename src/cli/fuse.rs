@@ -32,10 +32,10 @@ pub struct FuseArgs {
     /// The masks stage's folder (kept masks; snapping only considers masks it dropped).
     #[arg(long)]
     masks: Option<PathBuf>,
-    /// City-part snapping: windows/doors follow the image's own masks where the raycast
-    /// outline disagrees (needs --sam and --masks).
+    /// No city-part snapping (by default windows/doors follow the image's own masks where the
+    /// raycast outline disagrees; that needs --sam and --masks).
     #[arg(long)]
-    snap: bool,
+    no_snap: bool,
     /// Every N-th view (sorted by name) is a test view and is not fused (3DGS --eval: 8).
     #[arg(long, default_value_t = 8)]
     test_every: usize,
@@ -46,11 +46,14 @@ pub struct FuseArgs {
 
 pub fn run(args: &FuseArgs) -> anyhow::Result<()> {
     let opts = FuseOptions {
-        snap: args.snap,
+        snap: !args.no_snap,
         ..Default::default()
     };
-    if args.snap && (args.sam.is_none() || args.masks.is_none()) {
-        bail!("--snap needs --sam (the scene's SAM lists) and --masks (the kept masks)");
+    if !args.no_snap && (args.sam.is_none() || args.masks.is_none()) {
+        bail!(
+            "city-part snapping needs --sam (the scene's SAM lists) and --masks (the kept masks); \
+             give both, or --no-snap"
+        );
     }
     let split = Split::new(colmap::read_model(&args.colmap)?, args.test_every);
     let entities = citymodel::read_semantics(&args.citymodel.join("semantics.json"))?;
@@ -67,6 +70,9 @@ pub fn run(args: &FuseArgs) -> anyhow::Result<()> {
         &opts,
         &args.out,
     )?;
+    for w in &s.warnings {
+        eprintln!("warning: {w}");
+    }
     println!(
         "fused {} views: {} labels ({} city, {} image, Δ = {}){} in {:.1} s → {}",
         s.views,

@@ -59,11 +59,21 @@ pub enum FuseError {
 }
 
 /// Options of the stage.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct FuseOptions {
-    /// City-part snapping (needs the scene's SAM lists and the masks stage's kept masks).
+    /// City-part snapping (needs the scene's SAM lists and the masks stage's kept masks; on by
+    /// default: it won on the misaligned and on the aligned benchmark, docs/associate.md).
     pub snap: bool,
     pub snap_limits: SnapLimits,
+}
+
+impl Default for FuseOptions {
+    fn default() -> Self {
+        FuseOptions {
+            snap: true,
+            snap_limits: SnapLimits::default(),
+        }
+    }
 }
 
 /// Everything the stage reads.
@@ -114,6 +124,7 @@ pub struct FuseSummary {
     pub options: FuseOptions,
     pub snap: Option<SnapStats>,
     pub timing: FuseTiming,
+    pub warnings: Vec<String>,
 }
 
 impl FuseSummary {
@@ -412,6 +423,14 @@ pub fn run(inp: &FuseInputs<'_>, opts: &FuseOptions, out: &Path) -> Result<FuseS
             .entry(classes::name(l.class).to_string())
             .or_insert(0usize) += 1;
     }
+    let mut warnings = Vec::new();
+    let snapped = opts.snap && inp.sam.is_some() && inp.kept.is_some();
+    if opts.snap && !snapped {
+        warnings.push(
+            "city-part snapping skipped: it needs the scene's SAM lists and the masks stage's kept masks"
+                .to_string(),
+        );
+    }
     let summary = FuseSummary {
         views: views.len(),
         delta,
@@ -425,13 +444,17 @@ pub fn run(inp: &FuseInputs<'_>, opts: &FuseOptions, out: &Path) -> Result<FuseS
         feature_dim,
         city_labels_with_features: with_features,
         options: *opts,
-        snap: opts.snap.then_some(snap_total),
+        snap: snapped.then_some(snap_total),
         timing: FuseTiming {
             views_s,
             labels_s,
             total_s: t0.elapsed().as_secs_f64(),
         },
+        warnings,
     };
+    for w in &summary.warnings {
+        log::warn!("fuse: {w}");
+    }
     fsutil::write_json(&out.join("summary.json"), &summary)?;
     crate::progress::done(
         "fuse",

@@ -9,12 +9,12 @@
 //!   outlines the wrong way);
 //! * on the building: at least 80 % of the mask on the raycast building support (the
 //!   filter's `ρ`), so masks of trees or cars are never snapped;
-//! * one part: ≥ 30 % of the mask on its dominant part, ≤ 10 % on any other part (a mask
+//! * one part: ≥ 30 % of the mask on its dominant part, ≤ 25 % on any other part (a mask
 //!   spanning two windows, or a wall mask with windows, is not a part's outline);
-//! * comparable size: mask area / the part's raycast area in the view within [0.5, 2];
-//! * disagreement: only where the IoU of mask and raycast part is below 0.6 — where they agree
-//!   the raycast outline is kept (it is exact under perfect alignment, while SAM outlines carry
-//!   a pixel or two of boundary noise);
+//! * comparable size: mask area / the part's raycast area in the view within [1/3, 3];
+//! * disagreement: only where the IoU of mask and raycast part is below 0.75 — where they agree
+//!   closely the raycast outline is kept (it is exact under perfect alignment, while SAM outlines
+//!   carry a pixel or two of boundary noise);
 //! * pixels: only pixels on the part's own building (raycast feature channel) that no image
 //!   group covers (image priority) are relabelled.
 use std::collections::{BTreeMap, HashSet};
@@ -42,9 +42,9 @@ impl Default for SnapLimits {
             min_quality: 0.7,
             min_building_share: 0.8,
             min_part_share: 0.3,
-            max_other_part_share: 0.1,
-            area_ratio: [0.5, 2.0],
-            max_iou: 0.6,
+            max_other_part_share: 0.25,
+            area_ratio: [1.0 / 3.0, 3.0],
+            max_iou: 0.75,
         }
     }
 }
