@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs what gs4city needs on Debian 12 (run as root, or with sudo available):
 # Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
-# and the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools).
+# and the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile).
 # Idempotent: skips what is already there.
 set -euo pipefail
 SUDO=""
@@ -18,9 +18,9 @@ if [ ${#missing[@]} -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 "${missing[@]}" >/dev/null
 fi
 if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
-  py=(numpy==2.4.6 cgal==6.0.1.post202410241521 open3d==0.20.0 pycocotools==2.0.11)
+  py=(numpy==2.4.6 cgal==6.0.1.post202410241521 open3d==0.20.0 pycocotools==2.0.11 plyfile==1.1.5)
   need=()
-  for m in numpy CGAL open3d pycocotools; do python3 -c "import $m" 2>/dev/null || need+=("$m"); done
+  for m in numpy CGAL open3d pycocotools plyfile; do python3 -c "import $m" 2>/dev/null || need+=("$m"); done
   if [ ${#need[@]} -gt 0 ]; then
     echo "setup: pip install ${py[*]}"
     python3 -m pip install -q --disable-pip-version-check "${py[@]}"

@@ -3,7 +3,7 @@
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
 //! [`mesh`], [`npy`], [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
-//! Stages: [`citymodel`], [`raycast`], [`render`], [`associate`], [`fuse`], [`lift`], [`eval`]. See ARCHITECTURE.md for the data flow.
+//! Stages: [`citymodel`], [`raycast`], [`render`], [`associate`], [`fuse`], [`lift`], [`eval`], [`query`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
 pub mod associate;
@@ -25,7 +25,9 @@ pub mod masks;
 pub mod mesh;
 pub mod npy;
 pub mod progress;
+pub mod query;
 pub mod raycast;
+pub mod refine;
 pub mod render;
 pub mod report;
 pub mod run;
@@ -33,3 +35,4 @@ pub mod sam;
 pub mod scene;
 pub mod splat;
 pub mod synth;
+pub mod train;

@@ -3,9 +3,6 @@
 //! deleted or truncated file, no stale predictions, refusal of a run folder inside the scene.
 mod common;
 
-use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
-
 use common::wall;
 use gs4city::run::{RunOptions, RunSummary, run};
 
@@ -20,23 +17,6 @@ fn reruns(s: &RunSummary) -> Vec<&str> {
 fn miou(s: &RunSummary) -> (Option<f64>, Option<f64>) {
     let e = s.eval.as_ref().expect("gt/ exists: metrics");
     (e.paper["miou"], e.dataset["coarse_iou"])
-}
-
-/// Every file below `dir` → its bytes.
-fn snapshot(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
-    let mut m = BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                m.insert(p.clone(), std::fs::read(&p).unwrap());
-            }
-        }
-    }
-    m
 }
 
 #[test]
@@ -59,6 +39,21 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
     assert!(e.paper_iou["wall"].unwrap() > 0.85, "{:?}", e.paper_iou);
     assert!(e.paper_iou["window"].unwrap() > 0.4, "{:?}", e.paper_iou);
     assert!(e.paper_iou["tree"].is_none(), "absent classes are null");
+    // The query-driven evaluation (a "building" selection and one per class) agrees with the
+    // class maps on this scene to within 2 points.
+    assert!(
+        e.by_query_tables
+            .as_deref()
+            .is_some_and(|t| t.contains("Table 1"))
+    );
+    let bq: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("out/eval/metrics_by_query.json")).unwrap())
+            .unwrap();
+    let q_iou = bq["metrics"]["dataset"]["coarse"]["iou"].as_f64().unwrap();
+    assert!(
+        (q_iou - e.dataset["coarse_iou"].unwrap()).abs() < 0.02,
+        "{q_iou}"
+    );
     // report.html shows the metrics tables and a panel per test view.
     let html = std::fs::read_to_string(&s.report).unwrap();
     assert!(html.contains("Table 1") && html.contains("report/v04.png"));
@@ -184,13 +179,17 @@ fn another_test_split_leaves_no_stale_prediction() {
 fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
     let dir = wall::tmp("run-refuse");
     let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
-    let before = snapshot(&scene);
+    let before = common::files(&scene);
     for out in [scene.clone(), scene.join("run"), scene.join("gt/../x")] {
         let e = run(&scene, &out, &RunOptions::default())
             .unwrap_err()
             .to_string();
         assert!(e.contains("scene folder"), "{e}");
-        assert_eq!(snapshot(&scene), before, "the scene must stay unchanged");
+        assert_eq!(
+            common::files(&scene),
+            before,
+            "the scene must stay unchanged"
+        );
     }
     std::fs::remove_file(scene.join("citymodel/alignment.json")).unwrap();
     let e = run(&scene, &dir.join("out"), &RunOptions::default())
@@ -221,5 +220,70 @@ fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("point_cloud.ply"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `run --refine-alignment` on a SIMULATED scene (synth small preset, 2 real buildings) with a
+/// 0.3 m / 0.5° alignment error: the align stage runs first and the citymodel stage — so every
+/// later stage — uses its refined alignment, which is close to the truth (read from the scene's
+/// summary.json here only, to score).
+#[test]
+fn refine_alignment_feeds_the_whole_run() {
+    use gs4city::citymodel::Alignment;
+    use gs4city::synth::{self, Preset, SynthConfig};
+    let dir = wall::tmp("run-refine");
+    let mut cfg = SynthConfig::preset(Preset::Small);
+    cfg.noise.translation_m = 0.3;
+    cfg.noise.rotation_deg = 0.5;
+    cfg.cameras.orbit_views = 6;
+    cfg.cameras.street_views = 0;
+    cfg.cameras.width = 330;
+    cfg.cameras.height = 247;
+    let scene = dir.join("scene");
+    let truth = synth::run(&cfg, &scene).unwrap();
+    let out = dir.join("out");
+    let s = run(
+        &scene,
+        &out,
+        &RunOptions {
+            refine_alignment: true,
+            test_every: 3,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(s.stages[0].stage, "align");
+    let refined = Alignment::read(&out.join("align/alignment.json")).unwrap();
+    let used = Alignment::read(&out.join("citymodel/alignment.json")).unwrap();
+    let read = |v: &serde_json::Value| {
+        Alignment::from_json_str(std::path::Path::new("summary.json"), &v.to_string()).unwrap()
+    };
+    let (t, given) = (read(&truth.alignment_true), read(&truth.alignment_given));
+    // Scored at the corners of a 60 × 60 × 20 m box over the buildings (local metres).
+    let mut worst: (f64, f64, f64) = (0.0, 0.0, 0.0);
+    for c in 0..8 {
+        let geo = t.origin
+            + glam::DVec3::new(
+                60.0 * f64::from(c & 1),
+                60.0 * f64::from((c >> 1) & 1),
+                20.0 * f64::from(c >> 2),
+            );
+        worst.0 = worst.0.max((refined.apply(geo) - t.apply(geo)).length());
+        worst.1 = worst.1.max((given.apply(geo) - t.apply(geo)).length());
+        worst.2 = worst.2.max((used.apply(geo) - refined.apply(geo)).length());
+    }
+    assert!(worst.1 > 0.3, "the given alignment is off: {worst:?}");
+    assert!(
+        worst.0 < 0.03,
+        "refined within 3 cm of the truth: {worst:?}"
+    );
+    assert!(
+        worst.2 < 1e-6,
+        "the citymodel stage used the refined alignment: {worst:?}"
+    );
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    assert!(rec["stages"]["align"]["outputs"].is_array());
+    assert_eq!(rec["options"]["refine_alignment"], true);
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -1,5 +1,8 @@
 //! `synth`: determinism, truth semantics, GT consistency (windows, occluders), config errors.
 //! Tiny configurations (one bundled building, few small views) keep this fast.
+mod common;
+use common::files;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -41,23 +44,6 @@ fn tmp(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("gs4city_synth_{}_{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     d
-}
-
-fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                let rel = p.strip_prefix(dir).unwrap().display().to_string();
-                out.insert(rel, std::fs::read(&p).unwrap());
-            }
-        }
-    }
-    out
 }
 
 fn summary_without_timings(bytes: &[u8]) -> serde_json::Value {

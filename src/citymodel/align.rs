@@ -152,6 +152,94 @@ impl Alignment {
     }
 }
 
+/// A similarity of the scene frame, `y ↦ s·R·y + t` (f64): a correction applied after an
+/// [`Alignment`] (see [`Alignment::then`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Similarity {
+    pub scale: f64,
+    pub rotation: DMat3,
+    pub translation: DVec3,
+}
+
+impl Similarity {
+    pub const IDENTITY: Similarity = Similarity {
+        scale: 1.0,
+        rotation: DMat3::IDENTITY,
+        translation: DVec3::ZERO,
+    };
+
+    /// `s·R·y + t`.
+    pub fn apply(&self, y: DVec3) -> DVec3 {
+        self.scale * (self.rotation * y) + self.translation
+    }
+
+    /// `next ∘ self` (first `self`, then `next`); the rotation is re-orthonormalised.
+    pub fn then(&self, next: &Similarity) -> Similarity {
+        Similarity {
+            scale: next.scale * self.scale,
+            rotation: orthonormalize(next.rotation * self.rotation),
+            translation: next.apply(self.translation),
+        }
+    }
+
+    /// The inverse similarity `y ↦ Rᵀ(y − t)/s`.
+    pub fn inverse(&self) -> Similarity {
+        let rt = self.rotation.transpose();
+        Similarity {
+            scale: 1.0 / self.scale,
+            rotation: rt,
+            translation: -(rt * self.translation) / self.scale,
+        }
+    }
+
+    /// The rotation angle of `R`, degrees.
+    pub fn rotation_deg(&self) -> f64 {
+        rotation_angle_deg(&self.rotation)
+    }
+}
+
+/// The angle of a rotation matrix, degrees (from its quaternion: accurate near 0 and 180°).
+pub fn rotation_angle_deg(r: &DMat3) -> f64 {
+    let q = glam::DQuat::from_mat3(r).normalize();
+    (2.0 * q.xyz().length().atan2(q.w.abs())).to_degrees()
+}
+
+/// The nearest rotation to an almost-orthonormal matrix (through its quaternion).
+fn orthonormalize(r: DMat3) -> DMat3 {
+    DMat3::from_quat(glam::DQuat::from_mat3(&r).normalize())
+}
+
+impl Alignment {
+    /// The alignment followed by a scene-frame similarity: `p ↦ S(A(p))`, same origin.
+    pub fn then(&self, s: &Similarity) -> Alignment {
+        Alignment {
+            origin: self.origin,
+            scale: s.scale * self.scale,
+            rotation: orthonormalize(s.rotation * self.rotation),
+            translation: s.apply(self.translation),
+        }
+    }
+
+    /// The inverse transform, scene → georeferenced: `origin + Rᵀ(y − t)/s`.
+    pub fn unapply(&self, y: DVec3) -> DVec3 {
+        self.origin + self.rotation.transpose() * (y - self.translation) / self.scale
+    }
+
+    /// The scene-frame similarity `S` with `other = S ∘ self`, i.e. what moves a model
+    /// aligned with `self` onto the same model aligned with `other`.
+    pub fn relative(&self, other: &Alignment) -> Similarity {
+        let k = other.scale / self.scale;
+        let q = other.rotation * self.rotation.transpose();
+        // other(p) = k·Q·(self(p) − t) + s'·R'·(o − o') + t'
+        let shift = other.scale * (other.rotation * (self.origin - other.origin));
+        Similarity {
+            scale: k,
+            rotation: q,
+            translation: other.translation + shift - k * (q * self.translation),
+        }
+    }
+}
+
 /// An estimated alignment and its residuals (scene units) per point pair.
 #[derive(Debug, Clone)]
 pub struct Estimate {
@@ -389,6 +477,51 @@ mod tests {
             .collect();
         let est = estimate(Path::new("pairs.csv"), &noisy).unwrap();
         assert!(est.rms > 0.0 && est.rms < 0.01);
+    }
+
+    #[test]
+    fn composition_inverse_and_relative_agree_with_direct_evaluation() {
+        let a = Alignment {
+            origin: DVec3::new(678_039.0, 5_403_766.0, 412.0),
+            scale: 0.8,
+            rotation: DMat3::from_rotation_z(37f64.to_radians()),
+            translation: DVec3::new(1.0, -2.0, 0.5),
+        };
+        let s = Similarity {
+            scale: 1.01,
+            rotation: DMat3::from_axis_angle(DVec3::new(1.0, 2.0, 3.0).normalize(), 0.02),
+            translation: DVec3::new(0.3, -0.1, 0.2),
+        };
+        let b = a.then(&s);
+        let geo = [
+            DVec3::new(678_100.0, 5_403_800.0, 430.0),
+            DVec3::new(678_000.0, 5_403_700.0, 400.0),
+            DVec3::new(678_050.5, 5_403_766.25, 412.125),
+        ];
+        for g in geo {
+            let direct = s.apply(a.apply(g));
+            assert!((b.apply(g) - direct).length() < 1e-9);
+            assert!((a.unapply(a.apply(g)) - g).length() < 1e-9);
+            let y = a.apply(g);
+            assert!((s.inverse().apply(s.apply(y)) - y).length() < 1e-12);
+            assert!((s.then(&s.inverse()).apply(y) - y).length() < 1e-12);
+        }
+        // relative() recovers S, also across different origins.
+        let r = a.relative(&b);
+        assert!((r.scale - s.scale).abs() < 1e-15);
+        assert!((r.translation - s.translation).length() < 1e-9);
+        assert!((r.rotation - s.rotation).abs_diff_eq(DMat3::ZERO, 1e-12));
+        let mut c = b;
+        c.origin += DVec3::new(10.0, -5.0, 1.0);
+        c.translation = b.apply(c.origin);
+        for g in geo {
+            assert!((c.apply(g) - b.apply(g)).length() < 1e-9);
+            assert!((a.relative(&c).apply(a.apply(g)) - c.apply(g)).length() < 1e-9);
+        }
+        assert!((s.rotation_deg() - 0.02f64.to_degrees()).abs() < 1e-9);
+        assert!(
+            (rotation_angle_deg(&DMat3::from_rotation_z(3.0)) - 3f64.to_degrees()).abs() < 1e-9
+        );
     }
 
     #[test]

@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 use crate::citygml::{self, CityGmlError, CityModel, Class, Level};
 use crate::fsutil::{self, FsError};
 use crate::mesh::{FaceLabel, MeshError, TriMesh};
-pub use align::{AlignError, Alignment};
+pub use align::{AlignError, Alignment, Similarity};
 use triangulate::{Repair, SkipReason};
 
 /// Errors of the citymodel stage.
@@ -604,6 +604,8 @@ pub fn read_semantics(path: &Path) -> Result<Vec<Entity>, CityModelError> {
 /// marker) `summary.json` into `out_dir`.
 pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
     fsutil::create_dir(out_dir)?;
+    // A stale summary would make a half-rewritten folder look complete.
+    let _ = std::fs::remove_file(out_dir.join("summary.json"));
     out.mesh.write_ply(&out_dir.join("mesh.ply"))?;
     let class_names: Vec<&str> = out
         .entities
@@ -618,5 +620,19 @@ pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
     )?;
     fsutil::write_json(&out_dir.join("alignment.json"), &out.alignment.to_json())?;
     fsutil::write_json(&out_dir.join("summary.json"), &out.summary)?;
+    crate::progress::done(
+        "citymodel",
+        &format!(
+            "{} buildings, {} surfaces, {} windows, {} doors → {} triangles ({} polygons skipped, {} warnings)",
+            out.summary.buildings,
+            out.summary.surfaces_total,
+            out.summary.windows,
+            out.summary.doors,
+            out.summary.triangles,
+            out.summary.skipped.count,
+            out.summary.warnings.count
+        ),
+        out.summary.timing.parse_s + out.summary.timing.triangulate_s,
+    );
     Ok(())
 }

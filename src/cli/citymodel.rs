@@ -1,10 +1,10 @@
-//! `gs4city citymodel` and `gs4city align`.
+//! `gs4city citymodel`.
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use clap::Args;
 
-use crate::citymodel::{self, Alignment, align};
+use crate::citymodel::{self, Alignment};
 
 #[derive(Debug, Args)]
 pub struct CitymodelArgs {
@@ -22,18 +22,8 @@ pub struct CitymodelArgs {
     out: PathBuf,
 }
 
-#[derive(Debug, Args)]
-pub struct AlignArgs {
-    /// CSV of point pairs: geo_x geo_y geo_z scene_x scene_y scene_z per line (≥ 3 pairs).
-    #[arg(long)]
-    points: PathBuf,
-    /// Where to write alignment.json.
-    #[arg(long)]
-    out: PathBuf,
-}
-
 /// Expands directories into the CityGML files below them (sorted, so runs are reproducible).
-fn collect_files(inputs: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
+pub(super) fn collect_files(inputs: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
     let mut files = Vec::new();
     for input in inputs {
         if input.is_dir() {
@@ -71,16 +61,6 @@ fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
     Ok(())
 }
 
-fn print_estimate(est: &align::Estimate) {
-    println!(
-        "alignment from {} point pairs: scale {:.6}, residuals rms {:.4}, max {:.4} (scene units)",
-        est.residuals.len(),
-        est.alignment.scale,
-        est.rms,
-        est.max
-    );
-}
-
 pub fn run(args: &CitymodelArgs) -> anyhow::Result<()> {
     // Validate.
     let files = collect_files(&args.files)?;
@@ -88,13 +68,18 @@ pub fn run(args: &CitymodelArgs) -> anyhow::Result<()> {
     let alignment = match (&args.align, &args.align_points) {
         (Some(path), _) => Some(Alignment::read(path)?),
         (None, Some(csv)) => {
-            let est = align::estimate(csv, &align::read_pairs(csv)?)?;
-            print_estimate(&est);
+            let est = super::align::estimate_from_points(csv)?;
             let a = est.alignment;
             estimate = Some(est);
             Some(a)
         }
-        (None, None) => None,
+        (None, None) => {
+            log::warn!(
+                "no --align or --align-points: the mesh stays in the CityGML coordinates minus a \
+                 local origin, which matches a 3DGS scene only if it was reconstructed in that frame"
+            );
+            None
+        }
     };
     // Run.
     let mut out = citymodel::run(&files, &citymodel::Options { alignment })?;
@@ -131,16 +116,5 @@ pub fn run(args: &CitymodelArgs) -> anyhow::Result<()> {
         s.timing.triangulate_s,
         args.out.display()
     );
-    Ok(())
-}
-
-pub fn run_align(args: &AlignArgs) -> anyhow::Result<()> {
-    let est = align::estimate(&args.points, &align::read_pairs(&args.points)?)?;
-    print_estimate(&est);
-    for (i, r) in est.residuals.iter().enumerate() {
-        println!("  pair {:>3}: {:.4}", i + 1, r);
-    }
-    crate::fsutil::write_json(&args.out, &est.alignment.to_json())?;
-    println!("wrote {}", args.out.display());
     Ok(())
 }

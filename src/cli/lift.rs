@@ -52,17 +52,7 @@ pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
     let cache = Cache::open(&args.cache)
         .with_context(|| format!("opening the contributions cache {}", args.cache.display()))?;
     let entities = citymodel::read_semantics(&args.citymodel.join("semantics.json"))?;
-    let (maps, labels) = match (&args.raycast, &args.fuse) {
-        (Some(r), _) => (
-            LabelMaps::City(r.clone()),
-            LabelTable::city(&entities, &classes::table(&entities))?,
-        ),
-        (None, Some(f)) => (
-            LabelMaps::Fused(f.clone()),
-            LabelTable::read(&f.join("labels.json"))?,
-        ),
-        (None, None) => bail!("give --raycast or --fuse"),
-    };
+    let (maps, labels) = label_source(args.raycast.as_ref(), args.fuse.as_ref(), &entities)?;
     let s = lift::run(
         &lift::LiftInputs {
             ply: &args.ply,
@@ -89,4 +79,24 @@ pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
         args.out.display()
     );
     Ok(())
+}
+
+/// The label maps and label table of `--raycast DIR` (`M_city`, the city-only table) or
+/// `--fuse DIR` (fused maps, `labels.json`).
+pub(super) fn label_source(
+    raycast: Option<&PathBuf>,
+    fuse: Option<&PathBuf>,
+    entities: &[citymodel::Entity],
+) -> anyhow::Result<(LabelMaps, LabelTable)> {
+    Ok(match (raycast, fuse) {
+        (Some(r), _) => (
+            LabelMaps::City(r.clone()),
+            LabelTable::city(entities, &classes::table(entities))?,
+        ),
+        (None, Some(f)) => (
+            LabelMaps::Fused(f.clone()),
+            LabelTable::read(&f.join("labels.json"))?,
+        ),
+        (None, None) => bail!("give --raycast or --fuse"),
+    })
 }

@@ -1,15 +1,18 @@
 //! The command line: one subcommand per stage (DESIGN.md). Only this module uses `anyhow`.
 //! Each subcommand parses its arguments, validates them into a config, then runs.
+mod align;
 mod associate;
 mod citymodel;
 mod demo;
 mod eval;
 mod fuse;
 mod lift;
+mod query;
 mod raycast;
 mod render;
 mod run;
 mod synth;
+mod train;
 
 use clap::{Parser, Subcommand};
 
@@ -42,12 +45,16 @@ enum Command {
     Fuse(fuse::FuseArgs),
     /// Lift per-view labels into the Gaussians (closed-form weighted vote over the cache), predict test views.
     Lift(lift::LiftArgs),
+    /// Learn per-Gaussian identity codes and a classifier from per-view labels (paper §3.3), starting from the vote; semantic PLY, test-view maps.
+    Train(train::TrainArgs),
     /// A scene folder through every stage (citymodel → raycast → render cache → lift → eval), resuming complete stages; report.html.
     Run(run::RunArgs),
     /// The demo: bundled data → simulated scene → every stage → report.html.
     Demo(demo::DemoArgs),
-    /// Estimate alignment.json from geo ↔ scene point pairs (Umeyama similarity) and report residuals.
-    Align(citymodel::AlignArgs),
+    /// alignment.json from geo ↔ scene point pairs (Umeyama), or --refine it against the 3DGS scene (robust 7-DoF ICP).
+    Align(align::AlignArgs),
+    /// Select from a finished run (class, level, attribute, id, text, pick) → selection.json, view masks, PLY exports, SQLite.
+    Query(query::QueryArgs),
     /// Evaluate predicted class maps against ground truth → metrics.json, paper-shaped tables.
     Eval(eval::EvalArgs),
     /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
@@ -64,13 +71,15 @@ pub fn main() -> anyhow::Result<()> {
     });
     match cli.command {
         Command::Citymodel(args) => citymodel::run(&args),
-        Command::Align(args) => citymodel::run_align(&args),
+        Command::Align(args) => align::run(&args),
         Command::Raycast(args) => raycast::run(&args),
         Command::Render(args) => render::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Query(args) => query::run(&args),
         Command::Lift(args) => lift::run(&args),
         Command::Associate(args) => associate::run(&args),
         Command::Fuse(args) => fuse::run(&args),
+        Command::Train(args) => train::run(&args),
         Command::Run(args) => run::run(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),

@@ -30,6 +30,10 @@ pub struct RunArgs {
     /// Run a scene without citymodel/alignment.json: CityGML coordinates minus a local origin.
     #[arg(long)]
     pub local_origin: bool,
+    /// Refine the alignment from the 3DGS scene first (robust ICP, `align --refine`); the whole
+    /// run uses the refined transform (R/align/alignment.json, recorded in run.json).
+    #[arg(long)]
+    pub refine_alignment: bool,
     /// Rerun every stage even when its output is complete.
     #[arg(long)]
     pub force: bool,
@@ -63,6 +67,8 @@ impl RunArgs {
             lift,
             test_every: self.test_every,
             local_origin: self.local_origin,
+            refine_alignment: self.refine_alignment,
+            refine: Default::default(),
             force: self.force,
         })
     }
@@ -87,6 +93,9 @@ pub fn print_run(s: &RunSummary) {
             e.mode.as_deref().unwrap_or("?"),
             e.tables
         );
+        if let Some(t) = &e.by_query_tables {
+            println!("query-driven (one selection per class, the paper's protocol)\n{t}");
+        }
     }
     println!("report: {}", s.report.display());
 }

@@ -177,8 +177,18 @@ impl Scene {
             sys::rtcReleaseGeometry(geom);
             id
         };
+        // The buffers are pushed before any early return: Embree shares them.
         self.buffers.push(buf);
         self.device.check("adding triangles")?;
+        // Geometry ids of a scene that never detaches are 0, 1, 2, … in attach order; the
+        // point query looks the triangles up by id, so the two must agree.
+        if id as usize + 1 != self.buffers.len() {
+            return Err(EmbreeError::Call {
+                during: "rtcAttachGeometry",
+                code: format!("unexpected geometry id {id}"),
+                message: format!("expected {}", self.buffers.len() - 1),
+            });
+        }
         Ok(Some(id))
     }
 
@@ -191,6 +201,9 @@ impl Scene {
         Ok(CommittedScene { scene: self })
     }
 }
+
+/// A geometry's vertices and faces, as shared with Embree.
+pub(super) type TriangleBuffers<'a> = (&'a [[f32; 3]], &'a [[u32; 3]]);
 
 /// A committed, read-only scene: the only thing rays can be cast into.
 pub struct CommittedScene {
@@ -263,8 +276,18 @@ fn raw_intersect16(scene: sys::RTCScene, valid: &Valid16, rh: &mut sys::RTCRayHi
 struct Valid16([i32; 16]);
 
 impl CommittedScene {
-    fn raw(&self) -> sys::RTCScene {
+    pub(super) fn raw(&self) -> sys::RTCScene {
         self.scene.raw.as_ptr()
+    }
+
+    /// Vertices (without the padding vertex) and faces of geometry `geom_id`.
+    pub(super) fn triangles(&self, geom_id: u32) -> Option<TriangleBuffers<'_>> {
+        self.scene.buffers.get(geom_id as usize).map(|b| {
+            (
+                &b.vertices[..b.vertices.len().saturating_sub(1)],
+                &b.faces[..],
+            )
+        })
     }
 
     /// Nearest hit of the ray `org + t·dir`, `t ∈ [0, tfar]`.

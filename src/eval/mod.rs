@@ -629,6 +629,10 @@ pub struct EvalSummary {
     pub paper_iou: BTreeMap<String, Option<f64>>,
     /// Table 1 and Table 2 of the paper as printed ([`tables`]).
     pub tables: String,
+    /// The paper's query-driven evaluation (a mask per query: "building" and each fine class),
+    /// printed the same way, where it was computed (`gs4city run`: `metrics_by_query.json`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub by_query_tables: Option<String>,
     pub seconds: f64,
     pub warnings: Vec<String>,
 }
@@ -705,6 +709,7 @@ pub fn run_for(
             })
             .collect(),
         tables: tables(&m),
+        by_query_tables: None,
         seconds: t0.elapsed().as_secs_f64(),
         warnings: ev.warnings.clone(),
     };

@@ -101,7 +101,7 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
         Vec::new()
     };
     let mut slots: Vec<Vec<Slot>> = match topk {
-        Some(k) => (0..PIX).map(|_| Vec::with_capacity(k)).collect(),
+        Some(k) => (0..PIX).map(|_| Vec::with_capacity(k.min(64))).collect(),
         None => Vec::new(),
     };
     let mut residual = vec![0.0f32; if topk.is_some() { PIX } else { 0 }];

@@ -494,8 +494,11 @@ pub fn render_to_dir(
         gaussians_per_s: 0.0,
         warnings: Vec::new(),
     };
+    let _ = std::fs::remove_file(out_dir.join("summary.json"));
+    let bar = crate::progress::Bar::new("render", views.len() as u64, "views");
     let mut stems = std::collections::HashSet::new();
     for view in views {
+        bar.inc(1);
         let stem = view.stem();
         if !stems.insert(stem.clone()) {
             return Err(RenderError::Camera {
@@ -543,8 +546,14 @@ pub fn render_to_dir(
             coverage: covered as f64 / (out.width * out.height) as f64,
         });
     }
+    bar.finish();
     if summary.render_s > 0.0 {
         summary.gaussians_per_s = (scene.len() * summary.views.len()) as f64 / summary.render_s;
     }
+    crate::progress::done(
+        "render",
+        &format!("{} views of {} Gaussians", summary.views.len(), scene.len()),
+        summary.render_s + summary.write_s,
+    );
     Ok(summary)
 }

@@ -108,6 +108,13 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
                 .map_or(String::new(), |m| format!(", {m} predictions")),
             esc(&e.tables)
         );
+        if let Some(t) = &e.by_query_tables {
+            let _ = write!(
+                html,
+                "<h3>Query-driven evaluation (the paper's protocol: one selection per class)</h3><pre>{}</pre>",
+                esc(t)
+            );
+        }
     }
     html.push_str(
         "<h2>Time per stage</h2><table><tr><th>stage</th><th>seconds now</th><th>resumed</th><th>seconds when computed</th></tr>",

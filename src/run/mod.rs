@@ -24,7 +24,8 @@ pub use store::StageReport;
 use store::{Store, StoreError};
 
 /// The stage folders of a run, in order.
-pub const STAGES: [&str; 8] = [
+pub const STAGES: [&str; 9] = [
+    "align",
     "citymodel",
     "raycast",
     "render",
@@ -70,6 +71,10 @@ pub enum RunError {
     Mesh(#[from] crate::mesh::MeshError),
     #[error(transparent)]
     Report(#[from] crate::report::ReportError),
+    #[error(transparent)]
+    Refine(#[from] crate::refine::RefineError),
+    #[error(transparent)]
+    Query(#[from] crate::query::QueryError),
 }
 
 /// Every option of a run (recorded in `run.json`).
@@ -85,6 +90,10 @@ pub struct RunOptions {
     pub test_every: usize,
     /// Run without `citymodel/alignment.json` (the CityGML coordinates minus a local origin).
     pub local_origin: bool,
+    /// Refine the alignment from the 3DGS scene first (`R/align/`, `align --refine`); every
+    /// later stage uses the refined transform.
+    pub refine_alignment: bool,
+    pub refine: crate::refine::RefineOptions,
     /// Rerun every stage even when its output is complete.
     pub force: bool,
 }
@@ -98,6 +107,8 @@ impl Default for RunOptions {
             lift: LiftOptions::default(),
             test_every: 8,
             local_origin: false,
+            refine_alignment: false,
+            refine: crate::refine::RefineOptions::default(),
             force: false,
         }
     }
@@ -170,19 +181,61 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     )?;
     let sparse_files = files_in(&scene.sparse);
 
+    // 0. align --refine (optional): the alignment every later stage uses
+    let alignment_file = if opts.refine_alignment {
+        let mut ins = scene.gml.clone();
+        ins.extend(scene.alignment.clone());
+        ins.push(scene.ply.clone());
+        ins.extend(sparse_files.iter().cloned());
+        let _r: crate::refine::RefineOutput =
+            st.stage("align", &opts.refine, &ins, &[], |dir| {
+                let initial = scene
+                    .alignment
+                    .as_deref()
+                    .map(Alignment::read)
+                    .transpose()?;
+                let city = citymodel::run(&scene.gml, &citymodel::Options { alignment: initial })?;
+                let (g, _) = crate::splat::read_ply(&scene.ply, &Default::default())?;
+                let centres: Vec<glam::DVec3> =
+                    views.iter().map(|v| v.camera.pose.center()).collect();
+                let out = crate::refine::refine(
+                    &crate::refine::RefineInput {
+                        mesh: &city.mesh,
+                        entities: &city.entities,
+                        initial: &city.alignment,
+                        gaussians: &g,
+                        camera_centres: Some(&centres),
+                    },
+                    &opts.refine,
+                )?;
+                fsutil::write_json(&dir.join("alignment.json"), &out.alignment.to_json())?;
+                Ok::<_, RunError>(out)
+            })?;
+        Some(st.dir("align").join("alignment.json"))
+    } else {
+        scene.alignment.clone()
+    };
+    let upstream_cm: &[&str] = if opts.refine_alignment {
+        &["align"]
+    } else {
+        &[]
+    };
+
     // 1. citymodel
     let mut inputs = scene.gml.clone();
-    inputs.extend(scene.alignment.clone());
-    let cm: CitymodelSummary = st.stage("citymodel", &opts.local_origin, &inputs, &[], |dir| {
-        let alignment = scene
-            .alignment
-            .as_deref()
-            .map(Alignment::read)
-            .transpose()?;
-        let o = citymodel::run(&scene.gml, &citymodel::Options { alignment })?;
-        citymodel::write(&o, dir)?;
-        Ok::<_, RunError>(o.summary)
-    })?;
+    inputs.extend(alignment_file.clone());
+    let cm: CitymodelSummary = st.stage(
+        "citymodel",
+        &opts.local_origin,
+        &inputs,
+        upstream_cm,
+        |dir| {
+            let alignment = alignment_file.as_deref().map(Alignment::read).transpose()?;
+            let o = citymodel::run(&scene.gml, &citymodel::Options { alignment })?;
+            citymodel::write(&o, dir)?;
+            Ok::<_, RunError>(o.summary)
+        },
+    )?;
     let cm_dir = st.dir("citymodel");
 
     // 2. raycast (every view)
@@ -255,7 +308,22 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
             .collect();
         let mode = "vote";
         let e: EvalSummary = st.stage("eval", &(mode, &stems), &inputs, &["lift"], |dir| {
-            Ok::<_, RunError>(crate::eval::run_for(&pred_dir, gt, dir, Some(&stems), Some(mode))?.0)
+            let (mut e, _) = crate::eval::run_for(&pred_dir, gt, dir, Some(&stems), Some(mode))?;
+            // The paper's query-driven evaluation, next to the class maps'.
+            let sr =
+                crate::query::SemanticRun::open(out, &scene.root, Some(crate::query::Mode::Vote))?;
+            let bq = crate::query::evaluate::evaluate(
+                &sr,
+                &cache,
+                gt,
+                &stems,
+                Default::default(),
+                Default::default(),
+            )?;
+            fsutil::write_json(&dir.join("metrics_by_query.json"), &bq)?;
+            e.by_query_tables = Some(bq.tables);
+            fsutil::write_json(&dir.join("summary.json"), &e)?;
+            Ok::<_, RunError>(e)
         })?;
         eval_summary = Some(e);
     }

@@ -282,6 +282,7 @@ pub struct SynthSummary {
 /// Builds the scene and writes the whole folder; returns `summary.json`.
 pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
     let t_all = Instant::now();
+    let _ = std::fs::remove_file(out.join("summary.json"));
     let mut sim = build_scene(cfg)?;
     let t_w = Instant::now();
     for d in ["", "images", "gt", "citymodel", "sparse"] {
@@ -326,7 +327,9 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
     )?;
     let mut n_masks = 0usize;
     let mut prompts = None;
+    let bar = crate::progress::Bar::new("synth", sim.views.len() as u64, "views");
     for (vi, v) in sim.views.iter().enumerate() {
+        bar.inc(1);
         let l = gt::label_view(
             &scene,
             &sim.builder.truth,
@@ -379,6 +382,7 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
             sheet_views.push((l.rgb, l.class));
         }
     }
+    bar.finish();
     if let Some(p) = &prompts {
         crate::sam::write_prompts_json(&out.join("features/prompts.json"), p)?;
     }
@@ -504,5 +508,15 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
         config: serde_json::to_value(cfg).unwrap_or_default(),
     };
     crate::fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::progress::done(
+        "synth",
+        &format!(
+            "SIMULATED scene: {} Gaussians, {} views ({} test)",
+            summary.gaussians,
+            summary.views,
+            summary.test_views.len()
+        ),
+        t_all.elapsed().as_secs_f64(),
+    );
     Ok(summary)
 }

@@ -1,6 +1,9 @@
 //! Shared fixtures of the raycast tests and bench: labelled quads/boxes, simple cameras,
 //! and a seeded synthetic city block.
 #![allow(dead_code)]
+use std::collections::BTreeMap;
+use std::path::Path;
+
 use glam::{DMat3, DVec3};
 use gs4city::camera::{Camera, Distortion, Intrinsics, Pose};
 use gs4city::mesh::{FaceLabel, TriMesh};
@@ -156,6 +159,24 @@ pub fn orbit_camera(w: u32, h: u32, f: f64, angle: f64, radius: f64, z: f64) -> 
     let mut c = axis_camera(w, h, f);
     c.pose = Pose::look_at(eye, DVec3::new(0.0, 0.0, 5.0), DVec3::Z).expect("valid orbit pose");
     c
+}
+
+/// Every file below `dir` (relative path) → its bytes.
+pub fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                let rel = p.strip_prefix(dir).unwrap().display().to_string();
+                out.insert(rel, std::fs::read(&p).unwrap());
+            }
+        }
+    }
+    out
 }
 
 pub mod wall;

@@ -1,0 +1,123 @@
+//! The contributions cache: speed, size and error of top-k lists against complete lists.
+//!
+//! Run: `GS4CITY_RUN=R cargo bench --bench cache`, where `R` is a finished `gs4city run` folder
+//! (its `run.json` names the scene; its `raycast/` holds `M_city`). Optional `GS4CITY_VIEWS=N`
+//! (default 24): the first N training views by name.
+//!
+//! For each k (4, 8, 16, 32, all), every chosen view is rendered with lists of at most k entries
+//! (nothing written: the bytes are counted), and the city-model vote of `lift` runs over them.
+//! Errors are measured against the complete lists ("all"): the share of Gaussians whose voted
+//! label differs, and the share of pixels whose predicted label differs when the same
+//! per-Gaussian labels (those of "all") are read back through the truncated lists.
+use std::path::PathBuf;
+use std::time::Instant;
+
+use gs4city::lift::{self, LabelMaps, Votes};
+use gs4city::render::PreparedScene;
+use gs4city::render::cache::ViewContrib;
+use gs4city::scene::{Scene, Split};
+
+fn main() {
+    let Some(run) = std::env::var_os("GS4CITY_RUN").map(PathBuf::from) else {
+        eprintln!("set GS4CITY_RUN to a finished `gs4city run` folder (see the file's docs)");
+        return;
+    };
+    let n_views: usize = std::env::var("GS4CITY_VIEWS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(24);
+    let rec: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("run.json")).expect("run.json")).unwrap();
+    let scene = Scene::open(&PathBuf::from(rec["scene"].as_str().unwrap())).unwrap();
+    let views = gs4city::colmap::read_model(&scene.sparse).unwrap();
+    let split = Split::new(views, 8);
+    let chosen: Vec<_> = split.train.iter().take(n_views).cloned().collect();
+    let (g, _) = gs4city::splat::read_ply(&scene.ply, &Default::default()).unwrap();
+    let prepared = PreparedScene::new(&g).unwrap();
+    let maps = LabelMaps::City(run.join("raycast"));
+    let n = prepared.len();
+    println!(
+        "{} Gaussians, {} views of {}×{}, rayon threads {}",
+        n,
+        chosen.len(),
+        chosen[0].camera.intrinsics.width,
+        chosen[0].camera.intrinsics.height,
+        rayon::current_num_threads()
+    );
+    let ks = [0usize, 32, 16, 8, 4];
+    let mut reference: Option<(Vec<i32>, Vec<ViewContrib>)> = None;
+    println!(
+        "\n| k | s/view (render + lists) | MB/view | entries/px | dropped α·T share | Gaussians voted otherwise than with all lists | pixels read otherwise |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for &k in &ks {
+        let mut votes = Votes::new(n);
+        let (mut secs, mut bytes, mut entries, mut dropped, mut covered) =
+            (0.0, 0usize, 0usize, 0.0, 0usize);
+        let mut kept = Vec::new();
+        for v in &chosen {
+            let t = Instant::now();
+            let c = ViewContrib::render(&prepared, v, k).unwrap();
+            secs += t.elapsed().as_secs_f64();
+            bytes += c.file_bytes();
+            entries += c.entries();
+            for p in 0..c.pixels() {
+                if c.alpha[p] >= 1e-3 {
+                    covered += 1;
+                    dropped += f64::from(c.lists.residual[p] / c.alpha[p]);
+                }
+            }
+            let labels = maps.read(&v.stem(), c.width, c.height).unwrap();
+            votes.accumulate(&c, &labels);
+            // Keep a few views' lists to read labels back through them.
+            if kept.len() < 4 {
+                kept.push(c);
+            }
+        }
+        let assigned: Vec<i32> = lift::assign(&votes, n, 0.0)
+            .iter()
+            .map(|a| a.label)
+            .collect();
+        let npx = (chosen[0].camera.intrinsics.width * chosen[0].camera.intrinsics.height) as usize;
+        let (voted_diff, px_diff) = match &reference {
+            None => ("0 (reference)".to_string(), "0 (reference)".to_string()),
+            Some((all_labels, all_lists)) => {
+                let voted = (0..n).filter(|&i| all_labels[i] >= 0 || assigned[i] >= 0);
+                let (mut d, mut t) = (0usize, 0usize);
+                for i in voted {
+                    t += 1;
+                    d += usize::from(all_labels[i] != assigned[i]);
+                }
+                let class: Vec<i32> = all_labels.clone();
+                let (mut pd, mut pt) = (0usize, 0usize);
+                for (full, trunc) in all_lists.iter().zip(&kept) {
+                    let (_, a) = lift::predict(full, all_labels, &class);
+                    let (_, b) = lift::predict(trunc, all_labels, &class);
+                    pt += a.len();
+                    pd += a.iter().zip(&b).filter(|(x, y)| x != y).count();
+                }
+                (
+                    format!("{:.3} %", 100.0 * d as f64 / t.max(1) as f64),
+                    format!("{:.3} %", 100.0 * pd as f64 / pt.max(1) as f64),
+                )
+            }
+        };
+        println!(
+            "| {} | {:.3} | {:.1} | {:.2} | {:.4} | {} | {} |",
+            if k == 0 {
+                "all".to_string()
+            } else {
+                k.to_string()
+            },
+            secs / chosen.len() as f64,
+            bytes as f64 / chosen.len() as f64 / 1e6,
+            entries as f64 / (chosen.len() * npx) as f64,
+            dropped / covered.max(1) as f64,
+            voted_diff,
+            px_diff
+        );
+        if k == 0 {
+            reference = Some((assigned, kept));
+        }
+    }
+}

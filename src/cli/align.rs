@@ -1,0 +1,314 @@
+//! `gs4city align`: an alignment from geo ↔ scene point pairs (Umeyama), or with `--refine`
+//! the refinement of a city model's alignment against the 3DGS scene (robust 7-DoF ICP).
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use clap::Args;
+use glam::DVec3;
+
+use crate::citymodel::{self, Alignment, align};
+use crate::mesh::TriMesh;
+use crate::refine::{self, RefineInput, RefineOptions};
+use crate::splat::{self, InvalidPolicy, ReadOptions};
+use crate::{colmap, fsutil};
+
+#[derive(Debug, Args)]
+pub struct AlignArgs {
+    /// CSV of point pairs: geo_x geo_y geo_z scene_x scene_y scene_z per line (≥ 3 pairs).
+    #[arg(long, required_unless_present = "refine", conflicts_with = "refine")]
+    points: Option<PathBuf>,
+    /// Refine the city model's alignment against the 3DGS scene (robust 7-DoF point-to-plane
+    /// ICP of Gaussian centres to the mesh); writes alignment.json and summary.json beside it.
+    #[arg(long, requires_all = ["citymodel", "ply"])]
+    refine: bool,
+    /// With --refine: the scene's citymodel/ folder (CityGML files + alignment.json), or the
+    /// output folder of the `citymodel` stage (mesh.ply, semantics.json, alignment.json).
+    #[arg(long, value_name = "DIR", requires = "refine")]
+    citymodel: Option<PathBuf>,
+    /// With --refine: the pre-trained 3DGS scene (INRIA PLY).
+    #[arg(long, value_name = "PLY", requires = "refine")]
+    ply: Option<PathBuf>,
+    /// With --refine: a COLMAP model (e.g. SCENE/sparse/0); Gaussians farther than
+    /// `max_camera_distance_m` from every camera are ignored.
+    #[arg(long, value_name = "SPARSE_DIR", requires = "refine")]
+    colmap: Option<PathBuf>,
+    /// With --refine: start from this alignment.json instead of the citymodel folder's.
+    #[arg(long, value_name = "JSON", requires = "refine")]
+    initial: Option<PathBuf>,
+    /// With --refine: a JSON object of refine options (keys of summary.json's `options`).
+    #[arg(long, value_name = "JSON", requires = "refine")]
+    options: Option<PathBuf>,
+    /// With --refine: rigid (6 DoF), keep the initial scale.
+    #[arg(long, requires = "refine")]
+    rigid: bool,
+    /// Where to write alignment.json.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+fn print_estimate(est: &align::Estimate) {
+    println!(
+        "alignment from {} point pairs: scale {:.6}, residuals rms {:.4}, max {:.4} (scene units)",
+        est.residuals.len(),
+        est.alignment.scale,
+        est.rms,
+        est.max
+    );
+}
+
+/// Point-pair estimation (also used by `gs4city citymodel --align-points`).
+pub(super) fn estimate_from_points(csv: &Path) -> anyhow::Result<align::Estimate> {
+    let est = align::estimate(csv, &align::read_pairs(csv)?)?;
+    print_estimate(&est);
+    Ok(est)
+}
+
+pub fn run(args: &AlignArgs) -> anyhow::Result<()> {
+    if args.refine {
+        return run_refine(args);
+    }
+    let Some(points) = &args.points else {
+        bail!("give --points CSV (point-pair estimation) or --refine");
+    };
+    let est = estimate_from_points(points)?;
+    for (i, r) in est.residuals.iter().enumerate() {
+        println!("  pair {:>3}: {:.4}", i + 1, r);
+    }
+    fsutil::write_json(&args.out, &est.alignment.to_json())?;
+    println!("wrote {}", args.out.display());
+    Ok(())
+}
+
+/// The city model in the scene frame of its alignment: from CityGML (the stage runs in
+/// memory) or from a `citymodel` stage output folder.
+struct City {
+    mesh: TriMesh,
+    entities: Vec<citymodel::Entity>,
+    alignment: Alignment,
+    source: &'static str,
+}
+
+fn load_city(dir: &Path, initial: Option<&Path>) -> anyhow::Result<City> {
+    if !dir.is_dir() {
+        bail!("--citymodel {}: not a directory", dir.display());
+    }
+    let own = dir.join("alignment.json");
+    let align_path = initial.unwrap_or(&own);
+    if !align_path.is_file() {
+        bail!(
+            "{}: no alignment.json to start from (the refinement needs an initial alignment)",
+            align_path.display()
+        );
+    }
+    let alignment = Alignment::read(align_path)?;
+    let has_gml = std::fs::read_dir(dir)
+        .with_context(|| format!("cannot list {}", dir.display()))?
+        .filter_map(|e| e.ok())
+        .any(|e| {
+            e.path()
+                .extension()
+                .is_some_and(|x| x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml"))
+        });
+    if has_gml {
+        let files = super::citymodel::collect_files(&[dir.to_path_buf()])?;
+        let out = citymodel::run(
+            &files,
+            &citymodel::Options {
+                alignment: Some(alignment),
+            },
+        )?;
+        return Ok(City {
+            mesh: out.mesh,
+            entities: out.entities,
+            alignment,
+            source: "CityGML",
+        });
+    }
+    let (mesh_path, sem_path) = (dir.join("mesh.ply"), dir.join("semantics.json"));
+    if !mesh_path.is_file() || !sem_path.is_file() {
+        bail!(
+            "{}: neither CityGML files nor a citymodel stage output (mesh.ply + semantics.json)",
+            dir.display()
+        );
+    }
+    if initial.is_some() {
+        bail!(
+            "--initial needs CityGML in --citymodel: {} holds a mesh already aligned by its own alignment.json",
+            dir.display()
+        );
+    }
+    Ok(City {
+        mesh: TriMesh::read_ply(&mesh_path)?,
+        entities: citymodel::read_semantics(&sem_path)?,
+        alignment,
+        source: "mesh.ply",
+    })
+}
+
+fn run_refine(args: &AlignArgs) -> anyhow::Result<()> {
+    // Parse.
+    let (Some(cm_dir), Some(ply)) = (&args.citymodel, &args.ply) else {
+        bail!("--refine needs --citymodel DIR and --ply FILE");
+    };
+    let mut opts = match &args.options {
+        None => RefineOptions::default(),
+        Some(p) => {
+            let text =
+                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            serde_json::from_str(&text)
+                .with_context(|| format!("{}: not refine options", p.display()))?
+        }
+    };
+    if args.rigid {
+        opts.estimate_scale = false;
+    }
+    // Validate.
+    opts.validate()?;
+    let out_dir = match args.out.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let summary_path = out_dir.join("summary.json");
+    let input_alignment = args
+        .initial
+        .clone()
+        .unwrap_or_else(|| cm_dir.join("alignment.json"));
+    if same_file(&args.out, &input_alignment) {
+        bail!(
+            "--out {} is the input alignment; write the refined one elsewhere",
+            args.out.display()
+        );
+    }
+    if summary_path.is_file() && !written_by_refine(&summary_path) {
+        bail!(
+            "{}: exists and was not written by `align --refine`; refusing to overwrite it (choose another --out folder)",
+            summary_path.display()
+        );
+    }
+    if !ply.is_file() {
+        bail!("--ply {}: no such file", ply.display());
+    }
+    let t0 = Instant::now();
+    let city = load_city(cm_dir, args.initial.as_deref())?;
+    let t_city = t0.elapsed().as_secs_f64();
+    let t1 = Instant::now();
+    let (gaussians, report) = splat::read_ply(
+        ply,
+        &ReadOptions {
+            invalid: InvalidPolicy::Drop,
+            ..Default::default()
+        },
+    )
+    .with_context(|| format!("reading {}", ply.display()))?;
+    let t_ply = t1.elapsed().as_secs_f64();
+    let centres: Option<Vec<DVec3>> = match &args.colmap {
+        None => None,
+        Some(dir) => {
+            let views = colmap::read_model(dir)
+                .with_context(|| format!("reading COLMAP model {}", dir.display()))?;
+            if views.is_empty() {
+                bail!("{}: the COLMAP model has no images", dir.display());
+            }
+            Some(views.iter().map(|v| v.camera.pose.center()).collect())
+        }
+    };
+    // Run.
+    let input = RefineInput {
+        mesh: &city.mesh,
+        entities: &city.entities,
+        initial: &city.alignment,
+        gaussians: &gaussians,
+        camera_centres: centres.as_deref(),
+    };
+    let out = refine::refine(&input, &opts).with_context(|| {
+        format!(
+            "refining {} against {}",
+            input_alignment.display(),
+            ply.display()
+        )
+    })?;
+    fsutil::create_dir(&out_dir)?;
+    let mut summary = serde_json::to_value(&out)?;
+    summary["inputs"] = serde_json::json!({
+        "citymodel": cm_dir,
+        "city_source": city.source,
+        "initial_alignment": input_alignment,
+        "ply": ply,
+        "ply_report": report,
+        "colmap": args.colmap,
+        "cameras": centres.as_ref().map(|c| c.len()),
+    });
+    summary["timings"]["load_citymodel_s"] = t_city.into();
+    summary["timings"]["read_ply_s"] = t_ply.into();
+    summary["timings"]["command_s"] = t0.elapsed().as_secs_f64().into();
+    // The alignment first, the summary (completion marker) last.
+    fsutil::write_json(&args.out, &out.alignment.to_json())?;
+    fsutil::write_json(&summary_path, &summary)?;
+
+    let s = &out.selection;
+    println!(
+        "Gaussians: {} → opaque {} → flat {} → in range {} → sampled {}; target triangles {} ({} hidden/degenerate left out)",
+        s.gaussians,
+        s.opaque,
+        s.opaque_flat,
+        s.in_camera_range,
+        s.sampled,
+        s.target_triangles,
+        s.excluded_triangles
+    );
+    println!(
+        "ICP: {} iterations, converged; eigenvalue ratio {:.2e}",
+        out.iterations, out.conditioning.ratio
+    );
+    let c = &out.correction;
+    println!(
+        "correction: vertices moved rms {:.4} m (max {:.4}), rotation {:.4}°, scale {:+.4} %",
+        c.rms_m, c.max_m, c.rotation_deg, c.scale_pct
+    );
+    for (name, r) in [("before", &out.before), ("after", &out.after)] {
+        println!(
+            "{name:<6} matched {:>7} of {:>7}  median {:.4} m  rms {:.4} m  within 2/5/10 cm {:>5.1}/{:>5.1}/{:>5.1} %",
+            r.matched,
+            r.points,
+            r.median_m,
+            r.rms_m,
+            100.0 * r.within_2cm,
+            100.0 * r.within_5cm,
+            100.0 * r.within_10cm
+        );
+    }
+    for w in &out.warnings {
+        println!("warning: {w}");
+    }
+    println!(
+        "time: city model {:.2} s, PLY {:.2} s, select {:.2} s, BVH {:.2} s, ICP {:.2} s, stats {:.2} s; total {:.2} s",
+        t_city,
+        t_ply,
+        out.timings.select_s,
+        out.timings.bvh_s,
+        out.timings.icp_s,
+        out.timings.stats_s,
+        t0.elapsed().as_secs_f64()
+    );
+    println!(
+        "wrote {} and {}",
+        args.out.display(),
+        summary_path.display()
+    );
+    Ok(())
+}
+
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => false,
+    }
+}
+
+fn written_by_refine(path: &Path) -> bool {
+    std::fs::read(path)
+        .ok()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+        .is_some_and(|v| v["stage"] == "align_refine")
+}

@@ -1,0 +1,297 @@
+//! `gs4city query`: selections over a finished run (docs/query.md) → `selection.json`, per-view
+//! masks, `extract.ply` / `remove.ply`, `semantic.sqlite`.
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use clap::Args;
+
+use crate::citygml::Level;
+use crate::query::{
+    self, Expr, MaskRule, Mode, QueryOptions, Request, SemanticRun, TextOptions, Views,
+};
+
+#[derive(Debug, Args)]
+pub struct QueryArgs {
+    /// A finished run folder (`gs4city run --scene S --out R`).
+    #[arg(long, value_name = "R")]
+    pub run: PathBuf,
+    /// The scene folder the run was made from; default: the one recorded in R/run.json.
+    #[arg(long, value_name = "DIR")]
+    pub scene: Option<PathBuf>,
+    /// Which per-Gaussian labels: `vote` (R/lift) or `learned` (R/train); default: learned when
+    /// R/train/gaussians.npy exists.
+    #[arg(long, value_enum)]
+    pub mode: Option<Mode>,
+    /// A CityGML class with its descendants (`Building` selects its surfaces and openings;
+    /// 2.0 and 3.0 names, e.g. Window = WindowSurface).
+    #[arg(long, value_name = "NAME")]
+    pub class: Option<String>,
+    /// A hierarchy level: feature, surface or part.
+    #[arg(long, value_name = "LEVEL")]
+    pub level: Option<String>,
+    /// An attribute comparison, e.g. 'measuredHeight>10' or 'measuredHeight >= 1200 cm'
+    /// (= != < <= > >=; attributes are inherited from the nearest ancestor).
+    #[arg(long, value_name = "COMPARISON")]
+    pub attr: Vec<String>,
+    /// A gml:id: the entity and its descendants.
+    #[arg(long, value_name = "GMLID")]
+    pub id: Option<String>,
+    /// A prompt of the scene's features/prompts.json, matched against the per-label features.
+    #[arg(long, value_name = "PROMPT")]
+    pub text: Option<String>,
+    /// A query vector (float32 .npy of D values), matched like --text.
+    #[arg(long, value_name = "F.npy")]
+    pub text_feature: Option<PathBuf>,
+    /// A selection expression: terms class= level= id= within() category= label= text() and
+    /// attribute comparisons, combined with and, or, not and parentheses (docs/query.md).
+    #[arg(long = "where", value_name = "EXPR")]
+    pub where_: Option<String>,
+    /// The chain building → surface → part under pixel X Y of view VIEW (stem or image name).
+    #[arg(long, num_args = 3, value_names = ["VIEW", "X", "Y"], conflicts_with_all = ["class", "level", "attr", "id", "text", "text_feature", "where_"])]
+    pub pick: Vec<String>,
+    /// With --pick: select the picked entity's ancestor at this level (feature, surface) with
+    /// its descendants instead of the picked label alone.
+    #[arg(long, value_name = "LEVEL", requires = "pick")]
+    pub pick_level: Option<String>,
+    /// Views to mask: stems or image names, comma-separated, or `test` (default), `all`, `none`.
+    #[arg(long, value_delimiter = ',', default_value = "test")]
+    pub views: Vec<String>,
+    /// Write extract.ply (selected Gaussians) and remove.ply (the rest).
+    #[arg(long)]
+    pub export: bool,
+    /// Pixel rule of the masks: argmax (the selection beats every other label and the
+    /// background, as in the predicted maps) or majority (more than half of the pixel).
+    #[arg(long, value_enum, default_value = "argmax")]
+    pub mask_rule: MaskRule,
+    /// Text queries: a label matches when its relevancy is at least this.
+    #[arg(long, default_value_t = query::text::MIN_RELEVANCY)]
+    pub min_relevancy: f64,
+    /// Text queries: softmax temperature of the relevancy.
+    #[arg(long, default_value_t = 10.0)]
+    pub temperature: f64,
+    /// Text queries: prompts at least this similar to the query are not negatives.
+    #[arg(long, default_value_t = 0.8, allow_negative_numbers = true)]
+    pub synonym_cos: f64,
+    /// Do not write semantic.sqlite.
+    #[arg(long)]
+    pub no_sqlite: bool,
+    /// Output folder.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// The scene folder of run `run`: `scene`, else the one recorded in `R/run.json`.
+pub(crate) fn scene_of(run: &Path, scene: Option<&Path>) -> anyhow::Result<PathBuf> {
+    if let Some(s) = scene {
+        return Ok(s.to_path_buf());
+    }
+    let p = run.join("run.json");
+    let rec: crate::run::store::RunRecord = crate::fsutil::read_json(&p).with_context(|| {
+        format!(
+            "finding the scene of run {} (or give --scene)",
+            run.display()
+        )
+    })?;
+    Ok(rec.scene)
+}
+
+/// Loads a run for queries.
+pub(crate) fn open_run(
+    run: &Path,
+    scene: Option<&Path>,
+    mode: Option<Mode>,
+) -> anyhow::Result<SemanticRun> {
+    if !run.is_dir() {
+        bail!("--run {}: not a directory", run.display());
+    }
+    let scene = scene_of(run, scene)?;
+    Ok(SemanticRun::open(run, &scene, mode)?)
+}
+
+fn parse_level(s: &str, flag: &str) -> anyhow::Result<Level> {
+    Ok(match s.to_ascii_lowercase().as_str() {
+        "feature" => Level::Feature,
+        "surface" => Level::Surface,
+        "part" => Level::Part,
+        _ => bail!("{flag} `{s}`: levels are feature, surface, part"),
+    })
+}
+
+fn parse(what: &str, text: &str) -> anyhow::Result<Expr> {
+    query::grammar::parse(text).map_err(|source| {
+        anyhow::Error::new(query::QueryError::Parse {
+            what: what.to_string(),
+            text: text.to_string(),
+            source,
+        })
+    })
+}
+
+/// The request the flags describe (selection flags combined with `and`).
+fn request(a: &QueryArgs) -> anyhow::Result<Request> {
+    if !a.pick.is_empty() {
+        let coord = |s: &str, n: &str| -> anyhow::Result<usize> {
+            s.parse::<usize>()
+                .with_context(|| format!("--pick {n} `{s}`: expected a pixel index ≥ 0"))
+        };
+        return Ok(Request::Pick {
+            view: a.pick[0].clone(),
+            x: coord(&a.pick[1], "X")?,
+            y: coord(&a.pick[2], "Y")?,
+            level: a
+                .pick_level
+                .as_deref()
+                .map(|l| parse_level(l, "--pick-level"))
+                .transpose()?,
+        });
+    }
+    let q = |s: &str| format!("\"{}\"", s.replace('\\', "\\\\").replace('"', "\\\""));
+    let mut parts: Vec<Expr> = Vec::new();
+    if let Some(c) = &a.class {
+        parts.push(Expr::Term(query::Term::Class {
+            name: c.clone(),
+            column: 1,
+        }));
+    }
+    if let Some(l) = &a.level {
+        parse_level(l, "--level")?;
+        parts.push(parse("--level", &format!("level={}", q(l)))?);
+    }
+    for c in &a.attr {
+        parts.push(parse("--attr", c)?);
+    }
+    if let Some(id) = &a.id {
+        parts.push(Expr::Term(query::Term::Within {
+            id: id.clone(),
+            column: 1,
+        }));
+    }
+    if let Some(t) = &a.text {
+        parts.push(Expr::Term(query::Term::Text {
+            prompt: t.clone(),
+            column: 1,
+        }));
+    }
+    if let Some(f) = &a.text_feature {
+        let (shape, v) = crate::npy::read::<f32>(f)?;
+        if !(shape.len() == 1 || (shape.len() == 2 && shape[0] == 1)) {
+            bail!(
+                "--text-feature {}: expected one float32 vector (D or 1×D), found shape {shape:?}",
+                f.display()
+            );
+        }
+        parts.push(Expr::TextFeature {
+            path: f.display().to_string(),
+            vector: v,
+        });
+    }
+    if let Some(w) = &a.where_ {
+        parts.push(parse("--where", w)?);
+    }
+    let mut it = parts.into_iter();
+    let Some(first) = it.next() else {
+        bail!(
+            "no selection: give --class, --level, --attr, --id, --text, --text-feature, --where or --pick"
+        );
+    };
+    Ok(Request::Select(it.fold(first, Expr::and)))
+}
+
+pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
+    let req = request(a)?;
+    let text = TextOptions {
+        temperature: a.temperature,
+        min_relevancy: a.min_relevancy,
+        synonym_cos: a.synonym_cos,
+    };
+    text.validate()?;
+    let views = match a.views.iter().map(String::as_str).collect::<Vec<_>>()[..] {
+        ["test"] => Views::Test,
+        ["all"] => Views::All,
+        ["none"] => Views::None,
+        _ => Views::Named(a.views.clone()),
+    };
+    let opts = QueryOptions {
+        views,
+        export: a.export,
+        rule: a.mask_rule,
+        text,
+        sqlite: !a.no_sqlite,
+    };
+    let sr = open_run(&a.run, a.scene.as_deref(), a.mode)?;
+    let s = query::run(&sr, &req, &opts, &a.out)?;
+    for w in &s.warnings {
+        eprintln!("warning: {w}");
+    }
+    let sel: serde_json::Value = crate::fsutil::read_json(&a.out.join("selection.json"))?;
+    if let Some(p) = sel.get("pick").filter(|p| !p.is_null()) {
+        let p: query::Pick = serde_json::from_value(p.clone())?;
+        println!(
+            "pixel ({}, {}) of {}: label {} ({}{}), alpha {:.3}",
+            p.x,
+            p.y,
+            p.view,
+            p.label,
+            p.category,
+            p.source
+                .as_deref()
+                .map(|s| format!(", {s}"))
+                .unwrap_or_default(),
+            p.alpha
+        );
+        for c in &p.chain {
+            let attrs: Vec<String> = c
+                .attributes
+                .iter()
+                .filter(|(k, _)| !k.ends_with(".uom"))
+                .map(|(k, v)| {
+                    let unit = c
+                        .attributes
+                        .get(&format!("{k}.uom"))
+                        .and_then(|u| u.as_str())
+                        .map(|u| format!(" {u}"))
+                        .unwrap_or_default();
+                    format!("{k}={v}{unit}")
+                })
+                .collect();
+            println!(
+                "  {} {} {} {}",
+                format!("{:?}", c.level).to_lowercase(),
+                c.class,
+                c.object_id,
+                if attrs.is_empty() {
+                    String::new()
+                } else {
+                    attrs.join(" ")
+                }
+            );
+        }
+    }
+    println!(
+        "query `{}` ({} labels): match {} — {} labels, {} entities, {} Gaussians{}; {} view masks{} → {}  [{:.2} s: load {:.2}, select {:.3}, export {:.2}, masks {:.2}, sqlite {:.2}]",
+        s.query,
+        match s.mode {
+            Mode::Vote => "vote",
+            Mode::Learned => "learned",
+        },
+        s.matched,
+        s.labels,
+        s.entities,
+        s.gaussians,
+        s.score
+            .map(|x| format!(", score {x:.3}"))
+            .unwrap_or_default(),
+        s.views.len(),
+        s.export
+            .map(|e| format!(", extract.ply {} + remove.ply {}", e.extracted, e.removed))
+            .unwrap_or_default(),
+        a.out.display(),
+        s.timing.total_s,
+        s.timing.load_s,
+        s.timing.select_s,
+        s.timing.export_s,
+        s.timing.masks_s,
+        s.timing.sqlite_s,
+    );
+    Ok(())
+}

@@ -1,0 +1,173 @@
+//! `gs4city train`: per-Gaussian identity codes and a classifier learned from the per-view
+//! labels through the contributions cache (paper §3.3), starting from the vote.
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::Args;
+
+use crate::colmap;
+use crate::render::cache::Cache;
+use crate::scene::Split;
+use crate::train::{self, Init, Softmax, TrainOptions};
+
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Pre-trained 3DGS scene (INRIA PLY) the cache was built from.
+    #[arg(long)]
+    ply: PathBuf,
+    /// COLMAP sparse model folder.
+    #[arg(long)]
+    colmap: PathBuf,
+    /// Contributions cache (`gs4city render --cache`, or a run's `render/`).
+    #[arg(long)]
+    cache: PathBuf,
+    /// Output folder of `gs4city citymodel` (semantics.json).
+    #[arg(long)]
+    citymodel: PathBuf,
+    /// Train on the city-model labels `M_city` of this `gs4city raycast` output …
+    #[arg(long, conflicts_with = "fuse", required_unless_present = "fuse")]
+    raycast: Option<PathBuf>,
+    /// … or on the fused labels of this `gs4city fuse` output (labels.json, <stem>.ids.npy).
+    #[arg(long)]
+    fuse: Option<PathBuf>,
+    /// Every N-th view (sorted by name) is a test view, not trained on; 0 = none.
+    #[arg(long, default_value_t = 8)]
+    test_every: usize,
+    /// Most iterations (one view and --pixels pixels each).
+    #[arg(long, default_value_t = TrainOptions::default().iterations)]
+    iterations: usize,
+    /// Pixels sampled per iteration.
+    #[arg(long, default_value_t = TrainOptions::default().pixels)]
+    pixels: usize,
+    /// Training pixels lie on a grid of this stride (1 = every pixel, 2 = a quarter, …).
+    #[arg(long, default_value_t = TrainOptions::default().stride)]
+    stride: usize,
+    /// Cut the cached contribution lists to their K largest weights (0 = as cached).
+    #[arg(long, default_value_t = 0)]
+    top_k: usize,
+    /// Sampled negative classes per softmax (cost independent of the number of labels).
+    #[arg(long, default_value_t = 64, conflicts_with = "exact_softmax")]
+    negatives: usize,
+    /// Evaluate the softmax over every class during training (exact; cost grows with K).
+    #[arg(long)]
+    exact_softmax: bool,
+    /// Predict test views over every class (exact; slower with many labels).
+    #[arg(long)]
+    exact_predict: bool,
+    /// Code dimension D.
+    #[arg(long, default_value_t = TrainOptions::default().dim)]
+    dim: usize,
+    /// Adam learning rate of the codes.
+    #[arg(long, default_value_t = TrainOptions::default().lr_codes)]
+    lr_codes: f64,
+    /// Adam learning rate of the classifier.
+    #[arg(long, default_value_t = TrainOptions::default().lr_classifier)]
+    lr_classifier: f64,
+    /// Weight λ of the 3D KNN-KL term (0 = off).
+    #[arg(long, default_value_t = TrainOptions::default().kl_lambda)]
+    kl_lambda: f64,
+    /// The 3D term every N iterations (0 = never).
+    #[arg(long, default_value_t = TrainOptions::default().kl_every)]
+    kl_every: usize,
+    /// Neighbours per Gaussian in the 3D term.
+    #[arg(long, default_value_t = TrainOptions::default().kl_k)]
+    kl_k: usize,
+    /// Gaussians sampled per 3D step.
+    #[arg(long, default_value_t = TrainOptions::default().kl_samples)]
+    kl_samples: usize,
+    /// Start from random codes instead of the vote.
+    #[arg(long)]
+    random_init: bool,
+    /// Background bias γ of the initial vote, in [-1, 1].
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    gamma: f32,
+    /// Stop when the windowed loss falls by less than this fraction twice in a row (0 = never).
+    #[arg(long, default_value_t = TrainOptions::default().tol)]
+    tol: f64,
+    /// Iterations per loss window.
+    #[arg(long, default_value_t = TrainOptions::default().window)]
+    window: usize,
+    /// Random seed (same seed and inputs → same outputs, any thread count).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output folder.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
+    let opts = TrainOptions {
+        dim: args.dim,
+        iterations: args.iterations,
+        pixels: args.pixels,
+        stride: args.stride,
+        top_k: args.top_k,
+        softmax: if args.exact_softmax {
+            Softmax::Exact
+        } else {
+            Softmax::Sampled {
+                negatives: args.negatives,
+            }
+        },
+        lr_codes: args.lr_codes,
+        lr_classifier: args.lr_classifier,
+        kl_lambda: args.kl_lambda,
+        kl_every: args.kl_every,
+        kl_k: args.kl_k,
+        kl_samples: args.kl_samples,
+        init: if args.random_init {
+            Init::Random
+        } else {
+            Init::Vote
+        },
+        gamma: args.gamma,
+        window: args.window,
+        tol: args.tol,
+        seed: args.seed,
+        exact_predict: args.exact_predict,
+        ..TrainOptions::default()
+    };
+    opts.validate()?;
+    let split = Split::new(colmap::read_model(&args.colmap)?, args.test_every);
+    if split.train.is_empty() {
+        bail!("no training views: every view is a test view (--test-every 1?)");
+    }
+    let cache = Cache::open(&args.cache)
+        .with_context(|| format!("opening the contributions cache {}", args.cache.display()))?;
+    let entities = crate::citymodel::read_semantics(&args.citymodel.join("semantics.json"))?;
+    let (maps, labels) =
+        super::lift::label_source(args.raycast.as_ref(), args.fuse.as_ref(), &entities)?;
+    let s = train::run(
+        &train::TrainInputs {
+            ply: &args.ply,
+            cache: &cache,
+            train: &split.train,
+            test: &split.test,
+            maps: &maps,
+            labels: &labels,
+            entities: &entities,
+        },
+        &opts,
+        &args.out,
+    )?;
+    let last = s.history.last().map_or(0.0, |p| p.ce + p.kl);
+    println!(
+        "trained {} Gaussians ({} labelled, {} changed from the vote, {} classes) in {} iterations ({}), final loss {last:.4}: read {:.1} s, vote {:.1} s, kNN {:.1} s, train {:.1} s, label {:.1} s, write {:.1} s, predict {:.1} s; {} test-view maps → {}",
+        s.gaussians,
+        s.labelled,
+        s.changed_from_vote,
+        s.classes,
+        s.iterations,
+        s.stopped,
+        s.timing.read_s,
+        s.timing.vote_s,
+        s.timing.knn_s,
+        s.timing.train_s,
+        s.timing.label_s,
+        s.timing.write_s,
+        s.timing.predict_s,
+        s.test_views.len(),
+        args.out.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,398 @@
+//! Text queries: a query vector (a prompt of `features/prompts.json`, or a vector file) matched
+//! against the per-label features (`fuse/label_features.npy`) with a calibrated "no match".
+//!
+//! The score of a label is LERF's / LangSplat's *relevancy*: with the label feature `f`, the
+//! query `q` and negatives `n_j` (all unit vectors),
+//!
+//! ```text
+//! relevancy(f) = min_j  exp(T·f·q) / (exp(T·f·q) + exp(T·f·n_j))  =  min_j σ(T·(f·q − f·n_j))
+//! ```
+//!
+//! with the temperature `T` = 10 of both papers. LERF's negatives are the canonical phrases
+//! "object", "things", "stuff", "texture"; here they are **every other prompt of
+//! `prompts.json`** (add those canonical phrases to the file to get them too), except the
+//! query's synonyms (prompts whose cosine with the query is ≥ `synonym_cos`, e.g. "a wall of a
+//! building" and "a facade of a building"). A label matches when its relevancy is at least
+//! `min_relevancy`: it is closer to the query than to every negative by a margin
+//! `ln(τ/(1−τ))/T`. Unlike the reference's per-view min–max normalisation (REFERENCE.md §5),
+//! the score is absolute, so a query for something absent returns nothing.
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::npy;
+use crate::sam::Prompts;
+
+/// Errors of text queries.
+#[derive(Debug, thiserror::Error)]
+pub enum TextError {
+    #[error(transparent)]
+    Npy(#[from] npy::NpyError),
+    #[error("{path}: {why}")]
+    Invalid { path: PathBuf, why: String },
+    #[error("{0}")]
+    Refused(String),
+}
+
+/// Options of text matching.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TextOptions {
+    /// Softmax temperature T (LERF, LangSplat: 10).
+    pub temperature: f64,
+    /// A label matches when its relevancy is ≥ this (calibrated on the simulated street
+    /// features, docs/query.md).
+    pub min_relevancy: f64,
+    /// Prompts at least this similar to the query are synonyms, not negatives.
+    pub synonym_cos: f64,
+}
+
+/// The calibrated default threshold (docs/query.md, "Calibration").
+pub const MIN_RELEVANCY: f64 = 0.85;
+
+impl Default for TextOptions {
+    fn default() -> Self {
+        TextOptions {
+            temperature: 10.0,
+            min_relevancy: MIN_RELEVANCY,
+            synonym_cos: 0.8,
+        }
+    }
+}
+
+impl TextOptions {
+    /// Checks the ranges.
+    pub fn validate(&self) -> Result<(), TextError> {
+        if !(self.temperature.is_finite() && self.temperature > 0.0) {
+            return Err(TextError::Refused(format!(
+                "temperature {} must be a positive number",
+                self.temperature
+            )));
+        }
+        if !(0.0..=1.0).contains(&self.min_relevancy) {
+            return Err(TextError::Refused(format!(
+                "min relevancy {} must lie in [0, 1]",
+                self.min_relevancy
+            )));
+        }
+        if !(-1.0..=1.0).contains(&self.synonym_cos) {
+            return Err(TextError::Refused(format!(
+                "synonym cosine {} must lie in [-1, 1]",
+                self.synonym_cos
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Per-label features: row `i` belongs to `labels.labels[i]`; unit length, `None` for a zero
+/// row (no feature).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LabelFeatures {
+    pub dim: usize,
+    pub rows: Vec<Option<Vec<f32>>>,
+}
+
+fn unit(v: &[f32]) -> Option<Vec<f32>> {
+    let n = v
+        .iter()
+        .map(|&x| f64::from(x) * f64::from(x))
+        .sum::<f64>()
+        .sqrt();
+    (n.is_finite() && n > 1e-12).then(|| v.iter().map(|&x| (f64::from(x) / n) as f32).collect())
+}
+
+fn dot(a: &[f32], b: &[f32]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(&x, &y)| f64::from(x) * f64::from(y))
+        .sum()
+}
+
+impl LabelFeatures {
+    /// From rows (normalised here; all-zero rows become `None`). Non-finite values are an
+    /// error naming the row.
+    pub fn new(path: &Path, dim: usize, data: &[f32]) -> Result<LabelFeatures, TextError> {
+        if dim == 0 || data.len() % dim != 0 {
+            return Err(TextError::Invalid {
+                path: path.to_path_buf(),
+                why: format!("{} values do not make rows of {dim}", data.len()),
+            });
+        }
+        let mut rows = Vec::with_capacity(data.len() / dim);
+        for (i, r) in data.chunks(dim).enumerate() {
+            if let Some(j) = r.iter().position(|x| !x.is_finite()) {
+                return Err(TextError::Invalid {
+                    path: path.to_path_buf(),
+                    why: format!("row {i}, column {j} is {} (not finite)", r[j]),
+                });
+            }
+            rows.push(unit(r));
+        }
+        Ok(LabelFeatures { dim, rows })
+    }
+
+    /// Reads `label_features.npy` (float32 L×D); `labels` is L, the size of the label table.
+    pub fn read(path: &Path, labels: usize) -> Result<LabelFeatures, TextError> {
+        let (shape, data) = npy::read::<f32>(path)?;
+        let bad = |why: String| TextError::Invalid {
+            path: path.to_path_buf(),
+            why,
+        };
+        let [l, d] = shape[..] else {
+            return Err(bad(format!(
+                "expected a 2-D L×D array, found shape {shape:?}"
+            )));
+        };
+        if l != labels {
+            return Err(bad(format!(
+                "{l} rows, the label table (labels.json) has {labels} labels"
+            )));
+        }
+        if d == 0 {
+            return Err(bad("feature dimension 0".into()));
+        }
+        LabelFeatures::new(path, d, &data)
+    }
+}
+
+/// A query vector and its negatives.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TextQuery {
+    /// The prompt, or the vector file's path.
+    pub query: String,
+    pub vector: Vec<f32>,
+    /// Negative prompts (text, unit vector).
+    pub negatives: Vec<(String, Vec<f32>)>,
+    /// Prompts left out of the negatives as synonyms of the query.
+    pub synonyms: Vec<String>,
+}
+
+/// The prompt named `text` (exact, else ignoring case and surrounding spaces).
+fn find_prompt<'a>(prompts: &'a Prompts, text: &str) -> Option<(&'a String, &'a Vec<f32>)> {
+    prompts.prompts.get_key_value(text).or_else(|| {
+        let t = text.trim();
+        prompts
+            .prompts
+            .iter()
+            .find(|(k, _)| k.trim().eq_ignore_ascii_case(t))
+    })
+}
+
+/// Builds a query from a prompt text of `prompts` (`path` names the file in errors) or from a
+/// given vector, with every other non-synonym prompt as a negative.
+pub fn build_query(
+    prompts: &Prompts,
+    path: &Path,
+    query: Result<&str, (&str, &[f32])>,
+    opts: &TextOptions,
+) -> Result<TextQuery, TextError> {
+    let bad = |why: String| TextError::Invalid {
+        path: path.to_path_buf(),
+        why,
+    };
+    for (k, v) in &prompts.prompts {
+        if v.len() != prompts.dim {
+            return Err(bad(format!(
+                "prompt \"{k}\" has {} values, the file says dim {}",
+                v.len(),
+                prompts.dim
+            )));
+        }
+    }
+    let (name, raw, self_key) = match query {
+        Ok(text) => {
+            let (k, v) = find_prompt(prompts, text).ok_or_else(|| {
+                TextError::Refused(format!(
+                    "\"{text}\" is not a prompt of {} (prompts: {}); give its vector with --text-feature",
+                    path.display(),
+                    prompts
+                        .prompts
+                        .keys()
+                        .map(|k| format!("\"{k}\""))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ))
+            })?;
+            (k.clone(), v.as_slice(), Some(k.clone()))
+        }
+        Err((name, v)) => {
+            if v.len() != prompts.dim {
+                return Err(TextError::Refused(format!(
+                    "{name}: the query vector has {} values, the prompts of {} have {}",
+                    v.len(),
+                    path.display(),
+                    prompts.dim
+                )));
+            }
+            (name.to_string(), v, None)
+        }
+    };
+    let q = unit(raw).ok_or_else(|| {
+        TextError::Refused(format!("{name}: the query vector is zero or not finite"))
+    })?;
+    let mut negatives = Vec::new();
+    let mut synonyms = Vec::new();
+    for (k, v) in &prompts.prompts {
+        if self_key.as_ref() == Some(k) {
+            continue;
+        }
+        let Some(n) = unit(v) else {
+            return Err(bad(format!(
+                "prompt \"{k}\" is a zero or non-finite vector"
+            )));
+        };
+        if dot(&q, &n) >= opts.synonym_cos {
+            synonyms.push(k.clone());
+        } else {
+            negatives.push((k.clone(), n));
+        }
+    }
+    if negatives.is_empty() {
+        return Err(TextError::Refused(format!(
+            "{} holds no prompt to compare \"{name}\" against (a text query needs negatives: other prompts, or LERF's canonical phrases \"object\", \"things\", \"stuff\", \"texture\")",
+            path.display()
+        )));
+    }
+    Ok(TextQuery {
+        query: name,
+        vector: q,
+        negatives,
+        synonyms,
+    })
+}
+
+/// The relevancy of unit feature `f` for `q` (module docs), and the negative that bounds it.
+pub fn relevancy(q: &TextQuery, f: &[f32], temperature: f64) -> (f64, usize) {
+    let fq = dot(f, &q.vector);
+    let mut worst = (f64::INFINITY, 0);
+    for (j, (_, n)) in q.negatives.iter().enumerate() {
+        let r = 1.0 / (1.0 + (-temperature * (fq - dot(f, n))).exp());
+        if r < worst.0 {
+            worst = (r, j);
+        }
+    }
+    worst
+}
+
+/// One text term's outcome.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TextMatch {
+    pub query: String,
+    pub threshold: f64,
+    pub temperature: f64,
+    pub negatives: Vec<String>,
+    pub synonyms: Vec<String>,
+    /// Labels with a feature that were scored.
+    pub labels_scored: usize,
+    /// Labels at or above the threshold.
+    pub labels_matched: usize,
+    /// Best relevancy over all scored labels (null when no label has a feature).
+    pub best: Option<f64>,
+    pub best_label: Option<i32>,
+    /// The negative that bounds the best label's relevancy.
+    pub best_against: Option<String>,
+    /// Up to 5 best labels: (label id, relevancy).
+    pub top: Vec<(i32, f64)>,
+}
+
+/// Scores every label: `(relevancy per label row (None without a feature), summary)`.
+pub fn score_labels(
+    q: &TextQuery,
+    features: &LabelFeatures,
+    label_ids: &[i32],
+    opts: &TextOptions,
+) -> (Vec<Option<f64>>, TextMatch) {
+    use rayon::prelude::*;
+    let scored: Vec<Option<(f64, usize)>> = features
+        .rows
+        .par_iter()
+        .map(|row| row.as_ref().map(|f| relevancy(q, f, opts.temperature)))
+        .collect();
+    let scores: Vec<Option<f64>> = scored.iter().map(|s| s.map(|x| x.0)).collect();
+    let mut ranked: Vec<(i32, f64, usize)> = scored
+        .iter()
+        .zip(label_ids)
+        .filter_map(|(s, &id)| s.map(|(r, j)| (id, r, j)))
+        .collect();
+    ranked.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+    let m = TextMatch {
+        query: q.query.clone(),
+        threshold: opts.min_relevancy,
+        temperature: opts.temperature,
+        negatives: q.negatives.iter().map(|n| n.0.clone()).collect(),
+        synonyms: q.synonyms.clone(),
+        labels_scored: ranked.len(),
+        labels_matched: ranked.iter().filter(|r| r.1 >= opts.min_relevancy).count(),
+        best: ranked.first().map(|r| r.1),
+        best_label: ranked.first().map(|r| r.0),
+        best_against: ranked.first().map(|r| q.negatives[r.2].0.clone()),
+        top: ranked.iter().take(5).map(|r| (r.0, r.1)).collect(),
+    };
+    (scores, m)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::BTreeMap;
+
+    fn prompts(list: &[(&str, Vec<f32>)]) -> Prompts {
+        Prompts {
+            simulated: false,
+            dim: list[0].1.len(),
+            prompts: list
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.clone()))
+                .collect::<BTreeMap<_, _>>(),
+        }
+    }
+
+    #[test]
+    fn relevancy_is_the_pairwise_softmax_against_the_worst_negative() {
+        // Orthonormal axes: query e0, negatives e1, e2; a synonym close to e0.
+        let p = prompts(&[
+            ("car", vec![1.0, 0.0, 0.0, 0.0]),
+            ("tree", vec![0.0, 1.0, 0.0, 0.0]),
+            ("road", vec![0.0, 0.0, 1.0, 0.0]),
+            ("automobile", vec![0.95, 0.0, 0.0, 0.31]),
+        ]);
+        let o = TextOptions::default();
+        let q = build_query(&p, Path::new("p.json"), Ok(" CAR "), &o).unwrap();
+        assert_eq!(q.query, "car");
+        assert_eq!(q.synonyms, vec!["automobile".to_string()]);
+        assert_eq!(q.negatives.len(), 2);
+        // f = (0.6, 0.8, 0, 0): f·q = 0.6, f·tree = 0.8, f·road = 0 → min(σ(−2), σ(6)) = σ(−2).
+        let (r, j) = relevancy(&q, &[0.6, 0.8, 0.0, 0.0], 10.0);
+        let want = 1.0 / (1.0 + 2f64.exp());
+        assert!((r - want).abs() < 1e-6, "{r} {want}"); // f32 inputs
+        assert_eq!(q.negatives[j].0, "tree");
+        // f = e0: σ(10) against both.
+        let (r, _) = relevancy(&q, &[1.0, 0.0, 0.0, 0.0], 10.0);
+        assert!((r - 1.0 / (1.0 + (-10f64).exp())).abs() < 1e-12);
+        // Unknown prompt, wrong vector length, no negatives: refused with a reason.
+        let e = build_query(&p, Path::new("p.json"), Ok("a bus"), &o)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not a prompt") && e.contains("\"tree\""), "{e}");
+        let e = build_query(&p, Path::new("p.json"), Err(("q.npy", &[1.0, 0.0])), &o)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("2 values") && e.contains("have 4"), "{e}");
+        let one = prompts(&[("car", vec![1.0, 0.0])]);
+        let e = build_query(&one, Path::new("p.json"), Ok("car"), &o)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("no prompt to compare"), "{e}");
+    }
+
+    #[test]
+    fn label_features_are_normalised_and_zero_rows_have_none() {
+        let f = LabelFeatures::new(Path::new("f.npy"), 2, &[3.0, 4.0, 0.0, 0.0]).unwrap();
+        assert_eq!(f.rows[0], Some(vec![0.6, 0.8]));
+        assert_eq!(f.rows[1], None);
+        let e = LabelFeatures::new(Path::new("f.npy"), 2, &[1.0, f32::NAN])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("row 0, column 1"), "{e}");
+    }
+}
