@@ -7,6 +7,7 @@ mod demo;
 mod eval;
 mod fuse;
 mod lift;
+mod masks;
 mod query;
 mod raycast;
 mod render;
@@ -47,6 +48,8 @@ enum Command {
     Lift(lift::LiftArgs),
     /// Learn per-Gaussian identity codes and a classifier from per-view labels (paper §3.3), starting from the vote; semantic PLY, test-view maps.
     Train(train::TrainArgs),
+    /// Filter the scene's SAM masks against the city model (paper §3.2; depth test; mask-free source).
+    Masks(masks::MasksArgs),
     /// A scene folder through every stage (citymodel → raycast → render cache → lift → eval), resuming complete stages; report.html.
     Run(run::RunArgs),
     /// The demo: bundled data → simulated scene → every stage → report.html.
@@ -80,6 +83,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Associate(args) => associate::run(&args),
         Command::Fuse(args) => fuse::run(&args),
         Command::Train(args) => train::run(&args),
+        Command::Masks(args) => masks::run(&args),
         Command::Run(args) => run::run(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),

@@ -909,9 +909,16 @@ pub fn simulate_prompts(cfg: &FeatureNoise) -> Prompts {
             )
         })
         .collect();
+    // Each prompt's class as the simulation knows it ("a building", the shared building
+    // direction, counts as a wall: a building prompt).
+    let prompt_classes = PROMPTS
+        .iter()
+        .map(|&(text, class)| (text.to_string(), class.unwrap_or(classes::WALL)))
+        .collect();
     Prompts {
         simulated: true,
         dim: FEATURE_DIM,
         prompts,
+        classes: prompt_classes,
     }
 }
