@@ -62,6 +62,16 @@ pub struct LabelTable {
     index: HashMap<i32, usize>,
 }
 
+/// The fused id of image group `group`: `group + Δ`; an error where it does not fit in `i32`.
+pub fn image_id(delta: i32, group: usize) -> Result<i32, LabelsError> {
+    i32::try_from(group)
+        .ok()
+        .and_then(|g| g.checked_add(delta))
+        .ok_or_else(|| {
+            LabelsError::Overflow(format!("group {group} + Δ = {delta} does not fit in int32"))
+        })
+}
+
 /// `Δ` for `entities` city entities: the count rounded up to a power of ten, at least 10 000.
 pub fn delta_for(entities: usize) -> Result<i32, LabelsError> {
     let mut d: i64 = 10_000;
@@ -122,6 +132,34 @@ impl LabelTable {
                 level: Some(e.level),
             })
             .collect();
+        LabelTable::new(delta, labels).map_err(LabelsError::Overflow)
+    }
+
+    /// The fused table: one label per entity (class `classes[entity]`), then one image label per
+    /// group `g` with id `g + Δ` and class `group_classes[g]`. An id beyond `i32` is an error.
+    pub fn fused(
+        entities: &[crate::citymodel::Entity],
+        classes: &[i32],
+        group_classes: &[i32],
+    ) -> Result<LabelTable, LabelsError> {
+        let city = LabelTable::city(entities, classes)?;
+        let delta = city.delta;
+        let mut labels = city.labels;
+        labels.reserve(group_classes.len());
+        if let Some(last) = group_classes.len().checked_sub(1) {
+            image_id(delta, last)?;
+        }
+        for (g, &class) in group_classes.iter().enumerate() {
+            let id = image_id(delta, g)?;
+            labels.push(Label {
+                id,
+                source: Source::Image,
+                entity: None,
+                group: Some(id - delta),
+                class,
+                level: None,
+            });
+        }
         LabelTable::new(delta, labels).map_err(LabelsError::Overflow)
     }
 
@@ -201,5 +239,33 @@ mod tests {
         let mut bad = image(3);
         bad.id = 10_004;
         assert!(LabelTable::new(10_000, vec![bad]).is_err());
+    }
+
+    #[test]
+    fn fused_table_offsets_groups_by_delta_and_refuses_overflow() {
+        let e = |id: i32| crate::citymodel::Entity {
+            id,
+            object_id: format!("e{id}"),
+            class: "WallSurface".into(),
+            level: Level::Surface,
+            parent: None,
+            building: 0,
+            source: String::new(),
+            lod: Some(3),
+            attributes: Default::default(),
+        };
+        let ents = vec![e(0), e(1)];
+        let t = LabelTable::fused(&ents, &[0, 2], &[8, 11, 6]).unwrap();
+        assert_eq!(t.delta, 10_000);
+        assert_eq!(t.labels.len(), 5);
+        assert_eq!(t.class_of(1), 2);
+        assert_eq!(t.class_of(10_002), 6);
+        assert_eq!(t.get(10_001).unwrap().group, Some(1));
+        assert_eq!(t.get(10_001).unwrap().source, Source::Image);
+        // The last group that fits after Δ = 10 000 is 2^31 − 1 − 10 000.
+        let last = (i32::MAX - 10_000) as usize;
+        assert_eq!(image_id(10_000, last).unwrap(), i32::MAX);
+        let err = image_id(10_000, last + 1).unwrap_err();
+        assert!(err.to_string().contains("int32"), "{err}");
     }
 }

@@ -3,9 +3,10 @@
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
 //! [`mesh`], [`ply`] (the PLY format under `splat` and `mesh`), [`npy`], [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
-//! Stages: [`citymodel`], [`refine`], [`raycast`], [`render`], [`lift`], [`train`], [`eval`], [`query`]. See ARCHITECTURE.md for the data flow.
+//! Stages: [`citymodel`], [`refine`], [`raycast`], [`render`], [`masks`], [`associate`], [`fuse`], [`lift`], [`train`], [`eval`], [`query`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
+pub mod associate;
 pub mod bundled;
 pub mod camera;
 pub mod citygml;
@@ -16,6 +17,7 @@ pub mod colmap;
 pub mod embree;
 pub mod eval;
 pub mod fsutil;
+pub mod fuse;
 pub mod imageio;
 pub mod labels;
 pub mod lift;

@@ -1,9 +1,11 @@
 //! The command line: one subcommand per stage (DESIGN.md). Only this module uses `anyhow`.
 //! Each subcommand parses its arguments, validates them into a config, then runs.
 mod align;
+mod associate;
 mod citymodel;
 mod demo;
 mod eval;
+mod fuse;
 mod lift;
 mod masks;
 mod query;
@@ -38,6 +40,10 @@ enum Command {
     /// Render a 3DGS PLY (CPU, INRIA forward pass) into COLMAP views → PNG, depth .npy, features;
     /// or (--cache) the per-pixel contribution lists every later stage reuses.
     Render(render::RenderArgs),
+    /// Link the kept masks of all views into scene-consistent groups through the Gaussians (memory bank).
+    Associate(associate::AssociateArgs),
+    /// Fuse associated groups with the city-model ids (image priority, offset Δ) → fused label maps, labels.json.
+    Fuse(fuse::FuseArgs),
     /// Lift per-view labels into the Gaussians (closed-form weighted vote over the cache), predict test views.
     Lift(lift::LiftArgs),
     /// Learn per-Gaussian identity codes and a classifier from per-view labels (paper §3.3), starting from the vote; semantic PLY, test-view maps.
@@ -74,6 +80,8 @@ pub fn main() -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(&args),
         Command::Query(args) => query::run(&args),
         Command::Lift(args) => lift::run(&args),
+        Command::Associate(args) => associate::run(&args),
+        Command::Fuse(args) => fuse::run(&args),
         Command::Train(args) => train::run(&args),
         Command::Masks(args) => masks::run(&args),
         Command::Run(args) => run::run(&args),

@@ -4,7 +4,8 @@ use std::path::PathBuf;
 use clap::Args;
 
 use crate::lift::LiftOptions;
-use crate::run::{self, RunOptions, RunSummary};
+use crate::masks::{Source, Test};
+use crate::run::{self, Mode, RunOptions, RunSummary, Supervision};
 
 #[derive(Debug, Args)]
 pub struct RunArgs {
@@ -34,6 +35,30 @@ pub struct RunArgs {
     /// run uses the refined transform (R/align/alignment.json, recorded in run.json).
     #[arg(long)]
     pub refine_alignment: bool,
+    /// Label supervision: fused (the city model fused with the scene's filtered, associated
+    /// masks: also trees, cars, people; paper §3.2) or city (the city model alone, §3.1).
+    #[arg(long, default_value = "fused", value_parser = ["fused", "city"])]
+    pub supervision: String,
+    /// Mask source of the masks stage: auto (the scene's SAM lists when it has masks/, else
+    /// the mask-free depth source), sam, depth.
+    #[arg(long, default_value = "auto")]
+    pub masks_source: Source,
+    /// Test of the masks stage for masks on the building: auto, features, geometry, both, overlap.
+    #[arg(long, default_value = "auto")]
+    pub masks_test: Test,
+    /// m_view: an associated group must be seen in at least this many views.
+    #[arg(long, default_value_t = crate::associate::AssociateOptions::default().min_views)]
+    pub min_views: usize,
+    /// No city-part snapping of windows and doors to the image's own masks in the fuse stage.
+    #[arg(long)]
+    pub no_snap: bool,
+    /// Per-Gaussian labels that are evaluated and queried: vote (closed form) or learned
+    /// (identity codes trained from the vote, the train stage).
+    #[arg(long, default_value = "vote")]
+    pub mode: Mode,
+    /// Training iterations of --mode learned.
+    #[arg(long, default_value_t = crate::train::TrainOptions::default().iterations)]
+    pub iterations: usize,
     /// Rerun every stage even when its output is complete.
     #[arg(long)]
     pub force: bool,
@@ -60,11 +85,42 @@ impl RunArgs {
                 crate::render::cache::MAX_LIST
             );
         }
+        let d = RunOptions::default();
+        let masks = crate::masks::MasksOptions {
+            source: self.masks_source,
+            test: self.masks_test,
+            ..d.masks.clone()
+        };
+        masks.validate()?;
+        let associate = crate::associate::AssociateOptions {
+            min_views: self.min_views,
+            ..d.associate
+        };
+        associate.validate()?;
+        let fuse = crate::fuse::FuseOptions {
+            snap: !self.no_snap,
+            ..d.fuse
+        };
+        let train = crate::train::TrainOptions {
+            iterations: self.iterations,
+            ..d.train
+        };
+        train.validate()?;
         Ok(RunOptions {
             tau_m: self.tau,
             single_pass: self.single_pass,
             top_k: self.top_k,
             lift,
+            supervision: if self.supervision == "city" {
+                Supervision::City
+            } else {
+                Supervision::Fused
+            },
+            masks,
+            associate,
+            fuse,
+            mode: self.mode,
+            train,
             test_every: self.test_every,
             local_origin: self.local_origin,
             refine_alignment: self.refine_alignment,

@@ -1,6 +1,8 @@
 //! The `run` stage: a scene folder through every stage into a run folder `R` (DESIGN.md,
-//! "Wave 2 contract"): `R/citymodel` → `R/raycast` → `R/render` (the contributions cache) →
-//! `R/lift` → `R/eval` (when the scene has `gt/`), `R/report.html` and `R/run.json`.
+//! "Wave 2 contract"): [`R/align`] → `R/citymodel` → `R/raycast` → `R/render` (the contributions
+//! cache) → `R/masks` → `R/associate` → `R/fuse` → `R/lift` (the vote) → [`R/train`] → `R/eval`
+//! (when the scene has `gt/`), `R/report.html` and `R/run.json`. With `--supervision city` the
+//! mask stages are skipped and the vote reads `M_city` alone (paper §3.1).
 //!
 //! Each stage is a library function from typed inputs to a typed summary; this module only wires
 //! them: it passes paths and typed summaries, never reads a stage's JSON by key. The run store
@@ -11,20 +13,25 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::associate::{self, AssociateOptions, AssociateSummary};
 use crate::camera::View;
 use crate::citymodel::{self, Alignment, CitymodelSummary};
 use crate::eval::EvalSummary;
+use crate::fuse::{self, FuseOptions, FuseSummary};
 use crate::labels::LabelTable;
 use crate::lift::{self, LabelMaps, LiftOptions, LiftSummary};
+use crate::masks::{self, MasksOptions, MasksSummary};
+pub use crate::query::Mode;
 use crate::raycast::{self, RaycastSummary};
 use crate::render::cache::{self, Cache, CacheOptions, CacheSummary};
 use crate::scene::{Scene, SceneError, Split};
+use crate::train::{self, TrainOptions, TrainSummary};
 use crate::{classes, colmap, fsutil};
 pub use store::StageReport;
 use store::{Store, StoreError};
 
 /// The stage folders of a run, in order.
-pub const STAGES: [&str; 9] = [
+pub const STAGES: [&str; 10] = [
     "align",
     "citymodel",
     "raycast",
@@ -33,8 +40,21 @@ pub const STAGES: [&str; 9] = [
     "associate",
     "fuse",
     "lift",
+    "train",
     "eval",
 ];
+
+/// What the per-Gaussian labels are learned from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Supervision {
+    /// `M_city` alone (paper §3.1): buildings, surfaces and openings only.
+    City,
+    /// `M_city` fused with the scene's filtered and associated masks (paper §3.2): also trees,
+    /// cars, people and other objects. A scene without `masks/` uses the mask-free source.
+    #[default]
+    Fused,
+}
 
 /// Errors of the run stage.
 #[derive(Debug, thiserror::Error)]
@@ -75,6 +95,14 @@ pub enum RunError {
     Refine(#[from] crate::refine::RefineError),
     #[error(transparent)]
     Query(#[from] crate::query::QueryError),
+    #[error(transparent)]
+    Masks(#[from] masks::MasksError),
+    #[error(transparent)]
+    Associate(#[from] associate::AssociateError),
+    #[error(transparent)]
+    Fuse(#[from] fuse::FuseError),
+    #[error(transparent)]
+    Train(#[from] train::TrainError),
 }
 
 /// Every option of a run (recorded in `run.json`).
@@ -86,6 +114,15 @@ pub struct RunOptions {
     /// Contribution-list length of the cache (0 = complete lists).
     pub top_k: usize,
     pub lift: LiftOptions,
+    /// Where the labels come from (city model alone, or fused with the masks).
+    pub supervision: Supervision,
+    pub masks: MasksOptions,
+    pub associate: AssociateOptions,
+    pub fuse: FuseOptions,
+    /// The per-Gaussian labels that are evaluated and queried: the vote, or identity learning
+    /// (the `train` stage, which starts from the vote).
+    pub mode: Mode,
+    pub train: TrainOptions,
     /// Every `test_every`-th view (by name) is a test view; 0 = none.
     pub test_every: usize,
     /// Run without `citymodel/alignment.json` (the CityGML coordinates minus a local origin).
@@ -105,6 +142,12 @@ impl Default for RunOptions {
             single_pass: false,
             top_k: 16,
             lift: LiftOptions::default(),
+            supervision: Supervision::Fused,
+            masks: MasksOptions::default(),
+            associate: AssociateOptions::default(),
+            fuse: FuseOptions::default(),
+            mode: Mode::Vote,
+            train: TrainOptions::default(),
             test_every: 8,
             local_origin: false,
             refine_alignment: false,
@@ -270,34 +313,138 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     })?;
     let cache = Cache::open(&st.dir("render"))?;
 
-    // 4. lift: the vote of M_city over the training views
+    let entities = citymodel::read_semantics(&cm_dir.join("semantics.json"))?;
+
+    // 4–6. masks → associate → fuse: the fused supervision (paper §3.2), training views only
+    let (maps, labels, label_stages): (LabelMaps, LabelTable, Vec<&str>) = match opts.supervision {
+        Supervision::City => (
+            LabelMaps::City(rc_dir.clone()),
+            LabelTable::city(&entities, &classes::table(&entities))?,
+            vec!["citymodel", "raycast"],
+        ),
+        Supervision::Fused => {
+            let scale = cm.alignment.scale;
+            // The scene's SAM lists and features of the training views (their digests decide
+            // whether the mask stages rerun).
+            let mut inputs: Vec<PathBuf> = Vec::new();
+            for v in &split.train {
+                let stem = v.stem();
+                inputs.extend(scene.sam_file(&stem));
+                inputs.extend(scene.feature_file(&stem));
+            }
+            inputs.extend(scene.prompts_file());
+            let features = scene.features.clone();
+            let ms: MasksSummary = st.stage(
+                "masks",
+                &opts.masks,
+                &inputs,
+                &["citymodel", "raycast", "render"],
+                |dir| {
+                    Ok::<_, RunError>(masks::run(
+                        &masks::MasksInputs {
+                            scene: &scene,
+                            views: &split.train,
+                            raycast: &rc_dir,
+                            cache: Some(&cache),
+                            alignment_scale: scale,
+                        },
+                        &opts.masks,
+                        dir,
+                    )?)
+                },
+            )?;
+            let masks_dir = st.dir("masks");
+            let _as: AssociateSummary = st.stage(
+                "associate",
+                &opts.associate,
+                &inputs,
+                &["masks", "render"],
+                |dir| {
+                    Ok::<_, RunError>(associate::run(
+                        &associate::AssociateInputs {
+                            views: &split.train,
+                            masks: &masks_dir,
+                            features: features.as_deref(),
+                            cache: &cache,
+                            ply: &scene.ply,
+                            scale,
+                        },
+                        &opts.associate,
+                        dir,
+                    )?)
+                },
+            )?;
+            let as_dir = st.dir("associate");
+            let sam = scene
+                .masks
+                .as_deref()
+                .filter(|_| ms.source == masks::Source::Sam);
+            let mut fo = opts.fuse;
+            fo.snap &= sam.is_some();
+            let _fs: FuseSummary = st.stage(
+                "fuse",
+                &fo,
+                &inputs,
+                &["citymodel", "raycast", "masks", "associate"],
+                |dir| {
+                    Ok::<_, RunError>(fuse::run(
+                        &fuse::FuseInputs {
+                            views: &split.train,
+                            associate: &as_dir,
+                            raycast: &rc_dir,
+                            entities: &entities,
+                            sam,
+                            features: features.as_deref(),
+                            kept: Some(&masks_dir),
+                        },
+                        &fo,
+                        dir,
+                    )?)
+                },
+            )?;
+            let fuse_dir = st.dir("fuse");
+            (
+                LabelMaps::Fused(fuse_dir.clone()),
+                LabelTable::read(&fuse_dir.join("labels.json"))?,
+                vec!["citymodel", "fuse"],
+            )
+        }
+    };
+
+    // 7. lift: the vote of the labels over the training views
     let lift_opts = (opts.lift, opts.test_every);
-    let lift_s: LiftSummary = st.stage(
+    let mut upstream = label_stages.clone();
+    upstream.push("render");
+    let inputs = LiftInputsOwned {
+        ply: &scene.ply,
+        cache: &cache,
+        split: &split,
+        maps: &maps,
+        labels: &labels,
+        entities: &entities,
+    };
+    let _lift: LiftSummary = st.stage(
         "lift",
         &lift_opts,
         std::slice::from_ref(&scene.ply),
-        &["citymodel", "raycast", "render"],
-        |dir| {
-            let entities = citymodel::read_semantics(&cm_dir.join("semantics.json"))?;
-            let labels = LabelTable::city(&entities, &classes::table(&entities))?;
-            Ok::<_, RunError>(lift::run(
-                &lift::LiftInputs {
-                    ply: &scene.ply,
-                    cache: &cache,
-                    train: &split.train,
-                    test: &split.test,
-                    maps: &LabelMaps::City(rc_dir.clone()),
-                    labels: &labels,
-                    entities: &entities,
-                },
-                &opts.lift,
-                dir,
-            )?)
-        },
+        &upstream,
+        |dir| Ok::<_, RunError>(lift::run(&inputs.get(), &opts.lift, dir)?),
     )?;
-    let pred_dir = st.dir("lift");
 
-    // 5. eval on the test views, when the scene has ground truth
+    // 8. train (mode learned): identity codes + classifier, starting from the vote
+    if opts.mode == Mode::Learned {
+        let train_opts = (opts.train, opts.test_every);
+        let _t: TrainSummary = st.stage(
+            "train",
+            &train_opts,
+            std::slice::from_ref(&scene.ply),
+            &upstream,
+            |dir| Ok::<_, RunError>(train::run(&inputs.get(), &opts.train, dir)?),
+        )?;
+    }
+    let pred_dir = st.dir(opts.mode.dir());
+
+    // 9. eval on the test views, when the scene has ground truth
     let mut eval_summary = None;
     if let Some(gt) = &scene.gt {
         let stems = split.test_stems();
@@ -306,28 +453,36 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
             .map(|s| gt.join(format!("{s}.class.npy")))
             .filter(|p| p.is_file())
             .collect();
-        let mode = "vote";
-        let e: EvalSummary = st.stage("eval", &(mode, &stems), &inputs, &["lift"], |dir| {
-            let (mut e, _) = crate::eval::run_for(&pred_dir, gt, dir, Some(&stems), Some(mode))?;
-            // The paper's query-driven evaluation, next to the class maps'.
-            let sr =
-                crate::query::SemanticRun::open(out, &scene.root, Some(crate::query::Mode::Vote))?;
-            let bq = crate::query::evaluate::evaluate(
-                &sr,
-                &cache,
-                gt,
-                &stems,
-                Default::default(),
-                Default::default(),
-            )?;
-            fsutil::write_json(&dir.join("metrics_by_query.json"), &bq)?;
-            e.by_query_tables = Some(bq.tables);
-            fsutil::write_json(&dir.join("summary.json"), &e)?;
-            Ok::<_, RunError>(e)
-        })?;
+        let mode = match opts.mode {
+            Mode::Vote => "vote",
+            Mode::Learned => "learned",
+        };
+        let e: EvalSummary = st.stage(
+            "eval",
+            &(mode, &stems),
+            &inputs,
+            &[opts.mode.dir()],
+            |dir| {
+                let (mut e, _) =
+                    crate::eval::run_for(&pred_dir, gt, dir, Some(&stems), Some(mode))?;
+                // The paper's query-driven evaluation, next to the class maps'.
+                let sr = crate::query::SemanticRun::open(out, &scene.root, Some(opts.mode))?;
+                let bq = crate::query::evaluate::evaluate(
+                    &sr,
+                    &cache,
+                    gt,
+                    &stems,
+                    Default::default(),
+                    Default::default(),
+                )?;
+                fsutil::write_json(&dir.join("metrics_by_query.json"), &bq)?;
+                e.by_query_tables = Some(bq.tables);
+                fsutil::write_json(&dir.join("summary.json"), &e)?;
+                Ok::<_, RunError>(e)
+            },
+        )?;
         eval_summary = Some(e);
     }
-    let _ = lift_s;
 
     // Report (rewritten every time: it lists what this invocation resumed).
     let report = crate::report::write(&crate::report::ReportInputs {
@@ -348,6 +503,30 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     };
     fsutil::write_json(&out.join("summary.json"), &summary)?;
     Ok(summary)
+}
+
+/// The inputs the vote and the training share (both take [`lift::LiftInputs`]).
+struct LiftInputsOwned<'a> {
+    ply: &'a Path,
+    cache: &'a Cache,
+    split: &'a Split,
+    maps: &'a LabelMaps,
+    labels: &'a LabelTable,
+    entities: &'a [citymodel::Entity],
+}
+
+impl LiftInputsOwned<'_> {
+    fn get(&self) -> lift::LiftInputs<'_> {
+        lift::LiftInputs {
+            ply: self.ply,
+            cache: self.cache,
+            train: &self.split.train,
+            test: &self.split.test,
+            maps: self.maps,
+            labels: self.labels,
+            entities: self.entities,
+        }
+    }
 }
 
 /// The views of `names` in `views` (for callers that hold stems).

@@ -1,0 +1,889 @@
+//! The `associate` stage (paper §3.2, cross-view association): the masks each view kept are
+//! view-specific; this stage links them into scene-consistent groups through the pre-trained
+//! Gaussians, used only as a geometric bridge, and transfers the group ids back to every view.
+//!
+//! Per view, the kept masks are composited into one label image ([`candidates::composite`]) and
+//! each mask gets its candidate Gaussians `C(s)` ([`CandidateMode`]). The memory bank
+//! ([`bank`]) groups the masks (the paper's rule, `τ_geo`, `τ_sim`, running-mean features,
+//! exclusive Gaussian ownership) and a consolidation pass makes the result robust to the
+//! visiting order. Groups seen in fewer than `m_view` views, and groups whose centroid lies
+//! farther than the far-field distance (80 m × alignment scale) from every camera, are dropped.
+//!
+//! Outputs (DESIGN.md, "Wave 2 contract"): per view `<stem>.ids.npy` (int32 H×W, group id ≥ 0,
+//! −1 none), `groups.json` ([`GroupsFile`]), `features.npy` (float32 G×D, the unit mean feature
+//! of each group, when the masks have features) and `summary.json` (last).
+//!
+//! Deterministic: views are visited in name order (or a seeded shuffle, for robustness
+//! measurements), masks in file order; per-view work runs in parallel but is consumed in order.
+pub mod bank;
+pub mod candidates;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+pub use bank::{BankOptions, Consolidation};
+pub use candidates::{CandidateMode, ProjectedLimits, WeightedLimits};
+
+use crate::camera::View;
+use crate::classes;
+use crate::fsutil::{self, FsError};
+use crate::masks::{self, KeptMask, MasksError};
+use crate::npy::{self, NpyError};
+use crate::progress::Bar;
+use crate::render::cache::{Cache, CacheError};
+
+/// Errors of the associate stage. Each names the file at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum AssociateError {
+    #[error("invalid option: {0}")]
+    Options(String),
+    #[error("{path}: {why}")]
+    Invalid { path: PathBuf, why: String },
+    #[error("{path}: mask {index}: bad RLE: {source}")]
+    Rle {
+        path: PathBuf,
+        index: usize,
+        source: crate::sam::RleError,
+    },
+    #[error(transparent)]
+    Masks(#[from] MasksError),
+    #[error(transparent)]
+    Cache(#[from] CacheError),
+    #[error(transparent)]
+    Npy(#[from] NpyError),
+    #[error(transparent)]
+    Ply(#[from] crate::splat::PlyError),
+    #[error(transparent)]
+    Fs(#[from] FsError),
+}
+
+/// Options of the stage (defaults: the paper's / reference's values).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AssociateOptions {
+    pub candidates: CandidateMode,
+    /// Geometric overlap a mask needs to join a group (`R_geo > τ_geo`).
+    pub tau_geo: f64,
+    /// Feature cosine a mask needs to join a group, when both have features.
+    pub tau_sim: f64,
+    /// Groups seen in fewer views are dropped (`m_view`).
+    pub min_views: usize,
+    /// Groups whose centroid is farther than this (metres, × alignment scale) from every
+    /// camera are dropped.
+    pub far_field_m: f64,
+    pub weighted: WeightedLimits,
+    pub projected: ProjectedLimits,
+    /// Run the consolidation pass (order robustness, [`bank`]).
+    pub consolidate: bool,
+    /// Masks from distinct views needed to merge two groups in the consolidation pass …
+    pub merge_support: usize,
+    /// … and at least this share of the smaller group's views.
+    pub merge_fraction: f64,
+    /// Histogram intersection of two masks' normalised candidate weights above which they stay
+    /// linked when pass-1 groups are split.
+    pub tau_link: f64,
+    /// Visit the views in a seeded random order instead of by name (only to measure how much
+    /// the order matters).
+    pub shuffle_seed: Option<u64>,
+    /// Fill (beyond the paper): a pixel no kept mask labels takes the group whose Gaussians
+    /// make at least this share of its colour (α·T), where some group does; `None` = off.
+    pub fill: Option<f32>,
+}
+
+impl Default for AssociateOptions {
+    fn default() -> Self {
+        AssociateOptions {
+            candidates: CandidateMode::Weighted,
+            tau_geo: 0.2,
+            tau_sim: 0.7,
+            min_views: 3,
+            far_field_m: 80.0,
+            weighted: WeightedLimits::default(),
+            projected: ProjectedLimits::default(),
+            consolidate: true,
+            merge_support: 2,
+            merge_fraction: 0.3,
+            tau_link: 0.25,
+            shuffle_seed: None,
+            fill: Some(0.5),
+        }
+    }
+}
+
+impl AssociateOptions {
+    /// Checks the ranges.
+    pub fn validate(&self) -> Result<(), AssociateError> {
+        let bad = |s: String| Err(AssociateError::Options(s));
+        if !(0.0..1.0).contains(&self.tau_geo) {
+            return bad(format!("tau_geo must lie in [0, 1), got {}", self.tau_geo));
+        }
+        if !(-1.0..1.0).contains(&self.tau_sim) {
+            return bad(format!("tau_sim must lie in [-1, 1), got {}", self.tau_sim));
+        }
+        if self.far_field_m.is_nan() || self.far_field_m <= 0.0 {
+            return bad(format!("far_field_m must be > 0, got {}", self.far_field_m));
+        }
+        let w = &self.weighted;
+        if !((0.0..1.0).contains(&w.min_share) && w.min_mass >= 0.0 && w.min_mass.is_finite()) {
+            return bad(format!(
+                "weighted limits out of range: min_share {} (0 ≤ · < 1), min_mass {} (≥ 0)",
+                w.min_share, w.min_mass
+            ));
+        }
+        let p = &self.projected;
+        if let Some(f) = self.fill
+            && !(f > 0.0 && f <= 1.0)
+        {
+            return bad(format!("fill must lie in (0, 1], got {f}"));
+        }
+        if !(p.front_fraction > 0.0 && p.front_fraction <= 1.0) || p.grid == 0 || p.grid > 4096 {
+            return bad(format!(
+                "projected limits out of range: front_fraction {} (0 < · ≤ 1), grid {} (1–4096)",
+                p.front_fraction, p.grid
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Everything the stage reads.
+pub struct AssociateInputs<'a> {
+    /// The views to associate (the training views); visited in name order.
+    pub views: &'a [View],
+    /// The masks stage's folder (`<stem>.json`: the kept masks of each view).
+    pub masks: &'a Path,
+    /// The scene's `features/` folder (`<stem>.npy`, one row per SAM mask), when it exists.
+    pub features: Option<&'a Path>,
+    /// The contributions cache (read by the α·T candidates).
+    pub cache: &'a Cache,
+    /// The pre-trained 3DGS PLY the cache was built from (Gaussian centres).
+    pub ply: &'a Path,
+    /// The alignment scale (scene units per metre, `alignment.json`).
+    pub scale: f64,
+}
+
+/// One group in `groups.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GroupRecord {
+    pub id: i32,
+    /// Stems of the views it was seen in.
+    pub views: Vec<String>,
+    /// Masks assigned to it.
+    pub masks: usize,
+    /// Pixels it covers, over all views.
+    pub pixels: u64,
+    /// Gaussians it owns.
+    pub gaussians: usize,
+    /// Prompt class (pixel-weighted vote of its masks' classes), −1 unknown.
+    pub class: i32,
+    /// Centroid of its candidate Gaussians, weighted by their mass in the masks (scene frame).
+    pub centroid: [f64; 3],
+    /// Distance from the centroid to the nearest camera centre (scene units).
+    pub nearest_camera_distance: f64,
+}
+
+/// `groups.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GroupsFile {
+    /// Feature dimension of `features.npy`, none without features.
+    pub feature_dim: Option<usize>,
+    pub groups: Vec<GroupRecord>,
+}
+
+impl GroupsFile {
+    /// Reads `dir/groups.json`.
+    pub fn read(dir: &Path) -> Result<GroupsFile, FsError> {
+        fsutil::read_json(&dir.join("groups.json"))
+    }
+
+    /// The group features (`features.npy`, G×D, row i ↔ group i), when the file says they exist.
+    pub fn features(&self, dir: &Path) -> Result<Option<Vec<f32>>, AssociateError> {
+        let Some(d) = self.feature_dim else {
+            return Ok(None);
+        };
+        let path = dir.join("features.npy");
+        let (shape, data) = npy::read::<f32>(&path)?;
+        if shape != [self.groups.len(), d] {
+            return Err(AssociateError::Invalid {
+                path,
+                why: format!(
+                    "shape {shape:?}, groups.json lists {} groups of dimension {d}",
+                    self.groups.len()
+                ),
+            });
+        }
+        Ok(Some(data))
+    }
+}
+
+/// Path of view `stem`'s group map in an associate folder.
+pub fn ids_file(dir: &Path, stem: &str) -> PathBuf {
+    dir.join(format!("{stem}.ids.npy"))
+}
+
+/// Reads view `stem`'s group map (`height × width`).
+pub fn read_ids(
+    dir: &Path,
+    stem: &str,
+    width: usize,
+    height: usize,
+) -> Result<Vec<i32>, AssociateError> {
+    let path = ids_file(dir, stem);
+    let (shape, data) = npy::read::<i32>(&path)?;
+    if shape != [height, width] {
+        return Err(AssociateError::Invalid {
+            path,
+            why: format!("shape {shape:?}, expected [{height}, {width}] for this camera"),
+        });
+    }
+    Ok(data)
+}
+
+/// Time per step.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct AssociateTiming {
+    /// Reading the PLY (Gaussian centres).
+    pub ply_s: f64,
+    /// Reading masks, features and cache views, compositing and candidate sets (wall time of
+    /// the parallel phase).
+    pub views_s: f64,
+    /// Pass 1 of the memory bank.
+    pub bank_s: f64,
+    /// Consolidation, filters, numbering.
+    pub finish_s: f64,
+    /// Per-view maps, groups.json, features.npy.
+    pub write_s: f64,
+    pub total_s: f64,
+}
+
+/// The stage's `summary.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AssociateSummary {
+    pub views: usize,
+    /// Kept masks read.
+    pub masks: usize,
+    /// Masks offered to the bank (visible, with candidates).
+    pub masks_associated: usize,
+    /// Masks hidden by smaller masks on top of them.
+    pub masks_hidden: usize,
+    /// Visible masks without candidate Gaussians.
+    pub masks_without_candidates: usize,
+    /// Masks with a feature (None: no features at all).
+    pub masks_with_features: Option<usize>,
+    pub feature_dim: Option<usize>,
+    pub gaussians: usize,
+    pub options: AssociateOptions,
+    pub consolidation: Consolidation,
+    pub dropped_min_views: usize,
+    pub dropped_far_field: usize,
+    /// Masks whose group was dropped.
+    pub masks_dropped: usize,
+    pub groups: usize,
+    pub groups_per_class: BTreeMap<String, usize>,
+    /// Gaussians owned by a kept group.
+    pub gaussians_in_groups: usize,
+    /// Pixels labelled with a group, over all views (filled ones included).
+    pub labelled_pixels: u64,
+    /// Of those, pixels labelled by the fill.
+    pub filled_pixels: u64,
+    pub timing: AssociateTiming,
+    pub warnings: Vec<String>,
+}
+
+impl AssociateSummary {
+    /// Reads an associate folder's `summary.json`.
+    pub fn read(dir: &Path) -> Result<Self, FsError> {
+        fsutil::read_json(&dir.join("summary.json"))
+    }
+}
+
+/// Kept masks of a view file, checked against the image size.
+fn read_view_masks(
+    masks_dir: &Path,
+    stem: &str,
+    width: usize,
+    height: usize,
+) -> Result<(PathBuf, Vec<KeptMask>), AssociateError> {
+    let path = masks_dir.join(format!("{stem}.json"));
+    if !path.is_file() {
+        return Err(AssociateError::Invalid {
+            path,
+            why: "missing: the masks stage wrote no kept-mask file for this view".into(),
+        });
+    }
+    let kept = masks::read_kept(&path)?;
+    for (i, k) in kept.iter().enumerate() {
+        if k.sam.segmentation.size != [height, width] {
+            return Err(AssociateError::Invalid {
+                path,
+                why: format!(
+                    "mask {i}: size {:?} differs from the image size [{height}, {width}]",
+                    k.sam.segmentation.size
+                ),
+            });
+        }
+    }
+    Ok((path, kept))
+}
+
+/// Composites a view's kept masks.
+fn composite_view(
+    path: &Path,
+    kept: &[KeptMask],
+    width: usize,
+    height: usize,
+) -> Result<candidates::ViewMasks, AssociateError> {
+    let rles: Vec<&crate::sam::Rle> = kept.iter().map(|k| &k.sam.segmentation).collect();
+    candidates::composite(&rles, width, height).map_err(|(index, source)| AssociateError::Rle {
+        path: path.to_path_buf(),
+        index,
+        source,
+    })
+}
+
+/// Dimension, per-mask unit features (None: no feature), count of all-zero rows.
+pub(crate) type MaskFeatures = (usize, Vec<Option<Vec<f32>>>, usize);
+
+/// Per-mask features of a view (`features/<stem>.npy`), rows at the kept masks' source indices,
+/// normalised. Returns the dimension, the features and the count of zero rows (no feature).
+pub(crate) fn mask_features(path: &Path, sources: &[i64]) -> Result<MaskFeatures, AssociateError> {
+    let (shape, data) = npy::read::<f32>(path)?;
+    let bad = |why: String| AssociateError::Invalid {
+        path: path.to_path_buf(),
+        why,
+    };
+    if shape.len() != 2 || shape[1] == 0 {
+        return Err(bad(format!(
+            "shape {shape:?}, expected [masks, D] with D ≥ 1"
+        )));
+    }
+    let (rows, d) = (shape[0], shape[1]);
+    let mut zero = 0;
+    let mut out = Vec::with_capacity(sources.len());
+    for &s in sources {
+        if s < 0 {
+            out.push(None);
+            continue;
+        }
+        let r = s as usize;
+        if r >= rows {
+            return Err(bad(format!(
+                "{rows} feature rows, but a kept mask has source_index {s}"
+            )));
+        }
+        let row = &data[r * d..(r + 1) * d];
+        if let Some(j) = row.iter().position(|x| !x.is_finite()) {
+            return Err(bad(format!("row {r}, column {j} is {}", row[j])));
+        }
+        let norm = row
+            .iter()
+            .map(|&x| f64::from(x) * f64::from(x))
+            .sum::<f64>()
+            .sqrt();
+        if norm < 1e-12 {
+            zero += 1;
+            out.push(None);
+        } else {
+            out.push(Some(
+                row.iter().map(|&x| (f64::from(x) / norm) as f32).collect(),
+            ));
+        }
+    }
+    Ok((d, out, zero))
+}
+
+/// What the per-view phase yields for the bank.
+struct ViewWork {
+    /// Gaussians visible in the view (only for the fill).
+    visible: Option<Vec<u64>>,
+    observations: Vec<bank::Observation>,
+    masks: usize,
+    hidden: usize,
+    without_candidates: usize,
+    with_features: usize,
+    zero_features: usize,
+    dim: Option<usize>,
+}
+
+/// Loads a cache view and checks its size against the camera.
+fn load_cache_view(
+    inp: &AssociateInputs<'_>,
+    stem: &str,
+    w: usize,
+    h: usize,
+) -> Result<crate::render::cache::ViewContrib, AssociateError> {
+    let c = inp.cache.load(stem)?;
+    if (c.width, c.height) != (w, h) {
+        return Err(AssociateError::Invalid {
+            path: crate::render::cache::cache_file(&inp.cache.dir, stem),
+            why: format!(
+                "{}×{} pixels, the camera has {w}×{h}: the cache is stale",
+                c.width, c.height
+            ),
+        });
+    }
+    Ok(c)
+}
+
+/// Reads one view and computes its observations.
+fn view_work(
+    inp: &AssociateInputs<'_>,
+    opts: &AssociateOptions,
+    centres: &[[f32; 3]],
+    view: &View,
+    canonical: u32,
+) -> Result<ViewWork, AssociateError> {
+    let stem = view.stem();
+    let (w, h) = (
+        view.camera.intrinsics.width as usize,
+        view.camera.intrinsics.height as usize,
+    );
+    let (path, kept) = read_view_masks(inp.masks, &stem, w, h)?;
+    let vm = composite_view(&path, &kept, w, h)?;
+    let (dim, feats, zero) = match inp.features {
+        Some(dir) if !kept.is_empty() => {
+            let fp = dir.join(format!("{stem}.npy"));
+            let sources: Vec<i64> = kept.iter().map(|k| k.source_index).collect();
+            let (d, f, z) = mask_features(&fp, &sources)?;
+            (Some(d), f, z)
+        }
+        _ => (None, vec![None; kept.len()], 0),
+    };
+    // The cache view (α·T candidates, and the visible Gaussians for the fill).
+    let need_cache = opts.candidates == CandidateMode::Weighted || opts.fill.is_some();
+    let cache_view = if need_cache {
+        Some(load_cache_view(inp, &stem, w, h)?)
+    } else {
+        None
+    };
+    let total = cache_view.as_ref().map(candidates::view_mass);
+    let cands = match (opts.candidates, &cache_view, &total) {
+        (CandidateMode::Weighted, Some(c), Some(t)) => {
+            let centre = opts
+                .weighted
+                .centre_inside
+                .then(|| candidates::centre_masks(centres, &view.camera, &vm));
+            candidates::weighted(c, t, centre.as_deref(), &vm, &opts.weighted)
+        }
+        _ => candidates::projected(centres, &view.camera, &vm, &opts.projected),
+    };
+    let visible = match (&total, opts.fill) {
+        (Some(t), Some(_)) => Some(candidates::visible_set(t, opts.weighted.min_mass)),
+        _ => None,
+    };
+    let mut out = ViewWork {
+        visible,
+        observations: Vec::new(),
+        masks: kept.len(),
+        hidden: 0,
+        without_candidates: 0,
+        with_features: feats.iter().filter(|f| f.is_some()).count(),
+        zero_features: zero,
+        dim,
+    };
+    for (i, (cand, feature)) in cands.into_iter().zip(feats).enumerate() {
+        if vm.visible[i] == 0 {
+            out.hidden += 1;
+            continue;
+        }
+        if cand.ids.is_empty() {
+            out.without_candidates += 1;
+            continue;
+        }
+        let (mut cs, mut ws) = ([0.0f64; 3], 0.0f64);
+        for (&g, &wt) in cand.ids.iter().zip(&cand.weights) {
+            let p = centres[g as usize];
+            let wt = f64::from(wt);
+            for k in 0..3 {
+                cs[k] += wt * f64::from(p[k]);
+            }
+            ws += wt;
+        }
+        out.observations.push(bank::Observation {
+            view: canonical,
+            mask: i as u32,
+            feature,
+            class: kept[i].class,
+            pixels: vm.visible[i],
+            candidate: cand,
+            centroid_sum: cs,
+            weight_sum: ws,
+        });
+    }
+    Ok(out)
+}
+
+/// Members of the groups for the fill: Gaussian `g` of owner `k` (vote ownership) is a member
+/// when, over the views where `g` is visible and `k` has a mask, `g` lies in `k`'s mask in at
+/// least half. A Gaussian a group absorbed by accident — a wall Gaussian seen through a tree
+/// once, a road Gaussian under an under-segmented mask — lies outside the group's masks in most
+/// views that see both, and is not a member.
+fn fill_members(fin: &bank::Finished, visible: &[Option<Vec<u64>>], views: usize) -> Vec<i32> {
+    let n = fin.owner.len();
+    let mut inside = vec![0u16; n];
+    let mut seen = vec![0u16; n];
+    let mut present: Vec<Vec<usize>> = vec![Vec::new(); views];
+    for (o, &gi) in fin.observations.iter().zip(&fin.group_of) {
+        present[o.view as usize].push(gi);
+        for &g in &o.candidate.ids {
+            if fin.owner[g as usize] == gi as i32 {
+                inside[g as usize] = inside[g as usize].saturating_add(1);
+            }
+        }
+    }
+    for (v, bits) in visible.iter().enumerate() {
+        let Some(bits) = bits else { continue };
+        let groups: std::collections::HashSet<usize> = present[v].iter().copied().collect();
+        for (word, &b) in bits.iter().enumerate() {
+            let mut b = b;
+            while b != 0 {
+                let g = word * 64 + b.trailing_zeros() as usize;
+                b &= b - 1;
+                let k = fin.owner[g];
+                if k >= 0 && groups.contains(&(k as usize)) {
+                    seen[g] = seen[g].saturating_add(1);
+                }
+            }
+        }
+    }
+    (0..n)
+        .map(|g| {
+            let k = fin.owner[g];
+            if k >= 0 && inside[g] > 0 && 2 * u32::from(inside[g]) >= u32::from(seen[g]) {
+                k
+            } else {
+                -1
+            }
+        })
+        .collect()
+}
+
+/// The fill: every pixel of `map` still −1 takes the group whose owned Gaussians carry at least
+/// `share` of the pixel's α·T mass (the largest such group; ties: the smaller id). Returns the
+/// number of pixels filled.
+fn fill(map: &mut [i32], c: &crate::render::cache::ViewContrib, owner: &[i32], share: f32) -> u64 {
+    let mut filled = 0;
+    let mut acc: Vec<(i32, f32)> = Vec::with_capacity(16);
+    for (p, m) in map.iter_mut().enumerate() {
+        if *m >= 0 {
+            continue;
+        }
+        acc.clear();
+        let (ids, ws) = c.pixel(p);
+        for (&g, &w) in ids.iter().zip(ws) {
+            let k = owner[g as usize];
+            if k < 0 {
+                continue;
+            }
+            match acc.iter_mut().find(|e| e.0 == k) {
+                Some(e) => e.1 += w,
+                None => acc.push((k, w)),
+            }
+        }
+        let best = acc
+            .iter()
+            .copied()
+            .fold(None::<(i32, f32)>, |b, x| match b {
+                Some(b) if b.1 > x.1 || (b.1 == x.1 && b.0 < x.0) => Some(b),
+                _ => Some(x),
+            });
+        if let Some((k, w)) = best
+            && w >= share
+        {
+            *m = k;
+            filled += 1;
+        }
+    }
+    filled
+}
+
+/// Runs the stage: association, filters, per-view group maps, `groups.json`, `features.npy`,
+/// and `summary.json` (last).
+pub fn run(
+    inp: &AssociateInputs<'_>,
+    opts: &AssociateOptions,
+    out: &Path,
+) -> Result<AssociateSummary, AssociateError> {
+    let t0 = Instant::now();
+    opts.validate()?;
+    if !(inp.scale.is_finite() && inp.scale > 0.0) {
+        return Err(AssociateError::Options(format!(
+            "the alignment scale must be finite and > 0, got {}",
+            inp.scale
+        )));
+    }
+    let mut views: Vec<&View> = inp.views.iter().collect();
+    views.sort_by(|a, b| a.name.cmp(&b.name));
+    for w in views.windows(2) {
+        if w[0].stem() == w[1].stem() {
+            return Err(AssociateError::Options(format!(
+                "two views share the stem `{}`",
+                w[0].stem()
+            )));
+        }
+    }
+    fsutil::create_dir(out)?;
+    let _ = std::fs::remove_file(out.join("summary.json"));
+
+    let t = Instant::now();
+    let centres = crate::splat::read_ply(inp.ply, &Default::default())?
+        .0
+        .positions;
+    let n = centres.len();
+    if n != inp.cache.summary.gaussians {
+        return Err(AssociateError::Invalid {
+            path: inp.ply.to_path_buf(),
+            why: format!(
+                "{n} Gaussians, the contributions cache {} indexes {}: the cache is stale",
+                inp.cache.dir.display(),
+                inp.cache.summary.gaussians
+            ),
+        });
+    }
+    let ply_s = t.elapsed().as_secs_f64();
+
+    // Visiting order: by name, or a seeded shuffle.
+    let mut order: Vec<u32> = (0..views.len() as u32).collect();
+    if let Some(seed) = opts.shuffle_seed {
+        order.shuffle(&mut rand_chacha::ChaCha8Rng::seed_from_u64(seed));
+    }
+    let mut bank = bank::Bank::new(
+        n,
+        BankOptions {
+            tau_geo: opts.tau_geo,
+            tau_sim: opts.tau_sim,
+            consolidate: opts.consolidate,
+            merge_support: opts.merge_support,
+            merge_fraction: opts.merge_fraction,
+            tau_link: opts.tau_link,
+        },
+    );
+    let bar = Bar::new("associate", views.len() as u64, "views");
+    let (mut views_s, mut bank_s) = (0.0, 0.0);
+    let (mut masks_total, mut hidden, mut no_cand, mut with_f, mut zero_f) = (0, 0, 0, 0, 0);
+    let mut dim: Option<usize> = None;
+    let mut offered = 0usize;
+    let mut visible: Vec<Option<Vec<u64>>> = vec![None; views.len()];
+    let chunk = rayon::current_num_threads().max(1) * 2;
+    for block in order.chunks(chunk) {
+        let t = Instant::now();
+        let works: Vec<Result<ViewWork, AssociateError>> = block
+            .par_iter()
+            .map(|&vi| view_work(inp, opts, &centres, views[vi as usize], vi))
+            .collect();
+        views_s += t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        for (wk, &vi) in works.into_iter().zip(block) {
+            let wk = wk?;
+            if let (Some(a), Some(b)) = (dim, wk.dim)
+                && a != b
+            {
+                return Err(AssociateError::Invalid {
+                    path: inp
+                        .features
+                        .map(|d| d.join(format!("{}.npy", views[vi as usize].stem())))
+                        .unwrap_or_default(),
+                    why: format!("features of dimension {b}, other views have {a}"),
+                });
+            }
+            dim = dim.or(wk.dim);
+            masks_total += wk.masks;
+            hidden += wk.hidden;
+            no_cand += wk.without_candidates;
+            with_f += wk.with_features;
+            zero_f += wk.zero_features;
+            visible[vi as usize] = wk.visible;
+            for o in wk.observations {
+                bank.offer(o);
+                offered += 1;
+            }
+            bar.inc(1);
+        }
+        bank_s += t.elapsed().as_secs_f64();
+    }
+    bar.finish();
+
+    // Consolidation, filters, numbering.
+    let t = Instant::now();
+    let fin = bank.finish();
+    let cams: Vec<glam::DVec3> = views.iter().map(|v| v.camera.pose.center()).collect();
+    let far = opts.far_field_m * inp.scale;
+    let (mut dropped_views, mut dropped_far) = (0, 0);
+    let mut keep_id: Vec<i32> = vec![-1; fin.groups.len()];
+    let mut records = Vec::new();
+    let mut group_features: Vec<f32> = Vec::new();
+    for (gi, g) in fin.groups.iter().enumerate() {
+        let c = glam::DVec3::from_array(g.centroid);
+        let nearest = cams
+            .iter()
+            .map(|k| (*k - c).length())
+            .fold(f64::INFINITY, f64::min);
+        if g.views.len() < opts.min_views {
+            dropped_views += 1;
+            continue;
+        }
+        if nearest.is_nan() || nearest > far {
+            dropped_far += 1;
+            continue;
+        }
+        let id = records.len() as i32;
+        keep_id[gi] = id;
+        if let Some(d) = dim {
+            let norm = g.feature_mean.iter().map(|x| x * x).sum::<f64>().sqrt();
+            if g.feature_mean.len() == d && norm > 0.0 {
+                group_features.extend(g.feature_mean.iter().map(|&x| (x / norm) as f32));
+            } else {
+                group_features.extend(std::iter::repeat_n(0.0f32, d));
+            }
+        }
+        records.push(GroupRecord {
+            id,
+            views: g.views.iter().map(|&v| views[v as usize].stem()).collect(),
+            masks: g.members.len(),
+            pixels: g.pixels,
+            gaussians: g.gaussians,
+            class: g.class,
+            centroid: g.centroid,
+            nearest_camera_distance: nearest,
+        });
+    }
+    // Fill members per Gaussian (kept group ids).
+    let owner: Vec<i32> = if opts.fill.is_some() {
+        fill_members(&fin, &visible, views.len())
+            .iter()
+            .map(|&o| if o >= 0 { keep_id[o as usize] } else { -1 })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    drop(visible);
+    // Group id per (canonical view, mask index).
+    let mut per_view: Vec<Vec<(u32, i32)>> = vec![Vec::new(); views.len()];
+    let mut masks_dropped = 0;
+    for (o, &gi) in fin.observations.iter().zip(&fin.group_of) {
+        let id = keep_id[gi];
+        if id < 0 {
+            masks_dropped += 1;
+        }
+        per_view[o.view as usize].push((o.mask, id));
+    }
+    let finish_s = t.elapsed().as_secs_f64();
+
+    // Transfer back to every view.
+    let t = Instant::now();
+    let labelled: Vec<Result<(u64, u64), AssociateError>> = views
+        .par_iter()
+        .zip(&per_view)
+        .map(|(v, assigned)| {
+            let stem = v.stem();
+            let (w, h) = (
+                v.camera.intrinsics.width as usize,
+                v.camera.intrinsics.height as usize,
+            );
+            let (path, kept) = read_view_masks(inp.masks, &stem, w, h)?;
+            let vm = composite_view(&path, &kept, w, h)?;
+            let mut id_of = vec![-1i32; kept.len()];
+            for &(m, id) in assigned {
+                id_of[m as usize] = id;
+            }
+            let mut map: Vec<i32> = vm
+                .label
+                .iter()
+                .map(|&l| if l >= 0 { id_of[l as usize] } else { -1 })
+                .collect();
+            let mut filled = 0u64;
+            if let Some(share) = opts.fill {
+                let c = load_cache_view(inp, &stem, w, h)?;
+                filled = fill(&mut map, &c, &owner, share);
+            }
+            npy::write(&ids_file(out, &stem), &[h, w], &map)?;
+            Ok((map.iter().filter(|&&x| x >= 0).count() as u64, filled))
+        })
+        .collect();
+    let (mut labelled_pixels, mut filled_pixels) = (0, 0);
+    for l in labelled {
+        let (a, b) = l?;
+        labelled_pixels += a;
+        filled_pixels += b;
+    }
+    let groups_file = GroupsFile {
+        feature_dim: dim,
+        groups: records,
+    };
+    fsutil::write_json(&out.join("groups.json"), &groups_file)?;
+    let features_path = out.join("features.npy");
+    match dim {
+        Some(d) => npy::write(
+            &features_path,
+            &[groups_file.groups.len(), d],
+            &group_features,
+        )?,
+        None => {
+            let _ = std::fs::remove_file(&features_path);
+        }
+    }
+    let write_s = t.elapsed().as_secs_f64();
+
+    let mut per_class = BTreeMap::new();
+    for g in &groups_file.groups {
+        *per_class
+            .entry(classes::name(g.class).to_string())
+            .or_insert(0usize) += 1;
+    }
+    let mut warnings = Vec::new();
+    if zero_f > 0 {
+        warnings.push(format!(
+            "{zero_f} kept masks have an all-zero feature row: associated without a feature"
+        ));
+    }
+    let summary = AssociateSummary {
+        views: views.len(),
+        masks: masks_total,
+        masks_associated: offered,
+        masks_hidden: hidden,
+        masks_without_candidates: no_cand,
+        masks_with_features: dim.map(|_| with_f),
+        feature_dim: dim,
+        gaussians: n,
+        options: *opts,
+        consolidation: fin.consolidation,
+        dropped_min_views: dropped_views,
+        dropped_far_field: dropped_far,
+        masks_dropped,
+        groups: groups_file.groups.len(),
+        groups_per_class: per_class,
+        gaussians_in_groups: groups_file.groups.iter().map(|g| g.gaussians).sum(),
+        labelled_pixels,
+        filled_pixels,
+        timing: AssociateTiming {
+            ply_s,
+            views_s,
+            bank_s,
+            finish_s,
+            write_s,
+            total_s: t0.elapsed().as_secs_f64(),
+        },
+        warnings,
+    };
+    fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::progress::done(
+        "associate",
+        &format!(
+            "{} masks of {} views → {} groups ({} dropped: {} in < {} views, {} far field)",
+            summary.masks_associated,
+            summary.views,
+            summary.groups,
+            dropped_views + dropped_far,
+            dropped_views,
+            opts.min_views,
+            dropped_far
+        ),
+        summary.timing.total_s,
+    );
+    Ok(summary)
+}

@@ -1,0 +1,94 @@
+//! `gs4city fuse`: image-priority fusion of the associated groups with the city-model ids, the
+//! fused label table and per-label features (paper §3.2); optional city-part snapping.
+use std::path::PathBuf;
+
+use anyhow::bail;
+use clap::Args;
+
+use crate::fuse::{self, FuseOptions};
+use crate::scene::Split;
+use crate::{citymodel, colmap};
+
+#[derive(Debug, Args)]
+pub struct FuseArgs {
+    /// The associate stage's folder (`<stem>.ids.npy`, groups.json, features.npy).
+    #[arg(long)]
+    associate: PathBuf,
+    /// The raycast stage's folder (`<stem>.ids.npy`, 4×H×W).
+    #[arg(long)]
+    raycast: PathBuf,
+    /// Output folder of `gs4city citymodel` (semantics.json).
+    #[arg(long)]
+    citymodel: PathBuf,
+    /// COLMAP sparse model folder.
+    #[arg(long)]
+    colmap: PathBuf,
+    /// The scene's SAM lists (`masks/<stem>.json`): city-entity features and snapping.
+    #[arg(long)]
+    sam: Option<PathBuf>,
+    /// The scene's per-mask features (`features/<stem>.npy`).
+    #[arg(long)]
+    features: Option<PathBuf>,
+    /// The masks stage's folder (kept masks; snapping only considers masks it dropped).
+    #[arg(long)]
+    masks: Option<PathBuf>,
+    /// No city-part snapping (by default windows/doors follow the image's own masks where the
+    /// raycast outline disagrees; that needs --sam and --masks).
+    #[arg(long)]
+    no_snap: bool,
+    /// Every N-th view (sorted by name) is a test view and is not fused (3DGS --eval: 8).
+    #[arg(long, default_value_t = 8)]
+    test_every: usize,
+    /// Output folder.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+pub fn run(args: &FuseArgs) -> anyhow::Result<()> {
+    let opts = FuseOptions {
+        snap: !args.no_snap,
+        ..Default::default()
+    };
+    if !args.no_snap && (args.sam.is_none() || args.masks.is_none()) {
+        bail!(
+            "city-part snapping needs --sam (the scene's SAM lists) and --masks (the kept masks); \
+             give both, or --no-snap"
+        );
+    }
+    let split = Split::new(colmap::read_model(&args.colmap)?, args.test_every);
+    let entities = citymodel::read_semantics(&args.citymodel.join("semantics.json"))?;
+    let s = fuse::run(
+        &fuse::FuseInputs {
+            views: &split.train,
+            associate: &args.associate,
+            raycast: &args.raycast,
+            entities: &entities,
+            sam: args.sam.as_deref(),
+            features: args.features.as_deref(),
+            kept: args.masks.as_deref(),
+        },
+        &opts,
+        &args.out,
+    )?;
+    for w in &s.warnings {
+        eprintln!("warning: {w}");
+    }
+    println!(
+        "fused {} views: {} labels ({} city, {} image, Δ = {}){} in {:.1} s → {}",
+        s.views,
+        s.labels,
+        s.city_labels,
+        s.image_labels,
+        s.delta,
+        match &s.snap {
+            Some(st) => format!(
+                ", {} masks snapped ({} px to parts, {} px to surfaces)",
+                st.snapped, st.pixels_to_part, st.pixels_to_surface
+            ),
+            None => String::new(),
+        },
+        s.timing.total_s,
+        args.out.display()
+    );
+    Ok(())
+}

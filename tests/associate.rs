@@ -1,0 +1,297 @@
+//! The associate stage on a hand-built scene with known answers (tests/common/boxes.rs): two
+//! identical-looking cars, a person and the ground, 8 views, masks from the geometry.
+#[path = "common/boxes.rs"]
+mod boxes;
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+
+use boxes::{Built, OBJECTS};
+use gs4city::associate::{self, AssociateOptions, AssociateSummary, CandidateMode, GroupsFile};
+
+fn run(b: &Built, opts: &AssociateOptions, out: &Path, scale: f64) -> AssociateSummary {
+    let cache = b.open_cache();
+    associate::run(
+        &associate::AssociateInputs {
+            views: &b.views,
+            masks: &b.masks,
+            features: Some(&b.features),
+            cache: &cache,
+            ply: &b.ply,
+            scale,
+        },
+        opts,
+        out,
+    )
+    .unwrap()
+}
+
+/// Per object, the group ids found on its mask pixels (truth ≥ 20 px per view) over all views.
+fn groups_per_object(b: &Built, out: &Path) -> Vec<BTreeSet<i32>> {
+    let mut per = vec![BTreeSet::new(); OBJECTS];
+    for (v, view) in b.views.iter().enumerate() {
+        let ids = boxes::read_map(&out.join(format!("{}.ids.npy", view.stem())));
+        for (o, set) in per.iter_mut().enumerate() {
+            if boxes::object_mask(&b.truth[v], o, 20).is_none() {
+                continue;
+            }
+            for (p, &t) in b.truth[v].iter().enumerate() {
+                if t == o as i32 {
+                    set.insert(ids[p]);
+                }
+            }
+        }
+    }
+    per
+}
+
+/// File name → xxh3 digest of every output but `summary.json` (which holds timings).
+fn files(dir: &Path) -> BTreeMap<String, u64> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.file_name().unwrap() != "summary.json")
+        .map(|p| {
+            (
+                p.file_name().unwrap().to_string_lossy().into_owned(),
+                xxhash_rust::xxh3::xxh3_64(&std::fs::read(&p).unwrap()),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn every_object_is_one_group_in_every_view_and_the_cars_stay_apart() {
+    let b = boxes::build("one", |_, _| false);
+    for mode in [CandidateMode::Weighted, CandidateMode::Projected] {
+        let out = b.dir.join(format!("assoc-{mode:?}"));
+        let opts = AssociateOptions {
+            candidates: mode,
+            fill: None,
+            ..Default::default()
+        };
+        let s = run(&b, &opts, &out, 1.0);
+        assert_eq!(s.groups, OBJECTS, "{mode:?}: {s:?}");
+        let per = groups_per_object(&b, &out);
+        // Each object's mask pixels carry exactly one group, and the groups differ (the two
+        // cars have the same feature: only the geometry separates them).
+        for (o, g) in per.iter().enumerate() {
+            assert_eq!(g.len(), 1, "{mode:?}: object {o} got groups {g:?}");
+            assert!(*g.iter().next().unwrap() >= 0);
+        }
+        let all: BTreeSet<i32> = per.iter().map(|g| *g.iter().next().unwrap()).collect();
+        assert_eq!(
+            all.len(),
+            OBJECTS,
+            "{mode:?}: objects share a group: {per:?}"
+        );
+        let gf = GroupsFile::read(&out).unwrap();
+        for (o, g) in per.iter().enumerate() {
+            let rec = &gf.groups[*g.iter().next().unwrap() as usize];
+            assert_eq!(rec.class, boxes::CLASS[o], "{mode:?}: class of object {o}");
+            assert!(rec.views.len() >= 3);
+        }
+        // Group features: the unit mean of the masks' features (here: the object's feature).
+        let f = gf.features(&out).unwrap().unwrap();
+        for (o, g) in per.iter().enumerate() {
+            let k = *g.iter().next().unwrap() as usize;
+            let e = boxes::feature(o);
+            for d in 0..boxes::DIM {
+                assert!((f[k * boxes::DIM + d] - e[d]).abs() < 1e-5);
+            }
+        }
+        // Pixels outside every mask stay −1 without the fill.
+        for (v, view) in b.views.iter().enumerate() {
+            let ids = boxes::read_map(&out.join(format!("{}.ids.npy", view.stem())));
+            for (p, &t) in b.truth[v].iter().enumerate() {
+                if t < 0 {
+                    assert_eq!(ids[p], -1);
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn view_order_and_thread_count_do_not_change_the_output() {
+    let b = boxes::build("order", |_, _| false);
+    let base = b.dir.join("base");
+    run(&b, &AssociateOptions::default(), &base, 1.0);
+    let reference = files(&base);
+    for seed in [1, 2, 3] {
+        let out = b.dir.join(format!("shuffle{seed}"));
+        let opts = AssociateOptions {
+            shuffle_seed: Some(seed),
+            ..Default::default()
+        };
+        run(&b, &opts, &out, 1.0);
+        assert_eq!(files(&out), reference, "shuffle seed {seed}");
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let one = b.dir.join("one-thread");
+    pool.install(|| run(&b, &AssociateOptions::default(), &one, 1.0));
+    assert_eq!(files(&one), reference, "1 thread");
+}
+
+#[test]
+fn view_count_and_far_field_filters() {
+    let b = boxes::build("filters", |_, _| false);
+    // Every object is seen in at most 12 views: m_view = 13 drops every group.
+    let s = run(
+        &b,
+        &AssociateOptions {
+            min_views: 13,
+            ..Default::default()
+        },
+        &b.dir.join("mview9"),
+        1.0,
+    );
+    assert_eq!((s.groups, s.dropped_min_views), (0, OBJECTS));
+    // Cameras are ≈ 13 m from the objects: 80 m × scale 0.1 = 8 m drops all, 80 m × 1 none.
+    let s = run(&b, &AssociateOptions::default(), &b.dir.join("far"), 0.1);
+    assert_eq!((s.groups, s.dropped_far_field), (0, OBJECTS));
+    let s = run(&b, &AssociateOptions::default(), &b.dir.join("near"), 1.0);
+    assert_eq!((s.groups, s.dropped_far_field), (OBJECTS, 0));
+    let gf = GroupsFile::read(&b.dir.join("near")).unwrap();
+    for g in &gf.groups {
+        assert!((8.0..16.0).contains(&g.nearest_camera_distance), "{g:?}");
+    }
+}
+
+#[test]
+fn the_fill_labels_an_object_whose_mask_a_view_missed() {
+    // Car A's mask is missing in view 2: without the fill its pixels there are −1; with it they
+    // take car A's group (the group's Gaussians make those pixels).
+    let b = boxes::build("fill", |v, o| v == 2 && o == 0);
+    let off = b.dir.join("off");
+    let on = b.dir.join("on");
+    run(
+        &b,
+        &AssociateOptions {
+            fill: None,
+            ..Default::default()
+        },
+        &off,
+        1.0,
+    );
+    let s = run(&b, &AssociateOptions::default(), &on, 1.0);
+    assert!(s.filled_pixels > 0);
+    let stem = b.views[2].stem();
+    let (a_off, a_on) = (
+        boxes::read_map(&off.join(format!("{stem}.ids.npy"))),
+        boxes::read_map(&on.join(format!("{stem}.ids.npy"))),
+    );
+    let group_a = *groups_per_object(&b, &off)[0]
+        .iter()
+        .find(|&&g| g >= 0)
+        .unwrap();
+    let px: Vec<usize> = (0..a_off.len()).filter(|&p| b.truth[2][p] == 0).collect();
+    assert!(px.len() > 50);
+    assert!(px.iter().all(|&p| a_off[p] == -1));
+    // Not all: faces of the car that only view 2 shows have no member Gaussians.
+    let filled = px.iter().filter(|&&p| a_on[p] == group_a).count();
+    assert!(
+        filled as f64 >= 0.6 * px.len() as f64,
+        "{filled} of {} car-A pixels filled",
+        px.len()
+    );
+    // The fill never labels a pixel with another object's group.
+    for (p, &t) in b.truth[2].iter().enumerate() {
+        if a_on[p] == group_a {
+            assert!(
+                t == 0 || t == -1 || a_off[p] == group_a,
+                "pixel {p} shows {t}"
+            );
+        }
+    }
+}
+
+#[test]
+fn bad_inputs_are_errors_naming_the_file() {
+    let b = boxes::build("bad", |_, _| false);
+    let cache = b.open_cache();
+    let go = |masks: &Path, features: &Path, ply: &Path| {
+        associate::run(
+            &associate::AssociateInputs {
+                views: &b.views,
+                masks,
+                features: Some(features),
+                cache: &cache,
+                ply,
+                scale: 1.0,
+            },
+            &AssociateOptions::default(),
+            &b.dir.join("bad-out"),
+        )
+        .unwrap_err()
+        .to_string()
+    };
+    // A missing kept-mask file.
+    let m2 = b.dir.join("kept2");
+    std::fs::create_dir_all(&m2).unwrap();
+    for v in &b.views[1..] {
+        let f = format!("{}.json", v.stem());
+        std::fs::copy(b.masks.join(&f), m2.join(&f)).unwrap();
+    }
+    let e = go(&m2, &b.features, &b.ply);
+    assert!(e.contains("v00.json") && e.contains("missing"), "{e}");
+    // A kept-mask file that is not JSON.
+    std::fs::write(m2.join("v00.json"), "[{\"segmentation\": 3").unwrap();
+    let e = go(&m2, &b.features, &b.ply);
+    assert!(e.contains("v00.json"), "{e}");
+    // A mask of another image size.
+    let small = gs4city::sam::SamMask::from_mask(
+        &ndarray::Array2::from_elem((10, 10), true),
+        0.9,
+        0.9,
+        vec![],
+    );
+    gs4city::masks::write_kept(
+        &m2.join("v00.json"),
+        &[gs4city::masks::KeptMask {
+            sam: small,
+            source_index: 0,
+            r_ov: 0.0,
+            rule: "x".into(),
+            class: 8,
+        }],
+    )
+    .unwrap();
+    let e = go(&m2, &b.features, &b.ply);
+    assert!(e.contains("v00.json") && e.contains("size"), "{e}");
+    // A feature file with fewer rows than the masks' source indices.
+    let f2 = b.dir.join("features2");
+    std::fs::create_dir_all(&f2).unwrap();
+    for v in &b.views {
+        let f = format!("{}.npy", v.stem());
+        std::fs::copy(b.features.join(&f), f2.join(&f)).unwrap();
+    }
+    gs4city::npy::write(
+        &f2.join("v03.npy"),
+        &[1, boxes::DIM],
+        &[1.0f32, 0.0, 0.0, 0.0],
+    )
+    .unwrap();
+    let e = go(&b.masks, &f2, &b.ply);
+    assert!(e.contains("v03.npy") && e.contains("source_index"), "{e}");
+    // NaN in a feature row.
+    gs4city::npy::write(&f2.join("v03.npy"), &[4, boxes::DIM], &[f32::NAN; 16]).unwrap();
+    let e = go(&b.masks, &f2, &b.ply);
+    assert!(e.contains("v03.npy") && e.contains("NaN"), "{e}");
+    // A PLY with a different Gaussian count than the cache.
+    let (mut g, _) = boxes::splats();
+    g.positions.pop();
+    g.f_dc.pop();
+    g.opacity.pop();
+    g.scale.pop();
+    g.rotation.pop();
+    let ply2 = b.dir.join("other.ply");
+    gs4city::splat::write_ply(&ply2, &g, gs4city::splat::PlyEncoding::BinaryLittleEndian).unwrap();
+    let e = go(&b.masks, &b.features, &ply2);
+    assert!(e.contains("other.ply") && e.contains("stale"), "{e}");
+    // Nothing looks done after a failure.
+    assert!(!b.dir.join("bad-out/summary.json").exists());
+}
