@@ -29,7 +29,19 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
     };
     let s = run(&scene, &dir.join("out"), &o).unwrap();
     let names: Vec<&str> = s.stages.iter().map(|r| r.stage.as_str()).collect();
-    assert_eq!(names, ["citymodel", "raycast", "render", "lift", "eval"]);
+    assert_eq!(
+        names,
+        [
+            "citymodel",
+            "raycast",
+            "render",
+            "masks",
+            "associate",
+            "fuse",
+            "lift",
+            "eval"
+        ]
+    );
     assert_eq!(s.test_views, ["v00", "v04"]);
     let e = s.eval.as_ref().unwrap();
     assert_eq!(e.mode.as_deref(), Some("vote"));
@@ -84,14 +96,42 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
     assert!(reruns(&again).is_empty(), "{:?}", again.stages);
     // For one output of each stage: delete it, then truncate it; the next run redoes that
     // stage and exactly the stages that read it, and the metrics equal the clean run's.
-    let cases: [(&str, &str, &[&str]); 5] = [
+    // (The wall scene has no masks/: the masks stage uses the mask-free depth source.)
+    let cases: [(&str, &str, &[&str]); 8] = [
         (
             "citymodel",
             "mesh.ply",
-            &["citymodel", "raycast", "lift", "eval"],
+            &[
+                "citymodel",
+                "raycast",
+                "masks",
+                "associate",
+                "fuse",
+                "lift",
+                "eval",
+            ],
         ),
-        ("raycast", "v03.ids.npy", &["raycast", "lift", "eval"]),
-        ("render", "v05.contrib", &["render", "lift", "eval"]),
+        (
+            "raycast",
+            "v03.ids.npy",
+            &["raycast", "masks", "associate", "fuse", "lift", "eval"],
+        ),
+        (
+            "render",
+            "v05.contrib",
+            &["render", "masks", "associate", "fuse", "lift", "eval"],
+        ),
+        (
+            "masks",
+            "summary.json",
+            &["masks", "associate", "fuse", "lift", "eval"],
+        ),
+        (
+            "associate",
+            "groups.json",
+            &["associate", "fuse", "lift", "eval"],
+        ),
+        ("fuse", "labels.json", &["fuse", "lift", "eval"]),
         ("lift", "v00.class.npy", &["lift", "eval"]),
         ("eval", "metrics.json", &["eval"]),
     ];
@@ -116,7 +156,10 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
     bytes[n - 1] ^= 1; // the last byte of the last Gaussian's last rotation value
     std::fs::write(&ply, &bytes).unwrap();
     let s = run(&scene, &out, &o).unwrap();
-    assert_eq!(reruns(&s), ["render", "lift", "eval"]);
+    assert_eq!(
+        reruns(&s),
+        ["render", "masks", "associate", "fuse", "lift", "eval"]
+    );
     let s = run(
         &scene,
         &out,
@@ -126,7 +169,10 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
         },
     )
     .unwrap();
-    assert_eq!(reruns(&s), ["raycast", "lift", "eval"]);
+    assert_eq!(
+        reruns(&s),
+        ["raycast", "masks", "associate", "fuse", "lift", "eval"]
+    );
     // Touching an input without changing it reruns nothing (identity = content digest).
     std::fs::write(&ply, &bytes).unwrap();
     let s = run(
@@ -139,6 +185,72 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
     )
     .unwrap();
     assert!(reruns(&s).is_empty(), "{:?}", s.stages);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `--supervision city` is the paper's §3.1 pipeline (no mask stages); `--mode learned` adds the
+/// train stage after the vote, and eval and queries read its labels; going back to the vote
+/// reruns only eval (the vote's folder was kept) and removes the learned labels, so that a query
+/// cannot read them as this run's.
+#[test]
+fn city_supervision_and_learned_mode() {
+    use gs4city::run::{Mode, Supervision};
+    let dir = wall::tmp("run-modes");
+    let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
+    let out = dir.join("out");
+    let mut o = RunOptions {
+        test_every: 4,
+        supervision: Supervision::City,
+        mode: Mode::Learned,
+        ..Default::default()
+    };
+    o.train.iterations = 60;
+    let s = run(&scene, &out, &o).unwrap();
+    let names: Vec<&str> = s.stages.iter().map(|r| r.stage.as_str()).collect();
+    assert_eq!(
+        names,
+        ["citymodel", "raycast", "render", "lift", "train", "eval"]
+    );
+    let e = s.eval.as_ref().unwrap();
+    assert_eq!(e.mode.as_deref(), Some("learned"));
+    assert!(e.paper_iou["wall"].unwrap() > 0.85, "{:?}", e.paper_iou);
+    assert!(out.join("train/gaussians.npy").is_file());
+    assert!(out.join("train/v04.class.npy").is_file());
+    assert!(!out.join("masks").exists() && !out.join("fuse").exists());
+    let v = run(
+        &scene,
+        &out,
+        &RunOptions {
+            mode: Mode::Vote,
+            ..o.clone()
+        },
+    )
+    .unwrap();
+    assert_eq!(reruns(&v), ["eval"]);
+    assert_eq!(v.eval.as_ref().unwrap().mode.as_deref(), Some("vote"));
+    assert!(!out.join("train").exists());
+    // And a fused run after a city one, then a city one again: no stale mask stage is left.
+    let f = run(
+        &scene,
+        &out,
+        &RunOptions {
+            supervision: Supervision::Fused,
+            mode: Mode::Vote,
+            ..o.clone()
+        },
+    )
+    .unwrap();
+    assert!(f.stages.iter().any(|r| r.stage == "fuse" && !r.resumed));
+    run(
+        &scene,
+        &out,
+        &RunOptions {
+            mode: Mode::Vote,
+            ..o.clone()
+        },
+    )
+    .unwrap();
+    assert!(!out.join("fuse").exists() && !out.join("masks").exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -317,11 +317,16 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
 
     // 4–6. masks → associate → fuse: the fused supervision (paper §3.2), training views only
     let (maps, labels, label_stages): (LabelMaps, LabelTable, Vec<&str>) = match opts.supervision {
-        Supervision::City => (
-            LabelMaps::City(rc_dir.clone()),
-            LabelTable::city(&entities, &classes::table(&entities))?,
-            vec!["citymodel", "raycast"],
-        ),
+        Supervision::City => {
+            for stage in ["masks", "associate", "fuse"] {
+                st.discard(stage)?;
+            }
+            (
+                LabelMaps::City(rc_dir.clone()),
+                LabelTable::city(&entities, &classes::table(&entities))?,
+                vec!["citymodel", "raycast"],
+            )
+        }
         Supervision::Fused => {
             let scale = cm.alignment.scale;
             // The scene's SAM lists and features of the training views (their digests decide
@@ -441,6 +446,9 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
             &upstream,
             |dir| Ok::<_, RunError>(train::run(&inputs.get(), &opts.train, dir)?),
         )?;
+    }
+    if opts.mode == Mode::Vote {
+        st.discard("train")?;
     }
     let pred_dir = st.dir(opts.mode.dir());
 

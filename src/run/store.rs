@@ -352,6 +352,19 @@ impl Store {
         Ok(summary)
     }
 
+    /// Removes a stage this run does not use (its folder and its record), so that nothing
+    /// downstream — `gs4city query`, a later resume — mistakes it for part of the run.
+    pub fn discard(&mut self, stage: &str) -> Result<(), StoreError> {
+        let dir = self.dir(stage);
+        if dir.exists() {
+            std::fs::remove_dir_all(&dir).map_err(io(&dir))?;
+        }
+        if self.record.stages.remove(stage).is_some() {
+            self.save()?;
+        }
+        Ok(())
+    }
+
     /// Writes `run.json` atomically.
     pub fn save(&self) -> Result<(), StoreError> {
         fsutil::write_json(&self.root.join("run.json"), &self.record)?;
