@@ -156,6 +156,31 @@ fn citymodel_raycast_render_lift_through_the_binary() {
         "WallSurface"
     );
 
+    // A semantic table that does not match the mesh (ids beyond its rows): refused before
+    // raycasting, naming the mesh and the face.
+    std::fs::create_dir_all(dir.join("cm_bad")).unwrap();
+    for f in ["mesh.ply", "alignment.json", "summary.json"] {
+        std::fs::copy(dir.join("cm").join(f), dir.join("cm_bad").join(f)).unwrap();
+    }
+    let mut short = sem.clone();
+    short["entities"].as_array_mut().unwrap().truncate(1);
+    std::fs::write(
+        dir.join("cm_bad/semantics.json"),
+        serde_json::to_vec(&short).unwrap(),
+    )
+    .unwrap();
+    let (ok, log) = gs4city(&[
+        "raycast",
+        "--citymodel",
+        &d("cm_bad"),
+        "--colmap",
+        &d("sparse"),
+        "--out",
+        &d("rc_bad"),
+    ]);
+    assert!(!ok && log.contains("mesh.ply"), "{log}");
+    assert!(!dir.join("rc_bad/summary.json").exists());
+
     // A few Gaussians on the wall; render and lift through the binary.
     let mut g = Gaussians {
         sh_degree: 0,

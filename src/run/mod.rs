@@ -291,7 +291,10 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
         inputs.extend(files_in(d));
     }
     let _rc: RaycastSummary = st.stage("raycast", &ro, &inputs, &["citymodel"], |dir| {
-        let mesh = crate::mesh::TriMesh::read_ply(&cm_dir.join("mesh.ply"))?;
+        let mesh_path = cm_dir.join("mesh.ply");
+        let mesh = crate::mesh::TriMesh::read_ply(&mesh_path)?;
+        let entities = citymodel::read_semantics(&cm_dir.join("semantics.json"))?;
+        citymodel::check_mesh_labels(&mesh_path, &mesh, &entities)?;
         Ok::<_, RunError>(raycast::run(
             &mesh,
             &views,
