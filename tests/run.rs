@@ -69,6 +69,13 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
     // report.html shows the metrics tables and a panel per test view.
     let html = std::fs::read_to_string(&s.report).unwrap();
     assert!(html.contains("Table 1") && html.contains("report/v04.png"));
+    // … and the masks stage's overlays (kept masks coloured by rule).
+    let overlay = html
+        .split("src=\"masks/")
+        .nth(1)
+        .and_then(|t| t.split('"').next())
+        .expect("a masks overlay in the report");
+    assert!(dir.join("out/masks").join(overlay).is_file(), "{overlay}");
     assert!(dir.join("out/report/v00.png").is_file());
     // run.json records the version, every option, inputs and outputs with digests.
     let rec: serde_json::Value =

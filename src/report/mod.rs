@@ -79,6 +79,8 @@ pub struct ReportInputs<'a> {
     pub predictions: &'a Path,
     pub stages: &'a [StageReport],
     pub eval: Option<&'a EvalSummary>,
+    /// The masks stage's summary, when the run has one: its counts per rule and overlays.
+    pub masks: Option<&'a crate::masks::MasksSummary>,
 }
 
 /// Writes `out/report.html` and `out/report/<stem>.png`; returns the report path.
@@ -126,7 +128,25 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             st.stage, st.seconds, st.resumed, st.compute_seconds
         );
     }
-    html.push_str("</table><h2>Test views: image | ground truth | prediction</h2><p>");
+    html.push_str("</table>");
+    if let Some(m) = r.masks {
+        let _ = write!(
+            html,
+            "<h2>Masks (paper §3.2): {} of {} kept ({:?} source, {:?} test)</h2><table><tr><th>rule</th><th>masks</th></tr>",
+            m.kept, m.input, m.source, m.test
+        );
+        for (rule, n) in &m.rules {
+            let _ = write!(html, "<tr><td>{}</td><td>{n}</td></tr>", esc(rule));
+        }
+        html.push_str(
+            "</table><p>Kept masks by rule: blue low overlap, orange features, red occluder (depth), \
+             magenta occluder and features, green mask-free component.</p>",
+        );
+        for o in &m.overlays {
+            let _ = write!(html, "<h3>{}</h3><img src=\"masks/{}\">", esc(o), esc(o));
+        }
+    }
+    html.push_str("<h2>Test views: image | ground truth | prediction</h2><p>");
     for (k, name) in classes::NAMES.iter().enumerate() {
         let [r, g, b] = classes::PALETTE[k];
         let _ = write!(

@@ -319,6 +319,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     let entities = citymodel::read_semantics(&cm_dir.join("semantics.json"))?;
 
     // 4–6. masks → associate → fuse: the fused supervision (paper §3.2), training views only
+    let mut masks_summary = None;
     let (maps, labels, label_stages): (LabelMaps, LabelTable, Vec<&str>) = match opts.supervision {
         Supervision::City => {
             for stage in ["masks", "associate", "fuse"] {
@@ -411,6 +412,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
                 },
             )?;
             let fuse_dir = st.dir("fuse");
+            masks_summary = Some(ms);
             (
                 LabelMaps::Fused(fuse_dir.clone()),
                 LabelTable::read(&fuse_dir.join("labels.json"))?,
@@ -503,6 +505,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
         predictions: &pred_dir,
         stages: &st.reports,
         eval: eval_summary.as_ref(),
+        masks: masks_summary.as_ref(),
     })?;
     let summary = RunSummary {
         scene: scene.root.clone(),
