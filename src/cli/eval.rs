@@ -31,11 +31,11 @@ pub struct EvalArgs {
     #[arg(long, value_name = "DIR", requires = "by_query")]
     pub scene: Option<PathBuf>,
     /// With --by-query: vote (R/lift) or learned (R/train); default: learned when R/train exists.
-    #[arg(long, value_enum, requires = "by_query")]
+    #[arg(long, requires = "by_query")]
     #[serde(skip)]
     pub mode: Option<Mode>,
     /// With --by-query: the pixel rule of the masks.
-    #[arg(long, value_enum, default_value = "argmax")]
+    #[arg(long, default_value = "argmax")]
     #[serde(skip)]
     pub mask_rule: MaskRule,
     /// Output folder (metrics.json, summary.json; with --by-query: metrics_by_query.json).

@@ -20,7 +20,7 @@ pub struct QueryArgs {
     pub scene: Option<PathBuf>,
     /// Which per-Gaussian labels: `vote` (R/lift) or `learned` (R/train); default: learned when
     /// R/train/gaussians.npy exists.
-    #[arg(long, value_enum)]
+    #[arg(long)]
     pub mode: Option<Mode>,
     /// A CityGML class with its descendants (`Building` selects its surfaces and openings;
     /// 2.0 and 3.0 names, e.g. Window = WindowSurface).
@@ -61,7 +61,7 @@ pub struct QueryArgs {
     pub export: bool,
     /// Pixel rule of the masks: argmax (the selection beats every other label and the
     /// background, as in the predicted maps) or majority (more than half of the pixel).
-    #[arg(long, value_enum, default_value = "argmax")]
+    #[arg(long, default_value = "argmax")]
     pub mask_rule: MaskRule,
     /// Text queries: a label matches when its relevancy is at least this.
     #[arg(long, default_value_t = query::text::MIN_RELEVANCY)]

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use crate::render::cache::ViewContrib;
 
 /// How a pixel is decided (module docs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum MaskRule {
     /// The selection beats every other label and "nothing" (the predicted-map rule).
@@ -25,6 +25,17 @@ pub enum MaskRule {
     Argmax,
     /// The selection holds more than half of the pixel.
     Majority,
+}
+
+impl std::str::FromStr for MaskRule {
+    type Err = String;
+    fn from_str(s: &str) -> Result<MaskRule, String> {
+        match s {
+            "argmax" => Ok(MaskRule::Argmax),
+            "majority" => Ok(MaskRule::Majority),
+            _ => Err(format!("{s:?} is not one of argmax, majority")),
+        }
+    }
 }
 
 /// The label id standing for the whole selection in the argmax (above every real id).

@@ -77,13 +77,24 @@ pub enum QueryError {
 }
 
 /// Which per-Gaussian labels a query reads.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Mode {
     /// The closed-form vote (`R/lift/gaussians.npy`).
     Vote,
     /// Identity learning (`R/train/gaussians.npy`).
     Learned,
+}
+
+impl std::str::FromStr for Mode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Mode, String> {
+        match s {
+            "vote" => Ok(Mode::Vote),
+            "learned" => Ok(Mode::Learned),
+            _ => Err(format!("{s:?} is not one of vote, learned")),
+        }
+    }
 }
 
 impl Mode {
