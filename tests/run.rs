@@ -406,3 +406,59 @@ fn refine_alignment_feeds_the_whole_run() {
     assert_eq!(rec["options"]["refine_alignment"], true);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The whole default pipeline (masks → associate → fuse → lift) on a SIMULATED scene with SAM
+/// masks and features never reads the simulation truth: a second run on a copy of the scene
+/// without `masks/*.sim.json`, `masks/README.json` and the scene's `summary.json` writes the same
+/// bytes in every stage folder (`gt/` stays: eval reads it, and only eval).
+#[test]
+fn the_pipeline_never_reads_the_simulation_truth() {
+    use gs4city::synth::{self, Preset, SynthConfig};
+    let dir = wall::tmp("run-notruth");
+    let mut cfg = SynthConfig::preset(Preset::Small);
+    cfg.cameras.orbit_views = 8;
+    cfg.cameras.street_views = 0;
+    cfg.cameras.width = 330;
+    cfg.cameras.height = 247;
+    let a = dir.join("a");
+    synth::run(&cfg, &a).unwrap();
+    let b = dir.join("b");
+    synth::run(&cfg, &b).unwrap();
+    let mut removed = 0;
+    for e in std::fs::read_dir(b.join("masks")).unwrap() {
+        let p = e.unwrap().path();
+        let name = p.file_name().unwrap().to_string_lossy().into_owned();
+        if name.ends_with(".sim.json") || name == "README.json" {
+            std::fs::remove_file(&p).unwrap();
+            removed += 1;
+        }
+    }
+    std::fs::remove_file(b.join("summary.json")).unwrap();
+    assert!(removed > 1, "the simulation wrote its truth files");
+    let o = RunOptions {
+        test_every: 4,
+        ..Default::default()
+    };
+    let sa = run(&a, &dir.join("ra"), &o).unwrap();
+    let sb = run(&b, &dir.join("rb"), &o).unwrap();
+    let paper = |s: &gs4city::run::RunSummary| {
+        serde_json::to_string(&s.eval.as_ref().unwrap().paper).unwrap()
+    };
+    assert_eq!(paper(&sa), paper(&sb));
+    // Every output byte of the label stages (summaries hold timings: skipped).
+    for stage in ["masks", "associate", "fuse", "lift"] {
+        let strip = |m: std::collections::BTreeMap<String, Vec<u8>>| {
+            m.into_iter()
+                .filter(|(k, _)| k != "summary.json")
+                .collect::<std::collections::BTreeMap<_, _>>()
+        };
+        let fa = strip(common::files(&dir.join("ra").join(stage)));
+        let fb = strip(common::files(&dir.join("rb").join(stage)));
+        assert!(!fa.is_empty(), "{stage}");
+        assert!(
+            fa == fb,
+            "{stage}: outputs differ without the simulation truth"
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
