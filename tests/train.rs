@@ -252,6 +252,21 @@ fn gradients_agree_with_finite_differences_in_f64() {
             |mm: &Model<f64>| model::cross_entropy(mm, &batch, &active, 1.0, &mut Grads::new(mm));
         check_gradient(what, &m, &selected(&g, d), &f);
     }
+    // The class-level term mixed in (μ = 0.4; four groups, the background alone in its own).
+    let group: Vec<u32> = (0..c as u32)
+        .map(|k| if k == 0 { 0 } else { 1 + k % 4 })
+        .collect();
+    for (what, active) in [
+        ("CE + class term, exact softmax", Active::full(c)),
+        ("CE + class term, sampled softmax", sampled.clone()),
+    ] {
+        let mut g = Grads::new(&m);
+        model::cross_entropy_mixed(&m, &batch, &active, &group, 0.4, 1.0, &mut g);
+        let f = |mm: &Model<f64>| {
+            model::cross_entropy_mixed(mm, &batch, &active, &group, 0.4, 1.0, &mut Grads::new(mm))
+        };
+        check_gradient(what, &m, &selected(&g, d), &f);
+    }
     // The 3D term: 40 anchors and their 5 neighbours.
     let anchors: Vec<u32> = (0..40).map(|i| (i * 151 % n) as u32).collect();
     let neighbours: Vec<u32> = anchors
