@@ -417,7 +417,23 @@ fn outputs_are_standard_start_from_the_vote_and_predict_the_test_views() {
     let (shape, class) = npy::read::<i32>(&out.join("v04.class.npy")).unwrap();
     assert_eq!(shape, vec![120, 160]);
     let (_, inst) = npy::read::<i32>(&out.join("v04.instance.npy")).unwrap();
-    for (&c, &l) in class.iter().zip(&inst) {
+    // The default rule: the written per-Gaussian labels through the vote's pixel rule.
+    let (gl, gc): (Vec<i32>, Vec<i32>) = g.iter().copied().unzip();
+    let (cm, lm) = gs4city::lift::predict(&fx.cache.load("v04").unwrap(), &gl, &gc);
+    assert_eq!((cm, lm), (class.clone(), inst.clone()));
+    // The paper's rule (rendered code → label of the largest logit): class map = class of the
+    // label map.
+    fx.train(
+        "paper-rule",
+        &TrainOptions {
+            iterations: 0,
+            rule: train::predict::Rule::Label,
+            ..quick()
+        },
+    );
+    let (_, pc) = npy::read::<i32>(&fx.dir.join("paper-rule/v04.class.npy")).unwrap();
+    let (_, pl) = npy::read::<i32>(&fx.dir.join("paper-rule/v04.instance.npy")).unwrap();
+    for (&c, &l) in pc.iter().zip(&pl) {
         assert_eq!(
             c,
             fx.table.class_of(l),
