@@ -2,12 +2,17 @@
 //!
 //! ```text
 //! cargo bench --bench train -- --run /work/runs/street_core --scene /work/scenes/street \
-//!     [--exp sweep|softmax|predict|all] [--stride 2] [--top-k 0] [--out FILE.json]
+//!     [--fuse FUSE_DIR] [--exp sweep|softmax|simfuse|all] [--stride 2] [--top-k 0] \
+//!     [--checkpoints 0,500,…] [--configs default,lr=10:mu=0.5,…|none] \
+//!     [--rules gaussians,label,class] [--holdout 8] [--out FILE.json]
 //! ```
-//! Reads the run's `render/` cache, `raycast/` maps (M_city) and `citymodel/`; builds the
-//! training pixels once per (stride, top-k), then trains each configuration, scoring the 16 test
-//! views against the scene's `gt/` (benchmarks may read it; the stage never does) at
-//! checkpoints. Prints markdown tables; timings are wall-clock on a shared machine.
+//! Reads the run's `render/` cache, `raycast/` maps (M_city) or the `--fuse` folder, and
+//! `citymodel/`; builds the training pixels once per (stride, top-k), then trains each
+//! configuration, scoring the 16 test views against the scene's `gt/` (benchmarks may read it;
+//! the stage never does) at checkpoints with each prediction rule. `--holdout N` keeps every
+//! N-th training view out of the vote and of training and scores it against its own label
+//! map's classes (the selection signal) and against the truth. Prints markdown tables; timings
+//! are CPU seconds on a shared machine.
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
