@@ -2,12 +2,17 @@
 //!
 //! ```text
 //! cargo bench --bench train -- --run /work/runs/street_core --scene /work/scenes/street \
-//!     [--exp sweep|softmax|predict|all] [--stride 2] [--top-k 0] [--out FILE.json]
+//!     [--fuse FUSE_DIR] [--exp sweep|softmax|simfuse|all] [--stride 2] [--top-k 0] \
+//!     [--checkpoints 0,500,…] [--configs default,lr=10:mu=0.5,…|none] \
+//!     [--rules gaussians,label,class] [--holdout 8] [--out FILE.json]
 //! ```
-//! Reads the run's `render/` cache, `raycast/` maps (M_city) and `citymodel/`; builds the
-//! training pixels once per (stride, top-k), then trains each configuration, scoring the 16 test
-//! views against the scene's `gt/` (benchmarks may read it; the stage never does) at
-//! checkpoints. Prints markdown tables; timings are wall-clock on a shared machine.
+//! Reads the run's `render/` cache, `raycast/` maps (M_city) or the `--fuse` folder, and
+//! `citymodel/`; builds the training pixels once per (stride, top-k), then trains each
+//! configuration, scoring the 16 test views against the scene's `gt/` (benchmarks may read it;
+//! the stage never does) at checkpoints with each prediction rule. `--holdout N` keeps every
+//! N-th training view out of the vote and of training and scores it against its own label
+//! map's classes (the selection signal) and against the truth. Prints markdown tables; timings
+//! are CPU seconds on a shared machine.
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -31,6 +36,11 @@ struct Args {
     configs: String,
     /// Train on this fused folder (labels.json, <stem>.ids.npy) instead of M_city.
     fuse: Option<PathBuf>,
+    /// Every N-th training view is held out (not voted, not trained on) and scored against
+    /// the training label maps' classes: the selection set (0 = none).
+    holdout: usize,
+    /// Predictors scored at each checkpoint: label, class, gaussians.
+    rules: Vec<predict::Rule>,
 }
 
 fn parse() -> Args {
@@ -44,6 +54,12 @@ fn parse() -> Args {
         checkpoints: vec![0, 250, 500, 1000, 2000, 3000],
         configs: "default".into(),
         fuse: None,
+        holdout: 0,
+        rules: vec![
+            predict::Rule::Label,
+            predict::Rule::Class,
+            predict::Rule::Gaussians,
+        ],
     };
     let v: Vec<String> = std::env::args().skip(1).collect();
     let list = |s: &str| s.split(',').map(|x| x.parse().expect("number")).collect();
@@ -60,6 +76,18 @@ fn parse() -> Args {
             "--checkpoints" => a.checkpoints = list(&val),
             "--configs" => a.configs = val,
             "--fuse" => a.fuse = Some(val.into()),
+            "--holdout" => a.holdout = val.parse().expect("number"),
+            "--rules" => {
+                a.rules = val
+                    .split(',')
+                    .map(|r| match r {
+                        "label" => predict::Rule::Label,
+                        "class" => predict::Rule::Class,
+                        "gaussians" => predict::Rule::Gaussians,
+                        _ => panic!("unknown rule {r}"),
+                    })
+                    .collect()
+            }
             "--bench" => {
                 i += 1;
                 continue;
@@ -96,11 +124,17 @@ fn score(test: &TestSet, maps: &[Vec<i32>]) -> (f64, f64, [Option<f64>; eval::N_
 
 struct Ctx {
     cache: Cache,
-    split: Split,
+
     maps: LabelMaps,
     table: LabelTable,
     ply: PathBuf,
     test: TestSet,
+    /// The views trained on (the split's training views less the held-out ones).
+    train: Vec<gs4city::camera::View>,
+    /// Held-out training views with the classes of their training label maps as truth.
+    val: TestSet,
+    /// The same held-out views with the simulation truth (scoring only).
+    val_gt: TestSet,
 }
 
 fn context(a: &Args) -> Ctx {
@@ -132,35 +166,60 @@ fn context(a: &Args) -> Ctx {
             (v.stem(), c, gt)
         })
         .collect();
+    let (mut train, mut val, mut val_gt) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, v) in split.train.iter().enumerate() {
+        if a.holdout > 0 && i % a.holdout == a.holdout - 1 {
+            let c = cache.load(&v.stem()).expect("held-out view");
+            let labels = maps.read(&v.stem(), c.width, c.height).expect("label map");
+            let truth = labels.iter().map(|&l| table.class_of(l)).collect();
+            let (_, gt) =
+                gs4city::npy::read::<i32>(&a.scene.join(format!("gt/{}.class.npy", v.stem())))
+                    .expect("gt");
+            val_gt.push((v.stem(), c.clone(), gt));
+            val.push((v.stem(), c, truth));
+        } else {
+            train.push(v.clone());
+        }
+    }
     Ctx {
         cache,
-        split,
+
         maps,
         table,
         ply: a.scene.join("point_cloud.ply"),
         test: TestSet { views },
+        train,
+        val: TestSet { views: val },
+        val_gt: TestSet { views: val_gt },
     }
 }
 
-/// Test-view class maps of a model (view candidates, or every class).
+/// Class maps of a model over `set` (view candidates, or every class), read with `rule`.
 fn predict_all(
     ctx: &Ctx,
+    set: &TestSet,
     m: &model::Model<f32>,
+    gclass: &[u32],
     class_ids: &[i32],
     exact: bool,
+    rule: predict::Rule,
 ) -> (Vec<Vec<i32>>, Vec<Vec<i32>>) {
-    let gclass = predict::gaussian_classes(m);
     let c = m.classes();
-    ctx.test
-        .views
+    let gl: Vec<i32> = gclass.iter().map(|&k| class_ids[k as usize]).collect();
+    let gc: Vec<i32> = gl.iter().map(|&l| ctx.table.class_of(l)).collect();
+    set.views
         .iter()
         .map(|(_, v, _)| {
+            if rule == predict::Rule::Gaussians {
+                return lift::predict(v, &gl, &gc);
+            }
             let cand = if exact {
                 (0..c as u32).collect()
             } else {
-                predict::view_candidates(v, &gclass, c)
+                predict::view_candidates(v, gclass, c)
             };
-            predict::predict_view(v, m, &cand, class_ids, &|l| ctx.table.class_of(l))
+            let by_class = rule == predict::Rule::Class;
+            predict::predict_view(v, m, &cand, class_ids, &|l| ctx.table.class_of(l), by_class)
         })
         .unzip()
 }
@@ -178,20 +237,6 @@ fn cpu_s() -> f64 {
     (tick(11) + tick(12)) / 100.0
 }
 
-fn fmt_row(name: &str, it: usize, secs: f64, r: (f64, f64, [Option<f64>; eval::N_FINE])) -> String {
-    let per =
-        r.2.iter()
-            .take(4)
-            .map(|x| x.map_or("–".into(), |v| format!("{:.1}", 100.0 * v)))
-            .collect::<Vec<_>>()
-            .join(" | ");
-    format!(
-        "| {name} | {it} | {secs:.1} | **{:.2}** | {:.2} | {per} |",
-        100.0 * r.0,
-        100.0 * r.1
-    )
-}
-
 fn configs(name: &str) -> Vec<(String, TrainOptions)> {
     let d = TrainOptions {
         tol: 0.0,
@@ -205,6 +250,7 @@ fn configs(name: &str) -> Vec<(String, TrainOptions)> {
     let mut v: Vec<(String, TrainOptions)> = Vec::new();
     for n in name.split(',') {
         match n {
+            "none" => {}
             "default" => v.push(("default".into(), d)),
             "px2048" => v.push(("2048 px/it".into(), with(&|o| o.pixels = 2048))),
             "px32768" => v.push(("32768 px/it".into(), with(&|o| o.pixels = 32768))),
@@ -223,24 +269,83 @@ fn configs(name: &str) -> Vec<(String, TrainOptions)> {
             )),
             "beta4" => v.push(("init β 4".into(), with(&|o| o.init_scale = 4.0))),
             "beta16" => v.push(("init β 16".into(), with(&|o| o.init_scale = 16.0))),
+            "class05" => v.push(("class term μ 0.5".into(), with(&|o| o.class_weight = 0.5))),
+            "class1" => v.push(("class term μ 1".into(), with(&|o| o.class_weight = 1.0))),
+            "lr10class" => v.push((
+                "lr ×10, class term μ 0.5".into(),
+                with(&|o| {
+                    o.lr_codes *= 10.0;
+                    o.lr_classifier *= 10.0;
+                    o.class_weight = 0.5
+                }),
+            )),
+            // `lr=F:mu=F:px=N:kl=F:beta=F:m=N:every=N`: learning rates ×F, class term μ, pixels
+            // per iteration, λ, initial β, Gaussians per 3D step, iterations between 3D steps.
+            other if other.contains('=') => {
+                let mut o = d;
+                for kv in other.split(':') {
+                    let (k, x) = kv.split_once('=').expect("key=value");
+                    let x: f64 = x.parse().expect("number");
+                    match k {
+                        "lr" => {
+                            o.lr_codes *= x;
+                            o.lr_classifier *= x
+                        }
+                        "mu" => o.class_weight = x,
+                        "px" => o.pixels = x as usize,
+                        "kl" => o.kl_lambda = x,
+                        "beta" => o.init_scale = x,
+                        "m" => o.kl_samples = x as usize,
+                        "every" => o.kl_every = x as usize,
+                        _ => panic!("unknown key {k}"),
+                    }
+                }
+                v.push((other.to_string(), o));
+            }
             other => panic!("unknown config {other}"),
         }
     }
     v
 }
 
+/// Pixels where `pred` differs from `base`: (changed, of them right in `pred`, right in `base`),
+/// against `truth` (pixels with truth < 0 skipped).
+fn changes(set: &TestSet, base: &[Vec<i32>], pred: &[Vec<i32>]) -> (usize, usize, usize) {
+    let (mut n, mut good, mut bad) = (0, 0, 0);
+    for (((_, _, gt), b), p) in set.views.iter().zip(base).zip(pred) {
+        for ((&g, &x), &y) in gt.iter().zip(b).zip(p) {
+            if g >= 0 && x != y {
+                n += 1;
+                good += usize::from(y == g);
+                bad += usize::from(x == g);
+            }
+        }
+    }
+    (n, good, bad)
+}
+
+fn per_class(r: &(f64, f64, [Option<f64>; eval::N_FINE])) -> String {
+    r.2.iter()
+        .map(|x| x.map_or("–".into(), |v| format!("{:.1}", 100.0 * v)))
+        .collect::<Vec<_>>()
+        .join(" | ")
+}
+
 fn sweep(a: &Args, ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
+    let rules: Vec<(&str, predict::Rule)> = a
+        .rules
+        .iter()
+        .map(|&r| match r {
+            predict::Rule::Label => ("code→label", r),
+            predict::Rule::Class => ("code→class", r),
+            predict::Rule::Gaussians => ("Gaussian labels, vote rule", r),
+        })
+        .collect();
     for &stride in &a.strides {
         for &top_k in &a.top_ks {
             let t = Instant::now();
             let pool = pool::build(
-                &ctx.cache,
-                &ctx.split.train,
-                &ctx.maps,
-                &ctx.table,
-                stride,
-                top_k,
-                0.0,
+                &ctx.cache, &ctx.train, &ctx.maps, &ctx.table, stride, top_k, 0.0,
             )
             .expect("pool");
             let pool_s = t.elapsed().as_secs_f64();
@@ -250,12 +355,14 @@ fn sweep(a: &Args, ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
             let knn_s = t.elapsed().as_secs_f64();
             drop(g);
             println!(
-                "\n### stride {stride}, top-k {} — {} training pixels ({:.0} MB), {} classes; read+vote {pool_s:.1} s, kNN {knn_s:.1} s\n",
+                "\n### stride {stride}, top-k {} — {} training views, {} held out; {} training pixels ({:.0} MB), {} classes; read+vote {pool_s:.1} s, kNN {knn_s:.1} s\n",
                 if top_k == 0 {
                     "as cached".to_string()
                 } else {
                     top_k.to_string()
                 },
+                ctx.train.len(),
+                ctx.val.views.len(),
                 pool.pixels(),
                 pool.bytes() as f64 / 1e6,
                 pool.class_ids.len()
@@ -263,58 +370,132 @@ fn sweep(a: &Args, ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
             // The vote, predicted as `lift` does.
             let vote_label: Vec<i32> = pool.vote.iter().map(|x| x.label).collect();
             let vote_class: Vec<i32> = vote_label.iter().map(|&l| ctx.table.class_of(l)).collect();
-            let vote_maps: Vec<Vec<i32>> = ctx
-                .test
-                .views
-                .iter()
-                .map(|(_, v, _)| {
-                    let v = pool::truncate(v, top_k);
-                    lift::predict(&v, &vote_label, &vote_class).0
-                })
-                .collect();
-            let rv = score(&ctx.test, &vote_maps);
+            let vote_maps = |set: &TestSet| -> Vec<Vec<i32>> {
+                set.views
+                    .iter()
+                    .map(|(_, v, _)| {
+                        let v = pool::truncate(v, top_k);
+                        lift::predict(&v, &vote_label, &vote_class).0
+                    })
+                    .collect()
+            };
+            let (vt, vv) = (vote_maps(&ctx.test), vote_maps(&ctx.val));
+            let rv = score(&ctx.test, &vt);
+            let rvv = if ctx.val.views.is_empty() {
+                f64::NAN
+            } else {
+                score(&ctx.val, &vv).0
+            };
             println!(
-                "| config | iterations | train s | fine mIoU paper | fine mIoU dataset | wall | roof | window | door |"
+                "| config | it. | train CPU s | mean CE/ln C | predictor | test fine mIoU | held-out mIoU vs maps (vs truth) | wall | roof | window | door | tree | person | car | test px changed vs vote (right now / right before) |"
             );
-            println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
-            println!("{}", fmt_row("vote (lift)", 0, 0.0, rv));
-            out.push(serde_json::json!({"stride": stride, "top_k": top_k, "config": "vote", "miou": rv.0, "miou_dataset": rv.1}));
+            println!("|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|");
+            println!(
+                "| vote (lift) | – | – | – | vote | **{:.2}** | {:.2} | {} | |",
+                100.0 * rv.0,
+                100.0 * rvv,
+                per_class(&rv)
+            );
+            out.push(serde_json::json!({"stride": stride, "top_k": top_k, "config": "vote", "miou": rv.0, "miou_dataset": rv.1, "heldout": rvv, "per_class": rv.2}));
+            if !ctx.val.views.is_empty() {
+                // What the supervision itself scores against the truth on the held-out views,
+                // and what the vote from the other views scores there.
+                let fused: Vec<Vec<i32>> =
+                    ctx.val.views.iter().map(|(_, _, t)| t.clone()).collect();
+                let rf = score(&ctx.val_gt, &fused);
+                let rg = score(&ctx.val_gt, &vv);
+                println!(
+                    "| held-out views vs truth: the training label maps themselves | | | | maps | ({:.2}) | | {} | |",
+                    100.0 * rf.0,
+                    per_class(&rf)
+                );
+                println!(
+                    "| held-out views vs truth: the vote of the other views | | | | vote | ({:.2}) | | {} | |",
+                    100.0 * rg.0,
+                    per_class(&rg)
+                );
+                out.push(serde_json::json!({"config": "ceiling", "maps_vs_truth": rf.0, "vote_vs_truth": rg.0, "maps_per_class": rf.2, "vote_per_class": rg.2}));
+            }
             for (name, opts) in configs(&a.configs) {
                 let vc = train::vote_classes(&pool);
                 let m = train::init_model(pool.vote.len(), pool.class_ids.len(), &vc, &opts);
                 let mut tr = train::Trainer::new(&pool, &graph, m, vc, &opts);
-                let (mut secs, mut cpu) = (0.0, 0.0);
+                tr.group = train::eval_groups(&pool.class_ids, &ctx.table);
+                let mut cpu = 0.0;
                 for &cp in &a.checkpoints {
-                    let t = Instant::now();
                     let c0 = cpu_s();
+                    let (mut ce, mut n) = (0.0, 0usize);
                     while tr.iteration < cp {
-                        tr.step();
+                        ce += tr.step().ce;
+                        n += 1;
                     }
-                    secs += t.elapsed().as_secs_f64();
                     cpu += cpu_s() - c0;
-                    let (cm, _) = predict_all(ctx, &tr.model, &pool.class_ids, false);
-                    let r = score(&ctx.test, &cm);
-                    // The learned per-Gaussian labels, predicted with the vote's pixel rule.
-                    let gl: Vec<i32> = predict::gaussian_classes(&tr.model)
+                    let ce = if n > 0 {
+                        format!("{:.4}", ce / n as f64)
+                    } else {
+                        "–".into()
+                    };
+                    let gclass = predict::gaussian_classes(&tr.model);
+                    let moved = gclass
                         .iter()
-                        .map(|&c| pool.class_ids[c as usize])
-                        .collect();
-                    let gc: Vec<i32> = gl.iter().map(|&l| ctx.table.class_of(l)).collect();
-                    let lm: Vec<Vec<i32>> = ctx
-                        .test
-                        .views
-                        .iter()
-                        .map(|(_, v, _)| lift::predict(&pool::truncate(v, top_k), &gl, &gc).0)
-                        .collect();
-                    let rl = score(&ctx.test, &lm);
+                        .zip(&pool.vote)
+                        .filter(|(c, a)| pool.class_ids[**c as usize] != a.label)
+                        .count();
                     println!(
-                        "{} {cpu:.1} cpu-s | {:.2} |",
-                        fmt_row(&name, cp, secs, r),
-                        100.0 * rl.0
+                        "| {name} | {cp} | | | ({moved} Gaussians changed label from the vote) | | | | | | | | | | |"
                     );
-                    out.push(serde_json::json!({"stride": stride, "top_k": top_k, "config": name,
-                        "pixels": opts.pixels, "iterations": cp, "train_s": secs, "cpu_s": cpu, "miou": r.0, "miou_dataset": r.1,
-                        "miou_labels_vote_rule": rl.0, "times": tr.times}));
+                    for &(rname, rule) in &rules {
+                        let exact = opts.exact_predict;
+                        let (tm, _) = predict_all(
+                            ctx,
+                            &ctx.test,
+                            &tr.model,
+                            &gclass,
+                            &pool.class_ids,
+                            exact,
+                            rule,
+                        );
+                        let r = score(&ctx.test, &tm);
+                        let rh = if ctx.val.views.is_empty() {
+                            f64::NAN
+                        } else {
+                            let (hm, _) = predict_all(
+                                ctx,
+                                &ctx.val,
+                                &tr.model,
+                                &gclass,
+                                &pool.class_ids,
+                                exact,
+                                rule,
+                            );
+                            score(&ctx.val, &hm).0
+                        };
+                        let (nc, good, bad) = changes(&ctx.test, &vt, &tm);
+                        let rhg = if ctx.val.views.is_empty() {
+                            f64::NAN
+                        } else {
+                            let (hm, _) = predict_all(
+                                ctx,
+                                &ctx.val_gt,
+                                &tr.model,
+                                &gclass,
+                                &pool.class_ids,
+                                exact,
+                                rule,
+                            );
+                            score(&ctx.val_gt, &hm).0
+                        };
+                        println!(
+                            "| {name} | {cp} | {cpu:.1} | {ce} | {rname} | **{:.2}** | {:.2} ({:.2}) | {} | {nc} ({good} / {bad}) |",
+                            100.0 * r.0,
+                            100.0 * rh,
+                            100.0 * rhg,
+                            per_class(&r)
+                        );
+                        out.push(serde_json::json!({"stride": stride, "top_k": top_k, "config": name, "rule": rule,
+                            "pixels": opts.pixels, "iterations": cp, "cpu_s": cpu, "ce": ce, "miou": r.0, "miou_dataset": r.1,
+                            "heldout": rh, "heldout_truth": rhg, "per_class": r.2, "changed": nc, "changed_right": good, "changed_was_right": bad}));
+                    }
                 }
                 eprintln!("{name}: {:?}", tr.times);
             }
@@ -325,16 +506,7 @@ fn sweep(a: &Args, ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
 /// Sampled vs exact softmax on the same batches: loss and gradient error.
 fn softmax_error(ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
     let opts = TrainOptions::default();
-    let pool = pool::build(
-        &ctx.cache,
-        &ctx.split.train,
-        &ctx.maps,
-        &ctx.table,
-        4,
-        0,
-        0.0,
-    )
-    .expect("pool");
+    let pool = pool::build(&ctx.cache, &ctx.train, &ctx.maps, &ctx.table, 4, 0, 0.0).expect("pool");
     let (g, _) = gs4city::splat::read_ply(&ctx.ply, &Default::default()).expect("ply");
     let graph = knn::build(&g.positions, 5);
     drop(g);
@@ -397,10 +569,26 @@ fn softmax_error(ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
     }
     // Prediction over the view's candidate classes vs every class.
     let t = Instant::now();
-    let (cand, _) = predict_all(ctx, &tr.model, &pool.class_ids, false);
+    let (cand, _) = predict_all(
+        ctx,
+        &ctx.test,
+        &tr.model,
+        &predict::gaussian_classes(&tr.model),
+        &pool.class_ids,
+        false,
+        predict::Rule::Label,
+    );
     let tc = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let (full, _) = predict_all(ctx, &tr.model, &pool.class_ids, true);
+    let (full, _) = predict_all(
+        ctx,
+        &ctx.test,
+        &tr.model,
+        &predict::gaussian_classes(&tr.model),
+        &pool.class_ids,
+        true,
+        predict::Rule::Label,
+    );
     let tf = t.elapsed().as_secs_f64();
     let (mut diff, mut total) = (0usize, 0usize);
     for (a, b) in cand.iter().zip(&full) {

@@ -252,6 +252,21 @@ fn gradients_agree_with_finite_differences_in_f64() {
             |mm: &Model<f64>| model::cross_entropy(mm, &batch, &active, 1.0, &mut Grads::new(mm));
         check_gradient(what, &m, &selected(&g, d), &f);
     }
+    // The class-level term mixed in (μ = 0.4; four groups, the background alone in its own).
+    let group: Vec<u32> = (0..c as u32)
+        .map(|k| if k == 0 { 0 } else { 1 + k % 4 })
+        .collect();
+    for (what, active) in [
+        ("CE + class term, exact softmax", Active::full(c)),
+        ("CE + class term, sampled softmax", sampled.clone()),
+    ] {
+        let mut g = Grads::new(&m);
+        model::cross_entropy_mixed(&m, &batch, &active, &group, 0.4, 1.0, &mut g);
+        let f = |mm: &Model<f64>| {
+            model::cross_entropy_mixed(mm, &batch, &active, &group, 0.4, 1.0, &mut Grads::new(mm))
+        };
+        check_gradient(what, &m, &selected(&g, d), &f);
+    }
     // The 3D term: 40 anchors and their 5 neighbours.
     let anchors: Vec<u32> = (0..40).map(|i| (i * 151 % n) as u32).collect();
     let neighbours: Vec<u32> = anchors
@@ -402,7 +417,23 @@ fn outputs_are_standard_start_from_the_vote_and_predict_the_test_views() {
     let (shape, class) = npy::read::<i32>(&out.join("v04.class.npy")).unwrap();
     assert_eq!(shape, vec![120, 160]);
     let (_, inst) = npy::read::<i32>(&out.join("v04.instance.npy")).unwrap();
-    for (&c, &l) in class.iter().zip(&inst) {
+    // The default rule: the written per-Gaussian labels through the vote's pixel rule.
+    let (gl, gc): (Vec<i32>, Vec<i32>) = g.iter().copied().unzip();
+    let (cm, lm) = gs4city::lift::predict(&fx.cache.load("v04").unwrap(), &gl, &gc);
+    assert_eq!((cm, lm), (class.clone(), inst.clone()));
+    // The paper's rule (rendered code → label of the largest logit): class map = class of the
+    // label map.
+    fx.train(
+        "paper-rule",
+        &TrainOptions {
+            iterations: 0,
+            rule: train::predict::Rule::Label,
+            ..quick()
+        },
+    );
+    let (_, pc) = npy::read::<i32>(&fx.dir.join("paper-rule/v04.class.npy")).unwrap();
+    let (_, pl) = npy::read::<i32>(&fx.dir.join("paper-rule/v04.instance.npy")).unwrap();
+    for (&c, &l) in pc.iter().zip(&pl) {
         assert_eq!(
             c,
             fx.table.class_of(l),

@@ -8,6 +8,7 @@ use clap::Args;
 use crate::colmap;
 use crate::render::cache::Cache;
 use crate::scene::Split;
+use crate::train::predict::Rule;
 use crate::train::{self, Init, Softmax, TrainOptions};
 
 #[derive(Debug, Args)]
@@ -54,6 +55,16 @@ pub struct TrainArgs {
     /// Predict test views over every class (exact; slower with many labels).
     #[arg(long)]
     exact_predict: bool,
+    /// How test views are predicted: `gaussians` (each Gaussian's learned label rendered with the
+    /// vote's pixel rule; best measured, docs/train.md), `label` (rendered code → classifier →
+    /// the label of the largest logit, the paper's rule) or `class` (the class of largest total
+    /// probability).
+    #[arg(long, value_enum, default_value_t = RuleArg::Gaussians)]
+    rule: RuleArg,
+    /// Weight μ ∈ [0, 1] of the class-level term of the 2D loss (the right class, whichever of
+    /// its labels); 0 = the label cross-entropy alone.
+    #[arg(long, default_value_t = TrainOptions::default().class_weight)]
+    class_weight: f64,
     /// Code dimension D.
     #[arg(long, default_value_t = TrainOptions::default().dim)]
     dim: usize,
@@ -95,6 +106,13 @@ pub struct TrainArgs {
     out: PathBuf,
 }
 
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum RuleArg {
+    Label,
+    Class,
+    Gaussians,
+}
+
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let opts = TrainOptions {
         dim: args.dim,
@@ -125,6 +143,12 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         tol: args.tol,
         seed: args.seed,
         exact_predict: args.exact_predict,
+        rule: match args.rule {
+            RuleArg::Label => Rule::Label,
+            RuleArg::Class => Rule::Class,
+            RuleArg::Gaussians => Rule::Gaussians,
+        },
+        class_weight: args.class_weight,
         ..TrainOptions::default()
     };
     opts.validate()?;

@@ -122,6 +122,11 @@ pub struct TrainOptions {
     pub seed: u64,
     /// Predict test views over every class instead of the classes of the view's Gaussians.
     pub exact_predict: bool,
+    /// How the test views are predicted from the model.
+    pub rule: predict::Rule,
+    /// Weight μ of the class-level term of the 2D loss (0 = labels only; see
+    /// `model::cross_entropy_mixed`).
+    pub class_weight: f64,
 }
 
 impl Default for TrainOptions {
@@ -146,6 +151,8 @@ impl Default for TrainOptions {
             tol: 0.005,
             seed: 0,
             exact_predict: false,
+            rule: predict::Rule::Gaussians,
+            class_weight: 0.0,
         }
     }
 }
@@ -169,10 +176,17 @@ impl TrainOptions {
             ("kl_lambda", self.kl_lambda),
             ("init_scale", self.init_scale),
             ("tol", self.tol),
+            ("class_weight", self.class_weight),
         ] {
             if !v.is_finite() || v < 0.0 {
                 return bad(format!("{name} must be finite and ≥ 0, got {v}"));
             }
+        }
+        if self.class_weight > 1.0 {
+            return bad(format!(
+                "class_weight must lie in [0, 1], got {}",
+                self.class_weight
+            ));
         }
         if let Softmax::Sampled { negatives: 0 } = self.softmax {
             return bad("sampled softmax needs at least one negative".into());
@@ -354,6 +368,8 @@ pub struct Trainer<'a> {
     pub opt: Optimiser<f32>,
     /// Per Gaussian, the class it was last seen to prefer (the sampled 3D term's candidates).
     pub hint: Vec<u32>,
+    /// Per class, its group for the class-level loss term (empty: no such term).
+    pub group: Vec<u32>,
     pub rng: ChaCha8Rng,
     pub times: StepTimes,
     order: Vec<usize>,
@@ -395,6 +411,7 @@ impl<'a> Trainer<'a> {
             opt: Optimiser::new(&model, opts.lr_codes, opts.lr_classifier),
             model,
             hint,
+            group: Vec::new(),
             rng: ChaCha8Rng::seed_from_u64(opts.seed),
             times: StepTimes::default(),
             order: Vec::new(),
@@ -500,7 +517,15 @@ impl<'a> Trainer<'a> {
             0.0
         } else {
             let scale = 1.0 / (batch.len() as f64 * c.ln());
-            model::cross_entropy(&self.model, &batch, &active, scale, &mut self.grads)
+            model::cross_entropy_mixed(
+                &self.model,
+                &batch,
+                &active,
+                &self.group,
+                self.opts.class_weight,
+                scale,
+                &mut self.grads,
+            )
         };
         self.times.ce_s += t.elapsed().as_secs_f64();
         let mut kl = None;
@@ -535,6 +560,15 @@ impl<'a> Trainer<'a> {
         self.iteration += 1;
         StepLoss { ce, kl }
     }
+}
+
+/// Per class (label id `class_ids[c]`), its evaluation class as a group number (class + 1;
+/// 0 for the background and labels without a class).
+pub fn eval_groups(class_ids: &[i32], table: &crate::labels::LabelTable) -> Vec<u32> {
+    class_ids
+        .iter()
+        .map(|&l| (table.class_of(l) + 1).max(0) as u32)
+        .collect()
 }
 
 /// The classes of the vote per Gaussian.
@@ -654,6 +688,7 @@ pub fn run(
     let vote_class = vote_classes(&pool);
     let model = init_model(n, classes, &vote_class, opts);
     let mut tr = Trainer::new(&pool, &knn, model, vote_class.clone(), opts);
+    tr.group = eval_groups(&pool.class_ids, inp.labels);
     let bar = Bar::new("train", opts.iterations as u64, "it");
     let (history, stopped) = train_loop(&mut tr, &bar);
     bar.finish();
@@ -702,12 +737,17 @@ pub fn run(
     for v in inp.test {
         let c = inp.cache.load(&v.stem())?;
         let c = pool::truncate(&c, opts.top_k);
-        let cand = if opts.exact_predict {
-            (0..classes as u32).collect()
+        let (cm, lm) = if opts.rule == predict::Rule::Gaussians {
+            lift::predict(&c, &label, &class)
         } else {
-            predict::view_candidates(&c, &gclass, classes)
+            let cand = if opts.exact_predict {
+                (0..classes as u32).collect()
+            } else {
+                predict::view_candidates(&c, &gclass, classes)
+            };
+            let by_class = opts.rule == predict::Rule::Class;
+            predict::predict_view(&c, &model, &cand, &pool.class_ids, &eval_class, by_class)
         };
-        let (cm, lm) = predict::predict_view(&c, &model, &cand, &pool.class_ids, &eval_class);
         lift::write_prediction(out, &v.stem(), c.width, c.height, &cm, &lm)?;
     }
     timing.predict_s = t.elapsed().as_secs_f64();

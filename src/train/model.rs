@@ -403,6 +403,30 @@ pub fn cross_entropy<T: Real>(
     scale: f64,
     g: &mut Grads<T>,
 ) -> f64 {
+    cross_entropy_mixed(m, batch, active, &[], 0.0, scale, g)
+}
+
+/// The cross-entropy mixed with a group-level one: per pixel
+/// `(1 − μ)(log Ẑ − z_t) + μ (log Ẑ − log Σ_{u ∈ G(t)} e^{z_u})`, where `G(t)` are the active
+/// columns whose class has the target's group (`group[class]`, the evaluation class of a
+/// label, say): the second term asks for the right group, not the right label among its
+/// members. `μ = 0` (or an empty `group`) is [`cross_entropy`]. Sampled negatives take part
+/// with their `ln ω` (a negative of the target's group stands for `ω` classes of it).
+pub fn cross_entropy_mixed<T: Real>(
+    m: &Model<T>,
+    batch: &PixelBatch,
+    active: &Active,
+    group: &[u32],
+    mu: f64,
+    scale: f64,
+    g: &mut Grads<T>,
+) -> f64 {
+    let mu = if group.is_empty() { 0.0 } else { mu };
+    let col_group: Vec<u32> = if mu > 0.0 {
+        active.columns().map(|c| group[c as usize]).collect()
+    } else {
+        Vec::new()
+    };
     let (w, b) = active.gather(m);
     let cols: Vec<usize> = batch
         .targets
@@ -428,11 +452,31 @@ pub fn cross_entropy<T: Real>(
                 let zs = row.as_slice_mut().expect("contiguous");
                 let lz = lse(zs);
                 let t = cols[rows.start + r];
-                loss += (lz - zs[t]).f64();
-                for x in zs.iter_mut() {
-                    *x = (*x - lz).exp() * s;
+                if mu > 0.0 {
+                    let gt = col_group[t];
+                    let lg = lse(&zs
+                        .iter()
+                        .zip(&col_group)
+                        .filter(|(_, g)| **g == gt)
+                        .map(|(&z, _)| z)
+                        .collect::<Vec<T>>());
+                    loss += (1.0 - mu) * (lz - zs[t]).f64() + mu * (lz - lg).f64();
+                    let (sl, sg) = (T::of(scale * (1.0 - mu)), T::of(scale * mu));
+                    for (u, x) in zs.iter_mut().enumerate() {
+                        let q = if col_group[u] == gt {
+                            (*x - lg).exp() * sg
+                        } else {
+                            T::zero()
+                        };
+                        *x = (*x - lz).exp() * s - q - if u == t { sl } else { T::zero() };
+                    }
+                } else {
+                    loss += (lz - zs[t]).f64();
+                    for x in zs.iter_mut() {
+                        *x = (*x - lz).exp() * s;
+                    }
+                    zs[t] = zs[t] - s;
                 }
-                zs[t] = zs[t] - s;
             }
             let (de, dw, db) = backprop(&z, &e, &w);
             Partial { loss, de, dw, db }
@@ -775,8 +819,10 @@ mod tests {
         let (m, b) = tiny();
         let mut g = Grads::new(&m);
         let got = cross_entropy(&m, &b, &Active::full(5), 1.0, &mut g);
+        let group = [0u32, 1, 2, 1, 2];
         // Direct: per pixel, E = Σ w e, z = W E + b, CE = lse(z) − z_t.
         let mut want = 0.0;
+        let mut want_mixed = 0.0;
         for p in 0..b.len() {
             let (ids, ws) = b.row(p);
             let mut e = [0.0; 3];
@@ -790,8 +836,24 @@ mod tests {
                 .collect();
             let lz = z.iter().map(|x| x.exp()).sum::<f64>().ln();
             want += lz - z[b.targets[p] as usize];
+            // Class term: groups {0}, {1, 3}, {2, 4}; −log of the target group's probability.
+            let gt = group[b.targets[p] as usize];
+            let pg: f64 = (0..5)
+                .filter(|&c| group[c] == gt)
+                .map(|c| (z[c] - lz).exp())
+                .sum();
+            want_mixed += 0.7 * (lz - z[b.targets[p] as usize]) - 0.3 * pg.ln();
         }
         assert!((got - want).abs() < 1e-12, "{got} vs {want}");
+        let mixed = cross_entropy_mixed(&m, &b, &Active::full(5), &group, 0.3, 1.0, &mut g);
+        assert!(
+            (mixed - want_mixed).abs() < 1e-12,
+            "{mixed} vs {want_mixed}"
+        );
+        assert!(
+            mixed < got,
+            "the group term forgives confusions inside a group"
+        );
     }
 
     #[test]
