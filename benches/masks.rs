@@ -397,8 +397,13 @@ fn main() {
     if a.sweep {
         let pool_threads = rayon::current_num_threads();
         let mut sweep = |title: &str, head: &str, runs: Vec<(String, MasksOptions)>| {
-            println!("\n{title}\n\n| {head} | kept | precision | non-building recall | occluder recall |");
-            println!("|{}---|---|---|---|", "---|".repeat(head.matches('|').count() + 1));
+            println!(
+                "\n{title}\n\n| {head} | kept | precision | non-building recall | occluder recall |"
+            );
+            println!(
+                "|{}---|---|---|---|",
+                "---|".repeat(head.matches('|').count() + 1)
+            );
             for (label, o) in runs {
                 let out = a.out.join("sweep");
                 timed(&c, &o, &out, pool_threads, 1);
@@ -432,7 +437,10 @@ fn main() {
         );
         let rhos = [0.5, 0.8, 0.9, 1.0];
         let mut runs = Vec::new();
-        for (name, test) in [("paper rule (features)", Test::Features), ("geometry", Test::Geometry)] {
+        for (name, test) in [
+            ("paper rule (features)", Test::Features),
+            ("geometry", Test::Geometry),
+        ] {
             for rho in rhos {
                 runs.push((
                     format!("{name}, low overlap unchecked | {rho}"),
@@ -446,7 +454,9 @@ fn main() {
             }
         }
         sweep(
-            &format!("ρ with low-overlap masks kept unchecked (occluders: R_ov ≥ {RHO_EVAL} whatever ρ; with the low-overlap check ρ changes nothing measurable):"),
+            &format!(
+                "ρ with low-overlap masks kept unchecked (occluders: R_ov ≥ {RHO_EVAL} whatever ρ; with the low-overlap check ρ changes nothing measurable):"
+            ),
             "test | ρ",
             runs,
         );

@@ -85,7 +85,7 @@ impl Group {
 }
 
 /// Cosine between a unit feature and an (unnormalised) sum; `None` where either is missing.
-fn cosine(f: &[f32], sum: &[f64]) -> Option<f64> {
+pub(crate) fn cosine(f: &[f32], sum: &[f64]) -> Option<f64> {
     if sum.is_empty() || f.len() != sum.len() {
         return None;
     }
@@ -683,7 +683,7 @@ fn vote_owner(
 }
 
 /// Weighted share of `c`'s mass per owner (owners ascending) and the total mass.
-fn shares_under(owner: &[i32], c: &Candidate) -> (Vec<(u32, f64)>, f64) {
+pub(crate) fn shares_under(owner: &[i32], c: &Candidate) -> (Vec<(u32, f64)>, f64) {
     let mut per: HashMap<u32, f64> = HashMap::new();
     let mut total = 0.0;
     for (&g, &w) in c.ids.iter().zip(&c.weights) {

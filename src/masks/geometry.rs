@@ -147,7 +147,13 @@ pub fn surface_bias(
     max: f32,
 ) -> Vec<f32> {
     // Ids are entity indices (≥ 0); a hit without a feature id has no offset.
-    let key = |p: usize| if surface[p] >= 0 { surface[p] } else { feature[p] };
+    let key = |p: usize| {
+        if surface[p] >= 0 {
+            surface[p]
+        } else {
+            feature[p]
+        }
+    };
     let (mut by_surface, mut by_feature) = (Vec::new(), Vec::new());
     let mut nkeys = 0usize;
     for p in 0..city.len() {
