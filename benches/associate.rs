@@ -80,6 +80,7 @@ fn config(name: &str) -> (AssociateOptions, FuseOptions) {
             "mview1" => a.min_views = 1,
             "mview2" => a.min_views = 2,
             "nosupport" => a.support = false,
+            "supportpixels" => a.support_pixels = true,
             "mview5" => a.min_views = 5,
             "projected" => a.candidates = CandidateMode::Projected,
             "projected_single" => {

@@ -35,6 +35,11 @@ pub struct AssociateArgs {
     /// No view support from dropped masks (the paper's rule: only kept masks count).
     #[arg(long)]
     no_support: bool,
+    /// With the view support, also match dropped masks against groups seen often enough and label
+    /// a matching mask's unlabelled pixels with its group (off by default: the dropped masks'
+    /// outlines are poor).
+    #[arg(long)]
+    support_pixels: bool,
     /// Contributions cache (`gs4city render --cache`, or a run's `render/`).
     #[arg(long)]
     cache: PathBuf,
@@ -89,6 +94,7 @@ pub fn run(args: &AssociateArgs) -> anyhow::Result<()> {
         consolidate: !args.no_consolidate,
         shuffle_seed: args.shuffle_seed,
         support: !args.no_support,
+        support_pixels: args.support_pixels,
         ..Default::default()
     };
     opts.validate()?;
