@@ -8,6 +8,15 @@
 //! exclusive Gaussian ownership) and a consolidation pass makes the result robust to the
 //! visiting order. Groups seen in fewer than `m_view` views, and groups whose centroid lies
 //! farther than the far-field distance (80 m × alignment scale) from every camera, are dropped.
+//! Beyond the paper, the **view support** ([`AssociateOptions::support`]): a group below
+//! `m_view` also counts the views where a SAM mask that the masks stage dropped *only* for
+//! quality or area (`predicted_iou < τ_q`, `|s| < τ_a` — small objects such as persons lose most
+//! of their masks there) matches it by the paper's rule (`R_geo > τ_geo` of the mask's own α·T
+//! candidates, feature cosine `> τ_sim`). Such masks never start a group.
+//!
+//! Transfer back runs in two passes over the views: pass A writes each map over the unfiltered
+//! groups (masks composited, the fill) and finds the view support; after the filters, pass B
+//! rewrites the maps with the kept groups' ids (−1 for dropped groups).
 //!
 //! Outputs (DESIGN.md, "Wave 2 contract"): per view `<stem>.ids.npy` (int32 H×W, group id ≥ 0,
 //! −1 none), `groups.json` ([`GroupsFile`]), `features.npy` (float32 G×D, the unit mean feature
