@@ -178,6 +178,7 @@ fn prompts() -> Prompts {
         .into_iter()
         .map(|(k, v)| (k.to_string(), v))
         .collect(),
+        classes: Default::default(),
     }
 }
 

@@ -207,6 +207,13 @@ pub fn weighted(
         .collect()
 }
 
+/// One mask's pixels: their row-major indices, and a per-pixel membership flag (image size).
+#[derive(Debug, Clone, Copy)]
+pub struct MaskPixels<'a> {
+    pub list: &'a [u32],
+    pub inside: &'a [bool],
+}
+
 /// The α·T candidates of ONE mask given by its pixel indices, on its own (not composited with
 /// the view's other masks): the Gaussians whose mass on those pixels passes [`WeightedLimits`]
 /// (the centre test checks only the Gaussians that pass the mass tests), weighted by that mass.
@@ -214,15 +221,14 @@ pub fn weighted(
 pub fn weighted_one(
     c: &ViewContrib,
     total: &[f32],
-    pixels: &[u32],
-    in_mask: &dyn Fn(usize) -> bool,
+    mask: MaskPixels<'_>,
     centres: &[[f32; 3]],
     camera: &Camera,
     lim: &WeightedLimits,
     acc: &mut [f32],
 ) -> Candidate {
     let mut touched: Vec<u32> = Vec::new();
-    for &p in pixels {
+    for &p in mask.list {
         let (ids, ws) = c.pixel(p as usize);
         for (&g, &w) in ids.iter().zip(ws) {
             let a = &mut acc[g as usize];
@@ -239,7 +245,7 @@ pub fn weighted_one(
         if a >= lim.min_mass && a > lim.min_share * total[g as usize] {
             let inside = !lim.centre_inside
                 || centre_pixel(&centres[g as usize], camera, c.width, c.height)
-                    .is_some_and(|(p, _)| in_mask(p));
+                    .is_some_and(|(p, _)| mask.inside[p]);
             if inside {
                 out.ids.push(g);
                 out.weights.push(a);

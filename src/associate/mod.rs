@@ -744,8 +744,10 @@ impl Support<'_> {
             let cand = candidates::weighted_one(
                 c,
                 &total,
-                &px,
-                &|p| in_mask[p],
+                candidates::MaskPixels {
+                    list: &px,
+                    inside: &in_mask,
+                },
                 self.centres,
                 &view.camera,
                 &opts.weighted,
@@ -767,7 +769,7 @@ impl Support<'_> {
                 && m / mass > opts.tau_geo
                 && wants(k as usize)
             {
-                let similar = feats[j].as_deref().map_or(true, |f| {
+                let similar = feats[j].as_deref().is_none_or(|f| {
                     bank::cosine(f, &self.fin.groups[k as usize].feature_mean)
                         .is_none_or(|c| c > opts.tau_sim)
                 });

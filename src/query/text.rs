@@ -344,6 +344,7 @@ mod tests {
                 .iter()
                 .map(|(k, v)| (k.to_string(), v.clone()))
                 .collect::<BTreeMap<_, _>>(),
+            classes: BTreeMap::new(),
         }
     }
 
