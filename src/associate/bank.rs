@@ -800,9 +800,15 @@ mod tests {
         let b = seq(&[3, 1, 2, 0], true);
         assert_eq!(a.groups.len(), 1);
         assert_eq!(partition(&a), partition(&b));
-        assert_eq!(a.consolidation.merges, 1);
-        // One straddling view is not enough support.
+        // In this order the whole views joined the left half's group and, under vote ownership,
+        // own the right half's Gaussians too: the right-half mask is reassigned, no merge needed.
+        assert_eq!((a.consolidation.reassigned, a.consolidation.merges), (1, 0));
+        // One straddling view is not enough support for a MERGE; but its Gaussians tie in the
+        // ownership vote (one mask each), ties go to the canonical-first component, and the
+        // right half is reassigned to it. Known weakness (docs/associate.md): an exact tie could
+        // leave the Gaussian unowned instead (order-independent too), not yet measured.
         let c = seq(&[0, 1, 2], true);
-        assert_eq!(c.groups.len(), 2);
+        assert_eq!(c.consolidation.merges, 0);
+        assert_eq!((c.groups.len(), c.consolidation.reassigned), (1, 1));
     }
 }
