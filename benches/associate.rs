@@ -3,17 +3,15 @@
 //!
 //! ```text
 //! cargo bench --bench associate -- --scene /work/scenes/street --run /work/runs/street_core \
-//!     --out /work/runs/assoc-bench [--configs default,mview1,...] [--keep]
+//!     --masks /work/runs/assoc-masks-street --out /work/runs/assoc-bench \
+//!     [--configs default,mview1,...] [--keep] [--quick]
 //! ```
-//! Kept masks come from the STAND-IN filter of `tests/common/standin.rs` (the masks stage is
-//! not merged yet): `predicted_iou ≥ 0.7` and `R_ov < 0.8`, plus the paper's CLIP rule on the
-//! simulated features (config `noclip`: without it). Per configuration: associate → fuse →
+//! Kept masks come from the real masks stage (`gs4city::masks::run`, default options, all views):
+//! `--masks DIR` is reused when it holds a finished masks folder, else the stage is run into it
+//! first (as `gs4city run` feeds it). Per configuration: associate → fuse →
 //! lift (vote over the fused labels) → eval on the test views, with the time of each step,
 //! fine IoU per class (paper protocol), and association purity / completeness against the
 //! simulation truth (`gt/`, read here only, never by the stages). Prints Markdown.
-#[path = "../tests/common/standin.rs"]
-mod standin;
-
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -31,6 +29,7 @@ struct Args {
     scene: PathBuf,
     run: PathBuf,
     out: PathBuf,
+    masks: PathBuf,
     configs: Vec<String>,
     keep: bool,
     /// Association quality only (no fuse, lift, eval).
@@ -39,13 +38,14 @@ struct Args {
 
 fn args() -> Args {
     let mut a = std::env::args().skip(1);
-    let (mut scene, mut run, mut out, mut configs, mut keep, mut quick) =
-        (None, None, None, None, false, false);
+    let (mut scene, mut run, mut out, mut masks, mut configs, mut keep, mut quick) =
+        (None, None, None, None, None, false, false);
     while let Some(x) = a.next() {
         match x.as_str() {
             "--scene" => scene = a.next().map(PathBuf::from),
             "--run" => run = a.next().map(PathBuf::from),
             "--out" => out = a.next().map(PathBuf::from),
+            "--masks" => masks = a.next().map(PathBuf::from),
             "--configs" => configs = a.next(),
             "--keep" => keep = true,
             "--quick" => quick = true,
@@ -56,9 +56,10 @@ fn args() -> Args {
         scene: scene.unwrap_or_else(|| "/work/scenes/street".into()),
         run: run.unwrap_or_else(|| "/work/runs/street_core".into()),
         out: out.unwrap_or_else(|| "/work/runs/assoc-bench".into()),
+        masks: masks.unwrap_or_else(|| "/work/runs/assoc-masks-street".into()),
         configs: configs
             .unwrap_or_else(|| {
-                "default,mview1,mview5,projected,single_pass,shuffle1,shuffle2,shuffle3,snap,noclip"
+                "default,mview1,mview5,projected,single_pass,shuffle1,shuffle2,shuffle3,nosnap"
                     .into()
             })
             .split(',')
@@ -69,19 +70,17 @@ fn args() -> Args {
     }
 }
 
-/// Which stand-in masks: with the CLIP rule, and `τ_q` in hundredths.
-type Variant = (bool, u32);
-
-/// A configuration: options, and which stand-in masks.
-fn config(name: &str) -> (AssociateOptions, FuseOptions, Variant) {
+/// A configuration's options.
+fn config(name: &str) -> (AssociateOptions, FuseOptions) {
     let mut a = AssociateOptions::default();
     let mut f = FuseOptions::default();
-    let mut clip = true;
-    let mut q = 70;
     for part in name.split('+') {
         match part {
             "default" => {}
             "mview1" => a.min_views = 1,
+            "mview2" => a.min_views = 2,
+            "nosupport" => a.support = false,
+            "supportpixels" => a.support_pixels = true,
             "mview5" => a.min_views = 5,
             "projected" => a.candidates = CandidateMode::Projected,
             "projected_single" => {
@@ -98,13 +97,7 @@ fn config(name: &str) -> (AssociateOptions, FuseOptions, Variant) {
                 a.fill = None;
                 f.snap = false;
             }
-            "noclip" => clip = false,
             "nofill" => a.fill = None,
-            "q50" => q = 50,
-            "q50snap" => {
-                q = 50;
-                f.snap = true;
-            }
             s if s.starts_with("shuffle") => {
                 a.shuffle_seed = Some(s["shuffle".len()..].parse().expect("shuffleN"))
             }
@@ -148,7 +141,7 @@ fn config(name: &str) -> (AssociateOptions, FuseOptions, Variant) {
             s => panic!("unknown config {s}"),
         }
     }
-    (a, f, (clip, q))
+    (a, f)
 }
 
 /// Purity and completeness of an associate folder against `gt/<stem>.instance.npy`.
@@ -307,41 +300,31 @@ fn main() {
     let classes = instance_classes(&gt);
     std::fs::create_dir_all(&args.out).unwrap();
 
-    // Stand-in kept masks (once per variant).
-    let mut masks_dir: HashMap<Variant, PathBuf> = HashMap::new();
-    let mut variants: Vec<Variant> = args.configs.iter().map(|c| config(c).2).collect();
-    variants.sort_unstable();
-    variants.dedup();
-    for (clip, q) in variants {
-        let dir = args.out.join(format!(
-            "masks_standin{}{}",
-            if clip { "" } else { "_noclip" },
-            if q == 70 {
-                String::new()
-            } else {
-                format!("_q{q}")
-            }
-        ));
+    // The masks stage's kept masks (run once, then reused).
+    if !args.masks.join("summary.json").is_file() {
         let t = Instant::now();
-        let c = standin::standin_masks(
-            scene,
-            &run.join("raycast"),
-            &split.train,
-            &dir,
-            clip,
-            f64::from(q) / 100.0,
-        );
+        let sc = gs4city::scene::Scene::open(scene).unwrap();
+        let all = colmap::read_model(&scene.join("sparse/0")).unwrap();
+        let m = gs4city::masks::run(
+            &gs4city::masks::MasksInputs {
+                scene: &sc,
+                views: &all,
+                raycast: &run.join("raycast"),
+                cache: Some(&cache),
+                alignment_scale: scale,
+            },
+            &gs4city::masks::MasksOptions::default(),
+            &args.masks,
+        )
+        .unwrap();
         println!(
-            "stand-in masks ({}, τ_q {:.2}): {} SAM masks, kept {} (R_ov < 0.8) + {} (CLIP rule) in {:.1} s",
-            if clip { "with CLIP rule" } else { "R_ov only" },
-            f64::from(q) / 100.0,
-            c.masks,
-            c.kept_low_overlap,
-            c.kept_clip,
-            t.elapsed().as_secs_f64()
+            "masks stage: kept {} masks in {:.1} s → {}",
+            m.kept,
+            t.elapsed().as_secs_f64(),
+            args.masks.display()
         );
-        masks_dir.insert((clip, q), dir);
     }
+    let masks_dir = &args.masks;
 
     println!();
     println!(
@@ -349,7 +332,7 @@ fn main() {
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for name in &args.configs {
-        let (aopt, fopt, variant) = config(name);
+        let (aopt, fopt) = config(name);
         let dir = args.out.join(name);
         let (ad, fd, ld, ed) = (
             dir.join("associate"),
@@ -360,8 +343,9 @@ fn main() {
         let a = associate::run(
             &associate::AssociateInputs {
                 views: &split.train,
-                masks: &masks_dir[&variant],
+                masks: masks_dir,
                 features: Some(&scene.join("features")),
+                sam: Some(&scene.join("masks")),
                 cache: &cache,
                 ply: &scene.join("point_cloud.ply"),
                 scale,
@@ -396,7 +380,7 @@ fn main() {
                 entities: &entities,
                 sam: Some(&scene.join("masks")),
                 features: Some(&scene.join("features")),
-                kept: Some(&masks_dir[&variant]),
+                kept: Some(masks_dir),
             },
             &fopt,
             &fd,

@@ -16,6 +16,7 @@ fn run(b: &Built, opts: &AssociateOptions, out: &Path, scale: f64) -> AssociateS
             views: &b.views,
             masks: &b.masks,
             features: Some(&b.features),
+            sam: None,
             cache: &cache,
             ply: &b.ply,
             scale,
@@ -219,6 +220,7 @@ fn bad_inputs_are_errors_naming_the_file() {
                 views: &b.views,
                 masks,
                 features: Some(features),
+                sam: None,
                 cache: &cache,
                 ply,
                 scale: 1.0,
@@ -294,4 +296,108 @@ fn bad_inputs_are_errors_naming_the_file() {
     assert!(e.contains("other.ply") && e.contains("stale"), "{e}");
     // Nothing looks done after a failure.
     assert!(!b.dir.join("bad-out/summary.json").exists());
+}
+
+/// Writes `<stem>.decisions.json` for every view of `b`: every SAM mask (the lists hold the
+/// objects with ≥ 20 pixels, in object order) is kept unless `dropped(view, object)` names the
+/// rule that dropped it.
+fn write_decisions(b: &Built, dropped: impl Fn(usize, usize) -> Option<&'static str>) {
+    for (v, view) in b.views.iter().enumerate() {
+        let mut d = Vec::new();
+        for o in 0..OBJECTS {
+            if boxes::object_mask(&b.truth[v], o, 20).is_none() {
+                continue;
+            }
+            let rule = dropped(v, o);
+            d.push(gs4city::masks::Decision {
+                source_index: d.len() as i64,
+                kept: rule.is_none(),
+                rule: rule.unwrap_or("test").into(),
+                r_ov: 0.0,
+                scores: Default::default(),
+            });
+        }
+        gs4city::fsutil::write_json(&b.masks.join(format!("{}.decisions.json", view.stem())), &d)
+            .unwrap();
+    }
+}
+
+#[test]
+fn masks_dropped_for_quality_support_a_group_seen_in_too_few_views() {
+    // The person (object 2) is kept in two views only; in every other view that shows it, its
+    // mask was dropped for quality (or, second case, as building surface). With m_view = 3 the
+    // person's group needs the view support of the quality-dropped masks; building-dropped ones
+    // give none, and no other object gains or loses a group.
+    let person_views: Vec<usize> = {
+        let b = boxes::build("support-probe", |_, _| false);
+        (0..b.views.len())
+            .filter(|&v| boxes::object_mask(&b.truth[v], 2, 20).is_some())
+            .collect()
+    };
+    assert!(person_views.len() >= 5, "{person_views:?}");
+    let keep: Vec<usize> = person_views[..2].to_vec();
+    let skip = |v: usize, o: usize| o == 2 && !keep.contains(&v);
+    let b = boxes::build("support", skip);
+    let cache = b.open_cache();
+    let go = |tag: &str, opts: &AssociateOptions| {
+        let out = b.dir.join(tag);
+        let s = associate::run(
+            &associate::AssociateInputs {
+                views: &b.views,
+                masks: &b.masks,
+                features: Some(&b.features),
+                sam: Some(&b.sam),
+                cache: &cache,
+                ply: &b.ply,
+                scale: 1.0,
+            },
+            opts,
+            &out,
+        )
+        .unwrap();
+        (
+            s,
+            GroupsFile::read(&out).unwrap(),
+            groups_per_object(&b, &out),
+        )
+    };
+    // Quality-dropped: the person's group survives, supported by other views that show the
+    // person (only where those masks' Gaussians overlap the group's: the faces the two kept
+    // views saw, not the far side).
+    write_decisions(&b, |v, o| {
+        skip(v, o).then_some(gs4city::masks::RULE_QUALITY)
+    });
+    let (s, gf, per) = go("quality", &AssociateOptions::default());
+    assert_eq!((s.groups, s.supported_groups), (OBJECTS, 1), "{s:?}");
+    let person = gf.groups.iter().find(|g| g.class == 7).unwrap();
+    let others: Vec<String> = person_views[2..]
+        .iter()
+        .map(|&v| b.views[v].stem())
+        .collect();
+    assert_eq!(person.views.len(), 2);
+    assert!(!person.support_views.is_empty());
+    assert!(
+        person.support_views.iter().all(|v| others.contains(v)),
+        "{:?} vs {others:?}",
+        person.support_views
+    );
+    assert_eq!(s.support_masks, person.support_views.len());
+    assert!(per[2].contains(&person.id), "{per:?}");
+    // Without the support (option off) the group is dropped; the others are unchanged.
+    let (s, gf, _) = go(
+        "off",
+        &AssociateOptions {
+            support: false,
+            ..Default::default()
+        },
+    );
+    assert_eq!(
+        (s.groups, s.dropped_min_views, s.support_masks),
+        (OBJECTS - 1, 1, 0)
+    );
+    assert!(gf.groups.iter().all(|g| g.class != 7));
+    // Dropped as building: no support.
+    write_decisions(&b, |v, o| skip(v, o).then_some("on_surface"));
+    let (s, _, _) = go("surface", &AssociateOptions::default());
+    assert_eq!((s.groups, s.support_masks), (OBJECTS - 1, 0), "{s:?}");
 }

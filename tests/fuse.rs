@@ -72,6 +72,7 @@ fn associate(b: &Built) -> PathBuf {
             views: &b.views,
             masks: &b.masks,
             features: Some(&b.features),
+            sam: None,
             cache: &cache,
             ply: &b.ply,
             scale: 1.0,
@@ -368,8 +369,18 @@ fn bad_inputs_are_errors_naming_the_file() {
     assert!(!b.dir.join("bad2/summary.json").exists());
 }
 
-#[path = "common/standin.rs"]
-mod standin;
+/// Removes the wall-clock fields (`timing`, per-view `seconds`) of a summary, recursively.
+fn strip_timings(v: &mut serde_json::Value) {
+    match v {
+        serde_json::Value::Object(o) => {
+            o.remove("timing");
+            o.remove("seconds");
+            o.values_mut().for_each(strip_timings);
+        }
+        serde_json::Value::Array(a) => a.iter_mut().for_each(strip_timings),
+        _ => {}
+    }
+}
 
 /// Digest of every file of `dir` (summary.json without its timings).
 fn digests(dir: &Path) -> std::collections::BTreeMap<String, u64> {
@@ -381,7 +392,7 @@ fn digests(dir: &Path) -> std::collections::BTreeMap<String, u64> {
             let bytes = std::fs::read(&p).unwrap();
             let h = if name == "summary.json" {
                 let mut v: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
-                v.as_object_mut().unwrap().remove("timing");
+                strip_timings(&mut v);
                 xxhash_rust::xxh3::xxh3_64(v.to_string().as_bytes())
             } else {
                 xxhash_rust::xxh3::xxh3_64(&bytes)
@@ -393,9 +404,10 @@ fn digests(dir: &Path) -> std::collections::BTreeMap<String, u64> {
 
 #[test]
 fn outputs_do_not_depend_on_simulation_truth() {
-    // A small SIMULATED scene (synth), the core pipeline on it, then stand-in masks → associate
-    // → fuse (with snapping) twice: with the simulation truth in the scene folder, and after
-    // deleting gt/, masks/*.sim.json, masks/README.json and summary.json.
+    // A small SIMULATED scene (synth), the core pipeline on it, then masks (the real stage,
+    // default options) → associate (with the view support) → fuse (with snapping) twice: with
+    // the simulation truth in the scene folder, and after deleting gt/, masks/*.sim.json,
+    // masks/README.json and summary.json.
     let dir = boxes::tmp("truth");
     let scene = dir.join("scene");
     let run = dir.join("run");
@@ -438,19 +450,26 @@ fn outputs_do_not_depend_on_simulation_truth() {
     let pass = |tag: &str| -> PathBuf {
         let out = dir.join(tag);
         let masks = out.join("masks");
-        standin::standin_masks(
-            &scene,
-            &run.join("raycast"),
-            &split.train,
+        let sc = gs4city::scene::Scene::open(&scene).unwrap();
+        let all = gs4city::colmap::read_model(&scene.join("sparse/0")).unwrap();
+        gs4city::masks::run(
+            &gs4city::masks::MasksInputs {
+                scene: &sc,
+                views: &all,
+                raycast: &run.join("raycast"),
+                cache: Some(&cache),
+                alignment_scale: 1.0,
+            },
+            &gs4city::masks::MasksOptions::default(),
             &masks,
-            true,
-            0.7,
-        );
+        )
+        .unwrap();
         let a = associate::run(
             &associate::AssociateInputs {
                 views: &split.train,
                 masks: &masks,
                 features: Some(&scene.join("features")),
+                sam: Some(&scene.join("masks")),
                 cache: &cache,
                 ply: &scene.join("point_cloud.ply"),
                 scale: 1.0,

@@ -85,7 +85,7 @@ impl Group {
 }
 
 /// Cosine between a unit feature and an (unnormalised) sum; `None` where either is missing.
-fn cosine(f: &[f32], sum: &[f64]) -> Option<f64> {
+pub(crate) fn cosine(f: &[f32], sum: &[f64]) -> Option<f64> {
     if sum.is_empty() || f.len() != sum.len() {
         return None;
     }
@@ -683,7 +683,7 @@ fn vote_owner(
 }
 
 /// Weighted share of `c`'s mass per owner (owners ascending) and the total mass.
-fn shares_under(owner: &[i32], c: &Candidate) -> (Vec<(u32, f64)>, f64) {
+pub(crate) fn shares_under(owner: &[i32], c: &Candidate) -> (Vec<(u32, f64)>, f64) {
     let mut per: HashMap<u32, f64> = HashMap::new();
     let mut total = 0.0;
     for (&g, &w) in c.ids.iter().zip(&c.weights) {
@@ -800,9 +800,15 @@ mod tests {
         let b = seq(&[3, 1, 2, 0], true);
         assert_eq!(a.groups.len(), 1);
         assert_eq!(partition(&a), partition(&b));
-        assert_eq!(a.consolidation.merges, 1);
-        // One straddling view is not enough support.
+        // In this order the whole views joined the left half's group and, under vote ownership,
+        // own the right half's Gaussians too: the right-half mask is reassigned, no merge needed.
+        assert_eq!((a.consolidation.reassigned, a.consolidation.merges), (1, 0));
+        // One straddling view is not enough support for a MERGE; but its Gaussians tie in the
+        // ownership vote (one mask each), ties go to the canonical-first component, and the
+        // right half is reassigned to it. Known weakness (docs/associate.md): an exact tie could
+        // leave the Gaussian unowned instead (order-independent too), not yet measured.
         let c = seq(&[0, 1, 2], true);
-        assert_eq!(c.groups.len(), 2);
+        assert_eq!(c.consolidation.merges, 0);
+        assert_eq!((c.groups.len(), c.consolidation.reassigned), (1, 1));
     }
 }

@@ -207,6 +207,54 @@ pub fn weighted(
         .collect()
 }
 
+/// One mask's pixels: their row-major indices, and a per-pixel membership flag (image size).
+#[derive(Debug, Clone, Copy)]
+pub struct MaskPixels<'a> {
+    pub list: &'a [u32],
+    pub inside: &'a [bool],
+}
+
+/// The α·T candidates of ONE mask given by its pixel indices, on its own (not composited with
+/// the view's other masks): the Gaussians whose mass on those pixels passes [`WeightedLimits`]
+/// (the centre test checks only the Gaussians that pass the mass tests), weighted by that mass.
+/// `acc` is scratch of length `c.gaussians`, all zero on entry and on return.
+pub fn weighted_one(
+    c: &ViewContrib,
+    total: &[f32],
+    mask: MaskPixels<'_>,
+    centres: &[[f32; 3]],
+    camera: &Camera,
+    lim: &WeightedLimits,
+    acc: &mut [f32],
+) -> Candidate {
+    let mut touched: Vec<u32> = Vec::new();
+    for &p in mask.list {
+        let (ids, ws) = c.pixel(p as usize);
+        for (&g, &w) in ids.iter().zip(ws) {
+            let a = &mut acc[g as usize];
+            if *a == 0.0 {
+                touched.push(g);
+            }
+            *a += w;
+        }
+    }
+    touched.sort_unstable();
+    let mut out = Candidate::default();
+    for &g in &touched {
+        let a = std::mem::take(&mut acc[g as usize]);
+        if a >= lim.min_mass && a > lim.min_share * total[g as usize] {
+            let inside = !lim.centre_inside
+                || centre_pixel(&centres[g as usize], camera, c.width, c.height)
+                    .is_some_and(|(p, _)| mask.inside[p]);
+            if inside {
+                out.ids.push(g);
+                out.weights.push(a);
+            }
+        }
+    }
+    out
+}
+
 /// Per Gaussian, the mask its centre projects into (through the lens model, to the pixel
 /// containing it), −1 outside every mask, behind the camera or outside the image.
 pub fn centre_masks(centres: &[[f32; 3]], camera: &Camera, vm: &ViewMasks) -> Vec<i32> {

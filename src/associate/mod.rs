@@ -8,6 +8,15 @@
 //! exclusive Gaussian ownership) and a consolidation pass makes the result robust to the
 //! visiting order. Groups seen in fewer than `m_view` views, and groups whose centroid lies
 //! farther than the far-field distance (80 m × alignment scale) from every camera, are dropped.
+//! Beyond the paper, the **view support** ([`AssociateOptions::support`]): a group below
+//! `m_view` also counts the views where a SAM mask that the masks stage dropped *only* for
+//! quality or area (`predicted_iou < τ_q`, `|s| < τ_a` — small objects such as persons lose most
+//! of their masks there) matches it by the paper's rule (`R_geo > τ_geo` of the mask's own α·T
+//! candidates, feature cosine `> τ_sim`). Such masks never start a group.
+//!
+//! Transfer back runs in two passes over the views: pass A writes each map over the unfiltered
+//! groups (masks composited, the fill) and finds the view support; after the filters, pass B
+//! rewrites the maps with the kept groups' ids (−1 for dropped groups).
 //!
 //! Outputs (DESIGN.md, "Wave 2 contract"): per view `<stem>.ids.npy` (int32 H×W, group id ≥ 0,
 //! −1 none), `groups.json` ([`GroupsFile`]), `features.npy` (float32 G×D, the unit mean feature
@@ -54,6 +63,8 @@ pub enum AssociateError {
     #[error(transparent)]
     Masks(#[from] MasksError),
     #[error(transparent)]
+    Sam(#[from] crate::sam::SamError),
+    #[error(transparent)]
     Cache(#[from] CacheError),
     #[error(transparent)]
     Npy(#[from] NpyError),
@@ -93,6 +104,18 @@ pub struct AssociateOptions {
     /// Fill (beyond the paper): a pixel no kept mask labels takes the group whose Gaussians
     /// make at least this share of its colour (α·T), where some group does; `None` = off.
     pub fill: Option<f32>,
+    /// View support (beyond the paper): a group seen in fewer than `min_views` views also counts
+    /// the views where a mask that the masks stage dropped ONLY for quality or area
+    /// (`predicted_iou < τ_q`, `|s| < τ_a`) matches it — its α·T candidates have more than
+    /// `τ_geo` of their mass on the group's Gaussians and its feature passes `τ_sim` (needs
+    /// [`AssociateInputs::sam`]). Such masks never start a group.
+    pub support: bool,
+    /// With `support`: match the dropped masks against every group (not only those below
+    /// `min_views`) in the views where the group has no kept mask, and label a matching mask's
+    /// pixels that no kept mask labels with its group (before the fill). Off by default: on
+    /// `street` it gains person +2.5 and car +2.5 IoU but loses window −2.0 and purity
+    /// (0.956 → 0.938): the dropped masks' outlines are poor (docs/associate.md).
+    pub support_pixels: bool,
 }
 
 impl Default for AssociateOptions {
@@ -111,6 +134,8 @@ impl Default for AssociateOptions {
             tau_link: 0.25,
             shuffle_seed: None,
             fill: Some(0.5),
+            support: true,
+            support_pixels: false,
         }
     }
 }
@@ -159,6 +184,10 @@ pub struct AssociateInputs<'a> {
     pub masks: &'a Path,
     /// The scene's `features/` folder (`<stem>.npy`, one row per SAM mask), when it exists.
     pub features: Option<&'a Path>,
+    /// The scene's SAM lists (`masks/<stem>.json`), for the view support from masks the masks
+    /// stage dropped for quality or area only (read with its `<stem>.decisions.json`); `None`:
+    /// no view support.
+    pub sam: Option<&'a Path>,
     /// The contributions cache (read by the α·T candidates).
     pub cache: &'a Cache,
     /// The pre-trained 3DGS PLY the cache was built from (Gaussian centres).
@@ -171,8 +200,12 @@ pub struct AssociateInputs<'a> {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct GroupRecord {
     pub id: i32,
-    /// Stems of the views it was seen in.
+    /// Stems of the views it was seen in (kept masks).
     pub views: Vec<String>,
+    /// Stems of further views where a mask dropped for quality or area only matches it (the
+    /// view support, [`AssociateOptions::support`]).
+    #[serde(default)]
+    pub support_views: Vec<String>,
     /// Masks assigned to it.
     pub masks: usize,
     /// Pixels it covers, over all views.
@@ -256,7 +289,7 @@ pub struct AssociateTiming {
     pub bank_s: f64,
     /// Consolidation, filters, numbering.
     pub finish_s: f64,
-    /// Per-view maps, groups.json, features.npy.
+    /// Per-view maps (with the view support and the fill), groups.json, features.npy.
     pub write_s: f64,
     pub total_s: f64,
 }
@@ -281,6 +314,13 @@ pub struct AssociateSummary {
     pub consolidation: Consolidation,
     pub dropped_min_views: usize,
     pub dropped_far_field: usize,
+    /// Masks dropped for quality or area only that matched a group seen in fewer than
+    /// `min_views` views (view support) …
+    #[serde(default)]
+    pub support_masks: usize,
+    /// … and the groups that reach `min_views` with that support.
+    #[serde(default)]
+    pub supported_groups: usize,
     /// Masks whose group was dropped.
     pub masks_dropped: usize,
     pub groups: usize,
@@ -563,9 +603,9 @@ fn fill_members(fin: &bank::Finished, visible: &[Option<Vec<u64>>], views: usize
         .collect()
 }
 
-/// The fill: every pixel of `map` still −1 takes the group whose owned Gaussians carry at least
-/// `share` of the pixel's α·T mass (the largest such group; ties: the smaller id). Returns the
-/// number of pixels filled.
+/// The fill: every pixel of `map` still −1 takes the group `k` whose member Gaussians carry at
+/// least `share` of the pixel's α·T mass (the largest such group; ties: the smaller index),
+/// written as `−2 − k` (a filled pixel). Returns the number of pixels filled.
 fn fill(map: &mut [i32], c: &crate::render::cache::ViewContrib, owner: &[i32], share: f32) -> u64 {
     let mut filled = 0;
     let mut acc: Vec<(i32, f32)> = Vec::with_capacity(16);
@@ -595,11 +635,174 @@ fn fill(map: &mut [i32], c: &crate::render::cache::ViewContrib, owner: &[i32], s
         if let Some((k, w)) = best
             && w >= share
         {
-            *m = k;
+            *m = -2 - k;
             filled += 1;
         }
     }
     filled
+}
+
+/// The view support of the groups seen in fewer than `min_views` views
+/// ([`AssociateOptions::support`]).
+struct Support<'a> {
+    fin: &'a bank::Finished,
+    /// Per pre-filter group: whether dropped masks are matched against it (not far field; and
+    /// seen in fewer than `min_views` views unless `support_pixels`).
+    eligible: &'a [bool],
+    centres: &'a [[f32; 3]],
+}
+
+impl Support<'_> {
+    /// The eligible groups that masks of view `vi` dropped for quality or area only match (one
+    /// entry per matching mask; only groups without a kept mask in the view). With
+    /// `support_pixels`, a matching mask's pixels where `map` is −1 (or another dropped mask
+    /// painted them: larger masks first, so the smaller wins) take its group.
+    fn hits(
+        &self,
+        inp: &AssociateInputs<'_>,
+        opts: &AssociateOptions,
+        view: &View,
+        vi: u32,
+        c: &crate::render::cache::ViewContrib,
+        map: &mut [i32],
+    ) -> Result<Vec<usize>, AssociateError> {
+        let Some(sam_dir) = inp.sam else {
+            return Ok(Vec::new());
+        };
+        let stem = view.stem();
+        let (w, h) = (c.width, c.height);
+        let dpath = masks::decisions_file(inp.masks, &stem);
+        if !dpath.is_file() {
+            return Err(AssociateError::Invalid {
+                path: dpath,
+                why: "missing: the view support needs the masks stage's decisions".into(),
+            });
+        }
+        let sources: Vec<i64> = masks::read_decisions(&dpath)?
+            .iter()
+            .filter(|d| {
+                !d.kept
+                    && d.source_index >= 0
+                    && (d.rule == masks::RULE_QUALITY || d.rule == masks::RULE_AREA)
+            })
+            .map(|d| d.source_index)
+            .collect();
+        if sources.is_empty() {
+            return Ok(Vec::new());
+        }
+        let spath = sam_dir.join(format!("{stem}.json"));
+        let sam = crate::sam::read_sam_json_sized(&spath, Some([h, w]))?;
+        if let Some(&s) = sources.iter().find(|&&s| s as usize >= sam.len()) {
+            return Err(AssociateError::Invalid {
+                path: dpath,
+                why: format!(
+                    "a decision has source_index {s}, {} lists {} masks",
+                    spath.display(),
+                    sam.len()
+                ),
+            });
+        }
+        let feats = match inp.features {
+            Some(dir) => mask_features(&dir.join(format!("{stem}.npy")), &sources)?.1,
+            None => vec![None; sources.len()],
+        };
+        let owner = &self.fin.owner;
+        let wants = |k: usize| self.eligible[k] && !self.fin.groups[k].views.contains(&vi);
+        // Larger masks first (ties: file order), so a smaller one paints over them.
+        let mut order: Vec<usize> = (0..sources.len()).collect();
+        order.sort_by(|&a, &b| {
+            sam[sources[b] as usize]
+                .area
+                .cmp(&sam[sources[a] as usize].area)
+                .then(a.cmp(&b))
+        });
+        let mut painted = vec![false; w * h];
+        let total = candidates::view_mass(c);
+        let mut acc = vec![0f32; c.gaussians];
+        let mut in_mask = vec![false; w * h];
+        let mut px: Vec<u32> = Vec::new();
+        let mut hits = Vec::new();
+        for j in order {
+            let si = sources[j];
+            px.clear();
+            for_each_pixel_checked(&sam[si as usize].segmentation, &spath, si as usize, |p| {
+                px.push(p as u32)
+            })?;
+            // Only masks on some weak group's Gaussians are worth their candidates.
+            let touches = px.iter().any(|&p| {
+                c.pixel(p as usize).0.iter().any(|&g| {
+                    let o = owner[g as usize];
+                    o >= 0 && wants(o as usize)
+                })
+            });
+            if !touches {
+                continue;
+            }
+            for &p in &px {
+                in_mask[p as usize] = true;
+            }
+            let cand = candidates::weighted_one(
+                c,
+                &total,
+                candidates::MaskPixels {
+                    list: &px,
+                    inside: &in_mask,
+                },
+                self.centres,
+                &view.camera,
+                &opts.weighted,
+                &mut acc,
+            );
+            for &p in &px {
+                in_mask[p as usize] = false;
+            }
+            let (shares, mass) = bank::shares_under(owner, &cand);
+            let best = shares
+                .iter()
+                .copied()
+                .fold(None::<(u32, f64)>, |b, x| match b {
+                    Some(b) if b.1 >= x.1 => Some(b),
+                    _ => Some(x),
+                });
+            if let Some((k, m)) = best
+                && mass > 0.0
+                && m / mass > opts.tau_geo
+                && wants(k as usize)
+            {
+                let similar = feats[j].as_deref().is_none_or(|f| {
+                    bank::cosine(f, &self.fin.groups[k as usize].feature_mean)
+                        .is_none_or(|c| c > opts.tau_sim)
+                });
+                if similar {
+                    hits.push(k as usize);
+                    if opts.support_pixels {
+                        for &p in &px {
+                            let p = p as usize;
+                            if map[p] == -1 || painted[p] {
+                                map[p] = k as i32;
+                                painted[p] = true;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        Ok(hits)
+    }
+}
+
+/// [`candidates::for_each_pixel`] with the file and mask index in the error.
+fn for_each_pixel_checked(
+    rle: &crate::sam::Rle,
+    path: &Path,
+    index: usize,
+    f: impl FnMut(usize),
+) -> Result<(), AssociateError> {
+    candidates::for_each_pixel(rle, f).map_err(|source| AssociateError::Rle {
+        path: path.to_path_buf(),
+        index,
+        source,
+    })
 }
 
 /// Runs the stage: association, filters, per-view group maps, `groups.json`, `features.npy`,
@@ -708,28 +911,110 @@ pub fn run(
     }
     bar.finish();
 
-    // Consolidation, filters, numbering.
+    // Consolidation; fill members and weak groups (pre-filter group indices).
     let t = Instant::now();
     let fin = bank.finish();
     let cams: Vec<glam::DVec3> = views.iter().map(|v| v.camera.pose.center()).collect();
     let far = opts.far_field_m * inp.scale;
-    let (mut dropped_views, mut dropped_far) = (0, 0);
+    let nearest: Vec<f64> = fin
+        .groups
+        .iter()
+        .map(|g| {
+            let c = glam::DVec3::from_array(g.centroid);
+            cams.iter()
+                .map(|k| (*k - c).length())
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect();
+    let is_far = |gi: usize| nearest[gi].is_nan() || nearest[gi] > far;
+    let members: Vec<i32> = if opts.fill.is_some() {
+        fill_members(&fin, &visible, views.len())
+    } else {
+        Vec::new()
+    };
+    drop(visible);
+    let eligible: Vec<bool> = (0..fin.groups.len())
+        .map(|gi| {
+            !is_far(gi) && (opts.support_pixels || fin.groups[gi].views.len() < opts.min_views)
+        })
+        .collect();
+    let support_on = opts.support && inp.sam.is_some() && eligible.iter().any(|&w| w);
+    // Group index per (canonical view, mask index).
+    let mut per_view: Vec<Vec<(u32, usize)>> = vec![Vec::new(); views.len()];
+    for (o, &gi) in fin.observations.iter().zip(&fin.group_of) {
+        per_view[o.view as usize].push((o.mask, gi));
+    }
+    let finish_s = t.elapsed().as_secs_f64();
+
+    // Transfer back, pass A: per view, the map over pre-filter group indices (a filled pixel is
+    // written as −2 − index) and the view support's matches.
+    let t = Instant::now();
+    let pass_a: Vec<Result<Vec<usize>, AssociateError>> = views
+        .par_iter()
+        .zip(&per_view)
+        .enumerate()
+        .map(|(vi, (v, assigned))| {
+            let stem = v.stem();
+            let (w, h) = (
+                v.camera.intrinsics.width as usize,
+                v.camera.intrinsics.height as usize,
+            );
+            let (path, kept) = read_view_masks(inp.masks, &stem, w, h)?;
+            let vm = composite_view(&path, &kept, w, h)?;
+            let mut gi_of = vec![-1i32; kept.len()];
+            for &(m, gi) in assigned {
+                gi_of[m as usize] = gi as i32;
+            }
+            let mut map: Vec<i32> = vm
+                .label
+                .iter()
+                .map(|&l| if l >= 0 { gi_of[l as usize] } else { -1 })
+                .collect();
+            let mut hits = Vec::new();
+            if opts.fill.is_some() || support_on {
+                let c = load_cache_view(inp, &stem, w, h)?;
+                if support_on {
+                    let sup = Support {
+                        fin: &fin,
+                        eligible: &eligible,
+                        centres: &centres,
+                    };
+                    hits = sup.hits(inp, opts, v, vi as u32, &c, &mut map)?;
+                }
+                if let Some(share) = opts.fill {
+                    fill(&mut map, &c, &members, share);
+                }
+            }
+            npy::write(&ids_file(out, &stem), &[h, w], &map)?;
+            Ok(hits)
+        })
+        .collect();
+    let mut support: Vec<std::collections::BTreeSet<u32>> =
+        vec![Default::default(); fin.groups.len()];
+    let mut support_masks = 0;
+    for (vi, r) in pass_a.into_iter().enumerate() {
+        for gi in r? {
+            support[gi].insert(vi as u32);
+            support_masks += 1;
+        }
+    }
+
+    // Filters and numbering.
+    let (mut dropped_views, mut dropped_far, mut supported) = (0, 0, 0);
     let mut keep_id: Vec<i32> = vec![-1; fin.groups.len()];
     let mut records = Vec::new();
     let mut group_features: Vec<f32> = Vec::new();
     for (gi, g) in fin.groups.iter().enumerate() {
-        let c = glam::DVec3::from_array(g.centroid);
-        let nearest = cams
-            .iter()
-            .map(|k| (*k - c).length())
-            .fold(f64::INFINITY, f64::min);
-        if g.views.len() < opts.min_views {
+        if g.views.len() + support[gi].len() < opts.min_views {
             dropped_views += 1;
             continue;
         }
-        if nearest.is_nan() || nearest > far {
+        if is_far(gi) {
             dropped_far += 1;
             continue;
+        }
+        if g.views.len() < opts.min_views {
+            supported += 1;
         }
         let id = records.len() as i32;
         keep_id[gi] = id;
@@ -744,65 +1029,45 @@ pub fn run(
         records.push(GroupRecord {
             id,
             views: g.views.iter().map(|&v| views[v as usize].stem()).collect(),
+            support_views: support[gi]
+                .iter()
+                .map(|&v| views[v as usize].stem())
+                .collect(),
             masks: g.members.len(),
             pixels: g.pixels,
             gaussians: g.gaussians,
             class: g.class,
             centroid: g.centroid,
-            nearest_camera_distance: nearest,
+            nearest_camera_distance: nearest[gi],
         });
     }
-    // Fill members per Gaussian (kept group ids).
-    let owner: Vec<i32> = if opts.fill.is_some() {
-        fill_members(&fin, &visible, views.len())
-            .iter()
-            .map(|&o| if o >= 0 { keep_id[o as usize] } else { -1 })
-            .collect()
-    } else {
-        Vec::new()
-    };
-    drop(visible);
-    // Group id per (canonical view, mask index).
-    let mut per_view: Vec<Vec<(u32, i32)>> = vec![Vec::new(); views.len()];
-    let mut masks_dropped = 0;
-    for (o, &gi) in fin.observations.iter().zip(&fin.group_of) {
-        let id = keep_id[gi];
-        if id < 0 {
-            masks_dropped += 1;
-        }
-        per_view[o.view as usize].push((o.mask, id));
-    }
-    let finish_s = t.elapsed().as_secs_f64();
+    let masks_dropped = fin.group_of.iter().filter(|&&gi| keep_id[gi] < 0).count();
 
-    // Transfer back to every view.
-    let t = Instant::now();
+    // Transfer back, pass B: pre-filter indices → kept group ids (−1 for dropped groups).
     let labelled: Vec<Result<(u64, u64), AssociateError>> = views
         .par_iter()
-        .zip(&per_view)
-        .map(|(v, assigned)| {
+        .map(|v| {
             let stem = v.stem();
             let (w, h) = (
                 v.camera.intrinsics.width as usize,
                 v.camera.intrinsics.height as usize,
             );
-            let (path, kept) = read_view_masks(inp.masks, &stem, w, h)?;
-            let vm = composite_view(&path, &kept, w, h)?;
-            let mut id_of = vec![-1i32; kept.len()];
-            for &(m, id) in assigned {
-                id_of[m as usize] = id;
-            }
-            let mut map: Vec<i32> = vm
-                .label
-                .iter()
-                .map(|&l| if l >= 0 { id_of[l as usize] } else { -1 })
-                .collect();
-            let mut filled = 0u64;
-            if let Some(share) = opts.fill {
-                let c = load_cache_view(inp, &stem, w, h)?;
-                filled = fill(&mut map, &c, &owner, share);
+            let mut map = read_ids(out, &stem, w, h)?;
+            let (mut lab, mut filled) = (0u64, 0u64);
+            for m in map.iter_mut() {
+                let (gi, by_fill) = match *m {
+                    x if x >= 0 => (x as usize, false),
+                    -1 => continue,
+                    x => ((-2 - x) as usize, true),
+                };
+                *m = keep_id[gi];
+                if *m >= 0 {
+                    lab += 1;
+                    filled += u64::from(by_fill);
+                }
             }
             npy::write(&ids_file(out, &stem), &[h, w], &map)?;
-            Ok((map.iter().filter(|&&x| x >= 0).count() as u64, filled))
+            Ok((lab, filled))
         })
         .collect();
     let (mut labelled_pixels, mut filled_pixels) = (0, 0);
@@ -854,6 +1119,8 @@ pub fn run(
         consolidation: fin.consolidation,
         dropped_min_views: dropped_views,
         dropped_far_field: dropped_far,
+        support_masks,
+        supported_groups: supported,
         masks_dropped,
         groups: groups_file.groups.len(),
         groups_per_class: per_class,

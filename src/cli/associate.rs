@@ -28,6 +28,18 @@ pub struct AssociateArgs {
     /// The scene's per-mask features (`features/<stem>.npy`); without them no feature check.
     #[arg(long)]
     features: Option<PathBuf>,
+    /// The scene's SAM lists (`masks/<stem>.json`): a group seen in fewer than --min-views views
+    /// also counts views where a mask the masks stage dropped for quality or area only matches it.
+    #[arg(long)]
+    sam: Option<PathBuf>,
+    /// No view support from dropped masks (the paper's rule: only kept masks count).
+    #[arg(long)]
+    no_support: bool,
+    /// With the view support, also match dropped masks against groups seen often enough and label
+    /// a matching mask's unlabelled pixels with its group (off by default: the dropped masks'
+    /// outlines are poor).
+    #[arg(long)]
+    support_pixels: bool,
     /// Contributions cache (`gs4city render --cache`, or a run's `render/`).
     #[arg(long)]
     cache: PathBuf,
@@ -81,6 +93,8 @@ pub fn run(args: &AssociateArgs) -> anyhow::Result<()> {
         far_field_m: args.far_field,
         consolidate: !args.no_consolidate,
         shuffle_seed: args.shuffle_seed,
+        support: !args.no_support,
+        support_pixels: args.support_pixels,
         ..Default::default()
     };
     opts.validate()?;
@@ -99,6 +113,7 @@ pub fn run(args: &AssociateArgs) -> anyhow::Result<()> {
             views: &split.train,
             masks: &args.masks,
             features: args.features.as_deref(),
+            sam: args.sam.as_deref(),
             cache: &cache,
             ply: &args.ply,
             scale: alignment.scale,

@@ -363,6 +363,12 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
                 },
             )?;
             let masks_dir = st.dir("masks");
+            // The scene's SAM lists, when the masks stage filtered them (not for the mask-free
+            // source): view support of small groups and snapping read them.
+            let sam = scene
+                .masks
+                .as_deref()
+                .filter(|_| ms.source == masks::Source::Sam);
             let _as: AssociateSummary = st.stage(
                 "associate",
                 &opts.associate,
@@ -374,6 +380,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
                             views: &split.train,
                             masks: &masks_dir,
                             features: features.as_deref(),
+                            sam,
                             cache: &cache,
                             ply: &scene.ply,
                             scale,
@@ -384,10 +391,6 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
                 },
             )?;
             let as_dir = st.dir("associate");
-            let sam = scene
-                .masks
-                .as_deref()
-                .filter(|_| ms.source == masks::Source::Sam);
             let mut fo = opts.fuse;
             fo.snap &= sam.is_some();
             let _fs: FuseSummary = st.stage(
