@@ -46,6 +46,9 @@ pub struct RunArgs {
     /// Test of the masks stage for masks on the building: auto, features, geometry, both, overlap.
     #[arg(long, default_value = "auto")]
     pub masks_test: Test,
+    /// τ_q of the masks stage: SAM masks with a lower predicted_iou are dropped.
+    #[arg(long, default_value_t = crate::masks::MasksOptions::default().tau_q)]
+    pub tau_q: f64,
     /// m_view: an associated group must be seen in at least this many views.
     #[arg(long, default_value_t = crate::associate::AssociateOptions::default().min_views)]
     pub min_views: usize,
@@ -89,6 +92,7 @@ impl RunArgs {
         let masks = crate::masks::MasksOptions {
             source: self.masks_source,
             test: self.masks_test,
+            tau_q: self.tau_q,
             ..d.masks.clone()
         };
         masks.validate()?;
