@@ -156,8 +156,18 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
         assert_eq!(reruns(&s), expected, "truncated {stage}/{file}");
         assert_eq!(miou(&s), clean_metrics);
     }
-    // A changed PLY reruns the cache and everything after it; another τ the raycast onwards.
+    // A run that fails part-way (a damaged PLY) leaves no run summary or report behind that
+    // could pass for its own; the next good run restores them.
     let ply = scene.join("point_cloud.ply");
+    let good = std::fs::read(&ply).unwrap();
+    std::fs::write(&ply, &good[..good.len() / 2]).unwrap();
+    assert!(run(&scene, &out, &o).is_err());
+    assert!(!out.join("summary.json").exists() && !out.join("report.html").exists());
+    std::fs::write(&ply, &good).unwrap();
+    let s = run(&scene, &out, &o).unwrap();
+    assert!(reruns(&s).is_empty(), "the same PLY again: {:?}", s.stages);
+    assert!(out.join("summary.json").is_file() && out.join("report.html").is_file());
+    // A changed PLY reruns the cache and everything after it; another τ the raycast onwards.
     let mut bytes = std::fs::read(&ply).unwrap();
     let n = bytes.len();
     bytes[n - 1] ^= 1; // the last byte of the last Gaussian's last rotation value

@@ -222,6 +222,16 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
         serde_json::to_value(opts).unwrap_or_default(),
         opts.force,
     )?;
+    // The run's own completion markers are written last; a run that fails part-way must not
+    // leave the previous run's summary and report looking like this one's.
+    for f in ["summary.json", "report.html"] {
+        let p = out.join(f);
+        if p.exists() {
+            std::fs::remove_file(&p).map_err(|e| {
+                RunError::Refused(format!("cannot remove the old {}: {e}", p.display()))
+            })?;
+        }
+    }
     let sparse_files = files_in(&scene.sparse);
 
     // 0. align --refine (optional): the alignment every later stage uses
