@@ -13,24 +13,8 @@ use crate::{citymodel, classes, colmap};
 
 #[derive(Debug, Args)]
 pub struct LiftArgs {
-    /// Pre-trained 3DGS scene (INRIA PLY) the cache was built from.
-    #[arg(long)]
-    ply: PathBuf,
-    /// COLMAP sparse model folder.
-    #[arg(long)]
-    colmap: PathBuf,
-    /// Contributions cache (`gs4city render --cache`, or a run's `render/`).
-    #[arg(long)]
-    cache: PathBuf,
-    /// Output folder of `gs4city citymodel` (semantics.json).
-    #[arg(long)]
-    citymodel: PathBuf,
-    /// Vote the city-model labels `M_city` of this `gs4city raycast` output …
-    #[arg(long, conflicts_with = "fuse", required_unless_present = "fuse")]
-    raycast: Option<PathBuf>,
-    /// … or the fused labels of this `gs4city fuse` output (labels.json, <stem>.ids.npy).
-    #[arg(long)]
-    fuse: Option<PathBuf>,
+    #[command(flatten)]
+    src: LabelSourceArgs,
     /// Background bias γ in [-1, 1] (FlashSplat), added to the normalised background vote.
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     gamma: f32,
@@ -42,20 +26,49 @@ pub struct LiftArgs {
     out: PathBuf,
 }
 
+/// The inputs `lift` and `train` share: the scene's Gaussians and cameras, the cache, the
+/// hierarchy table and the per-view labels.
+#[derive(Debug, Args)]
+pub(super) struct LabelSourceArgs {
+    /// Pre-trained 3DGS scene (INRIA PLY) the cache was built from.
+    #[arg(long)]
+    pub(super) ply: PathBuf,
+    /// COLMAP sparse model folder.
+    #[arg(long)]
+    pub(super) colmap: PathBuf,
+    /// Contributions cache (`gs4city render --cache`, or a run's `render/`).
+    #[arg(long)]
+    pub(super) cache: PathBuf,
+    /// Output folder of `gs4city citymodel` (semantics.json).
+    #[arg(long)]
+    pub(super) citymodel: PathBuf,
+    /// The city-model labels `M_city` of this `gs4city raycast` output …
+    #[arg(long, conflicts_with = "fuse", required_unless_present = "fuse")]
+    pub(super) raycast: Option<PathBuf>,
+    /// … or the fused labels of this `gs4city fuse` output (labels.json, <stem>.ids.npy).
+    #[arg(long)]
+    pub(super) fuse: Option<PathBuf>,
+}
+
 pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
     let opts = LiftOptions { gamma: args.gamma };
     opts.validate()?;
-    let split = Split::new(colmap::read_model(&args.colmap)?, args.test_every);
+    let split = Split::new(colmap::read_model(&args.src.colmap)?, args.test_every);
     if split.train.is_empty() {
         bail!("no training views: every view is a test view (--test-every 1?)");
     }
-    let cache = Cache::open(&args.cache)
-        .with_context(|| format!("opening the contributions cache {}", args.cache.display()))?;
-    let entities = citymodel::read_semantics(&args.citymodel.join("semantics.json"))?;
-    let (maps, labels) = label_source(args.raycast.as_ref(), args.fuse.as_ref(), &entities)?;
+    let cache = Cache::open(&args.src.cache).with_context(|| {
+        format!(
+            "opening the contributions cache {}",
+            args.src.cache.display()
+        )
+    })?;
+    let entities = citymodel::read_semantics(&args.src.citymodel.join("semantics.json"))?;
+    let (maps, labels) =
+        label_source(args.src.raycast.as_ref(), args.src.fuse.as_ref(), &entities)?;
     let s = lift::run(
         &lift::LiftInputs {
-            ply: &args.ply,
+            ply: &args.src.ply,
             cache: &cache,
             train: &split.train,
             test: &split.test,

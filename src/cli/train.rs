@@ -13,24 +13,8 @@ use crate::train::{self, Init, Softmax, TrainOptions};
 
 #[derive(Debug, Args)]
 pub struct TrainArgs {
-    /// Pre-trained 3DGS scene (INRIA PLY) the cache was built from.
-    #[arg(long)]
-    ply: PathBuf,
-    /// COLMAP sparse model folder.
-    #[arg(long)]
-    colmap: PathBuf,
-    /// Contributions cache (`gs4city render --cache`, or a run's `render/`).
-    #[arg(long)]
-    cache: PathBuf,
-    /// Output folder of `gs4city citymodel` (semantics.json).
-    #[arg(long)]
-    citymodel: PathBuf,
-    /// Train on the city-model labels `M_city` of this `gs4city raycast` output …
-    #[arg(long, conflicts_with = "fuse", required_unless_present = "fuse")]
-    raycast: Option<PathBuf>,
-    /// … or on the fused labels of this `gs4city fuse` output (labels.json, <stem>.ids.npy).
-    #[arg(long)]
-    fuse: Option<PathBuf>,
+    #[command(flatten)]
+    src: super::lift::LabelSourceArgs,
     /// Every N-th view (sorted by name) is a test view, not trained on; 0 = none.
     #[arg(long, default_value_t = 8)]
     test_every: usize,
@@ -152,18 +136,22 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         ..TrainOptions::default()
     };
     opts.validate()?;
-    let split = Split::new(colmap::read_model(&args.colmap)?, args.test_every);
+    let split = Split::new(colmap::read_model(&args.src.colmap)?, args.test_every);
     if split.train.is_empty() {
         bail!("no training views: every view is a test view (--test-every 1?)");
     }
-    let cache = Cache::open(&args.cache)
-        .with_context(|| format!("opening the contributions cache {}", args.cache.display()))?;
-    let entities = crate::citymodel::read_semantics(&args.citymodel.join("semantics.json"))?;
+    let cache = Cache::open(&args.src.cache).with_context(|| {
+        format!(
+            "opening the contributions cache {}",
+            args.src.cache.display()
+        )
+    })?;
+    let entities = crate::citymodel::read_semantics(&args.src.citymodel.join("semantics.json"))?;
     let (maps, labels) =
-        super::lift::label_source(args.raycast.as_ref(), args.fuse.as_ref(), &entities)?;
+        super::lift::label_source(args.src.raycast.as_ref(), args.src.fuse.as_ref(), &entities)?;
     let s = train::run(
         &train::TrainInputs {
-            ply: &args.ply,
+            ply: &args.src.ply,
             cache: &cache,
             train: &split.train,
             test: &split.test,
