@@ -11,8 +11,8 @@
 //!   gt/                      optional: ground truth, read only by evaluation
 //! ```
 //! Pipeline stages take the paths they need from [`Scene`]; only evaluation uses [`Scene::gt`].
-//! Simulation truth (`masks/*.sim.json`, `masks/README.json`, a synthetic scene's
-//! `summary.json`) is never listed here.
+//! Nothing else of the folder is listed here: a simulator's own files are not inputs
+//! (DESIGN.md, "Inputs the algorithms may read").
 use std::path::{Path, PathBuf};
 
 use crate::camera::View;

@@ -25,8 +25,8 @@
 //! without any foundation model: connected components of the pixels where the 3DGS stands in
 //! front of the city model ([`geometry::components`], rule `depth_component`).
 //!
-//! The stage never reads `gt/`, `masks/*.sim.json`, `masks/README.json` or the scene's
-//! `summary.json`.
+//! The stage reads only the scene files DESIGN.md allows ("Inputs the algorithms may read"):
+//! the SAM list `<stem>.json` of each view, its features and the prompts.
 //!
 //! Output files (DESIGN.md, "Wave 2 contract"): per view `<stem>.json` = the kept masks in SAM
 //! format, each with the extra keys `source_index`, `r_ov`, `rule`, `class` ([`KeptMask`]);
