@@ -352,6 +352,18 @@ fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// The synth `small` preset (2 real buildings, SIMULATED) with `orbit_views` orbit views of
+/// 330×247 and no street views: a scene of a few seconds.
+fn small_config(orbit_views: usize) -> gs4city::synth::SynthConfig {
+    use gs4city::synth::{Preset, SynthConfig};
+    let mut cfg = SynthConfig::preset(Preset::Small);
+    cfg.cameras.orbit_views = orbit_views;
+    cfg.cameras.street_views = 0;
+    cfg.cameras.width = 330;
+    cfg.cameras.height = 247;
+    cfg
+}
+
 /// `run --refine-alignment` on a SIMULATED scene (synth small preset, 2 real buildings) with a
 /// 0.3 m / 0.5° alignment error: the align stage runs first and the citymodel stage — so every
 /// later stage — uses its refined alignment, which is close to the truth (read from the scene's
@@ -359,15 +371,11 @@ fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
 #[test]
 fn refine_alignment_feeds_the_whole_run() {
     use gs4city::citymodel::Alignment;
-    use gs4city::synth::{self, Preset, SynthConfig};
+    use gs4city::synth;
     let dir = wall::tmp("run-refine");
-    let mut cfg = SynthConfig::preset(Preset::Small);
+    let mut cfg = small_config(6);
     cfg.noise.translation_m = 0.3;
     cfg.noise.rotation_deg = 0.5;
-    cfg.cameras.orbit_views = 6;
-    cfg.cameras.street_views = 0;
-    cfg.cameras.width = 330;
-    cfg.cameras.height = 247;
     let scene = dir.join("scene");
     let truth = synth::run(&cfg, &scene).unwrap();
     let out = dir.join("out");
@@ -423,13 +431,9 @@ fn refine_alignment_feeds_the_whole_run() {
 /// bytes in every stage folder (`gt/` stays: eval reads it, and only eval).
 #[test]
 fn the_pipeline_never_reads_the_simulation_truth() {
-    use gs4city::synth::{self, Preset, SynthConfig};
+    use gs4city::synth;
     let dir = wall::tmp("run-notruth");
-    let mut cfg = SynthConfig::preset(Preset::Small);
-    cfg.cameras.orbit_views = 8;
-    cfg.cameras.street_views = 0;
-    cfg.cameras.width = 330;
-    cfg.cameras.height = 247;
+    let cfg = small_config(8);
     let a = dir.join("a");
     synth::run(&cfg, &a).unwrap();
     let b = dir.join("b");

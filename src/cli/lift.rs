@@ -50,35 +50,57 @@ pub(super) struct LabelSourceArgs {
     pub(super) fuse: Option<PathBuf>,
 }
 
+/// What [`LabelSourceArgs`] name, read and checked.
+pub(super) struct Loaded {
+    pub(super) split: Split,
+    pub(super) cache: Cache,
+    pub(super) entities: Vec<citymodel::Entity>,
+    pub(super) maps: LabelMaps,
+    pub(super) labels: LabelTable,
+}
+
+impl LabelSourceArgs {
+    /// Reads the views (split every `test_every`-th), the cache, the hierarchy table and the
+    /// label source.
+    pub(super) fn load(&self, test_every: usize) -> anyhow::Result<Loaded> {
+        let split = Split::new(colmap::read_model(&self.colmap)?, test_every);
+        if split.train.is_empty() {
+            bail!("no training views: every view is a test view (--test-every 1?)");
+        }
+        let cache = Cache::open(&self.cache)
+            .with_context(|| format!("opening the contributions cache {}", self.cache.display()))?;
+        let entities = citymodel::read_semantics(&self.citymodel.join("semantics.json"))?;
+        let (maps, labels) = label_source(self.raycast.as_ref(), self.fuse.as_ref(), &entities)?;
+        Ok(Loaded {
+            split,
+            cache,
+            entities,
+            maps,
+            labels,
+        })
+    }
+}
+
+impl Loaded {
+    /// The inputs of the vote and of the training.
+    pub(super) fn inputs<'a>(&'a self, ply: &'a std::path::Path) -> lift::LiftInputs<'a> {
+        lift::LiftInputs {
+            ply,
+            cache: &self.cache,
+            train: &self.split.train,
+            test: &self.split.test,
+            maps: &self.maps,
+            labels: &self.labels,
+            entities: &self.entities,
+        }
+    }
+}
+
 pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
     let opts = LiftOptions { gamma: args.gamma };
     opts.validate()?;
-    let split = Split::new(colmap::read_model(&args.src.colmap)?, args.test_every);
-    if split.train.is_empty() {
-        bail!("no training views: every view is a test view (--test-every 1?)");
-    }
-    let cache = Cache::open(&args.src.cache).with_context(|| {
-        format!(
-            "opening the contributions cache {}",
-            args.src.cache.display()
-        )
-    })?;
-    let entities = citymodel::read_semantics(&args.src.citymodel.join("semantics.json"))?;
-    let (maps, labels) =
-        label_source(args.src.raycast.as_ref(), args.src.fuse.as_ref(), &entities)?;
-    let s = lift::run(
-        &lift::LiftInputs {
-            ply: &args.src.ply,
-            cache: &cache,
-            train: &split.train,
-            test: &split.test,
-            maps: &maps,
-            labels: &labels,
-            entities: &entities,
-        },
-        &opts,
-        &args.out,
-    )?;
+    let l = args.src.load(args.test_every)?;
+    let s = lift::run(&l.inputs(&args.src.ply), &opts, &args.out)?;
     println!(
         "lifted labels into {} Gaussians ({} assigned) from {} training views: vote {:.2} s (load {:.2} s, accumulate {:.2} s, assign {:.3} s); {} test-view maps → {}",
         s.gaussians,

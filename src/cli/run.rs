@@ -37,8 +37,8 @@ pub struct RunArgs {
     pub refine_alignment: bool,
     /// Label supervision: fused (the city model fused with the scene's filtered, associated
     /// masks: also trees, cars, people; paper §3.2) or city (the city model alone, §3.1).
-    #[arg(long, default_value = "fused", value_parser = ["fused", "city"])]
-    pub supervision: String,
+    #[arg(long, default_value = "fused")]
+    pub supervision: Supervision,
     /// Mask source of the masks stage: auto (the scene's SAM lists when it has masks/, else
     /// the mask-free depth source), sam, depth.
     #[arg(long, default_value = "auto")]
@@ -115,11 +115,7 @@ impl RunArgs {
             single_pass: self.single_pass,
             top_k: self.top_k,
             lift,
-            supervision: if self.supervision == "city" {
-                Supervision::City
-            } else {
-                Supervision::Fused
-            },
+            supervision: self.supervision,
             masks,
             associate,
             fuse,

@@ -2,12 +2,8 @@
 //! labels through the contributions cache (paper §3.3), starting from the vote.
 use std::path::PathBuf;
 
-use anyhow::{Context, bail};
 use clap::Args;
 
-use crate::colmap;
-use crate::render::cache::Cache;
-use crate::scene::Split;
 use crate::train::predict::Rule;
 use crate::train::{self, Init, Softmax, TrainOptions};
 
@@ -136,32 +132,8 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         ..TrainOptions::default()
     };
     opts.validate()?;
-    let split = Split::new(colmap::read_model(&args.src.colmap)?, args.test_every);
-    if split.train.is_empty() {
-        bail!("no training views: every view is a test view (--test-every 1?)");
-    }
-    let cache = Cache::open(&args.src.cache).with_context(|| {
-        format!(
-            "opening the contributions cache {}",
-            args.src.cache.display()
-        )
-    })?;
-    let entities = crate::citymodel::read_semantics(&args.src.citymodel.join("semantics.json"))?;
-    let (maps, labels) =
-        super::lift::label_source(args.src.raycast.as_ref(), args.src.fuse.as_ref(), &entities)?;
-    let s = train::run(
-        &train::TrainInputs {
-            ply: &args.src.ply,
-            cache: &cache,
-            train: &split.train,
-            test: &split.test,
-            maps: &maps,
-            labels: &labels,
-            entities: &entities,
-        },
-        &opts,
-        &args.out,
-    )?;
+    let l = args.src.load(args.test_every)?;
+    let s = train::run(&l.inputs(&args.src.ply), &opts, &args.out)?;
     let last = s.history.last().map_or(0.0, |p| p.ce + p.kl);
     println!(
         "trained {} Gaussians ({} labelled, {} changed from the vote, {} classes) in {} iterations ({}), final loss {last:.4}: read {:.1} s, vote {:.1} s, kNN {:.1} s, train {:.1} s, label {:.1} s, write {:.1} s, predict {:.1} s; {} test-view maps → {}",

@@ -56,6 +56,17 @@ pub enum Supervision {
     Fused,
 }
 
+impl std::str::FromStr for Supervision {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Supervision, String> {
+        match s {
+            "fused" => Ok(Supervision::Fused),
+            "city" => Ok(Supervision::City),
+            _ => Err(format!("{s:?} is not one of fused, city")),
+        }
+    }
+}
+
 /// Errors of the run stage.
 #[derive(Debug, thiserror::Error)]
 pub enum RunError {
@@ -438,7 +449,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     let lift_opts = (opts.lift, opts.test_every);
     let mut upstream = label_stages.clone();
     upstream.push("render");
-    let inputs = LiftInputsOwned {
+    let inputs = VoteInputs {
         ply: &scene.ply,
         cache: &cache,
         split: &split,
@@ -533,7 +544,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
 }
 
 /// The inputs the vote and the training share (both take [`lift::LiftInputs`]).
-struct LiftInputsOwned<'a> {
+struct VoteInputs<'a> {
     ply: &'a Path,
     cache: &'a Cache,
     split: &'a Split,
@@ -542,7 +553,7 @@ struct LiftInputsOwned<'a> {
     entities: &'a [citymodel::Entity],
 }
 
-impl LiftInputsOwned<'_> {
+impl VoteInputs<'_> {
     fn get(&self) -> lift::LiftInputs<'_> {
         lift::LiftInputs {
             ply: self.ply,
