@@ -8,6 +8,8 @@
 use super::project::{ALPHA_MIN, Projected, TILE};
 
 const PIX: usize = TILE * TILE;
+/// Gaussians gathered per batch.
+const BATCH: usize = 32;
 /// Transmittance below which a pixel stops.
 pub const T_MIN: f32 = 1e-4;
 /// Largest alpha of one Gaussian.
@@ -108,78 +110,89 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
     let mut mins = vec![0usize; if topk.is_some() { PIX } else { 0 }];
     let mut seq = 0u32;
 
-    for &pi in list {
+    // Gaussians are fetched in batches: the gather's loads are independent of each other, so
+    // their cache misses overlap (the CPU analogue of the reference kernel's shared-memory
+    // batches), and the blend then reads the batch from L1.
+    let mut batch = [Projected::CULLED; BATCH];
+    for chunk in list.chunks(BATCH) {
         if alive == 0 {
             break;
         }
-        let p = &input.projected[pi as usize];
-        // Mean relative to the tile origin, exact enough in f32.
-        let mx = (p.mean[0] - x0 as f64) as f32;
-        let my = (p.mean[1] - y0 as f64) as f32;
-        let xa = (mx - p.extent[0]).floor().max(0.0);
-        let xb = (mx + p.extent[0]).ceil().min((w - 1) as f32);
-        let ya = (my - p.extent[1]).floor().max(0.0);
-        let yb = (my + p.extent[1]).ceil().min((h - 1) as f32);
-        if !(xa <= xb && ya <= yb) {
-            continue;
+        for (slot, &pi) in batch.iter_mut().zip(chunk) {
+            *slot = input.projected[pi as usize];
         }
-        let (xa, xb, ya, yb) = (xa as usize, xb as usize, ya as usize, yb as usize);
-        let [ca, cb, cc] = p.conic;
-        let feat = &input.features[if ch > 0 { p.id as usize * ch } else { 0 }..][..ch];
-        for y in ya..=yb {
-            let dy = my - y as f32;
-            for x in xa..=xb {
-                let k = y * TILE + x;
-                if done[k] {
-                    continue;
-                }
-                let dx = mx - x as f32;
-                let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
-                if power > 0.0 || power < p.power_min {
-                    continue;
-                }
-                let alpha = ALPHA_MAX.min(p.opacity * power.exp());
-                if alpha < ALPHA_MIN {
-                    continue;
-                }
-                let t_old = trans[k];
-                let t_new = t_old * (1.0 - alpha);
-                if t_new < T_MIN {
-                    done[k] = true;
-                    alive -= 1;
-                    continue;
-                }
-                let wgt = alpha * t_old;
-                rgb[k * 3] += p.color[0] * wgt;
-                rgb[k * 3 + 1] += p.color[1] * wgt;
-                rgb[k * 3 + 2] += p.color[2] * wgt;
-                depth_acc[k] += p.depth * wgt;
-                if t_old >= 0.5 && t_new < 0.5 {
-                    median[k] = p.depth;
-                }
-                for (o, f) in features[k * ch..(k + 1) * ch].iter_mut().zip(feat) {
-                    *o += f * wgt;
-                }
-                if keep_lists {
-                    let c = Contribution {
-                        id: p.id,
-                        weight: wgt,
-                    };
-                    match topk {
-                        None => lists[k].push(c),
-                        Some(kk) => {
-                            push_topk(
-                                &mut slots[k],
-                                &mut mins[k],
-                                &mut residual[k],
-                                kk,
-                                Slot { seq, c },
-                            );
-                            seq = seq.wrapping_add(1);
+        for p in &batch[..chunk.len()] {
+            if alive == 0 {
+                break;
+            }
+            // Mean relative to the tile origin, exact enough in f32.
+            let mx = (p.mean[0] - x0 as f64) as f32;
+            let my = (p.mean[1] - y0 as f64) as f32;
+            let xa = (mx - p.extent[0]).floor().max(0.0);
+            let xb = (mx + p.extent[0]).ceil().min((w - 1) as f32);
+            let ya = (my - p.extent[1]).floor().max(0.0);
+            let yb = (my + p.extent[1]).ceil().min((h - 1) as f32);
+            if !(xa <= xb && ya <= yb) {
+                continue;
+            }
+            let (xa, xb, ya, yb) = (xa as usize, xb as usize, ya as usize, yb as usize);
+            let [ca, cb, cc] = p.conic;
+            let feat = &input.features[if ch > 0 { p.id as usize * ch } else { 0 }..][..ch];
+            for y in ya..=yb {
+                let dy = my - y as f32;
+                for x in xa..=xb {
+                    let k = y * TILE + x;
+                    if done[k] {
+                        continue;
+                    }
+                    let dx = mx - x as f32;
+                    let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
+                    if power > 0.0 || power < p.power_min {
+                        continue;
+                    }
+                    let alpha = ALPHA_MAX.min(p.opacity * power.exp());
+                    if alpha < ALPHA_MIN {
+                        continue;
+                    }
+                    let t_old = trans[k];
+                    let t_new = t_old * (1.0 - alpha);
+                    if t_new < T_MIN {
+                        done[k] = true;
+                        alive -= 1;
+                        continue;
+                    }
+                    let wgt = alpha * t_old;
+                    rgb[k * 3] += p.color[0] * wgt;
+                    rgb[k * 3 + 1] += p.color[1] * wgt;
+                    rgb[k * 3 + 2] += p.color[2] * wgt;
+                    depth_acc[k] += p.depth * wgt;
+                    if t_old >= 0.5 && t_new < 0.5 {
+                        median[k] = p.depth;
+                    }
+                    for (o, f) in features[k * ch..(k + 1) * ch].iter_mut().zip(feat) {
+                        *o += f * wgt;
+                    }
+                    if keep_lists {
+                        let c = Contribution {
+                            id: p.id,
+                            weight: wgt,
+                        };
+                        match topk {
+                            None => lists[k].push(c),
+                            Some(kk) => {
+                                push_topk(
+                                    &mut slots[k],
+                                    &mut mins[k],
+                                    &mut residual[k],
+                                    kk,
+                                    Slot { seq, c },
+                                );
+                                seq = seq.wrapping_add(1);
+                            }
                         }
                     }
+                    trans[k] = t_new;
                 }
-                trans[k] = t_new;
             }
         }
     }

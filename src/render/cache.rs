@@ -34,14 +34,13 @@ const HEADER: usize = 64;
 /// Longest list a pixel can have: `(1 − 1/255)^n ≥ 1e-4` ⇒ `n ≤ 2344`.
 pub const MAX_LIST: usize = 2344;
 
-/// Appends `v` in little-endian byte order.
-fn put<T: bytemuck::Pod + ToLe>(b: &mut Vec<u8>, v: &[T]) {
+/// Writes `v` in little-endian byte order.
+fn put<T: bytemuck::Pod + ToLe, W: std::io::Write>(w: &mut W, v: &[T]) -> std::io::Result<()> {
     if cfg!(target_endian = "little") {
-        b.extend_from_slice(bytemuck::cast_slice(v));
+        w.write_all(bytemuck::cast_slice(v))
     } else {
-        for x in v {
-            b.extend_from_slice(bytemuck::bytes_of(&x.to_le()));
-        }
+        v.iter()
+            .try_for_each(|x| w.write_all(bytemuck::bytes_of(&x.to_le())))
     }
 }
 
@@ -166,44 +165,57 @@ impl ViewContrib {
 
     /// The file's bytes.
     pub fn to_bytes(&self) -> Vec<u8> {
-        let npx = self.pixels();
         let mut b = Vec::with_capacity(self.file_bytes());
-        b.extend_from_slice(MAGIC);
+        self.write_to(&mut b).expect("writing to a Vec cannot fail");
+        b
+    }
+
+    /// Streams the file's bytes into `w` (no copy of the whole file in memory).
+    pub fn write_to<W: std::io::Write>(&self, w: &mut W) -> std::io::Result<()> {
+        let mut head = Vec::with_capacity(HEADER);
+        head.extend_from_slice(MAGIC);
         for v in [
             VERSION,
             self.width as u32,
             self.height as u32,
             self.k as u32,
         ] {
-            b.extend_from_slice(&v.to_le_bytes());
+            head.extend_from_slice(&v.to_le_bytes());
         }
-        b.extend_from_slice(&(self.gaussians as u64).to_le_bytes());
-        b.extend_from_slice(&(self.entries() as u64).to_le_bytes());
-        b.resize(HEADER, 0);
+        head.extend_from_slice(&(self.gaussians as u64).to_le_bytes());
+        head.extend_from_slice(&(self.entries() as u64).to_le_bytes());
+        head.resize(HEADER, 0);
+        w.write_all(&head)?;
         let counts: Vec<u16> = self
             .lists
             .offsets
             .windows(2)
             .map(|w| (w[1] - w[0]) as u16)
             .collect();
-        debug_assert_eq!(counts.len(), npx);
-        put(&mut b, &counts);
-        put(&mut b, &self.lists.ids);
+        debug_assert_eq!(counts.len(), self.pixels());
+        put(w, &counts)?;
+        put(w, &self.lists.ids)?;
         for arr in [
             &self.lists.weights,
             &self.lists.residual,
             &self.alpha,
             &self.depth,
         ] {
-            put(&mut b, arr);
+            put(w, arr)?;
         }
-        b
+        Ok(())
     }
 
     /// Writes the view atomically.
     pub fn write(&self, path: &Path) -> Result<(), CacheError> {
-        fsutil::write_bytes(path, &self.to_bytes())?;
-        Ok(())
+        fsutil::atomic_write(path, |w| {
+            self.write_to(w).map_err(|err| {
+                CacheError::Fs(fsutil::FsError::Write {
+                    path: path.to_path_buf(),
+                    err,
+                })
+            })
+        })
     }
 
     /// Reads and checks a file; `expect_gaussians` (when given) must equal the stored count.
@@ -426,13 +438,13 @@ pub fn build(
     };
     // Rendering (parallel over tiles) overlaps with writing the previous view's file on a
     // second thread; at most one finished view waits, so memory stays at two views.
-    let (tx, rx) = std::sync::mpsc::sync_channel::<(PathBuf, Vec<u8>)>(1);
+    let (tx, rx) = std::sync::mpsc::sync_channel::<(PathBuf, ViewContrib)>(1);
     let written = std::thread::scope(|sc| -> Result<f64, RenderError> {
         let writer = sc.spawn(move || -> Result<f64, CacheError> {
             let mut secs = 0.0;
-            for (path, bytes) in rx {
+            for (path, view) in rx {
                 let t = Instant::now();
-                fsutil::write_bytes(&path, &bytes)?;
+                view.write(&path)?;
                 secs += t.elapsed().as_secs_f64();
             }
             Ok(secs)
@@ -468,10 +480,7 @@ pub fn build(
                     bytes: c.file_bytes() as u64,
                     render_s,
                 });
-                if tx
-                    .send((cache_file(out_dir, &v.stem()), c.to_bytes()))
-                    .is_err()
-                {
+                if tx.send((cache_file(out_dir, &v.stem()), c)).is_err() {
                     break; // the writer failed; its error is reported below
                 }
                 bar.inc(1);

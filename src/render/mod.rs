@@ -293,6 +293,11 @@ fn check_camera(camera: &Camera) -> Result<(), String> {
     Ok(())
 }
 
+thread_local! {
+    /// Scratch of [`render_view`]: the projected Gaussians of the last view.
+    static PROJECTED: std::cell::Cell<Vec<Projected>> = const { std::cell::Cell::new(Vec::new()) };
+}
+
 /// Renders one camera.
 pub fn render_view(
     scene: &PreparedScene,
@@ -308,14 +313,18 @@ pub fn render_view(
     let n = scene.len();
     // Indexed collect: rayon writes every slot in place (no concatenation copy); culled
     // Gaussians get an empty tile rectangle and are never binned.
-    let projected: Vec<Projected> = (0..n)
+    // The array is reused from the previous view on this thread (taken, so that a nested
+    // render gets a fresh one): a new n × 80-byte allocation per view costs a page fault per
+    // 4 KB (BENCHMARKS.md, "Render: allocation").
+    let mut projected = PROJECTED.take();
+    (0..n)
         .into_par_iter()
         .with_min_len(4096)
         .map(|i| {
             project::project(scene, i, &v, options.antialiased, options.max_sh_degree)
                 .unwrap_or(Projected::CULLED)
         })
-        .collect();
+        .collect_into_vec(&mut projected);
     let t1 = Instant::now();
     let bins = tile::bin(&projected, v.grid_x, v.grid_y);
     let t2 = Instant::now();
@@ -334,6 +343,7 @@ pub fn render_view(
         .into_par_iter()
         .map(|t| blend::blend_tile(&input, t, bins.tile(t)))
         .collect();
+    PROJECTED.set(projected);
     let mut out = assemble(&tiles, v.width, v.height, channels, options.contributions);
     let t3 = Instant::now();
     out.stats = RenderStats {
