@@ -14,6 +14,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::View;
@@ -305,41 +306,57 @@ pub fn vote(
 /// Gaussians vote for −1; the class map is computed the same way over the Gaussians' classes.
 /// Returns `(class map, label map)`.
 pub fn predict(c: &ViewContrib, label: &[i32], class: &[i32]) -> (Vec<i32>, Vec<i32>) {
-    let n = c.pixels();
-    let mut class_map = vec![-1; n];
-    let mut label_map = vec![-1; n];
-    let mut acc: Vec<(i32, f32)> = Vec::new();
-    let pick = |acc: &mut Vec<(i32, f32)>, rest: f32| -> i32 {
-        acc.sort_by_key(|x| x.0);
-        let mut best = (
-            -1,
-            rest + acc.iter().filter(|x| x.0 == -1).map(|x| x.1).sum::<f32>(),
-        );
-        let mut i = 0;
-        while i < acc.len() {
-            let l = acc[i].0;
-            let mut w = 0.0;
-            while i < acc.len() && acc[i].0 == l {
-                w += acc[i].1;
-                i += 1;
-            }
-            if l != -1 && w > best.1 {
-                best = (l, w);
-            }
+    (predict_map(c, class), predict_map(c, label))
+}
+
+/// One map of [`predict`]: per pixel, the value of `of` (per Gaussian) whose Gaussians carry
+/// the largest weight, or −1 where `1 − α`, the truncated mass and the Gaussians valued −1
+/// weigh more. Pixels are independent (parallel; the sums per pixel run in a fixed order).
+pub fn predict_map(c: &ViewContrib, of: &[i32]) -> Vec<i32> {
+    let mut out = Vec::new();
+    (0..c.pixels())
+        .into_par_iter()
+        .with_min_len(4096)
+        .map_init(Vec::new, |groups, p| {
+            let (ids, ws) = c.pixel(p);
+            pick_label(
+                ids.iter().zip(ws).map(|(&g, &w)| (of[g as usize], w)),
+                groups,
+                1.0 - c.alpha[p] + c.lists.residual[p],
+            )
+        })
+        .collect_into_vec(&mut out);
+    out
+}
+
+/// The label of one pixel from its `(label, weight)` entries in list order: the label with the
+/// largest summed weight (sums in list order), ties to the smaller label; −1 when `rest` plus
+/// the entries labelled −1 weigh at least as much. `groups` is scratch.
+fn pick_label(
+    entries: impl Iterator<Item = (i32, f32)>,
+    groups: &mut Vec<(i32, f32)>,
+    rest: f32,
+) -> i32 {
+    groups.clear();
+    // From −0.0, as `Iterator::sum` does.
+    let mut background = -0.0f32;
+    for (l, w) in entries {
+        if l == -1 {
+            background += w;
+            continue;
         }
-        best.0
-    };
-    for p in 0..n {
-        let (ids, ws) = c.pixel(p);
-        let rest = 1.0 - c.alpha[p] + c.lists.residual[p];
-        acc.clear();
-        acc.extend(ids.iter().zip(ws).map(|(&g, &w)| (class[g as usize], w)));
-        class_map[p] = pick(&mut acc, rest);
-        acc.clear();
-        acc.extend(ids.iter().zip(ws).map(|(&g, &w)| (label[g as usize], w)));
-        label_map[p] = pick(&mut acc, rest);
+        match groups.iter_mut().find(|g| g.0 == l) {
+            Some(g) => g.1 += w,
+            None => groups.push((l, 0.0 + w)),
+        }
     }
-    (class_map, label_map)
+    let mut best = (-1, rest + background);
+    for &(l, w) in groups.iter() {
+        if w > best.1 || (w == best.1 && best.0 != -1 && l < best.0) {
+            best = (l, w);
+        }
+    }
+    best.0
 }
 
 /// Writes the test-view predictions `<stem>.class.npy`, `<stem>.instance.npy` (int32 H×W: class
@@ -574,6 +591,47 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The rule written the plain way: sort by label, sum each run, keep the first strict
+    /// maximum over the background (rest + the −1 entries).
+    fn pick_by_sorting(entries: &[(i32, f32)], rest: f32) -> i32 {
+        let mut acc = entries.to_vec();
+        acc.sort_by_key(|x| x.0);
+        let bg: f32 = acc.iter().filter(|x| x.0 == -1).map(|x| x.1).sum();
+        let mut best = (-1, rest + bg);
+        for chunk in acc.chunk_by(|a, b| a.0 == b.0) {
+            let w = chunk.iter().fold(0.0f32, |s, x| s + x.1);
+            if chunk[0].0 != -1 && w > best.1 {
+                best = (chunk[0].0, w);
+            }
+        }
+        best.0
+    }
+
+    #[test]
+    fn pixel_labels_match_the_sorting_rule_including_ties() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let mut groups = Vec::new();
+        for case in 0..20_000 {
+            let n = rng.random_range(0..20);
+            // Few labels and weights from a small set: many exact ties.
+            let entries: Vec<(i32, f32)> = (0..n)
+                .map(|_| {
+                    (
+                        rng.random_range(-1..4) * if case % 2 == 0 { 1 } else { 1000 },
+                        [0.125f32, 0.25, 0.1, 0.3, 0.0][rng.random_range(0..5)],
+                    )
+                })
+                .collect();
+            let rest = [0.0f32, 0.25, 0.5, 1.0][rng.random_range(0..4)];
+            assert_eq!(
+                pick_label(entries.iter().copied(), &mut groups, rest),
+                pick_by_sorting(&entries, rest),
+                "{entries:?} rest {rest}"
+            );
+        }
+    }
 
     #[test]
     fn vote_argmax_normalisation_and_gamma() {

@@ -54,11 +54,10 @@ pub fn merged_labels(label_of: &[i32], selected: &[bool]) -> Vec<i32> {
 /// `selected` is the per-Gaussian selection (majority).
 pub fn view_mask(c: &ViewContrib, merged: &[i32], selected: &[bool], rule: MaskRule) -> Vec<u8> {
     match rule {
-        MaskRule::Argmax => {
-            // The class argument is unused here; pass the labels again.
-            let (_, label_map) = crate::lift::predict(c, merged, merged);
-            label_map.iter().map(|&l| u8::from(l == SELECTED)).collect()
-        }
+        MaskRule::Argmax => crate::lift::predict_map(c, merged)
+            .iter()
+            .map(|&l| u8::from(l == SELECTED))
+            .collect(),
         MaskRule::Majority => (0..c.pixels())
             .map(|p| {
                 let (ids, ws) = c.pixel(p);
