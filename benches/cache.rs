@@ -6,15 +6,16 @@
 //!
 //! For each k (4, 8, 16, 32, all), every chosen view is rendered with lists of at most k entries
 //! (nothing written: the bytes are counted), and the city-model vote of `lift` runs over them.
-//! Errors are measured against the complete lists ("all"): the share of Gaussians whose voted
-//! label differs, and the share of pixels whose predicted label differs when the same
-//! per-Gaussian labels (those of "all") are read back through the truncated lists.
+//! Errors are measured against the complete lists with unrounded f32 weights ("all, f32": what
+//! the rasterizer computes; the cache stores weights as IEEE half): the share of Gaussians whose
+//! voted label differs, and the share of pixels whose predicted label differs when the same
+//! per-Gaussian labels (those of the reference) are read back through the stored lists.
 use std::path::PathBuf;
 use std::time::Instant;
 
 use gs4city::lift::{self, LabelMaps, Votes};
-use gs4city::render::PreparedScene;
 use gs4city::render::cache::ViewContrib;
+use gs4city::render::{ContributionMode, PreparedScene, RenderOptions};
 use gs4city::scene::{Scene, Split};
 
 fn main() {
@@ -44,22 +45,35 @@ fn main() {
         chosen[0].camera.intrinsics.height,
         rayon::current_num_threads()
     );
-    let ks = [0usize, 32, 16, 8, 4];
+    // (k, weights rounded to half as stored); the first row is the reference.
+    let ks = [
+        (0usize, false),
+        (0, true),
+        (32, true),
+        (16, true),
+        (8, true),
+        (4, true),
+    ];
     let mut reference: Option<(Vec<i32>, Vec<ViewContrib>)> = None;
     println!(
         "\n| k | s/view (render + lists) | MB/view | entries/px | dropped α·T share | Gaussians voted otherwise than with all lists | pixels read otherwise |"
     );
     println!("|---|---|---|---|---|---|---|");
-    for &k in &ks {
+    for &(k, rounded) in &ks {
         let mut votes = Votes::new(n);
         let (mut secs, mut bytes, mut entries, mut dropped, mut covered) =
             (0.0, 0usize, 0usize, 0.0, 0usize);
         let mut kept = Vec::new();
         for v in &chosen {
             let t = Instant::now();
-            let c = ViewContrib::render(&prepared, v, k).unwrap();
+            let c = if rounded {
+                ViewContrib::render(&prepared, v, k).unwrap()
+            } else {
+                exact(&prepared, v)
+            };
             secs += t.elapsed().as_secs_f64();
-            bytes += c.file_bytes();
+            // Unrounded weights would take 4 bytes each instead of 2 (cache version 1).
+            bytes += c.file_bytes() + if rounded { 0 } else { 2 * c.entries() };
             entries += c.entries();
             for p in 0..c.pixels() {
                 if c.alpha[p] >= 1e-3 {
@@ -104,7 +118,9 @@ fn main() {
         };
         println!(
             "| {} | {:.3} | {:.1} | {:.2} | {:.4} | {} | {} |",
-            if k == 0 {
+            if !rounded {
+                "all, f32".to_string()
+            } else if k == 0 {
                 "all".to_string()
             } else {
                 k.to_string()
@@ -116,8 +132,28 @@ fn main() {
             voted_diff,
             px_diff
         );
-        if k == 0 {
+        if !rounded {
             reference = Some((assigned, kept));
         }
+    }
+}
+
+/// Complete lists with the rasterizer's f32 weights (not rounded as the cache stores them).
+fn exact(scene: &PreparedScene, v: &gs4city::camera::View) -> ViewContrib {
+    let opts = RenderOptions {
+        features: false,
+        max_sh_degree: 0,
+        contributions: ContributionMode::All,
+        ..Default::default()
+    };
+    let out = gs4city::render::render_view(scene, &v.camera, &opts).unwrap();
+    ViewContrib {
+        width: out.width,
+        height: out.height,
+        k: 0,
+        gaussians: scene.len(),
+        lists: out.contributions.unwrap(),
+        alpha: out.alpha,
+        depth: out.depth,
     }
 }

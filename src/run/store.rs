@@ -21,6 +21,7 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::time::{Instant, UNIX_EPOCH};
 
+use rayon::prelude::*;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
@@ -267,14 +268,16 @@ impl Store {
         let t0 = Instant::now();
         let options = serde_json::to_value(options).unwrap_or(serde_json::Value::Null);
         let old = self.record.stages.get(stage).cloned();
-        let mut ids = Vec::with_capacity(inputs.len());
-        for p in inputs {
-            let shown = p.display().to_string();
-            let prev = old
-                .as_ref()
-                .and_then(|r| r.inputs.iter().find(|f| f.path == shown));
-            ids.push(file_id(p, shown, prev)?);
-        }
+        let ids = inputs
+            .par_iter()
+            .map(|p| {
+                let shown = p.display().to_string();
+                let prev = old
+                    .as_ref()
+                    .and_then(|r| r.inputs.iter().find(|f| f.path == shown));
+                file_id(p, shown, prev)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
         let fp = self.fingerprint(stage, &options, &ids, upstream);
         let dir = self.dir(stage);
         if !self.force
@@ -307,11 +310,11 @@ impl Store {
         if !summary_path.is_file() {
             fsutil::write_json(&summary_path, &summary).map_err(StoreError::from)?;
         }
-        let mut outputs = Vec::new();
-        for rel in list_files(&partial)? {
-            let p = partial.join(&rel);
-            outputs.push(file_id(&p, rel.display().to_string(), None)?);
-        }
+        // Digested in parallel (a render cache is gigabytes); the order stays the listing's.
+        let outputs = list_files(&partial)?
+            .par_iter()
+            .map(|rel| file_id(&partial.join(rel), rel.display().to_string(), None))
+            .collect::<Result<Vec<_>, _>>()?;
         // Swap it into place.
         let aside = self.root.join(format!(".{stage}.old"));
         if dir.exists() {
