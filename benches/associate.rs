@@ -81,6 +81,9 @@ fn config(name: &str) -> (AssociateOptions, FuseOptions) {
             "mview2" => a.min_views = 2,
             "nosupport" => a.support = false,
             "supportpixels" => a.support_pixels = true,
+            "nosupportmasks" => a.support_masks = false,
+            "supportmaskpixels" => a.support_mask_pixels = true,
+            s if s.starts_with("join") => a.join_views = s[4..].parse().unwrap(),
             "mview5" => a.min_views = 5,
             "projected" => a.candidates = CandidateMode::Projected,
             "projected_single" => {

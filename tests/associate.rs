@@ -338,28 +338,10 @@ fn masks_dropped_for_quality_support_a_group_seen_in_too_few_views() {
     let keep: Vec<usize> = person_views[..2].to_vec();
     let skip = |v: usize, o: usize| o == 2 && !keep.contains(&v);
     let b = boxes::build("support", skip);
-    let cache = b.open_cache();
     let go = |tag: &str, opts: &AssociateOptions| {
         let out = b.dir.join(tag);
-        let s = associate::run(
-            &associate::AssociateInputs {
-                views: &b.views,
-                masks: &b.masks,
-                features: Some(&b.features),
-                sam: Some(&b.sam),
-                cache: &cache,
-                ply: &b.ply,
-                scale: 1.0,
-            },
-            opts,
-            &out,
-        )
-        .unwrap();
-        (
-            s,
-            GroupsFile::read(&out).unwrap(),
-            groups_per_object(&b, &out),
-        )
+        let (s, gf, _) = run_sam(&b, opts, &out);
+        (s, gf, groups_per_object(&b, &out))
     };
     // Quality-dropped: the person's group survives, supported by other views that show the
     // person (only where those masks' Gaussians overlap the group's: the faces the two kept
@@ -400,4 +382,130 @@ fn masks_dropped_for_quality_support_a_group_seen_in_too_few_views() {
     write_decisions(&b, |v, o| skip(v, o).then_some("on_surface"));
     let (s, _, _) = go("surface", &AssociateOptions::default());
     assert_eq!((s.groups, s.support_masks), (OBJECTS - 1, 0), "{s:?}");
+}
+
+/// The person's masks: kept in the first `keep` views that show it, dropped
+/// as support-only (`low_quality_support`) in the others. Returns the built scene, the views
+/// that show the person and the views where it is kept.
+fn support_only_scene(name: &str, keep: usize) -> (boxes::Built, Vec<usize>, Vec<usize>) {
+    let person_views: Vec<usize> = {
+        let b = boxes::build(&format!("{name}-probe"), |_, _| false);
+        (0..b.views.len())
+            .filter(|&v| boxes::object_mask(&b.truth[v], 2, 20).is_some())
+            .collect()
+    };
+    assert!(person_views.len() >= 5, "{person_views:?}");
+    let kept: Vec<usize> = person_views[..keep].to_vec();
+    let k2 = kept.clone();
+    let b = boxes::build(name, move |v, o| o == 2 && !k2.contains(&v));
+    write_decisions(&b, |v, o| {
+        (o == 2 && !kept.contains(&v)).then_some(gs4city::masks::RULE_LOW_QUALITY_SUPPORT)
+    });
+    (b, person_views, kept)
+}
+
+fn run_sam(
+    b: &boxes::Built,
+    opts: &AssociateOptions,
+    out: &Path,
+) -> (AssociateSummary, GroupsFile, Vec<Vec<i32>>) {
+    let cache = b.open_cache();
+    let s = associate::run(
+        &associate::AssociateInputs {
+            views: &b.views,
+            masks: &b.masks,
+            features: Some(&b.features),
+            sam: Some(&b.sam),
+            cache: &cache,
+            ply: &b.ply,
+            scale: 1.0,
+        },
+        opts,
+        out,
+    )
+    .unwrap();
+    let maps = b
+        .views
+        .iter()
+        .map(|v| boxes::read_map(&out.join(format!("{}.ids.npy", v.stem()))))
+        .collect();
+    (s, GroupsFile::read(out).unwrap(), maps)
+}
+
+#[test]
+fn a_support_only_mask_joins_the_group_its_gaussians_overlap() {
+    // The person is kept in two views; its masks in the other views are support-only. They
+    // count as view support (the group survives m_view = 3) and, with `support_masks`, their
+    // candidate Gaussians that no group owns (the person's sides the two kept views did not
+    // see) join the person's fill members: the fill then labels more of the person in the
+    // other views, and never another object's pixel.
+    let (b, person_views, kept) = support_only_scene("join", 2);
+    let (off, gf_off, m_off) = run_sam(
+        &b,
+        &AssociateOptions {
+            support_masks: false,
+            ..Default::default()
+        },
+        &b.dir.join("off"),
+    );
+    let (on, gf_on, m_on) = run_sam(&b, &AssociateOptions::default(), &b.dir.join("on"));
+    assert_eq!((off.joined_masks, off.joined_gaussians), (0, 0));
+    let others = person_views.len() - kept.len();
+    assert!(on.joined_masks > 0 && on.joined_masks <= others, "{on:?}");
+    assert!(on.joined_gaussians > 0, "{on:?}");
+    // Same groups either way (a support-only mask never starts one).
+    assert_eq!(gf_on.groups.len(), gf_off.groups.len());
+    let person = |gf: &GroupsFile| gf.groups.iter().find(|g| g.class == 7).unwrap().id;
+    let (p_off, p_on) = (person(&gf_off), person(&gf_on));
+    let (mut n_off, mut n_on, mut truth) = (0, 0, 0);
+    for &v in &person_views[kept.len()..] {
+        for (p, &t) in b.truth[v].iter().enumerate() {
+            truth += usize::from(t == 2);
+            n_off += usize::from(t == 2 && m_off[v][p] == p_off);
+            n_on += usize::from(t == 2 && m_on[v][p] == p_on);
+            // Newly labelled pixels are the person's (or its silhouette's background).
+            if m_on[v][p] == p_on && m_off[v][p] != p_off {
+                assert!(t == 2 || t == -1, "view {v} pixel {p} shows object {t}");
+            }
+        }
+    }
+    assert!(
+        n_on as f64 >= n_off as f64 + 0.05 * truth as f64,
+        "person pixels labelled in the support views: {n_off} off, {n_on} on, of {truth}"
+    );
+    // Order-free: a shuffled view order gives the same maps.
+    let (_, _, m_shuf) = run_sam(
+        &b,
+        &AssociateOptions {
+            shuffle_seed: Some(5),
+            ..Default::default()
+        },
+        &b.dir.join("shuffled"),
+    );
+    assert_eq!(m_shuf, m_on);
+}
+
+#[test]
+fn a_support_only_mask_never_starts_a_group() {
+    // Every person mask is support-only: no group of the person exists, nothing joins, and
+    // the other objects keep their groups.
+    let (b, person_views, _) = support_only_scene("nofound", 0);
+    let (s, gf, maps) = run_sam(&b, &AssociateOptions::default(), &b.dir.join("out"));
+    assert_eq!(s.groups, OBJECTS - 1, "{s:?}");
+    assert!(gf.groups.iter().all(|g| g.class != 7));
+    assert_eq!((s.joined_masks, s.joined_gaussians), (0, 0), "{s:?}");
+    // The person's pixels take no group (at most a few silhouette pixels of the ground's fill).
+    let (mut labelled, mut truth) = (0, 0);
+    for &v in &person_views {
+        for (p, &t) in b.truth[v].iter().enumerate() {
+            if t == 2 {
+                truth += 1;
+                labelled += usize::from(maps[v][p] >= 0);
+            }
+        }
+    }
+    assert!(
+        labelled * 20 <= truth,
+        "{labelled} of {truth} person pixels labelled"
+    );
 }

@@ -775,3 +775,59 @@ fn command_line_runs_and_refuses_the_depth_test_without_a_cache() {
     assert!(e.contains("--cache"), "{e}");
     assert!(!f.root.join("cli_err/summary.json").exists());
 }
+
+#[test]
+fn a_low_quality_mask_that_passes_every_other_rule_is_support_only() {
+    // τ_q = 0.93 fails the person (0.92), the veil (0.88), the window (0.9) and the wall blob
+    // (0.9). Only the person would be kept by the rest (an occluder): it alone becomes
+    // `low_quality_support`, and is still not kept. The others, and mask 5 (0.5, below the
+    // floor 0.6), stay `quality`.
+    let f = fixture("support-only", false);
+    let o = MasksOptions {
+        tau_q: 0.93,
+        support_floor: Some(0.6),
+        ..opts(Test::Geometry)
+    };
+    let s = run(&f, &o, "on", true).unwrap();
+    let kept = expect(
+        &f,
+        "on",
+        &[
+            "on_surface",
+            "quality",
+            "low_quality_support",
+            "quality",
+            "low_overlap",
+            "quality",
+            "area",
+            "quality",
+        ],
+    );
+    assert_eq!(
+        kept.iter().map(|k| k.source_index).collect::<Vec<_>>(),
+        vec![4]
+    );
+    assert_eq!(s.rules["low_quality_support"], 1);
+    // A floor above the person's quality, or none: `quality`, as in the paper.
+    for (tag, floor) in [("high", Some(0.95)), ("none", None)] {
+        let o = MasksOptions {
+            support_floor: floor,
+            ..o.clone()
+        };
+        run(&f, &o, tag, true).unwrap();
+        let (r, _) = rules(&f, tag);
+        assert_eq!(r[&2], "quality", "{tag}");
+        assert!(!r.values().any(|v| v == "low_quality_support"), "{tag}");
+    }
+    // A floor outside [0, 1] is refused.
+    let bad = MasksOptions {
+        support_floor: Some(1.5),
+        ..o
+    };
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("support_floor")
+    );
+}

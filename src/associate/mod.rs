@@ -116,6 +116,29 @@ pub struct AssociateOptions {
     /// `street` it gains person +2.5 and car +2.5 IoU but loses window −2.0 and purity
     /// (0.956 → 0.938): the dropped masks' outlines are poor (docs/associate.md).
     pub support_pixels: bool,
+    /// Support-only masks (beyond the paper): a mask the masks stage recorded as
+    /// `low_quality_support` (dropped only for `predicted_iou < τ_q`, above its floor; it passed
+    /// area, the city-model filter and the depth/feature tests) that matches a group by the
+    /// paper's rule (`R_geo > τ_geo`, cosine `> τ_sim`) joins it: its α·T candidates that no
+    /// other group owns become fill members of the group (where the support-only masks of that
+    /// group contain them in at least half of the views that see them and have such a mask, and
+    /// no other group's support-only mask claims them), so the fill labels them in every view.
+    /// It never starts a group; it counts towards `min_views` through the view support
+    /// (`support`), as every quality/area drop does. Needs [`AssociateInputs::sam`] and the fill.
+    #[serde(default)]
+    pub support_masks: bool,
+    /// With `support_masks`: also label a joining mask's pixels that no kept mask labels with
+    /// its group (before the fill).
+    #[serde(default)]
+    pub support_mask_pixels: bool,
+    /// With `support_masks`: a Gaussian joins only when support-only masks of the group in at
+    /// least this many views contain it (one poor outline is not enough).
+    #[serde(default = "default_join_views")]
+    pub join_views: u32,
+}
+
+fn default_join_views() -> u32 {
+    2
 }
 
 impl Default for AssociateOptions {
@@ -136,6 +159,9 @@ impl Default for AssociateOptions {
             fill: Some(0.5),
             support: true,
             support_pixels: false,
+            support_masks: true,
+            support_mask_pixels: false,
+            join_views: default_join_views(),
         }
     }
 }
@@ -161,6 +187,9 @@ impl AssociateOptions {
             ));
         }
         let p = &self.projected;
+        if self.join_views == 0 {
+            return bad("join_views must be ≥ 1".into());
+        }
         if let Some(f) = self.fill
             && !(f > 0.0 && f <= 1.0)
         {
@@ -321,6 +350,13 @@ pub struct AssociateSummary {
     /// … and the groups that reach `min_views` with that support.
     #[serde(default)]
     pub supported_groups: usize,
+    /// Support-only masks (`low_quality_support`) that joined a group and labelled their pixels
+    /// ([`AssociateOptions::support_masks`]).
+    #[serde(default)]
+    pub joined_masks: usize,
+    /// Gaussians those masks added to their groups' fill members.
+    #[serde(default)]
+    pub joined_gaussians: usize,
     /// Masks whose group was dropped.
     pub masks_dropped: usize,
     pub groups: usize,
@@ -642,6 +678,72 @@ fn fill(map: &mut [i32], c: &crate::render::cache::ViewContrib, owner: &[i32], s
     filled
 }
 
+/// A dropped mask that matched a pre-filter group.
+struct Hit {
+    group: usize,
+    /// It adds a view to the group (view support: the group has no kept mask in the view).
+    view: bool,
+    /// A support-only mask that joined the group.
+    joined: bool,
+    /// Its α·T candidates (support-only masks only).
+    gaussians: Vec<u32>,
+}
+
+/// Adds the Gaussians of joining support-only masks to the fill members
+/// ([`AssociateOptions::support_masks`]): `joins[v]` = (group, candidates) per joining mask of
+/// view `v`, `visible[v]` the view's visible Gaussians. Gaussian `g` becomes a member of `k`
+/// when it is no member yet, no other group owns it, only `k`'s support-only masks claim it,
+/// and they contain it in at least half of the views that see it and have a joining mask of
+/// `k`, and in at least `min_views` views. Returns the number of Gaussians added. Order-free: counts only.
+fn join_members(
+    members: &mut [i32],
+    owner: &[i32],
+    joins: &[Vec<(usize, Vec<u32>)>],
+    visible: &[Vec<u64>],
+    min_views: u32,
+) -> usize {
+    // Per claimed Gaussian: (group, views containing it), or a conflict (usize::MAX).
+    let mut claim: std::collections::HashMap<u32, (usize, u32)> = Default::default();
+    for view in joins {
+        let mut here: std::collections::HashSet<(u32, usize)> = Default::default();
+        for (k, ids) in view {
+            for &g in ids {
+                if here.insert((g, *k)) {
+                    let e = claim.entry(g).or_insert((*k, 0));
+                    if e.0 != *k {
+                        e.0 = usize::MAX;
+                    }
+                    e.1 += 1;
+                }
+            }
+        }
+    }
+    let mut seen: std::collections::HashMap<u32, u32> = Default::default();
+    for (view, bits) in joins.iter().zip(visible) {
+        let groups: std::collections::HashSet<usize> = view.iter().map(|(k, _)| *k).collect();
+        for (&g, &(k, _)) in &claim {
+            let vis = bits
+                .get(g as usize / 64)
+                .is_some_and(|w| w >> (g % 64) & 1 == 1);
+            if k != usize::MAX && vis && groups.contains(&k) {
+                *seen.entry(g).or_insert(0) += 1;
+            }
+        }
+    }
+    let mut added = 0;
+    for (&g, &(k, n)) in &claim {
+        let gi = g as usize;
+        if k == usize::MAX || members[gi] >= 0 || (owner[gi] >= 0 && owner[gi] != k as i32) {
+            continue;
+        }
+        if n >= min_views && 2 * n >= seen.get(&g).copied().unwrap_or(0) {
+            members[gi] = k as i32;
+            added += 1;
+        }
+    }
+    added
+}
+
 /// The view support of the groups seen in fewer than `min_views` views
 /// ([`AssociateOptions::support`]).
 struct Support<'a> {
@@ -649,6 +751,14 @@ struct Support<'a> {
     /// Per pre-filter group: whether dropped masks are matched against it (not far field; and
     /// seen in fewer than `min_views` views unless `support_pixels`).
     eligible: &'a [bool],
+    /// Per pre-filter group: not far field (what support-only masks may join).
+    near: &'a [bool],
+    /// Label the pixels of joining support-only masks (else only record their candidates).
+    paint_joined: bool,
+    /// Match only the support-only masks.
+    joined_only: bool,
+    /// Gaussian ownership the masks are matched against (the bank's).
+    owner: &'a [i32],
     centres: &'a [[f32; 3]],
 }
 
@@ -665,7 +775,7 @@ impl Support<'_> {
         vi: u32,
         c: &crate::render::cache::ViewContrib,
         map: &mut [i32],
-    ) -> Result<Vec<usize>, AssociateError> {
+    ) -> Result<Vec<Hit>, AssociateError> {
         let Some(sam_dir) = inp.sam else {
             return Ok(Vec::new());
         };
@@ -678,15 +788,21 @@ impl Support<'_> {
                 why: "missing: the view support needs the masks stage's decisions".into(),
             });
         }
-        let sources: Vec<i64> = masks::read_decisions(&dpath)?
+        // (SAM index, support-only) of the masks dropped for quality or area only.
+        let (sources, only): (Vec<i64>, Vec<bool>) = masks::read_decisions(&dpath)?
             .iter()
             .filter(|d| {
                 !d.kept
                     && d.source_index >= 0
-                    && (d.rule == masks::RULE_QUALITY || d.rule == masks::RULE_AREA)
+                    && (d.rule == masks::RULE_QUALITY
+                        || d.rule == masks::RULE_AREA
+                        || d.rule == masks::RULE_LOW_QUALITY_SUPPORT)
             })
-            .map(|d| d.source_index)
-            .collect();
+            .map(|d| {
+                let joins = opts.support_masks && d.rule == masks::RULE_LOW_QUALITY_SUPPORT;
+                (d.source_index, joins)
+            })
+            .unzip();
         if sources.is_empty() {
             return Ok(Vec::new());
         }
@@ -706,8 +822,10 @@ impl Support<'_> {
             Some(dir) => mask_features(&dir.join(format!("{stem}.npy")), &sources)?.1,
             None => vec![None; sources.len()],
         };
-        let owner = &self.fin.owner;
-        let wants = |k: usize| self.eligible[k] && !self.fin.groups[k].views.contains(&vi);
+        let owner = self.owner;
+        let weak = |k: usize| self.eligible[k] && !self.fin.groups[k].views.contains(&vi);
+        // A support-only mask may join any group that is not far field.
+        let wants = |k: usize, joins: bool| (joins && self.near[k]) || weak(k);
         // Larger masks first (ties: file order), so a smaller one paints over them.
         let mut order: Vec<usize> = (0..sources.len()).collect();
         order.sort_by(|&a, &b| {
@@ -723,6 +841,9 @@ impl Support<'_> {
         let mut px: Vec<u32> = Vec::new();
         let mut hits = Vec::new();
         for j in order {
+            if self.joined_only && !only[j] {
+                continue;
+            }
             let si = sources[j];
             px.clear();
             for_each_pixel_checked(&sam[si as usize].segmentation, &spath, si as usize, |p| {
@@ -732,7 +853,7 @@ impl Support<'_> {
             let touches = px.iter().any(|&p| {
                 c.pixel(p as usize).0.iter().any(|&g| {
                     let o = owner[g as usize];
-                    o >= 0 && wants(o as usize)
+                    o >= 0 && wants(o as usize, only[j])
                 })
             });
             if !touches {
@@ -767,15 +888,25 @@ impl Support<'_> {
             if let Some((k, m)) = best
                 && mass > 0.0
                 && m / mass > opts.tau_geo
-                && wants(k as usize)
+                && wants(k as usize, only[j])
             {
                 let similar = feats[j].as_deref().is_none_or(|f| {
                     bank::cosine(f, &self.fin.groups[k as usize].feature_mean)
                         .is_none_or(|c| c > opts.tau_sim)
                 });
                 if similar {
-                    hits.push(k as usize);
-                    if opts.support_pixels {
+                    // A view of the group only where it has no kept mask (view support).
+                    hits.push(Hit {
+                        group: k as usize,
+                        view: weak(k as usize),
+                        joined: only[j],
+                        gaussians: if only[j] {
+                            cand.ids.clone()
+                        } else {
+                            Vec::new()
+                        },
+                    });
+                    if opts.support_pixels || (only[j] && self.paint_joined) {
                         for &p in &px {
                             let p = p as usize;
                             if map[p] == -1 || painted[p] {
@@ -927,7 +1058,7 @@ pub fn run(
         })
         .collect();
     let is_far = |gi: usize| nearest[gi].is_nan() || nearest[gi] > far;
-    let members: Vec<i32> = if opts.fill.is_some() {
+    let mut members: Vec<i32> = if opts.fill.is_some() {
         fill_members(&fin, &visible, views.len())
     } else {
         Vec::new()
@@ -935,10 +1066,62 @@ pub fn run(
     drop(visible);
     let eligible: Vec<bool> = (0..fin.groups.len())
         .map(|gi| {
-            !is_far(gi) && (opts.support_pixels || fin.groups[gi].views.len() < opts.min_views)
+            opts.support
+                && !is_far(gi)
+                && (opts.support_pixels || fin.groups[gi].views.len() < opts.min_views)
         })
         .collect();
-    let support_on = opts.support && inp.sam.is_some() && eligible.iter().any(|&w| w);
+    let near: Vec<bool> = (0..fin.groups.len()).map(|gi| !is_far(gi)).collect();
+    let support_on = inp.sam.is_some()
+        && ((opts.support && eligible.iter().any(|&w| w))
+            || (opts.support_masks && near.iter().any(|&w| w)));
+    // Support-only masks join their groups' fill members (a pass over the views first, so that
+    // every view's fill sees the joins of all views).
+    let mut joined_gaussians = 0;
+    if opts.support_masks && opts.fill.is_some() && inp.sam.is_some() && near.iter().any(|&w| w) {
+        let sup = Support {
+            fin: &fin,
+            eligible: &eligible,
+            near: &near,
+            centres: &centres,
+            paint_joined: false,
+            joined_only: true,
+            owner: &fin.owner,
+        };
+        type Joins = (Vec<(usize, Vec<u32>)>, Vec<u64>);
+        let per: Vec<Result<Joins, AssociateError>> = views
+            .par_iter()
+            .enumerate()
+            .map(|(vi, v)| {
+                let stem = v.stem();
+                let (w, h) = (
+                    v.camera.intrinsics.width as usize,
+                    v.camera.intrinsics.height as usize,
+                );
+                let c = load_cache_view(inp, &stem, w, h)?;
+                let mut scratch = vec![-1i32; w * h];
+                let joins: Vec<(usize, Vec<u32>)> = sup
+                    .hits(inp, opts, v, vi as u32, &c, &mut scratch)?
+                    .into_iter()
+                    .filter(|h| h.joined)
+                    .map(|h| (h.group, h.gaussians))
+                    .collect();
+                let vis = if joins.is_empty() {
+                    Vec::new()
+                } else {
+                    candidates::visible_set(&candidates::view_mass(&c), opts.weighted.min_mass)
+                };
+                Ok((joins, vis))
+            })
+            .collect();
+        let (mut joins, mut vis) = (Vec::new(), Vec::new());
+        for r in per {
+            let (j, v) = r?;
+            joins.push(j);
+            vis.push(v);
+        }
+        joined_gaussians = join_members(&mut members, &fin.owner, &joins, &vis, opts.join_views);
+    }
     // Group index per (canonical view, mask index).
     let mut per_view: Vec<Vec<(u32, usize)>> = vec![Vec::new(); views.len()];
     for (o, &gi) in fin.observations.iter().zip(&fin.group_of) {
@@ -949,7 +1132,7 @@ pub fn run(
     // Transfer back, pass A: per view, the map over pre-filter group indices (a filled pixel is
     // written as −2 − index) and the view support's matches.
     let t = Instant::now();
-    let pass_a: Vec<Result<Vec<usize>, AssociateError>> = views
+    let pass_a: Vec<Result<Vec<Hit>, AssociateError>> = views
         .par_iter()
         .zip(&per_view)
         .enumerate()
@@ -977,7 +1160,11 @@ pub fn run(
                     let sup = Support {
                         fin: &fin,
                         eligible: &eligible,
+                        near: &near,
                         centres: &centres,
+                        paint_joined: opts.support_mask_pixels,
+                        joined_only: false,
+                        owner: &fin.owner,
                     };
                     hits = sup.hits(inp, opts, v, vi as u32, &c, &mut map)?;
                 }
@@ -991,11 +1178,14 @@ pub fn run(
         .collect();
     let mut support: Vec<std::collections::BTreeSet<u32>> =
         vec![Default::default(); fin.groups.len()];
-    let mut support_masks = 0;
+    let (mut support_masks, mut joined_masks) = (0, 0);
     for (vi, r) in pass_a.into_iter().enumerate() {
-        for gi in r? {
-            support[gi].insert(vi as u32);
-            support_masks += 1;
+        for hit in r? {
+            if hit.view {
+                support[hit.group].insert(vi as u32);
+                support_masks += 1;
+            }
+            joined_masks += usize::from(hit.joined);
         }
     }
 
@@ -1120,6 +1310,8 @@ pub fn run(
         dropped_min_views: dropped_views,
         dropped_far_field: dropped_far,
         support_masks,
+        joined_masks,
+        joined_gaussians,
         supported_groups: supported,
         masks_dropped,
         groups: groups_file.groups.len(),

@@ -40,6 +40,13 @@ pub struct AssociateArgs {
     /// outlines are poor).
     #[arg(long)]
     support_pixels: bool,
+    /// Support-only masks (`low_quality_support` in the masks stage's decisions) do not join
+    /// groups: they add no Gaussians to the fill (they still count as view support).
+    #[arg(long)]
+    no_support_masks: bool,
+    /// Joining support-only masks also label their own unlabelled pixels with the group.
+    #[arg(long)]
+    support_mask_pixels: bool,
     /// Contributions cache (`gs4city render --cache`, or a run's `render/`).
     #[arg(long)]
     cache: PathBuf,
@@ -95,6 +102,8 @@ pub fn run(args: &AssociateArgs) -> anyhow::Result<()> {
         shuffle_seed: args.shuffle_seed,
         support: !args.no_support,
         support_pixels: args.support_pixels,
+        support_masks: !args.no_support_masks,
+        support_mask_pixels: args.support_mask_pixels,
         ..Default::default()
     };
     opts.validate()?;

@@ -37,6 +37,13 @@ pub struct MasksArgs {
     /// τ_q: minimum predicted_iou.
     #[arg(long, default_value_t = MasksOptions::default().tau_q)]
     tau_q: f64,
+    /// Support-only floor: a mask with floor ≤ predicted_iou < τ_q that passes every other rule
+    /// is recorded as `low_quality_support` (the associate stage may let it join a group).
+    #[arg(long, default_value_t = MasksOptions::default().support_floor.unwrap_or(0.0))]
+    support_floor: f64,
+    /// No support-only masks: every predicted_iou < τ_q is `quality` (as in the paper).
+    #[arg(long)]
+    no_support_floor: bool,
     /// τ_a as a fraction of the image's pixels (τ_a = ⌈f·H·W⌉).
     #[arg(long, default_value_t = MasksOptions::default().area_frac)]
     area_frac: f64,
@@ -105,6 +112,7 @@ pub fn run(args: &MasksArgs) -> anyhow::Result<()> {
         source: args.source,
         test: args.test,
         tau_q: args.tau_q,
+        support_floor: (!args.no_support_floor).then_some(args.support_floor),
         area_frac: args.area_frac,
         rho: args.rho,
         delta: args.delta,

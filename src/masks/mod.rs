@@ -4,7 +4,9 @@
 //!
 //! Per view and mask, in order (`docs/masks.md` has the details and the measurements):
 //! 1. **quality and area** (paper Eq. S^qc): dropped when `predicted_iou < τ_q` (rule
-//!    `quality`) or when the area is below `τ_a = ⌈area_frac · H·W⌉` pixels (`area`);
+//!    `quality`) or when the area is below `τ_a = ⌈area_frac · H·W⌉` pixels (`area`); a mask
+//!    with `support_floor ≤ predicted_iou < τ_q` that every later rule would keep is dropped as
+//!    `low_quality_support` instead (beyond the paper: the associate stage lets it join a group);
 //! 2. **building-support overlap** `R_ov = |s ∩ Ω_feat| / |s|`, `Ω_feat` = pixels whose raycast
 //!    feature id (channel 0 of `<stem>.ids.npy`) is not −1; below `ρ` the mask is kept as a
 //!    non-building candidate (`low_overlap`) — unless the optional low-overlap check finds it
@@ -137,6 +139,8 @@ pub fn read_decisions(path: &Path) -> Result<Vec<Decision>, MasksError> {
 // Rule names (the `rule` of a kept mask or a decision).
 /// Dropped: `predicted_iou < τ_q`.
 pub const RULE_QUALITY: &str = "quality";
+/// Dropped, support-only: `support_floor ≤ predicted_iou < τ_q`, every other rule would keep it.
+pub const RULE_LOW_QUALITY_SUPPORT: &str = "low_quality_support";
 /// Dropped: area below `τ_a`.
 pub const RULE_AREA: &str = "area";
 /// Kept: `R_ov < ρ` (a non-building candidate, the paper's rule).
@@ -227,6 +231,12 @@ pub struct MasksOptions {
     pub test: Test,
     /// `τ_q` on `predicted_iou`.
     pub tau_q: f64,
+    /// Support-only floor (beyond the paper): a SAM mask with `floor ≤ predicted_iou < τ_q`
+    /// that passes every other rule is dropped with the rule `low_quality_support` instead of
+    /// `quality` — not trusted enough to found a group, but the associate stage may let it join
+    /// one (`docs/associate.md`). `None`: every `predicted_iou < τ_q` is `quality`, as before.
+    #[serde(default = "default_support_floor")]
+    pub support_floor: Option<f64>,
     /// `τ_a = ⌈area_frac · H·W⌉` pixels.
     pub area_frac: f64,
     /// `ρ`: high overlap from here on.
@@ -270,6 +280,7 @@ impl Default for MasksOptions {
             source: Source::Auto,
             test: Test::Auto,
             tau_q: 0.7,
+            support_floor: default_support_floor(),
             area_frac: 1e-4,
             rho: 0.8,
             delta: 0.05,
@@ -291,6 +302,10 @@ impl Default for MasksOptions {
     }
 }
 
+fn default_support_floor() -> Option<f64> {
+    Some(0.3)
+}
+
 impl MasksOptions {
     /// Checks ranges.
     pub fn validate(&self) -> Result<(), MasksError> {
@@ -307,6 +322,11 @@ impl MasksOptions {
             if !(0.0..=1.0).contains(&v) {
                 return bad(format!("{k} = {v} is outside [0, 1]"));
             }
+        }
+        if let Some(f) = self.support_floor
+            && !(0.0..=1.0).contains(&f)
+        {
+            return bad(format!("support_floor = {f} is outside [0, 1]"));
         }
         if !self.delta.is_finite() {
             return bad(format!("delta = {} is not finite", self.delta));
@@ -875,8 +895,26 @@ fn rule_for(
 ) -> (bool, &'static str) {
     let opts = plan.opts;
     if m.predicted_iou < opts.tau_q {
+        // Support-only: the other rules decide whether it is a foreground candidate at all.
+        if opts.support_floor.is_some_and(|f| m.predicted_iou >= f)
+            && rule_after_quality(plan, m, c, fs, min_area).0
+        {
+            return (false, RULE_LOW_QUALITY_SUPPORT);
+        }
         return (false, RULE_QUALITY);
     }
+    rule_after_quality(plan, m, c, fs, min_area)
+}
+
+/// [`rule_for`] from the area rule on (the quality rule passed or set aside).
+fn rule_after_quality(
+    plan: &Plan<'_>,
+    m: &SamMask,
+    c: &MaskCounts,
+    fs: Option<&FeatureScores>,
+    min_area: u64,
+) -> (bool, &'static str) {
+    let opts = plan.opts;
     if m.area < min_area {
         return (false, RULE_AREA);
     }
