@@ -55,6 +55,9 @@ pub struct RunArgs {
     /// No city-part snapping of windows and doors to the image's own masks in the fuse stage.
     #[arg(long)]
     pub no_snap: bool,
+    /// Support-only masks (fail only τ_q) do not join associated groups (the ablation).
+    #[arg(long)]
+    pub no_support_masks: bool,
     /// Per-Gaussian labels that are evaluated and queried: vote (closed form) or learned
     /// (identity codes trained from the vote, the train stage).
     #[arg(long, default_value = "vote")]
@@ -98,6 +101,7 @@ impl RunArgs {
         masks.validate()?;
         let associate = crate::associate::AssociateOptions {
             min_views: self.min_views,
+            support_masks: !self.no_support_masks,
             ..d.associate
         };
         associate.validate()?;
