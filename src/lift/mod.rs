@@ -269,28 +269,34 @@ pub fn vote(
         ..Default::default()
     };
     let bar = Bar::new("lift", views.len() as u64, "views");
-    let load = |v: &View| -> Result<(ViewContrib, Vec<i32>), LiftError> {
-        let c = cache.load(&v.stem())?;
-        let labels = maps.read(&v.stem(), c.width, c.height)?;
-        Ok((c, labels))
+    // Two slots, reused: view i is accumulated from one while view i + 1 is loaded into the
+    // other (the accumulation order stays fixed; the memory is allocated once).
+    let load = |v: &View, s: &mut (ViewContrib, Vec<u8>, Vec<i32>)| -> Result<(), LiftError> {
+        cache.load_into(&v.stem(), &mut s.0, &mut s.1)?;
+        s.2 = maps.read(&v.stem(), s.0.width, s.0.height)?;
+        Ok(())
     };
-    // Load view i+1 while view i is accumulated (the accumulation order stays fixed).
+    let mut slots: [(ViewContrib, Vec<u8>, Vec<i32>); 2] =
+        std::array::from_fn(|_| (ViewContrib::empty(), Vec::new(), Vec::new()));
     let t = Instant::now();
-    let mut next = views.first().map(&load).transpose()?;
+    if let Some(v) = views.first() {
+        load(v, &mut slots[0])?;
+    }
     stats.load_s += t.elapsed().as_secs_f64();
     for i in 0..views.len() {
-        let (c, labels) = next.take().expect("loaded");
+        let [a, b] = &mut slots;
+        let (cur, next) = if i % 2 == 0 { (a, b) } else { (b, a) };
         let (loaded, acc_s) = rayon::join(
-            || views.get(i + 1).map(&load).transpose(),
+            || views.get(i + 1).map(|v| load(v, next)).transpose(),
             || {
                 let t = Instant::now();
-                votes.accumulate(&c, &labels);
+                votes.accumulate(&cur.0, &cur.2);
                 t.elapsed().as_secs_f64()
             },
         );
         stats.accumulate_s += acc_s;
-        stats.contributions += c.entries() as u64;
-        next = loaded?;
+        stats.contributions += cur.0.entries() as u64;
+        loaded?;
         bar.inc(1);
     }
     bar.finish();
@@ -545,8 +551,9 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
     )?;
     let write_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
+    let (mut c, mut buf) = (ViewContrib::empty(), Vec::new());
     for v in inp.test {
-        let c = inp.cache.load(&v.stem())?;
+        inp.cache.load_into(&v.stem(), &mut c, &mut buf)?;
         let (cm, lm) = predict(&c, &label, &class);
         write_prediction(out, &v.stem(), c.width, c.height, &cm, &lm)?;
     }

@@ -141,6 +141,7 @@ pub fn evaluate(
     let mut per: Vec<[Counts; N_FINE]> = Vec::new();
     let mut images = Vec::new();
     let bar = crate::progress::Bar::new("eval", stems.len() as u64, "views");
+    let (mut c, mut buf) = (crate::render::cache::ViewContrib::empty(), Vec::new());
     for stem in stems {
         let gpath = gts
             .get(stem)
@@ -158,7 +159,7 @@ pub fn evaluate(
             }
             .into());
         }
-        let c = cache.load(stem)?;
+        cache.load_into(stem, &mut c, &mut buf)?;
         let psize = [c.height, c.width];
         let pred_map = |sel: &(Vec<bool>, Vec<i32>), class: i32| -> Vec<i32> {
             let m = super::masks::view_mask(&c, &sel.1, &sel.0, rule);

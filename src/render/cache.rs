@@ -58,13 +58,13 @@ fn put<T: bytemuck::Pod + ToLe, W: std::io::Write>(w: &mut W, v: &[T]) -> std::i
     }
 }
 
-/// Reads little-endian values (any alignment of `bytes`; its length is a multiple of the size).
-fn take<T: bytemuck::Pod + ToLe>(bytes: &[u8]) -> Vec<T> {
-    let v: Vec<T> = bytemuck::pod_collect_to_vec(bytes);
-    if cfg!(target_endian = "little") {
-        v
-    } else {
-        v.into_iter().map(|x| x.to_le()).collect()
+/// Reads little-endian values into `out`, reusing its memory (any alignment of `bytes`; its
+/// length is a multiple of the size).
+fn take_into<T: bytemuck::Pod + ToLe>(bytes: &[u8], out: &mut Vec<T>) {
+    out.resize(bytes.len() / std::mem::size_of::<T>(), T::zeroed());
+    bytemuck::cast_slice_mut::<T, u8>(out).copy_from_slice(bytes);
+    if cfg!(target_endian = "big") {
+        out.iter_mut().for_each(|x| *x = x.to_le());
     }
 }
 
@@ -238,27 +238,66 @@ impl ViewContrib {
         })
     }
 
+    /// An empty view (0×0), to be filled by [`ViewContrib::read_into`].
+    pub fn empty() -> Self {
+        ViewContrib {
+            width: 0,
+            height: 0,
+            k: 0,
+            gaussians: 0,
+            lists: Contributions::default(),
+            alpha: Vec::new(),
+            depth: Vec::new(),
+        }
+    }
+
     /// Reads and checks a file; `expect_gaussians` (when given) must equal the stored count.
     pub fn read(path: &Path, expect_gaussians: Option<usize>) -> Result<Self, CacheError> {
-        let bytes = std::fs::read(path).map_err(|source| CacheError::Read {
+        let mut v = Self::empty();
+        v.read_into(path, expect_gaussians, &mut Vec::new())?;
+        Ok(v)
+    }
+
+    /// [`ViewContrib::read`] into `self`, reusing its vectors and the file buffer `buf`: a stage
+    /// that reads view after view allocates (and page-faults) once instead of per view. On an
+    /// error `self` holds unspecified content.
+    pub fn read_into(
+        &mut self,
+        path: &Path,
+        expect_gaussians: Option<usize>,
+        buf: &mut Vec<u8>,
+    ) -> Result<(), CacheError> {
+        use std::io::Read;
+        let err = |source| CacheError::Read {
             path: path.to_path_buf(),
             source,
-        })?;
-        let v = Self::from_bytes(path, &bytes)?;
+        };
+        buf.clear();
+        std::fs::File::open(path)
+            .and_then(|mut f| f.read_to_end(buf))
+            .map_err(err)?;
+        self.parse_into(path, buf)?;
         if let Some(n) = expect_gaussians
-            && n != v.gaussians
+            && n != self.gaussians
         {
             return Err(CacheError::Stale {
                 path: path.to_path_buf(),
-                found: v.gaussians,
+                found: self.gaussians,
                 expected: n,
             });
         }
-        Ok(v)
+        Ok(())
     }
 
     /// Parses and checks a file's bytes (`path` names it in errors).
     pub fn from_bytes(path: &Path, b: &[u8]) -> Result<Self, CacheError> {
+        let mut v = Self::empty();
+        v.parse_into(path, b)?;
+        Ok(v)
+    }
+
+    /// Parses and checks a file's bytes into `self`, reusing its vectors.
+    fn parse_into(&mut self, path: &Path, b: &[u8]) -> Result<(), CacheError> {
         let bad = |why: String| CacheError::Format {
             path: path.to_path_buf(),
             why,
@@ -299,73 +338,75 @@ impl ViewContrib {
         }
         let (npx, entries) = (npx as usize, entries as usize);
         let mut o = HEADER;
-        let counts: Vec<u16> = take(&b[o..o + 2 * npx]);
-        o += 2 * npx;
-        let mut offsets = Vec::with_capacity(npx + 1);
-        offsets.push(0u64);
         let bound = if k == 0 { MAX_LIST } else { k };
-        for (p, &n) in counts.iter().enumerate() {
-            let n = n as usize;
+        let offsets = &mut self.lists.offsets;
+        offsets.clear();
+        offsets.reserve(npx + 1);
+        offsets.push(0u64);
+        for (p, c) in b[o..o + 2 * npx].chunks_exact(2).enumerate() {
+            let n = usize::from(u16::from_le_bytes([c[0], c[1]]));
             if n > bound {
                 return Err(bad(format!("pixel {p} has {n} entries, more than {bound}")));
             }
             offsets.push(offsets[p] + n as u64);
         }
+        o += 2 * npx;
         if offsets[npx] != entries as u64 {
             return Err(bad(format!(
                 "the per-pixel counts sum to {}, the header says {entries}",
                 offsets[npx]
             )));
         }
-        let ids: Vec<u32> = take(&b[o..o + 4 * entries]);
+        let ids = &mut self.lists.ids;
+        take_into(&b[o..o + 4 * entries], ids);
         if let Some(id) = ids.iter().find(|&&id| u64::from(id) >= gaussians) {
             return Err(bad(format!(
                 "Gaussian id {id} is not below the Gaussian count {gaussians}"
             )));
         }
         o += 4 * entries;
-        let weights = if wb == 4 {
-            take::<f32>(&b[o..o + 4 * entries])
+        let weights = &mut self.lists.weights;
+        if wb == 4 {
+            take_into(&b[o..o + 4 * entries], weights);
         } else {
-            let h: Vec<half::f16> = take(&b[o..o + 2 * entries]);
-            let mut w = vec![0.0f32; entries];
-            half::slice::HalfFloatSliceExt::convert_to_f32_slice(&h[..], &mut w);
-            w
-        };
-        o += wb as usize * entries;
-        let mut floats = |n: usize| {
-            let v: Vec<f32> = take(&b[o..o + 4 * n]);
-            o += 4 * n;
-            v
-        };
-        let residual = floats(npx);
-        let alpha = floats(npx);
-        let depth = floats(npx);
-        let unit = |x: &f32| x.is_finite() && (0.0..=1.0 + 1e-5).contains(x);
-        if let Some(i) = weights.iter().position(|w| !unit(w)) {
-            return Err(bad(format!("weight {i} is {}", weights[i])));
+            // Through a small buffer: no second entries-long allocation.
+            weights.resize(entries, 0.0);
+            let mut halves = [half::f16::ZERO; 4096];
+            for (src, dst) in b[o..o + 2 * entries]
+                .chunks(2 * halves.len())
+                .zip(weights.chunks_mut(halves.len()))
+            {
+                let h = &mut halves[..dst.len()];
+                bytemuck::cast_slice_mut::<half::f16, u8>(h).copy_from_slice(src);
+                if cfg!(target_endian = "big") {
+                    h.iter_mut().for_each(|x| *x = x.to_le());
+                }
+                half::slice::HalfFloatSliceExt::convert_to_f32_slice(&h[..], dst);
+            }
         }
-        if let Some(p) = residual
+        o += wb as usize * entries;
+        for v in [&mut self.lists.residual, &mut self.alpha, &mut self.depth] {
+            take_into(&b[o..o + 4 * npx], v);
+            o += 4 * npx;
+        }
+        let unit = |x: &f32| x.is_finite() && (0.0..=1.0 + 1e-5).contains(x);
+        if let Some(i) = self.lists.weights.iter().position(|w| !unit(w)) {
+            return Err(bad(format!("weight {i} is {}", self.lists.weights[i])));
+        }
+        if let Some(p) = self
+            .lists
+            .residual
             .iter()
-            .zip(&alpha)
+            .zip(&self.alpha)
             .position(|(r, a)| !unit(r) || !unit(a))
         {
             return Err(bad(format!("pixel {p}: residual or alpha outside [0, 1]")));
         }
-        Ok(ViewContrib {
-            width,
-            height,
-            k,
-            gaussians: gaussians as usize,
-            lists: Contributions {
-                offsets,
-                ids,
-                weights,
-                residual,
-            },
-            alpha,
-            depth,
-        })
+        self.width = width;
+        self.height = height;
+        self.k = k;
+        self.gaussians = gaussians as usize;
+        Ok(())
     }
 }
 
@@ -570,6 +611,20 @@ impl Cache {
         ViewContrib::read(&cache_file(&self.dir, stem), Some(self.summary.gaussians))
     }
 
+    /// [`Cache::load`] into `view`, reusing its memory and the file buffer `buf`.
+    pub fn load_into(
+        &self,
+        stem: &str,
+        view: &mut ViewContrib,
+        buf: &mut Vec<u8>,
+    ) -> Result<(), CacheError> {
+        view.read_into(
+            &cache_file(&self.dir, stem),
+            Some(self.summary.gaussians),
+            buf,
+        )
+    }
+
     /// Whether the cache holds view `stem`.
     pub fn has(&self, stem: &str) -> bool {
         self.summary.views.iter().any(|v| v.stem == stem)
@@ -632,6 +687,47 @@ mod tests {
         let mut again = r.lists.weights.clone();
         round_weights(&mut again);
         assert_eq!(again, r.lists.weights);
+    }
+
+    #[test]
+    fn reading_into_a_reused_view_equals_a_fresh_read() {
+        let dir = std::env::temp_dir().join(format!("gs4c-reuse-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let big = sample();
+        // A smaller view: every reused vector must shrink to it.
+        let small = ViewContrib {
+            width: 1,
+            height: 2,
+            k: 2,
+            gaussians: 10,
+            lists: Contributions {
+                offsets: vec![0, 1, 1],
+                ids: vec![3],
+                weights: vec![0.75],
+                residual: vec![0.0, 0.0],
+            },
+            alpha: vec![0.75, 0.0],
+            depth: vec![4.0, f32::NAN],
+        };
+        let (pb, ps) = (dir.join("big.contrib"), dir.join("small.contrib"));
+        big.write(&pb).unwrap();
+        small.write(&ps).unwrap();
+        let (mut v, mut buf) = (ViewContrib::empty(), Vec::new());
+        v.read_into(&pb, Some(10), &mut buf).unwrap();
+        assert_eq!(v.lists, big.lists);
+        v.read_into(&ps, Some(10), &mut buf).unwrap();
+        let fresh = ViewContrib::read(&ps, Some(10)).unwrap();
+        assert_eq!((v.width, v.height, v.k), (1, 2, 2));
+        assert_eq!(v.lists, fresh.lists);
+        assert_eq!(v.lists, small.lists);
+        assert_eq!(v.alpha, small.alpha);
+        assert!(v.depth[1].is_nan() && v.depth[0] == 4.0 && v.depth.len() == 2);
+        // A stale count is refused after a successful read, too.
+        assert!(matches!(
+            v.read_into(&pb, Some(11), &mut buf),
+            Err(CacheError::Stale { .. })
+        ));
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
