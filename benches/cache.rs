@@ -14,8 +14,8 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use gs4city::lift::{self, LabelMaps, Votes};
+use gs4city::render::PreparedScene;
 use gs4city::render::cache::ViewContrib;
-use gs4city::render::{ContributionMode, PreparedScene, RenderOptions};
 use gs4city::scene::{Scene, Split};
 
 fn main() {
@@ -69,7 +69,7 @@ fn main() {
             let c = if rounded {
                 ViewContrib::render(&prepared, v, k).unwrap()
             } else {
-                exact(&prepared, v)
+                ViewContrib::render_unrounded(&prepared, v, k).unwrap()
             };
             secs += t.elapsed().as_secs_f64();
             // Unrounded weights would take 4 bytes each instead of 2 (cache version 1).
@@ -135,25 +135,5 @@ fn main() {
         if !rounded {
             reference = Some((assigned, kept));
         }
-    }
-}
-
-/// Complete lists with the rasterizer's f32 weights (not rounded as the cache stores them).
-fn exact(scene: &PreparedScene, v: &gs4city::camera::View) -> ViewContrib {
-    let opts = RenderOptions {
-        features: false,
-        max_sh_degree: 0,
-        contributions: ContributionMode::All,
-        ..Default::default()
-    };
-    let out = gs4city::render::render_view(scene, &v.camera, &opts).unwrap();
-    ViewContrib {
-        width: out.width,
-        height: out.height,
-        k: 0,
-        gaussians: scene.len(),
-        lists: out.contributions.unwrap(),
-        alpha: out.alpha,
-        depth: out.depth,
     }
 }

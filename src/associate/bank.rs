@@ -194,13 +194,7 @@ impl Bank {
     /// Offers one mask (pass 1); returns its group.
     pub fn offer(&mut self, o: Observation) -> u32 {
         let (shares, total) = self.shares(&o.candidate);
-        let best = shares
-            .iter()
-            .copied()
-            .fold(None::<(u32, f64)>, |b, x| match b {
-                Some(b) if b.1 >= x.1 => Some(b),
-                _ => Some(x),
-            });
+        let best = best_share(&shares);
         let k = match best {
             Some((k, w))
                 if total > 0.0
@@ -680,6 +674,17 @@ fn vote_owner(
         }
     }
     best.into_iter().map(|b| b.0).collect()
+}
+
+/// The group with the largest share (the first of equal ones), if any.
+pub(crate) fn best_share(shares: &[(u32, f64)]) -> Option<(u32, f64)> {
+    shares
+        .iter()
+        .copied()
+        .fold(None::<(u32, f64)>, |b, x| match b {
+            Some(b) if b.1 >= x.1 => Some(b),
+            _ => Some(x),
+        })
 }
 
 /// Weighted share of `c`'s mass per owner (owners ascending) and the total mass.

@@ -163,6 +163,23 @@ pub fn visible_set(total: &[f32], min_mass: f32) -> Vec<u64> {
     bits
 }
 
+/// Adds each Gaussian's α·T on `pixels` into `acc` and lists the Gaussians it touched, sorted,
+/// in `touched` (cleared first). The caller takes the sums back out of `acc` (leaving it zero).
+fn mass_on(c: &ViewContrib, pixels: &[u32], acc: &mut [f32], touched: &mut Vec<u32>) {
+    touched.clear();
+    for &p in pixels {
+        let (ids, ws) = c.pixel(p as usize);
+        for (&g, &w) in ids.iter().zip(ws) {
+            let a = &mut acc[g as usize];
+            if *a == 0.0 {
+                touched.push(g);
+            }
+            *a += w;
+        }
+    }
+    touched.sort_unstable();
+}
+
 /// The α·T candidates of every mask of a view (file order): per mask, the Gaussians whose mass
 /// inside the mask passes [`WeightedLimits`], weighted by that mass (in pixels). `total` is
 /// [`view_mass`] of the view, `centre` the mask each Gaussian's centre projects into
@@ -180,18 +197,12 @@ pub fn weighted(
     let mut touched: Vec<u32> = Vec::new();
     (0..vm.visible.len())
         .map(|m| {
-            touched.clear();
-            for &p in &px[start[m]..start[m + 1]] {
-                let (ids, ws) = c.pixel(p as usize);
-                for (&g, &w) in ids.iter().zip(ws) {
-                    let a = &mut acc[g as usize];
-                    if *a == 0.0 {
-                        touched.push(g);
-                    }
-                    *a += w;
-                }
-            }
-            touched.sort_unstable();
+            mass_on(
+                c,
+                &px[start[m]..start[m + 1]],
+                acc.as_mut_slice(),
+                &mut touched,
+            );
             let mut out = Candidate::default();
             for &g in &touched {
                 let a = std::mem::take(&mut acc[g as usize]);
@@ -228,17 +239,7 @@ pub fn weighted_one(
     acc: &mut [f32],
 ) -> Candidate {
     let mut touched: Vec<u32> = Vec::new();
-    for &p in mask.list {
-        let (ids, ws) = c.pixel(p as usize);
-        for (&g, &w) in ids.iter().zip(ws) {
-            let a = &mut acc[g as usize];
-            if *a == 0.0 {
-                touched.push(g);
-            }
-            *a += w;
-        }
-    }
-    touched.sort_unstable();
+    mass_on(c, mask.list, acc, &mut touched);
     let mut out = Candidate::default();
     for &g in &touched {
         let a = std::mem::take(&mut acc[g as usize]);

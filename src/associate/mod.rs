@@ -378,13 +378,22 @@ impl AssociateSummary {
     }
 }
 
-/// Kept masks of a view file, checked against the image size.
-fn read_view_masks(
-    masks_dir: &Path,
-    stem: &str,
-    width: usize,
-    height: usize,
-) -> Result<(PathBuf, Vec<KeptMask>), AssociateError> {
+/// One view's kept masks (checked against the image size) and their composite.
+struct MaskView {
+    stem: String,
+    w: usize,
+    h: usize,
+    kept: Vec<KeptMask>,
+    vm: candidates::ViewMasks,
+}
+
+/// Reads `view`'s kept-mask file from `masks_dir` and composites it.
+fn mask_view(masks_dir: &Path, view: &View) -> Result<MaskView, AssociateError> {
+    let stem = view.stem();
+    let (w, h) = (
+        view.camera.intrinsics.width as usize,
+        view.camera.intrinsics.height as usize,
+    );
     let path = masks_dir.join(format!("{stem}.json"));
     if !path.is_file() {
         return Err(AssociateError::Invalid {
@@ -394,31 +403,28 @@ fn read_view_masks(
     }
     let kept = masks::read_kept(&path)?;
     for (i, k) in kept.iter().enumerate() {
-        if k.sam.segmentation.size != [height, width] {
+        if k.sam.segmentation.size != [h, w] {
             return Err(AssociateError::Invalid {
                 path,
                 why: format!(
-                    "mask {i}: size {:?} differs from the image size [{height}, {width}]",
+                    "mask {i}: size {:?} differs from the image size [{h}, {w}]",
                     k.sam.segmentation.size
                 ),
             });
         }
     }
-    Ok((path, kept))
-}
-
-/// Composites a view's kept masks.
-fn composite_view(
-    path: &Path,
-    kept: &[KeptMask],
-    width: usize,
-    height: usize,
-) -> Result<candidates::ViewMasks, AssociateError> {
     let rles: Vec<&crate::sam::Rle> = kept.iter().map(|k| &k.sam.segmentation).collect();
-    candidates::composite(&rles, width, height).map_err(|(index, source)| AssociateError::Rle {
-        path: path.to_path_buf(),
+    let vm = candidates::composite(&rles, w, h).map_err(|(index, source)| AssociateError::Rle {
+        path: path.clone(),
         index,
         source,
+    })?;
+    Ok(MaskView {
+        stem,
+        w,
+        h,
+        kept,
+        vm,
     })
 }
 
@@ -514,13 +520,13 @@ fn view_work(
     view: &View,
     canonical: u32,
 ) -> Result<ViewWork, AssociateError> {
-    let stem = view.stem();
-    let (w, h) = (
-        view.camera.intrinsics.width as usize,
-        view.camera.intrinsics.height as usize,
-    );
-    let (path, kept) = read_view_masks(inp.masks, &stem, w, h)?;
-    let vm = composite_view(&path, &kept, w, h)?;
+    let MaskView {
+        stem,
+        w,
+        h,
+        kept,
+        vm,
+    } = mask_view(inp.masks, view)?;
     let (dim, feats, zero) = match inp.features {
         Some(dir) if !kept.is_empty() => {
             let fp = dir.join(format!("{stem}.npy"));
@@ -878,13 +884,7 @@ impl Support<'_> {
                 in_mask[p as usize] = false;
             }
             let (shares, mass) = bank::shares_under(owner, &cand);
-            let best = shares
-                .iter()
-                .copied()
-                .fold(None::<(u32, f64)>, |b, x| match b {
-                    Some(b) if b.1 >= x.1 => Some(b),
-                    _ => Some(x),
-                });
+            let best = bank::best_share(&shares);
             if let Some((k, m)) = best
                 && mass > 0.0
                 && m / mass > opts.tau_geo
@@ -1137,13 +1137,13 @@ pub fn run(
         .zip(&per_view)
         .enumerate()
         .map(|(vi, (v, assigned))| {
-            let stem = v.stem();
-            let (w, h) = (
-                v.camera.intrinsics.width as usize,
-                v.camera.intrinsics.height as usize,
-            );
-            let (path, kept) = read_view_masks(inp.masks, &stem, w, h)?;
-            let vm = composite_view(&path, &kept, w, h)?;
+            let MaskView {
+                stem,
+                w,
+                h,
+                kept,
+                vm,
+            } = mask_view(inp.masks, v)?;
             let mut gi_of = vec![-1i32; kept.len()];
             for &(m, gi) in assigned {
                 gi_of[m as usize] = gi as i32;

@@ -312,7 +312,16 @@ pub fn vote(
 /// Gaussians vote for −1; the class map is computed the same way over the Gaussians' classes.
 /// Returns `(class map, label map)`.
 pub fn predict(c: &ViewContrib, label: &[i32], class: &[i32]) -> (Vec<i32>, Vec<i32>) {
-    (predict_map(c, class), predict_map(c, label))
+    (0..c.pixels())
+        .into_par_iter()
+        .with_min_len(4096)
+        .map_init(Vec::new, |groups, p| {
+            (
+                pixel_value(c, p, class, groups),
+                pixel_value(c, p, label, groups),
+            )
+        })
+        .unzip()
 }
 
 /// One map of [`predict`]: per pixel, the value of `of` (per Gaussian) whose Gaussians carry
@@ -323,16 +332,20 @@ pub fn predict_map(c: &ViewContrib, of: &[i32]) -> Vec<i32> {
     (0..c.pixels())
         .into_par_iter()
         .with_min_len(4096)
-        .map_init(Vec::new, |groups, p| {
-            let (ids, ws) = c.pixel(p);
-            pick_label(
-                ids.iter().zip(ws).map(|(&g, &w)| (of[g as usize], w)),
-                groups,
-                1.0 - c.alpha[p] + c.lists.residual[p],
-            )
-        })
+        .map_init(Vec::new, |groups, p| pixel_value(c, p, of, groups))
         .collect_into_vec(&mut out);
     out
+}
+
+/// Pixel `p`'s value of `of` by [`pick_label`]; `groups` is scratch.
+fn pixel_value(c: &ViewContrib, p: usize, of: &[i32], groups: &mut Vec<(i32, f32)>) -> i32 {
+    let (ids, ws) = c.pixel(p);
+    let rest = 1.0 - c.alpha[p] + c.lists.residual[p];
+    pick_label(
+        ids.iter().zip(ws).map(|(&g, &w)| (of[g as usize], w)),
+        groups,
+        rest,
+    )
 }
 
 /// The label of one pixel from its `(label, weight)` entries in list order: the label with the

@@ -151,8 +151,20 @@ impl ViewContrib {
         HEADER + self.pixels() * (2 + 12) + self.entries() * 6
     }
 
-    /// Renders `view` with lists of at most `k` entries (0 = all).
+    /// Renders `view` with lists of at most `k` entries (0 = all), weights rounded as stored.
     pub fn render(scene: &PreparedScene, view: &View, k: usize) -> Result<Self, RenderError> {
+        let mut v = Self::render_unrounded(scene, view, k)?;
+        round_weights(&mut v.lists.weights);
+        Ok(v)
+    }
+
+    /// [`ViewContrib::render`] with the rasterizer's f32 weights (what the cache's rounding is
+    /// measured against).
+    pub fn render_unrounded(
+        scene: &PreparedScene,
+        view: &View,
+        k: usize,
+    ) -> Result<Self, RenderError> {
         let mode = if k == 0 {
             ContributionMode::All
         } else {
@@ -172,14 +184,12 @@ impl ViewContrib {
             },
             e => e,
         })?;
-        let mut lists = out.contributions.unwrap_or_default();
-        round_weights(&mut lists.weights);
         Ok(ViewContrib {
             width: out.width,
             height: out.height,
             k,
             gaussians: scene.len(),
-            lists,
+            lists: out.contributions.unwrap_or_default(),
             alpha: out.alpha,
             depth: out.depth,
         })
