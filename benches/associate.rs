@@ -82,6 +82,8 @@ fn config(name: &str) -> (AssociateOptions, FuseOptions) {
             "nosupport" => a.support = false,
             "supportpixels" => a.support_pixels = true,
             "nosupportmasks" => a.support_masks = false,
+            "massowner" => a.specific_owner = false,
+            "nofillover" => a.fill_over_masks = false,
             "supportmaskpixels" => a.support_mask_pixels = true,
             s if s.starts_with("join") => a.join_views = s[4..].parse().unwrap(),
             "mview5" => a.min_views = 5,

@@ -178,8 +178,19 @@ fn the_fill_labels_an_object_whose_mask_a_view_missed() {
         &off,
         1.0,
     );
-    let s = run(&b, &AssociateOptions::default(), &on, 1.0);
+    // The fill of unlabelled pixels alone (the fill over masks is checked below).
+    let s = run(
+        &b,
+        &AssociateOptions {
+            fill_over_masks: false,
+            ..Default::default()
+        },
+        &on,
+        1.0,
+    );
     assert!(s.filled_pixels > 0);
+    let over = b.dir.join("over");
+    run(&b, &AssociateOptions::default(), &over, 1.0);
     let stem = b.views[2].stem();
     let (a_off, a_on) = (
         boxes::read_map(&off.join(format!("{stem}.ids.npy"))),
@@ -208,6 +219,19 @@ fn the_fill_labels_an_object_whose_mask_a_view_missed() {
             );
         }
     }
+    // Over masks (the default), car A's absent group also takes kept-mask pixels its Gaussians
+    // dominate: all the fill's pixels and more, but along A's silhouette its Gaussians' tails
+    // spill onto a neighbour's mask (counted, bounded: a known cost, docs/associate.md).
+    let a_over = boxes::read_map(&over.join(format!("{stem}.ids.npy")));
+    assert!(px.iter().filter(|&&p| a_over[p] == group_a).count() >= filled);
+    let spill = (0..a_over.len())
+        .filter(|&p| a_over[p] == group_a && b.truth[2][p] != 0 && b.truth[2][p] != -1)
+        .count();
+    assert!(
+        spill * 5 <= px.len(),
+        "{spill} spilled pixels, {} car-A pixels",
+        px.len()
+    );
 }
 
 #[test]
@@ -444,11 +468,21 @@ fn a_support_only_mask_joins_the_group_its_gaussians_overlap() {
         &b,
         &AssociateOptions {
             support_masks: false,
+            fill_over_masks: false,
             ..Default::default()
         },
         &b.dir.join("off"),
     );
-    let (on, gf_on, m_on) = run_sam(&b, &AssociateOptions::default(), &b.dir.join("on"));
+    // Without the fill over masks (it relabels silhouette spill, see the fill test): only the
+    // joins are compared here.
+    let (on, gf_on, m_on) = run_sam(
+        &b,
+        &AssociateOptions {
+            fill_over_masks: false,
+            ..Default::default()
+        },
+        &b.dir.join("on"),
+    );
     assert_eq!((off.joined_masks, off.joined_gaussians), (0, 0));
     let others = person_views.len() - kept.len();
     assert!(on.joined_masks > 0 && on.joined_masks <= others, "{on:?}");
@@ -478,6 +512,7 @@ fn a_support_only_mask_joins_the_group_its_gaussians_overlap() {
         &b,
         &AssociateOptions {
             shuffle_seed: Some(5),
+            fill_over_masks: false,
             ..Default::default()
         },
         &b.dir.join("shuffled"),

@@ -45,6 +45,12 @@ pub struct BankOptions {
     pub merge_fraction: f64,
     /// Histogram intersection above which two masks of a pass-1 group stay linked.
     pub tau_link: f64,
+    /// Specific ownership (with `consolidate`): the final ownership vote weighs each mask's α·T
+    /// mass by the inverse of its visible pixels, so a Gaussian that lies in a small mask and in
+    /// a large one belongs to the small mask's group however many views the large one covers it
+    /// in (nested masks: a person under-segmented into the road mask in most views). Off: every
+    /// mask's mass counts as it is. The consolidation's own votes always use the plain mass.
+    pub specific_owner: bool,
 }
 
 /// One mask as the bank sees it.
@@ -283,6 +289,7 @@ impl Bank {
                 &group_of.iter().map(|&g| g as u32).collect::<Vec<u32>>(),
                 groups.len(),
                 owner.len(),
+                self.opts.specific_owner,
             )
         } else {
             owner
@@ -369,7 +376,7 @@ impl Bank {
         let assigned: Vec<u32> = self.assigned.iter().map(|k| renum[k]).collect();
         let (comp, ncomp) = self.split(&assigned, &canon);
         cons.splits = ncomp - self.groups.len();
-        let owner = vote_owner(&self.obs, &canon, &comp, ncomp, self.owner.len());
+        let owner = vote_owner(&self.obs, &canon, &comp, ncomp, self.owner.len(), false);
         let mut feats: Vec<Vec<f64>> = vec![Vec::new(); ncomp];
         for (o, &c) in self.obs.iter().zip(&comp) {
             if let Some(f) = &o.feature {
@@ -640,13 +647,15 @@ fn find(p: &mut [u32], mut x: u32) -> u32 {
 }
 
 /// Owner per Gaussian: the component whose masks put the most mass on it (ties: the smaller
-/// component id); −1 for Gaussians in no mask.
+/// component id); −1 for Gaussians in no mask. `specific`: each mask's mass divided by its
+/// visible pixels ([`BankOptions::specific_owner`]).
 fn vote_owner(
     obs: &[Observation],
     canon: &[usize],
     comp: &[u32],
     ncomp: usize,
     n: usize,
+    specific: bool,
 ) -> Vec<i32> {
     let mut by_comp: Vec<Vec<usize>> = vec![Vec::new(); ncomp];
     for &i in canon {
@@ -659,11 +668,16 @@ fn vote_owner(
         touched.clear();
         for &i in members {
             let cand = &obs[i].candidate;
+            let scale = if specific {
+                (obs[i].pixels.max(1) as f32).recip()
+            } else {
+                1.0
+            };
             for (&g, &w) in cand.ids.iter().zip(&cand.weights) {
                 if acc[g as usize] == 0.0 {
                     touched.push(g);
                 }
-                acc[g as usize] += w;
+                acc[g as usize] += w * scale;
             }
         }
         for &g in &touched {
@@ -732,6 +746,7 @@ mod tests {
             merge_support: 2,
             merge_fraction: 0.3,
             tau_link: 0.25,
+            specific_owner: false,
         }
     }
 
@@ -815,5 +830,49 @@ mod tests {
         let c = seq(&[0, 1, 2], true);
         assert_eq!(c.consolidation.merges, 0);
         assert_eq!((c.groups.len(), c.consolidation.reassigned), (1, 1));
+    }
+
+    #[test]
+    fn specific_ownership_gives_a_swallowed_object_to_its_own_small_mask() {
+        // A road (Gaussians 0..100, 100-pixel masks in views 0–2) swallows a person (Gaussians
+        // 90..100) in all three views; the person's own 10-pixel mask exists in view 3 only
+        // (its feature differs, so it founds its own group). Expected by hand: plain mass gives
+        // the person's Gaussians to the road (3 masks × 1 against 1 × 1); per mask pixel the
+        // person wins (1/10 against 3 × 1/100 = 0.03). The road's other Gaussians stay the road's.
+        let road: Vec<u32> = (0..100).collect();
+        let person: Vec<u32> = (90..100).collect();
+        let (fr, fp) = (Some(vec![1.0f32, 0.0]), Some(vec![0.0f32, 1.0]));
+        let run = |specific: bool| {
+            let mut b = Bank::new(
+                100,
+                BankOptions {
+                    specific_owner: specific,
+                    ..opts(true)
+                },
+            );
+            for v in 0..3 {
+                b.offer(obs(v, 0, &road, fr.clone()));
+            }
+            b.offer(obs(3, 0, &person, fp.clone()));
+            b.finish()
+        };
+        for specific in [false, true] {
+            let f = run(specific);
+            assert_eq!(f.groups.len(), 2, "{specific}");
+            let person_group = f.group_of[3] as i32;
+            let road_group = f.group_of[0] as i32;
+            assert_ne!(person_group, road_group);
+            let want = if specific { person_group } else { road_group };
+            assert!(
+                f.owner[90..].iter().all(|&o| o == want),
+                "{specific}: {:?}",
+                &f.owner[90..]
+            );
+            assert!(f.owner[..90].iter().all(|&o| o == road_group), "{specific}");
+            assert_eq!(
+                f.groups[person_group as usize].gaussians,
+                if specific { 10 } else { 0 }
+            );
+        }
     }
 }

@@ -135,6 +135,17 @@ pub struct AssociateOptions {
     /// least this many views contain it (one poor outline is not enough).
     #[serde(default = "default_join_views")]
     pub join_views: u32,
+    /// Specific ownership ([`BankOptions::specific_owner`], beyond the paper): after the
+    /// consolidation, a Gaussian belongs to the group whose masks put the most mass per mask
+    /// pixel on it — a small object's mask beats a large mask that swallows it in more views.
+    #[serde(default)]
+    pub specific_owner: bool,
+    /// The fill also relabels a kept mask's pixel (beyond the paper): where the member Gaussians
+    /// of another group that has no kept mask in the view make at least the fill share of the
+    /// pixel's colour, the pixel takes that group (the mask swallowed an object whose own mask
+    /// was dropped in this view).
+    #[serde(default)]
+    pub fill_over_masks: bool,
 }
 
 fn default_join_views() -> u32 {
@@ -162,6 +173,8 @@ impl Default for AssociateOptions {
             support_masks: true,
             support_mask_pixels: false,
             join_views: default_join_views(),
+            specific_owner: true,
+            fill_over_masks: true,
         }
     }
 }
@@ -647,12 +660,20 @@ fn fill_members(fin: &bank::Finished, visible: &[Option<Vec<u64>>], views: usize
 
 /// The fill: every pixel of `map` still −1 takes the group `k` whose member Gaussians carry at
 /// least `share` of the pixel's α·T mass (the largest such group; ties: the smaller index),
-/// written as `−2 − k` (a filled pixel). Returns the number of pixels filled.
-fn fill(map: &mut [i32], c: &crate::render::cache::ViewContrib, owner: &[i32], share: f32) -> u64 {
+/// written as `−2 − k` (a filled pixel). With `over` (the groups that have a kept mask in the
+/// view, [`AssociateOptions::fill_over_masks`]), a pixel of a kept mask's group also takes such
+/// a `k` when `k` is another group and not in `over`. Returns the number of pixels filled.
+fn fill(
+    map: &mut [i32],
+    c: &crate::render::cache::ViewContrib,
+    owner: &[i32],
+    share: f32,
+    over: Option<&std::collections::HashSet<i32>>,
+) -> u64 {
     let mut filled = 0;
     let mut acc: Vec<(i32, f32)> = Vec::with_capacity(16);
     for (p, m) in map.iter_mut().enumerate() {
-        if *m >= 0 {
+        if *m >= 0 && over.is_none() {
             continue;
         }
         acc.clear();
@@ -676,6 +697,7 @@ fn fill(map: &mut [i32], c: &crate::render::cache::ViewContrib, owner: &[i32], s
             });
         if let Some((k, w)) = best
             && w >= share
+            && (*m < 0 || (k != *m && over.is_some_and(|o| !o.contains(&k))))
         {
             *m = -2 - k;
             filled += 1;
@@ -995,6 +1017,7 @@ pub fn run(
             merge_support: opts.merge_support,
             merge_fraction: opts.merge_fraction,
             tau_link: opts.tau_link,
+            specific_owner: opts.specific_owner,
         },
     );
     let bar = Bar::new("associate", views.len() as u64, "views");
@@ -1169,7 +1192,10 @@ pub fn run(
                     hits = sup.hits(inp, opts, v, vi as u32, &c, &mut map)?;
                 }
                 if let Some(share) = opts.fill {
-                    fill(&mut map, &c, &members, share);
+                    let present: std::collections::HashSet<i32> =
+                        assigned.iter().map(|&(_, gi)| gi as i32).collect();
+                    let over = opts.fill_over_masks.then_some(&present);
+                    fill(&mut map, &c, &members, share, over);
                 }
             }
             npy::write(&ids_file(out, &stem), &[h, w], &map)?;
@@ -1345,4 +1371,51 @@ pub fn run(
         summary.timing.total_s,
     );
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::Contributions;
+    use crate::render::cache::ViewContrib;
+
+    /// 1×4 view; Gaussian 0 is a member of group 0 (the road), Gaussian 1 of group 1 (a person).
+    fn view() -> ViewContrib {
+        ViewContrib {
+            width: 4,
+            height: 1,
+            k: 0,
+            gaussians: 2,
+            lists: Contributions {
+                offsets: vec![0, 2, 4, 6, 8],
+                ids: vec![1, 0, 1, 0, 1, 0, 1, 0],
+                weights: vec![0.8, 0.1, 0.8, 0.1, 0.6, 0.1, 0.4, 0.5],
+                residual: vec![0.0; 4],
+            },
+            alpha: vec![0.9, 0.9, 0.7, 0.9],
+            depth: vec![1.0; 4],
+        }
+    }
+
+    #[test]
+    fn fill_over_masks_relabels_only_pixels_of_a_group_absent_from_the_view() {
+        let members = [0, 1];
+        // Pixels 0, 1, 3 lie in a kept mask of group 0; pixel 2 in none.
+        let kept = [0, 0, -1, 0];
+        // Without `over`: only the unlabelled pixel 2 is filled (0.6 of group 1 ≥ 0.5).
+        let mut map = kept.to_vec();
+        assert_eq!(fill(&mut map, &view(), &members, 0.5, None), 1);
+        assert_eq!(map, vec![0, 0, -3, 0]);
+        // Group 1 has no kept mask in the view: pixels 0 and 1 (0.8 of group 1) take it too;
+        // pixel 3 (0.4 < 0.5) keeps its mask's group.
+        let present: std::collections::HashSet<i32> = [0].into_iter().collect();
+        let mut map = kept.to_vec();
+        assert_eq!(fill(&mut map, &view(), &members, 0.5, Some(&present)), 3);
+        assert_eq!(map, vec![-3, -3, -3, 0]);
+        // Group 1 has a kept mask in the view: its mask already says where it is.
+        let present: std::collections::HashSet<i32> = [0, 1].into_iter().collect();
+        let mut map = kept.to_vec();
+        assert_eq!(fill(&mut map, &view(), &members, 0.5, Some(&present)), 1);
+        assert_eq!(map, vec![0, 0, -3, 0]);
+    }
 }

@@ -44,6 +44,15 @@ pub struct AssociateArgs {
     /// groups: they add no Gaussians to the fill (they still count as view support).
     #[arg(long)]
     no_support_masks: bool,
+    /// Plain-mass ownership: a Gaussian belongs to the group whose masks put the most α·T mass
+    /// on it (without this, the mass of each mask counts per mask pixel, so a small object's mask
+    /// beats a large mask that swallows it in more views).
+    #[arg(long)]
+    mass_owner: bool,
+    /// The fill labels only pixels no kept mask labels (without this, it also relabels a kept
+    /// mask's pixel dominated by the Gaussians of a group that has no kept mask in the view).
+    #[arg(long)]
+    no_fill_over_masks: bool,
     /// Joining support-only masks also label their own unlabelled pixels with the group.
     #[arg(long)]
     support_mask_pixels: bool,
@@ -103,6 +112,8 @@ pub fn run(args: &AssociateArgs) -> anyhow::Result<()> {
         support: !args.no_support,
         support_pixels: args.support_pixels,
         support_masks: !args.no_support_masks,
+        specific_owner: !args.mass_owner,
+        fill_over_masks: !args.no_fill_over_masks,
         support_mask_pixels: args.support_mask_pixels,
         ..Default::default()
     };

@@ -281,7 +281,7 @@ impl Default for MasksOptions {
             test: Test::Auto,
             tau_q: 0.7,
             support_floor: default_support_floor(),
-            area_frac: 1e-4,
+            area_frac: 3e-5,
             rho: 0.8,
             delta: 0.05,
             gs_depth: GsDepth::Median,
