@@ -324,6 +324,15 @@ fn changes(set: &TestSet, base: &[Vec<i32>], pred: &[Vec<i32>]) -> (usize, usize
     (n, good, bad)
 }
 
+/// A fraction as a percentage with two decimals; "–" for NaN (no held-out views).
+fn pct(x: f64) -> String {
+    if x.is_nan() {
+        "–".into()
+    } else {
+        format!("{:.2}", 100.0 * x)
+    }
+}
+
 fn per_class(r: &(f64, f64, [Option<f64>; eval::N_FINE])) -> String {
     r.2.iter()
         .map(|x| x.map_or("–".into(), |v| format!("{:.1}", 100.0 * v)))
@@ -391,9 +400,9 @@ fn sweep(a: &Args, ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
             );
             println!("|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|");
             println!(
-                "| vote (lift) | – | – | – | vote | **{:.2}** | {:.2} | {} | |",
+                "| vote (lift) | – | – | – | vote | **{:.2}** | {} | {} | |",
                 100.0 * rv.0,
-                100.0 * rvv,
+                pct(rvv),
                 per_class(&rv)
             );
             out.push(serde_json::json!({"stride": stride, "top_k": top_k, "config": "vote", "miou": rv.0, "miou_dataset": rv.1, "heldout": rvv, "per_class": rv.2}));
@@ -486,10 +495,10 @@ fn sweep(a: &Args, ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
                             score(&ctx.val_gt, &hm).0
                         };
                         println!(
-                            "| {name} | {cp} | {cpu:.1} | {ce} | {rname} | **{:.2}** | {:.2} ({:.2}) | {} | {nc} ({good} / {bad}) |",
+                            "| {name} | {cp} | {cpu:.1} | {ce} | {rname} | **{:.2}** | {} ({}) | {} | {nc} ({good} / {bad}) |",
                             100.0 * r.0,
-                            100.0 * rh,
-                            100.0 * rhg,
+                            pct(rh),
+                            pct(rhg),
                             per_class(&r)
                         );
                         out.push(serde_json::json!({"stride": stride, "top_k": top_k, "config": name, "rule": rule,
