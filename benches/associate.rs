@@ -17,11 +17,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use gs4city::associate::{self, AssociateOptions, CandidateMode};
-use gs4city::citymodel::align::Alignment;
+use gs4city::alignment::Alignment;
 use gs4city::fuse::{self, FuseOptions};
 use gs4city::labels::LabelTable;
 use gs4city::lift::{self, LabelMaps, LiftOptions};
-use gs4city::render::cache::Cache;
+use gs4city::cache::Cache;
 use gs4city::scene::Split;
 use gs4city::{citymodel, colmap, eval, npy};
 
@@ -297,7 +297,7 @@ fn main() {
     let split = Split::new(views, 8);
     let train_stems: Vec<String> = split.train.iter().map(|v| v.stem()).collect();
     let test_stems = split.test_stems();
-    let entities = citymodel::read_semantics(&run.join("citymodel/semantics.json")).unwrap();
+    let entities = semantics::read(&run.join("citymodel/semantics.json")).unwrap();
     let scale = Alignment::read(&run.join("citymodel/alignment.json"))
         .unwrap()
         .scale;

@@ -15,7 +15,7 @@ use std::time::Instant;
 
 use gs4city::lift::{self, LabelMaps, Votes};
 use gs4city::render::PreparedScene;
-use gs4city::render::cache::ViewContrib;
+use gs4city::cache::ViewContrib;
 use gs4city::scene::{Scene, Split};
 
 fn main() {

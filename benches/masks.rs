@@ -22,9 +22,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use gs4city::camera::View;
-use gs4city::citymodel::Alignment;
+use gs4city::alignment::Alignment;
 use gs4city::masks::{self, MasksInputs, MasksOptions, Source, Test};
-use gs4city::render::cache::Cache;
+use gs4city::cache::Cache;
 use gs4city::scene::Scene;
 use gs4city::{colmap, npy, sam};
 

@@ -15,7 +15,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use glam::DVec3;
-use gs4city::citymodel::{self, Alignment};
+use gs4city::alignment::Alignment;
+use gs4city::citymodel;
 use gs4city::mesh::TriMesh;
 use gs4city::refine::{self, RefineInput, RefineOptions};
 use gs4city::splat::{self, Gaussians, ReadOptions};

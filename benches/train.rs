@@ -20,7 +20,7 @@ use gs4city::classes;
 use gs4city::eval::{self, Counts};
 use gs4city::labels::LabelTable;
 use gs4city::lift::{self, LabelMaps};
-use gs4city::render::cache::{Cache, ViewContrib};
+use gs4city::cache::{Cache, ViewContrib};
 use gs4city::scene::Split;
 use gs4city::train::model::{self, Active, Grads};
 use gs4city::train::{self, Init, Softmax, TrainOptions, knn, pool, predict};
@@ -144,7 +144,7 @@ fn context(a: &Args) -> Ctx {
         8,
     );
     let entities =
-        gs4city::citymodel::read_semantics(&a.run.join("citymodel/semantics.json")).expect("sem");
+        gs4city::semantics::read(&a.run.join("citymodel/semantics.json")).expect("sem");
     let (maps, table) = match &a.fuse {
         Some(f) => (
             LabelMaps::Fused(f.clone()),
@@ -618,7 +618,7 @@ fn softmax_error(ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
 /// stand-in for the `fuse` stage's output, built from simulation truth: benchmark only.
 fn simulate_fused(a: &Args, out: &Path) {
     let entities =
-        gs4city::citymodel::read_semantics(&a.run.join("citymodel/semantics.json")).expect("sem");
+        gs4city::semantics::read(&a.run.join("citymodel/semantics.json")).expect("sem");
     let city = LabelTable::city(&entities, &classes::table(&entities)).expect("table");
     let delta = city.delta;
     std::fs::create_dir_all(out).expect("mkdir");

@@ -9,7 +9,7 @@
 //! | 3 | door | building | | 10 | water | non-building |
 //! | 4 | ground_surface | building | | 11 | other | non-building |
 //! | 5 | installation | building | | | | |
-use crate::citymodel::Entity;
+use crate::semantics::{Class, Entity};
 
 pub const NONE: i32 = -1;
 pub const WALL: i32 = 0;
@@ -91,26 +91,24 @@ pub fn of_entity(entities: &[Entity], id: i32) -> i32 {
     let Some(e) = usize::try_from(id).ok().and_then(|i| entities.get(i)) else {
         return NONE;
     };
-    match e.class.as_str() {
-        "Window" | "WindowSurface" => return WINDOW,
-        "Door" | "DoorSurface" => return DOOR,
-        _ => {}
+    if e.class.is_window() {
+        return WINDOW;
+    }
+    if e.class.is_door() {
+        return DOOR;
     }
     // At most one step per entity: a parent cycle (a damaged table) cannot hang the walk.
     let mut cur = Some(e);
     for _ in 0..=entities.len() {
         let Some(x) = cur else { break };
-        if matches!(
-            x.class.as_str(),
-            "BuildingInstallation" | "BuildingConstructiveElement"
-        ) {
+        if x.class.is_installation() {
             return INSTALLATION;
         }
         cur = x.parent.and_then(|p| entities.get(p as usize));
     }
-    match e.class.as_str() {
-        "RoofSurface" | "OuterFloorSurface" => ROOF,
-        "GroundSurface" => GROUND_SURFACE,
+    match e.class {
+        Class::RoofSurface | Class::OuterFloorSurface => ROOF,
+        Class::GroundSurface => GROUND_SURFACE,
         _ => WALL,
     }
 }
@@ -131,7 +129,7 @@ mod tests {
         Entity {
             id,
             object_id: format!("e{id}"),
-            class: class.into(),
+            class: Class::from_local_name(class).unwrap(),
             level: Level::Feature,
             parent,
             building: 0,

@@ -116,7 +116,7 @@ impl LabelTable {
 
     /// The city-only table: one label per entity, with the class of `classes[entity]`.
     pub fn city(
-        entities: &[crate::citymodel::Entity],
+        entities: &[crate::semantics::Entity],
         classes: &[i32],
     ) -> Result<LabelTable, LabelsError> {
         let delta = delta_for(entities.len())?;
@@ -138,7 +138,7 @@ impl LabelTable {
     /// The fused table: one label per entity (class `classes[entity]`), then one image label per
     /// group `g` with id `g + Δ` and class `group_classes[g]`. An id beyond `i32` is an error.
     pub fn fused(
-        entities: &[crate::citymodel::Entity],
+        entities: &[crate::semantics::Entity],
         classes: &[i32],
         group_classes: &[i32],
     ) -> Result<LabelTable, LabelsError> {
@@ -243,7 +243,7 @@ mod tests {
 
     #[test]
     fn fused_table_offsets_groups_by_delta_and_refuses_overflow() {
-        let e = |id: i32| crate::citymodel::Entity {
+        let e = |id: i32| crate::semantics::Entity {
             id,
             object_id: format!("e{id}"),
             class: "WallSurface".into(),

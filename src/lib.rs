@@ -6,8 +6,10 @@
 //! Stages: [`citymodel`], [`refine`], [`raycast`], [`render`], [`masks`], [`associate`], [`fuse`], [`lift`], [`train`], [`eval`], [`query`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
+pub mod alignment;
 pub mod associate;
 pub mod bundled;
+pub mod cache;
 pub mod camera;
 pub mod citygml;
 pub mod citymodel;
@@ -18,12 +20,17 @@ pub mod embree;
 pub mod eval;
 pub mod fsutil;
 pub mod fuse;
+pub mod groups;
+pub mod idmap;
 pub mod imageio;
 pub mod labels;
 pub mod lift;
+
+pub mod maskfile;
 pub mod masks;
 pub mod mesh;
 pub mod npy;
+pub mod prediction;
 pub mod ply;
 pub mod progress;
 pub mod query;
@@ -34,6 +41,8 @@ pub mod report;
 pub mod run;
 pub mod sam;
 pub mod scene;
+pub mod semantics;
 pub mod splat;
 pub mod synth;
 pub mod train;
+pub mod vote;

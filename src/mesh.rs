@@ -107,7 +107,7 @@ impl TriMesh {
 
     /// Checks every label id against a semantic table of `entities` rows: each id is −1 or
     /// an index below `entities`. Call it before raycasting with the `semantics.json` the
-    /// mesh came with (`citymodel::check_mesh_labels` also checks the levels).
+    /// mesh came with (`semantics::check_mesh_labels` also checks the levels).
     pub fn check_label_range(&self, entities: usize) -> Result<(), String> {
         for (i, l) in self.labels.iter().enumerate() {
             for (level, &id) in ["feature", "surface", "part"].iter().zip(&l.ids()) {

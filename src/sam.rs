@@ -252,6 +252,24 @@ pub fn counts_from_string(s: &str) -> Result<Vec<u32>, RleError> {
 }
 
 impl Rle {
+    /// Calls `f` with the row-major index of every set pixel (in RLE order: column-major).
+    pub fn for_each_pixel(&self, mut f: impl FnMut(usize)) -> Result<(), RleError> {
+        let counts = self.counts()?;
+        let [h, w] = self.size;
+        let mut k = 0usize;
+        for (i, &c) in counts.iter().enumerate() {
+            let c = c as usize;
+            if i % 2 == 1 {
+                for j in k..k + c {
+                    // Column-major index j = y + h·x.
+                    f((j % h) * w + j / h);
+                }
+            }
+            k += c;
+        }
+        Ok(())
+    }
+
     /// Encodes a mask (compressed counts), as `pycocotools.mask.encode` on a Fortran array.
     pub fn encode(mask: &Array2<bool>) -> Rle {
         let (h, w) = mask.dim();

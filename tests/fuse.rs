@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use boxes::{Built, H, W};
 use gs4city::associate::{self, AssociateOptions, GroupsFile};
 use gs4city::citygml::Level;
-use gs4city::citymodel::Entity;
+use gs4city::semantics::Entity;
 use gs4city::fuse::{self, FuseOptions};
 use gs4city::labels::{LabelTable, Source};
 use ndarray::Array2;
@@ -445,8 +445,8 @@ fn outputs_do_not_depend_on_simulation_truth() {
     let views = gs4city::colmap::read_model(&scene.join("sparse/0")).unwrap();
     let split = gs4city::scene::Split::new(views, 8);
     let entities =
-        gs4city::citymodel::read_semantics(&run.join("citymodel/semantics.json")).unwrap();
-    let cache = gs4city::render::cache::Cache::open(&run.join("render")).unwrap();
+        gs4city::semantics::read(&run.join("citymodel/semantics.json")).unwrap();
+    let cache = gs4city::cache::Cache::open(&run.join("render")).unwrap();
     let pass = |tag: &str| -> PathBuf {
         let out = dir.join(tag);
         let masks = out.join("masks");

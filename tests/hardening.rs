@@ -7,7 +7,8 @@ use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DVec3};
 use gs4city::camera::{Camera, Distortion, Intrinsics, Pose, SCENE_COORD_LIMIT};
-use gs4city::citymodel::{self, Alignment, align};
+use gs4city::alignment::{self as align, Alignment};
+use gs4city::{citymodel, semantics};
 use gs4city::mesh::{FaceLabel, TriMesh};
 use gs4city::raycast::{RaycastError, TwoPassScene};
 use gs4city::splat::{self, InvalidPolicy, PlyError, ReadOptions};
@@ -301,10 +302,10 @@ fn mesh_face_ids_beyond_the_semantic_table_are_refused() {
     )
     .unwrap();
     let p = Path::new("mesh.ply");
-    citymodel::check_mesh_labels(p, &sample_mesh(), &entities).unwrap();
+    semantics::check_mesh_labels(p, &sample_mesh(), &entities).unwrap();
     let mut m = sample_mesh();
     m.labels[1].part = 3;
-    let e = citymodel::check_mesh_labels(p, &m, &entities).unwrap_err();
+    let e = semantics::check_mesh_labels(p, &m, &entities).unwrap_err();
     let msg = check_message(&e, "mesh.ply");
     assert!(
         msg.contains("face 1 has part id 3") && msg.contains("3 entities"),
@@ -312,7 +313,7 @@ fn mesh_face_ids_beyond_the_semantic_table_are_refused() {
     );
     let mut m = sample_mesh();
     m.labels[0].surface = 2; // a part used as a surface
-    let e = citymodel::check_mesh_labels(p, &m, &entities).unwrap_err();
+    let e = semantics::check_mesh_labels(p, &m, &entities).unwrap_err();
     assert!(
         e.to_string()
             .contains("face 0: its surface id 2 is entity O, a part"),
@@ -867,21 +868,21 @@ fn hierarchy_tables_with_cycles_are_refused() {
         row(0, "null", 0),
         row(1, "0", 0)
     );
-    assert_eq!(citymodel::parse_semantics(p, &ok).unwrap().len(), 2);
+    assert_eq!(semantics::parse(p, &ok).unwrap().len(), 2);
     let cycle = format!(r#"{{"entities":[{},{}]}}"#, row(0, "1", 0), row(1, "0", 0));
-    let e = citymodel::parse_semantics(p, &cycle).unwrap_err();
+    let e = semantics::parse(p, &cycle).unwrap_err();
     assert!(
         check_message(&e, "semantics.json").contains("E0 (id 0) names parent 1"),
         "{e}"
     );
     let self_loop = format!(r#"{{"entities":[{}]}}"#, row(0, "0", 0));
-    assert!(citymodel::parse_semantics(p, &self_loop).is_err());
+    assert!(semantics::parse(p, &self_loop).is_err());
     let wrong_root = format!(
         r#"{{"entities":[{},{}]}}"#,
         row(0, "null", 0),
         row(1, "0", 1)
     );
-    assert!(citymodel::parse_semantics(p, &wrong_root).is_err());
+    assert!(semantics::parse(p, &wrong_root).is_err());
 }
 
 /// An image whose header declares a huge size is refused before OpenCV decodes it.

@@ -6,7 +6,7 @@ use common::wall;
 use gs4city::labels::LabelTable;
 use gs4city::lift::{self, LabelMaps, LiftOptions};
 use gs4city::render::PreparedScene;
-use gs4city::render::cache::{self, Cache, CacheOptions};
+use gs4city::cache::{self, Cache, CacheOptions};
 use gs4city::scene::Split;
 use gs4city::{citymodel, classes, npy, raycast};
 

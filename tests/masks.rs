@@ -12,8 +12,8 @@ use gs4city::camera::{Camera, Distortion, Intrinsics, Pose, View};
 use gs4city::masks::{
     self, GsDepth, KeptMask, MasksInputs, MasksOptions, MasksSummary, Source, Test,
 };
-use gs4city::render::Contributions;
-use gs4city::render::cache::{Cache, CacheOptions, CacheSummary, CachedView, ViewContrib};
+use gs4city::cache::Contributions;
+use gs4city::cache::{Cache, CacheOptions, CacheSummary, CachedView, ViewContrib};
 use gs4city::sam::{self, Prompts, SamMask};
 use gs4city::scene::Scene;
 use gs4city::splat::{Gaussians, PlyEncoding};
@@ -276,7 +276,7 @@ fn fixture(name: &str, with_features: bool) -> Fixture {
         alpha,
         depth: edepth,
     };
-    vc.write(&gs4city::render::cache::cache_file(&cache, STEM))
+    vc.write(&gs4city::cache::cache_file(&cache, STEM))
         .unwrap();
     let summary = CacheSummary {
         gaussians: n,

@@ -8,11 +8,11 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use gs4city::citygml::Level;
-use gs4city::citymodel::Entity;
+use gs4city::semantics::Entity;
 use gs4city::labels::{Label, LabelTable, Source};
 use gs4city::query::{self, MaskRule, QueryOptions, Request, SemanticRun, TextOptions, Views};
-use gs4city::render::Contributions;
-use gs4city::render::cache::{CacheOptions, CacheSummary, CachedView, ViewContrib};
+use gs4city::cache::Contributions;
+use gs4city::cache::{CacheOptions, CacheSummary, CachedView, ViewContrib};
 use gs4city::sam::Prompts;
 use gs4city::splat::{Gaussians, PlyEncoding};
 use gs4city::{fsutil, npy, splat};

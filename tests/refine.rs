@@ -8,7 +8,8 @@ use std::process::Command;
 
 use glam::{DMat3, DQuat, DVec3};
 use gs4city::citygml::Level;
-use gs4city::citymodel::{Alignment, Entity, Similarity};
+use gs4city::alignment::{Alignment, Similarity};
+use gs4city::semantics::Entity;
 use gs4city::mesh::{FaceLabel, TriMesh};
 use gs4city::refine::{self, RefineError, RefineInput, RefineOptions, RefineOutput};
 use gs4city::splat::Gaussians;

@@ -370,7 +370,7 @@ fn small_config(orbit_views: usize) -> gs4city::synth::SynthConfig {
 /// summary.json here only, to score).
 #[test]
 fn refine_alignment_feeds_the_whole_run() {
-    use gs4city::citymodel::Alignment;
+    use gs4city::alignment::Alignment;
     use gs4city::synth;
     let dir = wall::tmp("run-refine");
     let mut cfg = small_config(6);

@@ -294,7 +294,7 @@ fn visible_windows_are_in_gt_and_occluders_hide_openings() {
 #[test]
 fn alignment_noise_has_the_configured_size() {
     use rand::SeedableRng;
-    let a = gs4city::citymodel::Alignment::local(DVec3::new(678000.0, 5403000.0, 400.0));
+    let a = gs4city::alignment::Alignment::local(DVec3::new(678000.0, 5403000.0, 400.0));
     let noise = synth::config::Noise {
         translation_m: 0.5,
         rotation_deg: 1.0,

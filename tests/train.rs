@@ -9,11 +9,11 @@ use std::process::Command;
 
 use common::wall;
 use gs4city::camera::View;
-use gs4city::citymodel::Entity;
+use gs4city::semantics::Entity;
 use gs4city::labels::{Label, LabelTable, Source};
 use gs4city::lift::{LabelMaps, LiftInputs};
 use gs4city::render::PreparedScene;
-use gs4city::render::cache::{self, Cache, CacheOptions};
+use gs4city::cache::{self, Cache, CacheOptions};
 use gs4city::scene::Split;
 use gs4city::splat::{PlyEncoding, write_ply};
 use gs4city::train::model::{self, Active, Grads, Model, PixelBatch};

@@ -8,7 +8,8 @@
 //! was refused, so that callers can check the message too.
 use std::path::Path;
 
-use gs4city::citymodel::{self, Alignment, align};
+use gs4city::alignment::{self as align, Alignment};
+use gs4city::{citymodel, semantics};
 use gs4city::mesh::TriMesh;
 use gs4city::splat::{InvalidPolicy, ReadOptions, read_ply_bytes};
 use gs4city::{citygml, colmap, npy, sam};
@@ -205,7 +206,7 @@ pub fn align_json(data: &[u8]) -> Option<String> {
     {
         assert!(est.rms.is_finite() && est.alignment.scale > 0.0);
     }
-    let _ = citymodel::parse_semantics(Path::new("semantics.json"), text);
+    let _ = semantics::parse(Path::new("semantics.json"), text);
     match Alignment::from_json_str(Path::new("alignment.json"), text) {
         Ok(a) => {
             let back = Alignment::from_json_str(Path::new("a.json"), &a.to_json().to_string())

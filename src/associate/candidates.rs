@@ -6,7 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
-use crate::render::cache::ViewContrib;
+use crate::cache::ViewContrib;
 use crate::sam::{Rle, RleError};
 
 /// How a mask's candidate Gaussians are found.
@@ -35,25 +35,6 @@ pub struct ViewMasks {
     pub visible: Vec<u64>,
 }
 
-/// Calls `f` with the row-major index of every set pixel of `rle`, whose size must be
-/// `[height, width]` (checked by the caller).
-pub fn for_each_pixel(rle: &Rle, mut f: impl FnMut(usize)) -> Result<(), RleError> {
-    let counts = rle.counts()?;
-    let [h, w] = rle.size;
-    let mut k = 0usize;
-    for (i, &c) in counts.iter().enumerate() {
-        let c = c as usize;
-        if i % 2 == 1 {
-            for j in k..k + c {
-                // Column-major index j = y + h·x.
-                f((j % h) * w + j / h);
-            }
-        }
-        k += c;
-    }
-    Ok(())
-}
-
 /// Composites `masks` (all `[height, width]`, see [`ViewMasks`]). An error carries the index of
 /// the mask whose RLE does not decode.
 pub fn composite(
@@ -69,7 +50,7 @@ pub fn composite(
     order.sort_by(|&a, &b| areas[b].cmp(&areas[a]).then(a.cmp(&b)));
     let mut label = vec![-1i32; width * height];
     for &i in &order {
-        for_each_pixel(masks[i], |p| label[p] = i as i32).map_err(|e| (i, e))?;
+        masks[i].for_each_pixel(|p| label[p] = i as i32).map_err(|e| (i, e))?;
     }
     let mut visible = vec![0u64; masks.len()];
     for &l in &label {
@@ -347,7 +328,7 @@ pub fn projected(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::Contributions;
+    use crate::cache::Contributions;
     use ndarray::Array2;
 
     fn rle(h: usize, w: usize, set: &[(usize, usize)]) -> Rle {
@@ -363,7 +344,7 @@ mod tests {
         let big = rle(3, 4, &[(0, 0), (0, 1), (1, 1), (2, 3), (1, 3)]);
         let small = rle(3, 4, &[(1, 1), (2, 3)]);
         let mut seen = Vec::new();
-        for_each_pixel(&big, |p| seen.push(p)).unwrap();
+        &big.for_each_pixel(|p| seen.push(p)).unwrap();
         seen.sort_unstable();
         assert_eq!(seen, vec![0, 1, 5, 7, 11]);
         let vm = composite(&[&big, &small], 4, 3).unwrap();

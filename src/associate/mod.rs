@@ -42,10 +42,12 @@ pub use candidates::{CandidateMode, ProjectedLimits, WeightedLimits};
 use crate::camera::View;
 use crate::classes;
 use crate::fsutil::{self, FsError};
-use crate::masks::{self, KeptMask, MasksError};
+use crate::groups::{GroupRecord, GroupsError, GroupsFile};
+use crate::idmap::{self, IdMapError};
+use crate::maskfile::{self, KeptMask, MaskFileError, Rule};
 use crate::npy::{self, NpyError};
 use crate::progress::Bar;
-use crate::render::cache::{Cache, CacheError};
+use crate::cache::{Cache, CacheError};
 
 /// Errors of the associate stage. Each names the file at fault.
 #[derive(Debug, thiserror::Error)]
@@ -61,7 +63,11 @@ pub enum AssociateError {
         source: crate::sam::RleError,
     },
     #[error(transparent)]
-    Masks(#[from] MasksError),
+    MaskFile(#[from] MaskFileError),
+    #[error(transparent)]
+    Groups(#[from] GroupsError),
+    #[error(transparent)]
+    IdMap(#[from] IdMapError),
     #[error(transparent)]
     Sam(#[from] crate::sam::SamError),
     #[error(transparent)]
@@ -238,87 +244,6 @@ pub struct AssociateInputs<'a> {
     pub scale: f64,
 }
 
-/// One group in `groups.json`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct GroupRecord {
-    pub id: i32,
-    /// Stems of the views it was seen in (kept masks).
-    pub views: Vec<String>,
-    /// Stems of further views where a mask dropped for quality or area only matches it (the
-    /// view support, [`AssociateOptions::support`]).
-    #[serde(default)]
-    pub support_views: Vec<String>,
-    /// Masks assigned to it.
-    pub masks: usize,
-    /// Pixels it covers, over all views.
-    pub pixels: u64,
-    /// Gaussians it owns.
-    pub gaussians: usize,
-    /// Prompt class (pixel-weighted vote of its masks' classes), −1 unknown.
-    pub class: i32,
-    /// Centroid of its candidate Gaussians, weighted by their mass in the masks (scene frame).
-    pub centroid: [f64; 3],
-    /// Distance from the centroid to the nearest camera centre (scene units).
-    pub nearest_camera_distance: f64,
-}
-
-/// `groups.json`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct GroupsFile {
-    /// Feature dimension of `features.npy`, none without features.
-    pub feature_dim: Option<usize>,
-    pub groups: Vec<GroupRecord>,
-}
-
-impl GroupsFile {
-    /// Reads `dir/groups.json`.
-    pub fn read(dir: &Path) -> Result<GroupsFile, FsError> {
-        fsutil::read_json(&dir.join("groups.json"))
-    }
-
-    /// The group features (`features.npy`, G×D, row i ↔ group i), when the file says they exist.
-    pub fn features(&self, dir: &Path) -> Result<Option<Vec<f32>>, AssociateError> {
-        let Some(d) = self.feature_dim else {
-            return Ok(None);
-        };
-        let path = dir.join("features.npy");
-        let (shape, data) = npy::read::<f32>(&path)?;
-        if shape != [self.groups.len(), d] {
-            return Err(AssociateError::Invalid {
-                path,
-                why: format!(
-                    "shape {shape:?}, groups.json lists {} groups of dimension {d}",
-                    self.groups.len()
-                ),
-            });
-        }
-        Ok(Some(data))
-    }
-}
-
-/// Path of view `stem`'s group map in an associate folder.
-pub fn ids_file(dir: &Path, stem: &str) -> PathBuf {
-    dir.join(format!("{stem}.ids.npy"))
-}
-
-/// Reads view `stem`'s group map (`height × width`).
-pub fn read_ids(
-    dir: &Path,
-    stem: &str,
-    width: usize,
-    height: usize,
-) -> Result<Vec<i32>, AssociateError> {
-    let path = ids_file(dir, stem);
-    let (shape, data) = npy::read::<i32>(&path)?;
-    if shape != [height, width] {
-        return Err(AssociateError::Invalid {
-            path,
-            why: format!("shape {shape:?}, expected [{height}, {width}] for this camera"),
-        });
-    }
-    Ok(data)
-}
-
 /// Time per step.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct AssociateTiming {
@@ -407,14 +332,14 @@ fn mask_view(masks_dir: &Path, view: &View) -> Result<MaskView, AssociateError> 
         view.camera.intrinsics.width as usize,
         view.camera.intrinsics.height as usize,
     );
-    let path = masks_dir.join(format!("{stem}.json"));
+    let path = maskfile::kept_file(masks_dir, &stem);
     if !path.is_file() {
         return Err(AssociateError::Invalid {
             path,
             why: "missing: the masks stage wrote no kept-mask file for this view".into(),
         });
     }
-    let kept = masks::read_kept(&path)?;
+    let kept = maskfile::read_kept(&path)?;
     for (i, k) in kept.iter().enumerate() {
         if k.sam.segmentation.size != [h, w] {
             return Err(AssociateError::Invalid {
@@ -511,11 +436,11 @@ fn load_cache_view(
     stem: &str,
     w: usize,
     h: usize,
-) -> Result<crate::render::cache::ViewContrib, AssociateError> {
+) -> Result<crate::cache::ViewContrib, AssociateError> {
     let c = inp.cache.load(stem)?;
     if (c.width, c.height) != (w, h) {
         return Err(AssociateError::Invalid {
-            path: crate::render::cache::cache_file(&inp.cache.dir, stem),
+            path: crate::cache::cache_file(&inp.cache.dir, stem),
             why: format!(
                 "{}×{} pixels, the camera has {w}×{h}: the cache is stale",
                 c.width, c.height
@@ -665,7 +590,7 @@ fn fill_members(fin: &bank::Finished, visible: &[Option<Vec<u64>>], views: usize
 /// a `k` when `k` is another group and not in `over`. Returns the number of pixels filled.
 fn fill(
     map: &mut [i32],
-    c: &crate::render::cache::ViewContrib,
+    c: &crate::cache::ViewContrib,
     owner: &[i32],
     share: f32,
     over: Option<&std::collections::HashSet<i32>>,
@@ -801,7 +726,7 @@ impl Support<'_> {
         opts: &AssociateOptions,
         view: &View,
         vi: u32,
-        c: &crate::render::cache::ViewContrib,
+        c: &crate::cache::ViewContrib,
         map: &mut [i32],
     ) -> Result<Vec<Hit>, AssociateError> {
         let Some(sam_dir) = inp.sam else {
@@ -809,7 +734,7 @@ impl Support<'_> {
         };
         let stem = view.stem();
         let (w, h) = (c.width, c.height);
-        let dpath = masks::decisions_file(inp.masks, &stem);
+        let dpath = maskfile::decisions_file(inp.masks, &stem);
         if !dpath.is_file() {
             return Err(AssociateError::Invalid {
                 path: dpath,
@@ -817,17 +742,15 @@ impl Support<'_> {
             });
         }
         // (SAM index, support-only) of the masks dropped for quality or area only.
-        let (sources, only): (Vec<i64>, Vec<bool>) = masks::read_decisions(&dpath)?
+        let (sources, only): (Vec<i64>, Vec<bool>) = maskfile::read_decisions(&dpath)?
             .iter()
             .filter(|d| {
                 !d.kept
                     && d.source_index >= 0
-                    && (d.rule == masks::RULE_QUALITY
-                        || d.rule == masks::RULE_AREA
-                        || d.rule == masks::RULE_LOW_QUALITY_SUPPORT)
+                    && matches!(d.rule, Rule::Quality | Rule::Area | Rule::LowQualitySupport)
             })
             .map(|d| {
-                let joins = opts.support_masks && d.rule == masks::RULE_LOW_QUALITY_SUPPORT;
+                let joins = opts.support_masks && d.rule == Rule::LowQualitySupport;
                 (d.source_index, joins)
             })
             .unzip();
@@ -944,14 +867,14 @@ impl Support<'_> {
     }
 }
 
-/// [`candidates::for_each_pixel`] with the file and mask index in the error.
+/// [`crate::sam::Rle::for_each_pixel`] with the file and mask index in the error.
 fn for_each_pixel_checked(
     rle: &crate::sam::Rle,
     path: &Path,
     index: usize,
     f: impl FnMut(usize),
 ) -> Result<(), AssociateError> {
-    candidates::for_each_pixel(rle, f).map_err(|source| AssociateError::Rle {
+    rle.for_each_pixel(f).map_err(|source| AssociateError::Rle {
         path: path.to_path_buf(),
         index,
         source,
@@ -1198,7 +1121,7 @@ pub fn run(
                     fill(&mut map, &c, &members, share, over);
                 }
             }
-            npy::write(&ids_file(out, &stem), &[h, w], &map)?;
+            idmap::write_ids(out, &stem, w, h, &map)?;
             Ok(hits)
         })
         .collect();
@@ -1268,7 +1191,7 @@ pub fn run(
                 v.camera.intrinsics.width as usize,
                 v.camera.intrinsics.height as usize,
             );
-            let mut map = read_ids(out, &stem, w, h)?;
+            let mut map = idmap::read_ids(out, &stem, w, h)?;
             let (mut lab, mut filled) = (0u64, 0u64);
             for m in map.iter_mut() {
                 let (gi, by_fill) = match *m {
@@ -1282,7 +1205,7 @@ pub fn run(
                     filled += u64::from(by_fill);
                 }
             }
-            npy::write(&ids_file(out, &stem), &[h, w], &map)?;
+            idmap::write_ids(out, &stem, w, h, &map)?;
             Ok((lab, filled))
         })
         .collect();
@@ -1376,8 +1299,8 @@ pub fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::Contributions;
-    use crate::render::cache::ViewContrib;
+    use crate::cache::Contributions;
+    use crate::cache::ViewContrib;
 
     /// 1×4 view; Gaussian 0 is a member of group 0 (the road), Gaussian 1 of group 1 (a person).
     fn view() -> ViewContrib {

@@ -40,7 +40,10 @@ impl Level {
 }
 
 /// The city-object classes gs4city understands (CityGML 1.0/2.0 `bldg:`, 3.0 `bldg:`/`con:`/core).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize)]
+/// Serialised by its CityGML name (as in `semantics.json`).
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, serde::Deserialize,
+)]
 pub enum Class {
     Building,
     BuildingPart,

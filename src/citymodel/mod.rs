@@ -1,6 +1,5 @@
 //! The `citymodel` stage: CityGML files → hierarchy table (`semantics.json`) → triangulated,
 //! aligned mesh with per-face `(feature, surface, part)` ids (`mesh.ply`) → `summary.json`.
-pub mod align;
 pub mod triangulate;
 
 use std::collections::BTreeMap;
@@ -12,10 +11,11 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::SCENE_COORD_LIMIT;
-use crate::citygml::{self, CityGmlError, CityModel, Class, Level};
+use crate::citygml::{self, CityGmlError, CityModel, Class};
 use crate::fsutil::{self, FsError};
-use crate::mesh::{FaceLabel, MeshError, TriMesh};
-pub use align::{AlignError, Alignment, Similarity};
+use crate::mesh::{MeshError, TriMesh};
+use crate::alignment::{AlignError, Alignment};
+use crate::semantics::{self, Entity, SemanticsError};
 use triangulate::{Repair, SkipReason};
 
 /// Errors of the citymodel stage.
@@ -29,8 +29,8 @@ pub enum CityModelError {
     Mesh(#[from] MeshError),
     #[error(transparent)]
     Fs(#[from] FsError),
-    #[error("{path}: {why}")]
-    Semantics { path: PathBuf, why: String },
+    #[error(transparent)]
+    Semantics(#[from] SemanticsError),
     #[error("no CityGML input files")]
     NoInput,
     #[error("{path}: {why}")]
@@ -42,24 +42,8 @@ pub enum CityModelError {
         polygon: String,
         why: String,
     },
-    #[error("{path}: {why}")]
-    Labels { path: PathBuf, why: String },
     #[error("no polygon of {0} could be triangulated: nothing to write")]
     Empty(String),
-}
-
-/// One row of the hierarchy table.
-#[derive(Debug, Clone, Serialize, serde::Deserialize)]
-pub struct Entity {
-    pub id: i32,
-    pub object_id: String,
-    pub class: String,
-    pub level: Level,
-    pub parent: Option<i32>,
-    pub building: i32,
-    pub source: String,
-    pub lod: Option<u8>,
-    pub attributes: BTreeMap<String, serde_json::Value>,
 }
 
 /// A polygon that produced no triangles.
@@ -388,7 +372,7 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
             entities.push(Entity {
                 id: b + i as i32,
                 object_id: o.object_id.clone(),
-                class: o.class.name().to_string(),
+                class: o.class,
                 level: o.class.level(),
                 parent: o.parent.map(|p| b + p as i32),
                 building: root[i],
@@ -428,10 +412,10 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
     struct Job<'a> {
         file: usize,
         poly: &'a citygml::Polygon,
-        label: FaceLabel,
+        label: crate::mesh::FaceLabel,
     }
     let mut jobs = Vec::new();
-    let labels = chains(&entities);
+    let labels = semantics::chains(&entities);
     for (fi, m) in models.iter().enumerate() {
         for p in m.used_polygons() {
             let owner = p.owner.expect("used polygons have owners");
@@ -563,39 +547,6 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
     })
 }
 
-/// The ancestor chain of every entity of a semantic table: its `(feature, surface, part)` ids,
-/// i.e. the nearest ancestor-or-self of each level (−1 where a level is missing). A surface
-/// resets the part, a feature resets both. The table lists parents before children
-/// ([`read_semantics`] checks this), so one forward pass suffices. This is the one
-/// implementation of the hierarchy chain: face labels, the synthetic truth and the lifted
-/// per-Gaussian hierarchy all use it.
-pub fn chains(entities: &[Entity]) -> Vec<FaceLabel> {
-    let mut out: Vec<FaceLabel> = Vec::with_capacity(entities.len());
-    for (i, e) in entities.iter().enumerate() {
-        let mut l = match e.parent {
-            Some(p) if (p as usize) < i => out[p as usize],
-            _ => FaceLabel::NONE,
-        };
-        let id = i as i32;
-        match e.level {
-            Level::Feature => {
-                l = FaceLabel {
-                    feature: id,
-                    surface: -1,
-                    part: -1,
-                }
-            }
-            Level::Surface => {
-                l.surface = id;
-                l.part = -1;
-            }
-            Level::Part => l.part = id,
-        }
-        out.push(l);
-    }
-    out
-}
-
 #[allow(clippy::too_many_arguments)]
 fn summarize(
     models: &[CityModel],
@@ -709,89 +660,6 @@ fn summarize(
     }
 }
 
-/// Reads the `entities` of a `semantics.json` written by [`write`] and checks the table:
-/// ids equal row indices, every parent comes before its child (so the hierarchy has no
-/// cycle and every ancestor walk ends), and `building` is the root of the parent chain.
-pub fn read_semantics(path: &Path) -> Result<Vec<Entity>, CityModelError> {
-    let bad = |why: String| CityModelError::Semantics {
-        path: path.to_path_buf(),
-        why,
-    };
-    let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read: {e}")))?;
-    parse_semantics(path, &text)
-}
-
-/// [`read_semantics`] on text (`path` names the source in errors).
-pub fn parse_semantics(path: &Path, text: &str) -> Result<Vec<Entity>, CityModelError> {
-    let bad = |why: String| CityModelError::Semantics {
-        path: path.to_path_buf(),
-        why,
-    };
-    #[derive(serde::Deserialize)]
-    struct File {
-        entities: Vec<Entity>,
-    }
-    let f: File = serde_json::from_str(text)
-        .map_err(|e| bad(format!("not a gs4city semantics.json: {e}")))?;
-    for (i, e) in f.entities.iter().enumerate() {
-        if e.id != i as i32 {
-            return Err(bad(format!(
-                "entity {} has id {}, expected {i}",
-                e.object_id, e.id
-            )));
-        }
-        if let Some(p) = e.parent
-            && !(0..e.id).contains(&p)
-        {
-            return Err(bad(format!(
-                "entity {} (id {}) names parent {p}, which is not an entity listed before it (a parent comes first; anything else could form a cycle)",
-                e.object_id, e.id
-            )));
-        }
-        let mut root = e.id;
-        while let Some(p) = f.entities[root as usize].parent {
-            root = p; // strictly decreasing ids: ends
-        }
-        if e.building != root {
-            return Err(bad(format!(
-                "entity {} (id {}) names building {}, but the root of its parent chain is {root}",
-                e.object_id, e.id, e.building
-            )));
-        }
-    }
-    Ok(f.entities)
-}
-
-/// Checks a mesh's face labels against its hierarchy table: every id is −1 or a row of
-/// `entities`, and the row's level matches (feature / surface / part). Call it before
-/// raycasting; `path` names the mesh in the error.
-pub fn check_mesh_labels(
-    path: &Path,
-    mesh: &TriMesh,
-    entities: &[Entity],
-) -> Result<(), CityModelError> {
-    let bad = |why: String| CityModelError::Labels {
-        path: path.to_path_buf(),
-        why,
-    };
-    mesh.check_label_range(entities.len()).map_err(bad)?;
-    let levels = [Level::Feature, Level::Surface, Level::Part];
-    for (i, l) in mesh.labels.iter().enumerate() {
-        for (&id, level) in l.ids().iter().zip(levels) {
-            if id >= 0 && entities[id as usize].level != level {
-                let e = &entities[id as usize];
-                return Err(bad(format!(
-                    "face {i}: its {} id {id} is entity {}, a {}",
-                    level.name(),
-                    e.object_id,
-                    e.level.name()
-                )));
-            }
-        }
-    }
-    Ok(())
-}
-
 /// Writes `mesh.ply`, `semantics.json`, `alignment.json` and (last, as the completion
 /// marker) `summary.json` into `out_dir`.
 pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
@@ -799,17 +667,7 @@ pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
     // A stale summary would make a half-rewritten folder look complete.
     let _ = std::fs::remove_file(out_dir.join("summary.json"));
     out.mesh.write_ply(&out_dir.join("mesh.ply"))?;
-    let class_names: Vec<&str> = out
-        .entities
-        .iter()
-        .map(|e| e.class.as_str())
-        .collect::<std::collections::BTreeSet<_>>()
-        .into_iter()
-        .collect();
-    fsutil::write_json(
-        &out_dir.join("semantics.json"),
-        &serde_json::json!({ "entities": out.entities, "classes": class_names, "levels": ["feature", "surface", "part"] }),
-    )?;
+    semantics::write(&out_dir.join("semantics.json"), &out.entities)?;
     fsutil::write_json(&out_dir.join("alignment.json"), &out.alignment.to_json())?;
     fsutil::write_json(&out_dir.join("summary.json"), &out.summary)?;
     crate::progress::done(

@@ -146,7 +146,7 @@ fn best_fit_normal(pts: &[DVec3], centroid: DVec3, scale: f64) -> Option<DVec3> 
             }
         }
     }
-    let (vals, vecs) = super::align::jacobi_eigen::<3>(c);
+    let (vals, vecs) = crate::alignment::jacobi_eigen::<3>(c);
     let mut order = [0usize, 1, 2];
     order.sort_by(|&a, &b| vals[a].total_cmp(&vals[b]));
     if vals[order[1]].is_nan() || vals[order[1]] <= 1e-12 * scale * scale {

@@ -7,7 +7,9 @@ use anyhow::{Context, bail};
 use clap::Args;
 use glam::DVec3;
 
-use crate::citymodel::{self, Alignment, align};
+use crate::semantics;
+use crate::alignment::{self as align, Alignment};
+use crate::citymodel;
 use crate::mesh::TriMesh;
 use crate::refine::{self, RefineInput, RefineOptions};
 use crate::splat::{self, InvalidPolicy, ReadOptions};
@@ -87,7 +89,7 @@ pub fn run(args: &AlignArgs) -> anyhow::Result<()> {
 /// memory) or from a `citymodel` stage output folder.
 struct City {
     mesh: TriMesh,
-    entities: Vec<citymodel::Entity>,
+    entities: Vec<semantics::Entity>,
     alignment: Alignment,
     source: &'static str,
 }
@@ -147,7 +149,7 @@ fn load_city(dir: &Path, initial: Option<&Path>) -> anyhow::Result<City> {
     }
     Ok(City {
         mesh: TriMesh::read_ply(&mesh_path)?,
-        entities: citymodel::read_semantics(&sem_path)?,
+        entities: semantics::read(&sem_path)?,
         alignment,
         source: "mesh.ply",
     })

@@ -6,9 +6,9 @@ use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 
 use crate::associate::{self, AssociateOptions, CandidateMode};
-use crate::citymodel::align::Alignment;
+use crate::alignment::Alignment;
 use crate::colmap;
-use crate::render::cache::Cache;
+use crate::cache::Cache;
 use crate::scene::Split;
 
 /// Candidate Gaussians of a mask.

@@ -3,7 +3,8 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use crate::citymodel::{self, Alignment};
+use crate::alignment::Alignment;
+use crate::citymodel;
 
 #[derive(Debug, Args)]
 pub struct CitymodelArgs {

@@ -7,7 +7,7 @@ use clap::Args;
 
 use crate::fuse::{self, FuseOptions};
 use crate::scene::Split;
-use crate::{citymodel, colmap};
+use crate::{colmap, semantics};
 
 #[derive(Debug, Args)]
 pub struct FuseArgs {
@@ -56,7 +56,7 @@ pub fn run(args: &FuseArgs) -> anyhow::Result<()> {
         );
     }
     let split = Split::new(colmap::read_model(&args.colmap)?, args.test_every);
-    let entities = citymodel::read_semantics(&args.citymodel.join("semantics.json"))?;
+    let entities = semantics::read(&args.citymodel.join("semantics.json"))?;
     let s = fuse::run(
         &fuse::FuseInputs {
             views: &split.train,

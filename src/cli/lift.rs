@@ -5,11 +5,13 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::Args;
 
+use crate::semantics;
 use crate::labels::LabelTable;
-use crate::lift::{self, LabelMaps, LiftOptions};
-use crate::render::cache::Cache;
+use crate::idmap::LabelMaps;
+use crate::lift::{self, LiftOptions};
+use crate::cache::Cache;
 use crate::scene::Split;
-use crate::{citymodel, classes, colmap};
+use crate::{classes, colmap};
 
 #[derive(Debug, Args)]
 pub struct LiftArgs {
@@ -54,7 +56,7 @@ pub(super) struct LabelSourceArgs {
 pub(super) struct Loaded {
     pub(super) split: Split,
     pub(super) cache: Cache,
-    pub(super) entities: Vec<citymodel::Entity>,
+    pub(super) entities: Vec<semantics::Entity>,
     pub(super) maps: LabelMaps,
     pub(super) labels: LabelTable,
 }
@@ -69,7 +71,7 @@ impl LabelSourceArgs {
         }
         let cache = Cache::open(&self.cache)
             .with_context(|| format!("opening the contributions cache {}", self.cache.display()))?;
-        let entities = citymodel::read_semantics(&self.citymodel.join("semantics.json"))?;
+        let entities = semantics::read(&self.citymodel.join("semantics.json"))?;
         let (maps, labels) = label_source(self.raycast.as_ref(), self.fuse.as_ref(), &entities)?;
         Ok(Loaded {
             split,
@@ -121,7 +123,7 @@ pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
 pub(super) fn label_source(
     raycast: Option<&PathBuf>,
     fuse: Option<&PathBuf>,
-    entities: &[citymodel::Entity],
+    entities: &[semantics::Entity],
 ) -> anyhow::Result<(LabelMaps, LabelTable)> {
     Ok(match (raycast, fuse) {
         (Some(r), _) => (

@@ -5,10 +5,10 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::Args;
 
-use crate::citymodel::Alignment;
+use crate::alignment::Alignment;
 use crate::colmap;
 use crate::masks::{self, GsDepth, MasksInputs, MasksOptions, Source, Test};
-use crate::render::cache::Cache;
+use crate::cache::Cache;
 use crate::scene::Scene;
 
 #[derive(Debug, Args)]

@@ -257,7 +257,7 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
             println!(
                 "  {} {} {} {}",
                 format!("{:?}", c.level).to_lowercase(),
-                c.class,
+                c.class.name(),
                 c.object_id,
                 if attrs.is_empty() {
                     String::new()

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 
-use crate::citymodel::Alignment;
+use crate::alignment::Alignment;
 use crate::raycast::RaycastOptions;
 use crate::{colmap, mesh::TriMesh, raycast};
 
@@ -39,8 +39,8 @@ pub fn run(args: &RaycastArgs) -> anyhow::Result<()> {
     let mesh_path = args.citymodel.join("mesh.ply");
     let mesh = TriMesh::read_ply(&mesh_path)
         .with_context(|| format!("reading the city mesh {}", mesh_path.display()))?;
-    let entities = crate::citymodel::read_semantics(&args.citymodel.join("semantics.json"))?;
-    crate::citymodel::check_mesh_labels(&mesh_path, &mesh, &entities)?;
+    let entities = crate::semantics::read(&args.citymodel.join("semantics.json"))?;
+    crate::semantics::check_mesh_labels(&mesh_path, &mesh, &entities)?;
     let scale = Alignment::read(&args.citymodel.join("alignment.json"))?.scale;
     let views = colmap::read_model(&args.colmap)
         .with_context(|| format!("reading COLMAP model {}", args.colmap.display()))?;

@@ -98,7 +98,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         let s = render::cache::build(
             &scene,
             &views,
-            &render::cache::CacheOptions { top_k: args.top_k },
+            &crate::cache::CacheOptions { top_k: args.top_k },
             &args.out,
         )?;
         println!(

@@ -84,11 +84,11 @@ impl RunArgs {
         }
         let lift = LiftOptions { gamma: self.gamma };
         lift.validate()?;
-        if self.top_k > crate::render::cache::MAX_LIST {
+        if self.top_k > crate::cache::MAX_LIST {
             anyhow::bail!(
                 "--top-k {} exceeds the longest possible contribution list ({}); 0 keeps all",
                 self.top_k,
-                crate::render::cache::MAX_LIST
+                crate::cache::MAX_LIST
             );
         }
         let d = RunOptions::default();

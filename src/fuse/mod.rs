@@ -30,9 +30,10 @@ use serde::{Deserialize, Serialize};
 
 pub use snap::{SnapLimits, SnapStats};
 
-use crate::associate::{self, AssociateError, GroupsFile, candidates::for_each_pixel};
+use crate::groups::{GroupsError, GroupsFile};
+use crate::idmap::{self, IdMapError};
 use crate::camera::View;
-use crate::citymodel::Entity;
+use crate::semantics::Entity;
 use crate::classes;
 use crate::fsutil::{self, FsError};
 use crate::labels::{self, LabelTable, LabelsError};
@@ -45,7 +46,9 @@ pub enum FuseError {
     #[error("{path}: {why}")]
     Invalid { path: PathBuf, why: String },
     #[error(transparent)]
-    Associate(#[from] AssociateError),
+    Groups(#[from] GroupsError),
+    #[error(transparent)]
+    IdMap(#[from] IdMapError),
     #[error(transparent)]
     Labels(#[from] LabelsError),
     #[error(transparent)]
@@ -53,7 +56,7 @@ pub enum FuseError {
     #[error(transparent)]
     Sam(#[from] crate::sam::SamError),
     #[error(transparent)]
-    Masks(#[from] crate::masks::MasksError),
+    MaskFile(#[from] crate::maskfile::MaskFileError),
     #[error(transparent)]
     Fs(#[from] FsError),
 }
@@ -134,26 +137,6 @@ impl FuseSummary {
     }
 }
 
-/// Path of view `stem`'s fused map in a fuse folder.
-pub fn ids_file(dir: &Path, stem: &str) -> PathBuf {
-    dir.join(format!("{stem}.ids.npy"))
-}
-
-/// Reads a raycast view's four channels (feature, surface, part, city; row-major each).
-fn read_raycast(dir: &Path, stem: &str, w: usize, h: usize) -> Result<Vec<i32>, FuseError> {
-    let path = dir.join(format!("{stem}.ids.npy"));
-    let (shape, data) = npy::read::<i32>(&path)?;
-    if shape != [4, h, w] {
-        return Err(FuseError::Invalid {
-            path,
-            why: format!(
-                "shape {shape:?}, expected [4, {h}, {w}] (feature, surface, part, city) for this camera"
-            ),
-        });
-    }
-    Ok(data)
-}
-
 /// What one view yields.
 struct ViewOut {
     image: u64,
@@ -182,13 +165,13 @@ fn fuse_view(
         view.camera.intrinsics.height as usize,
     );
     let npx = w * h;
-    let ray = read_raycast(inp.raycast, &stem, w, h)?;
-    let group = associate::read_ids(inp.associate, &stem, w, h)?;
+    let ray = idmap::read_raycast(inp.raycast, &stem, w, h)?;
+    let group = idmap::read_ids(inp.associate, &stem, w, h)?;
     let city = &ray[3 * npx..];
     let n_ent = inp.entities.len() as i32;
     if let Some(&bad) = ray.iter().find(|&&x| x < -1 || x >= n_ent) {
         return Err(FuseError::Invalid {
-            path: inp.raycast.join(format!("{stem}.ids.npy")),
+            path: idmap::ids_file(inp.raycast, &stem),
             why: format!(
                 "id {bad} is not an entity of semantics.json ({n_ent} entities): a stale raycast?"
             ),
@@ -226,7 +209,7 @@ fn fuse_view(
                             .into(),
                     });
                 }
-                crate::masks::read_kept(&path)?
+                crate::maskfile::read_kept(&path)?
                     .iter()
                     .map(|k| k.source_index)
                     .collect()
@@ -274,7 +257,7 @@ fn fuse_view(
         for (i, m) in sam.iter().enumerate() {
             counts.clear();
             let mut n = 0u64;
-            let _ = for_each_pixel(&m.segmentation, |q| {
+            let _ = &m.segmentation.for_each_pixel(|q| {
                 n += 1;
                 let l = fused[q];
                 if (0..delta).contains(&l) {
@@ -286,7 +269,7 @@ fn fuse_view(
             }
         }
     }
-    npy::write(&ids_file(out, &stem), &[h, w], &fused)?;
+    idmap::write_ids(out, &stem, w, h, &fused)?;
     let image = group.iter().filter(|&&g| g >= 0).count() as u64;
     let none = fused.iter().filter(|&&l| l < 0).count() as u64;
     Ok(ViewOut {

@@ -21,7 +21,6 @@ use std::collections::{BTreeMap, HashSet};
 
 use serde::{Deserialize, Serialize};
 
-use crate::associate::candidates::for_each_pixel;
 use crate::classes;
 use crate::sam::SamMask;
 
@@ -122,7 +121,7 @@ pub fn snap_view(
             continue;
         }
         px.clear();
-        if for_each_pixel(&m.segmentation, |p| px.push(p as u32)).is_err() || px.is_empty() {
+        if m.segmentation.for_each_pixel(|p| px.push(p as u32)).is_err() || px.is_empty() {
             continue;
         }
         let n = px.len() as f64;

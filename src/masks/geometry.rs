@@ -17,7 +17,7 @@ use ndarray::Array2;
 use super::MasksError;
 use crate::camera::Pose;
 use crate::imageio;
-use crate::render::cache::ViewContrib;
+use crate::cache::ViewContrib;
 
 /// No evidence: no city hit at the pixel, or no 3DGS depth.
 pub const NONE: u8 = 0;

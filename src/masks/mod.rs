@@ -51,8 +51,10 @@ use crate::fsutil::{self, FsError};
 use crate::imageio::{self, ImageError};
 use crate::npy::{self, NpyError};
 use crate::progress::Bar;
-use crate::render::cache::{Cache, CacheError};
+use crate::cache::{Cache, CacheError};
 use crate::sam::{self, Rle, SamError, SamMask};
+use crate::idmap;
+use crate::maskfile::{Decision, KeptMask, MaskFileError, Rule, decisions_file, kept_file, write_kept};
 use crate::scene::Scene;
 use geometry::{ComponentParams, DepthTest, MaskCounts, ViewCodes};
 use prompts::{FeatureScores, PromptInfo, PromptTable};
@@ -76,93 +78,11 @@ pub enum MasksError {
     Image(#[from] ImageError),
     #[error(transparent)]
     Ply(#[from] crate::splat::PlyError),
+    #[error(transparent)]
+    MaskFile(#[from] MaskFileError),
+    #[error(transparent)]
+    IdMap(#[from] crate::idmap::IdMapError),
 }
-
-/// One kept mask: a SAM mask plus why it was kept.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct KeptMask {
-    #[serde(flatten)]
-    pub sam: SamMask,
-    /// Index in the scene's SAM list of the view; −1 for a mask derived without a foundation
-    /// model (the model-free source).
-    pub source_index: i64,
-    /// Building-support overlap `|s ∩ Ω_feat| / |s|`.
-    pub r_ov: f64,
-    /// Why it was kept (the rule's name).
-    pub rule: String,
-    /// Best prompt class id, −1 without features/prompts.
-    pub class: i32,
-}
-
-/// The decision on one input mask.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Decision {
-    pub source_index: i64,
-    pub kept: bool,
-    pub rule: String,
-    pub r_ov: f64,
-    /// Scores the rule used (e.g. `s_city`, `s_fore`, `occluder_share`), by name.
-    pub scores: std::collections::BTreeMap<String, f64>,
-}
-
-/// Reads a view's kept masks (`<stem>.json` of a masks folder), validating every mask's RLE,
-/// size and area as [`sam::read_sam_json`] does.
-pub fn read_kept(path: &Path) -> Result<Vec<KeptMask>, MasksError> {
-    let bytes = std::fs::read(path).map_err(|err| SamError::Read {
-        path: path.to_path_buf(),
-        err,
-    })?;
-    sam::parse_sam_json(path, &bytes, None)?;
-    let masks: Vec<KeptMask> = serde_json::from_slice(&bytes).map_err(|err| FsError::Parse {
-        path: path.to_path_buf(),
-        err,
-    })?;
-    Ok(masks)
-}
-
-/// Writes a view's kept masks (compact JSON), atomically.
-pub fn write_kept(path: &Path, masks: &[KeptMask]) -> Result<(), MasksError> {
-    let mut text = serde_json::to_vec(masks).map_err(|e| MasksError::Invalid {
-        path: path.to_path_buf(),
-        why: format!("cannot serialise: {e}"),
-    })?;
-    text.push(b'\n');
-    fsutil::write_bytes(path, &text)?;
-    Ok(())
-}
-
-/// Reads a view's decisions (`<stem>.decisions.json`).
-pub fn read_decisions(path: &Path) -> Result<Vec<Decision>, MasksError> {
-    Ok(fsutil::read_json(path)?)
-}
-
-// Rule names (the `rule` of a kept mask or a decision).
-/// Dropped: `predicted_iou < τ_q`.
-pub const RULE_QUALITY: &str = "quality";
-/// Dropped, support-only: `support_floor ≤ predicted_iou < τ_q`, every other rule would keep it.
-pub const RULE_LOW_QUALITY_SUPPORT: &str = "low_quality_support";
-/// Dropped: area below `τ_a`.
-pub const RULE_AREA: &str = "area";
-/// Kept: `R_ov < ρ` (a non-building candidate, the paper's rule).
-pub const RULE_LOW_OVERLAP: &str = "low_overlap";
-/// Dropped: `R_ov < ρ`, but the low-overlap check found it is building.
-pub const RULE_LOW_OVERLAP_BUILDING: &str = "low_overlap_building";
-/// Kept: `S_fore > S_city + δ`.
-pub const RULE_FEATURES_FOREGROUND: &str = "features_foreground";
-/// Dropped: `S_fore ≤ S_city + δ`.
-pub const RULE_FEATURES_BUILDING: &str = "features_building";
-/// Kept: enough of the mask is in front of the city surface.
-pub const RULE_OCCLUDER: &str = "occluder";
-/// Kept by the combined test: both the features and the depth say foreground.
-pub const RULE_OCCLUDER_AND_FEATURES: &str = "occluder_and_features";
-/// Dropped: the 3DGS lies on (or behind) the city surface.
-pub const RULE_ON_SURFACE: &str = "on_surface";
-/// Dropped: too few pixels with depth evidence to call it an occluder.
-pub const RULE_NO_DEPTH: &str = "no_depth";
-/// Dropped: high overlap and no evidence to disambiguate (test `overlap`).
-pub const RULE_HIGH_OVERLAP: &str = "high_overlap";
-/// Kept: a component of the mask-free source.
-pub const RULE_DEPTH_COMPONENT: &str = "depth_component";
 
 /// Where the masks come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -435,13 +355,7 @@ impl MasksSummary {
     }
 }
 
-/// The file names of one view's outputs.
-pub fn kept_file(dir: &Path, stem: &str) -> PathBuf {
-    dir.join(format!("{stem}.json"))
-}
-pub fn decisions_file(dir: &Path, stem: &str) -> PathBuf {
-    dir.join(format!("{stem}.decisions.json"))
-}
+/// The file name of a view's overlay.
 pub fn overlay_name(stem: &str) -> String {
     format!("overlay_{stem}.png")
 }
@@ -637,18 +551,6 @@ pub fn run(
     Ok(summary)
 }
 
-/// Reads an `.npy` of the expected shape.
-fn read_npy<T: npy::NpyElement>(path: &Path, shape: &[usize]) -> Result<Vec<T>, MasksError> {
-    let (s, data) = npy::read::<T>(path)?;
-    if s != shape {
-        return Err(MasksError::Invalid {
-            path: path.to_path_buf(),
-            why: format!("shape {s:?}, expected {shape:?} (the view's image size)"),
-        });
-    }
-    Ok(data)
-}
-
 /// The view's per-mask features (`N×dim`), checked against the SAM list and the prompts.
 fn read_features(
     path: &Path,
@@ -696,8 +598,7 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
         v.camera.intrinsics.height as usize,
         v.camera.intrinsics.width as usize,
     );
-    let ids_path = inp.raycast.join(format!("{stem}.ids.npy"));
-    let ids = read_npy::<i32>(&ids_path, &[4, h, w])?;
+    let ids = idmap::read_raycast(inp.raycast, &stem, w, h)?;
     let feature = &ids[..h * w];
     let needs_depth =
         plan.source == Source::Depth || matches!(plan.test, Test::Geometry | Test::Both);
@@ -705,12 +606,12 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
     let mut gs_depth_alpha = None;
     let mut depth_s = 0.0;
     let states = if needs_depth {
-        let city = read_npy::<f32>(&inp.raycast.join(format!("{stem}.depth.npy")), &[h, w])?;
+        let city = idmap::read_depth(inp.raycast, &stem, w, h)?;
         let cache = inp.cache.expect("checked in run");
         let c = cache.load(&stem)?;
         if (c.height, c.width) != (h, w) {
             return Err(MasksError::Invalid {
-                path: crate::render::cache::cache_file(&cache.dir, &stem),
+                path: crate::cache::cache_file(&cache.dir, &stem),
                 why: format!(
                     "{}×{} pixels, the view's image is {h}×{w}",
                     c.height, c.width
@@ -800,7 +701,7 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
     let overlay_s = t3.elapsed().as_secs_f64();
     let mut rules = BTreeMap::new();
     for d in &decisions {
-        *rules.entry(d.rule.clone()).or_insert(0) += 1;
+        *rules.entry(d.rule.name().to_string()).or_insert(0) += 1;
     }
     Ok(ViewOut {
         summary: ViewSummary {
@@ -860,14 +761,14 @@ fn decide_sam(
                 sam: m.clone(),
                 source_index: i as i64,
                 r_ov,
-                rule: rule.to_string(),
+                rule,
                 class: fs.map_or(crate::classes::NONE, |f| f.class),
             });
         }
         decisions.push(Decision {
             source_index: i as i64,
             kept: keep,
-            rule: rule.to_string(),
+            rule,
             r_ov,
             scores,
         });
@@ -892,16 +793,16 @@ fn rule_for(
     c: &MaskCounts,
     fs: Option<&FeatureScores>,
     min_area: u64,
-) -> (bool, &'static str) {
+) -> (bool, Rule) {
     let opts = plan.opts;
     if m.predicted_iou < opts.tau_q {
         // Support-only: the other rules decide whether it is a foreground candidate at all.
         if opts.support_floor.is_some_and(|f| m.predicted_iou >= f)
             && rule_after_quality(plan, m, c, fs, min_area).0
         {
-            return (false, RULE_LOW_QUALITY_SUPPORT);
+            return (false, Rule::LowQualitySupport);
         }
-        return (false, RULE_QUALITY);
+        return (false, Rule::Quality);
     }
     rule_after_quality(plan, m, c, fs, min_area)
 }
@@ -913,10 +814,10 @@ fn rule_after_quality(
     c: &MaskCounts,
     fs: Option<&FeatureScores>,
     min_area: u64,
-) -> (bool, &'static str) {
+) -> (bool, Rule) {
     let opts = plan.opts;
     if m.area < min_area {
-        return (false, RULE_AREA);
+        return (false, Rule::Area);
     }
     // Features decide only in the tests that use them (they still give the class).
     let fs = fs.filter(|_| matches!(plan.test, Test::Features | Test::Both));
@@ -933,42 +834,42 @@ fn rule_after_quality(
                 _ => evidence && c.front_share() < opts.occluder_share,
             };
             if building {
-                return (false, RULE_LOW_OVERLAP_BUILDING);
+                return (false, Rule::LowOverlapBuilding);
             }
         }
-        return (true, RULE_LOW_OVERLAP);
+        return (true, Rule::LowOverlap);
     }
     match plan.test {
         Test::Features => {
             if features_fore == Some(true) {
-                (true, RULE_FEATURES_FOREGROUND)
+                (true, Rule::FeaturesForeground)
             } else {
-                (false, RULE_FEATURES_BUILDING)
+                (false, Rule::FeaturesBuilding)
             }
         }
         Test::Geometry => {
             if occluder {
-                (true, RULE_OCCLUDER)
+                (true, Rule::Occluder)
             } else if evidence {
-                (false, RULE_ON_SURFACE)
+                (false, Rule::OnSurface)
             } else {
-                (false, RULE_NO_DEPTH)
+                (false, Rule::NoDepth)
             }
         }
         Test::Both => {
             if occluder && features_city != Some(true) {
-                (true, RULE_OCCLUDER_AND_FEATURES)
+                (true, Rule::OccluderAndFeatures)
             } else if !evidence && features_fore == Some(true) {
-                (true, RULE_FEATURES_FOREGROUND)
+                (true, Rule::FeaturesForeground)
             } else if occluder {
-                (false, RULE_FEATURES_BUILDING)
+                (false, Rule::FeaturesBuilding)
             } else if evidence {
-                (false, RULE_ON_SURFACE)
+                (false, Rule::OnSurface)
             } else {
-                (false, RULE_NO_DEPTH)
+                (false, Rule::NoDepth)
             }
         }
-        Test::Overlap | Test::Auto => (false, RULE_HIGH_OVERLAP),
+        Test::Overlap | Test::Auto => (false, Rule::HighOverlap),
     }
 }
 
@@ -1012,7 +913,7 @@ fn depth_source(
         decisions.push(Decision {
             source_index: -1,
             kept: true,
-            rule: RULE_DEPTH_COMPONENT.into(),
+            rule: Rule::DepthComponent,
             r_ov: c.r_ov(),
             scores,
         });
@@ -1020,7 +921,7 @@ fn depth_source(
             sam,
             source_index: -1,
             r_ov: c.r_ov(),
-            rule: RULE_DEPTH_COMPONENT.into(),
+            rule: Rule::DepthComponent,
             class: crate::classes::NONE,
         });
     }

@@ -6,17 +6,18 @@ use std::path::Path;
 
 use ndarray::Array3;
 
-use super::{KeptMask, MasksError};
+use super::MasksError;
+use crate::maskfile::{KeptMask, Rule};
 use crate::imageio;
 
-/// Colour of a keep rule (grey for an unknown name).
-pub fn rule_color(rule: &str) -> [u8; 3] {
+/// Colour of a keep rule (grey for a dropping rule).
+pub fn rule_color(rule: Rule) -> [u8; 3] {
     match rule {
-        super::RULE_LOW_OVERLAP => [60, 140, 230],
-        super::RULE_FEATURES_FOREGROUND => [240, 160, 40],
-        super::RULE_OCCLUDER => [230, 40, 40],
-        super::RULE_OCCLUDER_AND_FEATURES => [220, 60, 220],
-        super::RULE_DEPTH_COMPONENT => [40, 200, 80],
+        Rule::LowOverlap => [60, 140, 230],
+        Rule::FeaturesForeground => [240, 160, 40],
+        Rule::Occluder => [230, 40, 40],
+        Rule::OccluderAndFeatures => [220, 60, 220],
+        Rule::DepthComponent => [40, 200, 80],
         _ => [160, 160, 160],
     }
 }
@@ -57,7 +58,7 @@ pub fn write(
                 path: path.to_path_buf(),
                 why: format!("kept mask {i}: {e}"),
             })?;
-        let c = rule_color(&k.rule);
+        let c = rule_color(k.rule);
         for ((y, x), &on) in m.indexed_iter() {
             if !on {
                 continue;

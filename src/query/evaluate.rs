@@ -21,7 +21,7 @@ use crate::eval::{
     self, CoarseJson, Counts, DatasetJson, FineJson, ImageJson, Mean, MetricsJson, N_FINE,
     PaperJson, accumulate, dataset, fine_metrics, paper,
 };
-use crate::render::cache::Cache;
+use crate::cache::Cache;
 
 /// The selection expression of the coarse "building" mask.
 pub const BUILDING: &str = "class=Building or class=BuildingPart or category=wall or category=roof or category=window or category=door or category=ground_surface or category=installation";
@@ -141,7 +141,7 @@ pub fn evaluate(
     let mut per: Vec<[Counts; N_FINE]> = Vec::new();
     let mut images = Vec::new();
     let bar = crate::progress::Bar::new("eval", stems.len() as u64, "views");
-    let (mut c, mut buf) = (crate::render::cache::ViewContrib::empty(), Vec::new());
+    let (mut c, mut buf) = (crate::cache::ViewContrib::empty(), Vec::new());
     for stem in stems {
         let gpath = gts
             .get(stem)

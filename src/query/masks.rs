@@ -1,7 +1,7 @@
 //! Per-view masks of a selection, through the contributions cache.
 //!
 //! **The rule** ([`MaskRule::Argmax`], the default): the selected labels count as *one* label in
-//! the same per-pixel argmax that makes the predicted maps ([`crate::lift::predict`]): a pixel is
+//! the same per-pixel argmax that makes the predicted maps ([`crate::cache::predict`]): a pixel is
 //! selected when the summed weight `Σ α·T` of the selected Gaussians in its cached list exceeds
 //! the weight of every other single label and the weight of "nothing" (the transmittance
 //! `1 − α`, the truncated mass of the top-k list and the unlabelled Gaussians). A one-label
@@ -14,7 +14,7 @@ use std::path::Path;
 use ndarray::Array3;
 use serde::{Deserialize, Serialize};
 
-use crate::render::cache::ViewContrib;
+use crate::cache::ViewContrib;
 
 /// How a pixel is decided (module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -54,7 +54,7 @@ pub fn merged_labels(label_of: &[i32], selected: &[bool]) -> Vec<i32> {
 /// `selected` is the per-Gaussian selection (majority).
 pub fn view_mask(c: &ViewContrib, merged: &[i32], selected: &[bool], rule: MaskRule) -> Vec<u8> {
     match rule {
-        MaskRule::Argmax => crate::lift::predict_map(c, merged)
+        MaskRule::Argmax => crate::cache::predict_map(c, merged)
             .iter()
             .map(|&l| u8::from(l == SELECTED))
             .collect(),
@@ -111,7 +111,7 @@ pub fn write_mask(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::Contributions;
+    use crate::cache::Contributions;
 
     /// Three pixels, Gaussians 0..4 with labels [1, 2, 3, −1].
     fn view() -> ViewContrib {
@@ -159,7 +159,7 @@ mod tests {
         // Nothing selected: empty masks.
         assert_eq!(sel([false; 4]), (vec![0, 0, 0], vec![0, 0, 0]));
         // A one-label selection equals "predicted label == that label".
-        let (_, predicted) = crate::lift::predict(&c, &label, &label);
+        let (_, predicted) = crate::cache::predict(&c, &label, &label);
         for l in [1, 2, 3] {
             let s = [label[0] == l, label[1] == l, label[2] == l, false];
             let want: Vec<u8> = predicted.iter().map(|&p| u8::from(p == l)).collect();

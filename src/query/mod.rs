@@ -25,9 +25,9 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::citygml::Level;
-use crate::citymodel::{self, Entity};
+use crate::semantics::{self, Entity};
 use crate::labels::LabelTable;
-use crate::render::cache::{Cache, CacheError};
+use crate::cache::{Cache, CacheError};
 use crate::sam::Prompts;
 use crate::scene::{Scene, SceneError};
 use crate::{classes, fsutil, npy};
@@ -53,7 +53,7 @@ pub enum QueryError {
     #[error(transparent)]
     Scene(#[from] SceneError),
     #[error(transparent)]
-    CityModel(#[from] citymodel::CityModelError),
+    Semantics(#[from] semantics::SemanticsError),
     #[error(transparent)]
     Labels(#[from] crate::labels::LabelsError),
     #[error(transparent)]
@@ -146,7 +146,7 @@ impl SemanticRun {
         let t0 = Instant::now();
         let mode = mode.unwrap_or_else(|| Mode::default_for(run));
         let scene = Scene::open(scene)?;
-        let entities = citymodel::read_semantics(&run.join("citymodel/semantics.json"))?;
+        let entities = semantics::read(&run.join("citymodel/semantics.json"))?;
         let fuse = run.join("fuse");
         let (labels, labels_source) = if fuse.is_dir() {
             let p = fuse.join("labels.json");
@@ -355,7 +355,7 @@ pub struct ChainEntry {
     pub level: Level,
     pub id: i32,
     pub object_id: String,
-    pub class: String,
+    pub class: crate::semantics::Class,
     pub attributes: BTreeMap<String, serde_json::Value>,
 }
 
@@ -456,7 +456,7 @@ impl QuerySummary {
 fn find_view<'c>(
     cache: &'c Cache,
     name: &str,
-) -> Result<&'c crate::render::cache::CachedView, QueryError> {
+) -> Result<&'c crate::cache::CachedView, QueryError> {
     cache
         .summary
         .views
@@ -500,13 +500,13 @@ pub fn pick(
     }
     let c = cache.load(&v.stem)?;
     let p = y * c.width + x;
-    let (_, label_map) = crate::lift::predict(&c, &sr.label_of, &sr.class_of);
+    let (_, label_map) = crate::cache::predict(&c, &sr.label_of, &sr.class_of);
     let label = label_map[p];
     let (ids, ws) = c.pixel(p);
     let l = sr.labels.get(label);
     let chain = l
         .and_then(|l| l.entity)
-        .and_then(|e| citymodel::chains(&sr.entities).get(e as usize).copied())
+        .and_then(|e| semantics::chains(&sr.entities).get(e as usize).copied())
         .map(|fl| {
             [fl.feature, fl.surface, fl.part]
                 .into_iter()
@@ -517,7 +517,7 @@ pub fn pick(
                         level: e.level,
                         id: e.id,
                         object_id: e.object_id.clone(),
-                        class: e.class.clone(),
+                        class: e.class,
                         attributes: e.attributes.clone(),
                     }
                 })
@@ -677,7 +677,7 @@ pub fn run(
             let c = cache.load(stem)?;
             let mask = masks::view_mask(&c, &merged, &selected, opts.rule);
             if opts.sqlite {
-                let (_, label_map) = crate::lift::predict(&c, &sr.label_of, &sr.class_of);
+                let (_, label_map) = crate::cache::predict(&c, &sr.label_of, &sr.class_of);
                 for &l in &label_map {
                     if let Some(&r) = sr.row_of.get(&l) {
                         label_pixels[r] += 1;

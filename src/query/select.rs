@@ -28,7 +28,7 @@ use super::grammar::{Expr, Literal, Op, Term};
 use super::text::{self, LabelFeatures, TextMatch, TextOptions, TextQuery};
 use super::units;
 use crate::citygml::{Class, Level};
-use crate::citymodel::Entity;
+use crate::semantics::Entity;
 use crate::classes;
 use crate::labels::LabelTable;
 use crate::sam::Prompts;
@@ -641,7 +641,7 @@ fn term(
     let entity = r.entity;
     match t {
         Check::Classes(names) => {
-            entity.is_some_and(|e| index.ancestry(e).any(|a| names.contains(a.class.as_str())))
+            entity.is_some_and(|e| index.ancestry(e).any(|a| names.contains(a.class.name())))
         }
         Check::Level(l) => entity.is_some_and(|e| ctx.entities[e].level == *l),
         Check::Id(id) => entity == Some(*id),

@@ -24,7 +24,7 @@ use std::path::Path;
 use rusqlite::{Connection, params};
 use serde_json::Value;
 
-use crate::citymodel::{Entity, chains};
+use crate::semantics::{Entity, chains};
 use crate::classes;
 use crate::labels::{LabelTable, Source};
 
@@ -163,7 +163,7 @@ fn fill(db: &mut Connection, t: &TableInputs<'_>) -> rusqlite::Result<()> {
             s.execute(params![
                 e.id,
                 e.object_id,
-                e.class,
+                e.class.name(),
                 level_name(e.level),
                 e.parent,
                 b.map(|b| b.id),

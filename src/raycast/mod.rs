@@ -45,6 +45,8 @@ pub enum RaycastError {
     #[error(transparent)]
     Npy(#[from] crate::npy::NpyError),
     #[error(transparent)]
+    IdMap(#[from] crate::idmap::IdMapError),
+    #[error(transparent)]
     Image(#[from] crate::imageio::ImageError),
     #[error(transparent)]
     Fs(#[from] crate::fsutil::FsError),
@@ -103,7 +105,7 @@ impl TwoPassScene {
     /// `camera::SCENE_COORD_LIMIT`, which keeps every coordinate far inside what Embree
     /// accepts; label ids −1 or ≥ 0) and builds the global and part scenes. Label ids must
     /// also stay below [`MAX_LABEL_ID`] (the per-surface table is dense); checking them
-    /// against the semantic table is `citymodel::check_mesh_labels`.
+    /// against the semantic table is `semantics::check_mesh_labels`.
     pub fn build(mesh: &TriMesh) -> Result<TwoPassScene, RaycastError> {
         mesh.validate().map_err(RaycastError::Mesh)?;
         if let Some((i, l)) = mesh

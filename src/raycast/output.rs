@@ -9,7 +9,7 @@ use ndarray::Array3;
 use super::{RaycastError, RaycastOptions, TwoPassScene, ViewIds, raycast_view};
 use crate::camera::View;
 use crate::mesh::TriMesh;
-use crate::{fsutil, imageio, npy};
+use crate::{fsutil, idmap, imageio};
 
 /// Per-view numbers of a run.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -136,20 +136,14 @@ pub fn run(
         rays += (ids.width * ids.height) as u64;
         let (h, w) = (ids.height, ids.width);
         let stem = v.stem();
-        let mut stacked = Vec::with_capacity(4 * w * h);
-        for ch in [&ids.feature, &ids.surface, &ids.part, &ids.city] {
-            stacked.extend_from_slice(ch);
-        }
-        npy::write(
-            &out_dir.join(format!("{stem}.ids.npy")),
-            &[4, h, w],
-            &stacked,
+        idmap::write_raycast(
+            out_dir,
+            &stem,
+            w,
+            h,
+            [&ids.feature, &ids.surface, &ids.part, &ids.city],
         )?;
-        npy::write(
-            &out_dir.join(format!("{stem}.depth.npy")),
-            &[h, w],
-            &ids.depth,
-        )?;
+        idmap::write_depth(out_dir, &stem, w, h, &ids.depth)?;
         let image = images_dir
             .map(|d| d.join(&v.name))
             .filter(|p| p.is_file())

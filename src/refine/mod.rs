@@ -18,7 +18,8 @@ use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::citymodel::{Alignment, Entity, Similarity};
+use crate::alignment::{Alignment, Similarity};
+use crate::semantics::{Class, Entity};
 use crate::embree::{CommittedScene, Device, EmbreeError, Scene};
 use crate::mesh::TriMesh;
 use crate::splat::Gaussians;
@@ -501,7 +502,7 @@ struct Target {
 }
 
 /// Surfaces never seen from outside a building: no Gaussian lies on them.
-const HIDDEN_SURFACES: [&str; 2] = ["GroundSurface", "ClosureSurface"];
+const HIDDEN_SURFACES: [Class; 2] = [Class::GroundSurface, Class::ClosureSurface];
 
 fn build_target(mesh: &TriMesh, entities: &[Entity]) -> Result<(Target, usize), RefineError> {
     mesh.validate().map_err(RefineError::Mesh)?;
@@ -518,7 +519,7 @@ fn build_target(mesh: &TriMesh, entities: &[Entity]) -> Result<(Target, usize), 
                         entities.len()
                     ))
                 })?;
-                if HIDDEN_SURFACES.contains(&e.class.as_str()) {
+                if HIDDEN_SURFACES.contains(&e.class) {
                     excluded += 1;
                     continue;
                 }

@@ -9,8 +9,8 @@
 use glam::{DMat3, DQuat, DVec3};
 
 use super::{Conditioning, Match};
-use crate::citymodel::Similarity;
-use crate::citymodel::align::jacobi_eigen;
+use crate::alignment::Similarity;
+use crate::alignment::jacobi_eigen;
 
 /// Accumulated normal equations of one iteration.
 pub(super) struct Normal7 {

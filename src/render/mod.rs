@@ -32,14 +32,13 @@ use blend::{BlendInput, TileOut};
 pub use blend::{Contribution, ContributionMode};
 use project::{Projected, ViewParams};
 
+use crate::cache::{Contributions, DEPTH_MIN_ALPHA};
 use crate::camera::{Camera, Distortion, View};
 use crate::fsutil::{self, FsError};
 use crate::imageio::{self, ImageError};
 use crate::npy::{self, NpyError};
 use crate::splat::Gaussians;
 
-/// `depth` is NaN where the accumulated alpha is below this.
-pub const DEPTH_MIN_ALPHA: f32 = 1e-3;
 
 /// Errors of the render stage.
 #[derive(Debug, thiserror::Error)]
@@ -61,7 +60,7 @@ pub enum RenderError {
     #[error(transparent)]
     Image(#[from] ImageError),
     #[error(transparent)]
-    Cache(#[from] cache::CacheError),
+    Cache(#[from] crate::cache::CacheError),
 }
 
 /// Render settings.
@@ -207,27 +206,6 @@ pub fn covariance(scale: [f32; 3], q: [f32; 4]) -> [f32; 6] {
         sig.z_axis.z,
     ]
     .map(|v| v as f32)
-}
-
-/// Per-pixel contribution lists in CSR form (row-major pixels).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Contributions {
-    /// `offsets[p]..offsets[p + 1]` are pixel `p`'s entries; `H·W + 1` values.
-    pub offsets: Vec<u64>,
-    /// Gaussian indices, in depth order per pixel.
-    pub ids: Vec<u32>,
-    /// Weights `α·T`.
-    pub weights: Vec<f32>,
-    /// Per pixel, the weight mass not kept (top-k mode; zeros otherwise).
-    pub residual: Vec<f32>,
-}
-
-impl Contributions {
-    /// Pixel `p`'s `(ids, weights)`.
-    pub fn pixel(&self, p: usize) -> (&[u32], &[f32]) {
-        let (a, b) = (self.offsets[p] as usize, self.offsets[p + 1] as usize);
-        (&self.ids[a..b], &self.weights[a..b])
-    }
 }
 
 /// Timings and counts of one render.

@@ -13,19 +13,23 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::semantics;
 use crate::associate::{self, AssociateOptions, AssociateSummary};
 use crate::camera::View;
-use crate::citymodel::{self, Alignment, CitymodelSummary};
+use crate::alignment::Alignment;
+use crate::citymodel::{self, CitymodelSummary};
 use crate::eval::EvalSummary;
 use crate::fuse::{self, FuseOptions, FuseSummary};
 use crate::labels::LabelTable;
-use crate::lift::{self, LabelMaps, LiftOptions, LiftSummary};
+use crate::idmap::LabelMaps;
+use crate::lift::{self, LiftOptions, LiftSummary};
 use crate::masks::{self, MasksOptions, MasksSummary};
 pub use crate::query::Mode;
 use crate::raycast::{self, RaycastSummary};
-use crate::render::cache::{self, Cache, CacheOptions, CacheSummary};
+use crate::cache::{self, Cache, CacheOptions, CacheSummary};
 use crate::scene::{Scene, SceneError, Split};
 use crate::train::{self, TrainOptions, TrainSummary};
+use crate::render;
 use crate::{classes, colmap, fsutil};
 pub use store::StageReport;
 use store::{Store, StoreError};
@@ -79,7 +83,9 @@ pub enum RunError {
     #[error(transparent)]
     CityModel(#[from] citymodel::CityModelError),
     #[error(transparent)]
-    Align(#[from] citymodel::AlignError),
+    Semantics(#[from] semantics::SemanticsError),
+    #[error(transparent)]
+    Align(#[from] crate::alignment::AlignError),
     #[error(transparent)]
     Colmap(#[from] colmap::ColmapError),
     #[error(transparent)]
@@ -314,8 +320,8 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     let _rc: RaycastSummary = st.stage("raycast", &ro, &inputs, &["citymodel"], |dir| {
         let mesh_path = cm_dir.join("mesh.ply");
         let mesh = crate::mesh::TriMesh::read_ply(&mesh_path)?;
-        let entities = citymodel::read_semantics(&cm_dir.join("semantics.json"))?;
-        citymodel::check_mesh_labels(&mesh_path, &mesh, &entities)?;
+        let entities = semantics::read(&cm_dir.join("semantics.json"))?;
+        semantics::check_mesh_labels(&mesh_path, &mesh, &entities)?;
         Ok::<_, RunError>(raycast::run(
             &mesh,
             &views,
@@ -333,11 +339,11 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     let _cs: CacheSummary = st.stage("render", &co, &inputs, &[], |dir| {
         let (g, _) = crate::splat::read_ply(&scene.ply, &Default::default())?;
         let prepared = crate::render::PreparedScene::new(&g)?;
-        Ok::<_, RunError>(cache::build(&prepared, &views, &co, dir)?)
+        Ok::<_, RunError>(render::cache::build(&prepared, &views, &co, dir)?)
     })?;
     let cache = Cache::open(&st.dir("render"))?;
 
-    let entities = citymodel::read_semantics(&cm_dir.join("semantics.json"))?;
+    let entities = semantics::read(&cm_dir.join("semantics.json"))?;
 
     // 4–6. masks → associate → fuse: the fused supervision (paper §3.2), training views only
     let mut masks_summary = None;
@@ -550,7 +556,7 @@ struct VoteInputs<'a> {
     split: &'a Split,
     maps: &'a LabelMaps,
     labels: &'a LabelTable,
-    entities: &'a [citymodel::Entity],
+    entities: &'a [semantics::Entity],
 }
 
 impl VoteInputs<'_> {

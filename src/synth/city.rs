@@ -16,7 +16,8 @@ use super::SynthError;
 use super::config::Splats;
 use super::gaussians::{Builder, Splat, frame_from_normal, hash01, value_noise};
 use crate::citygml::{CityModel, Level};
-use crate::citymodel::{Entity, triangulate};
+use crate::citymodel::triangulate;
+use crate::semantics::Entity;
 use crate::classes;
 
 /// One building (root feature) in the local metric frame.
@@ -102,7 +103,7 @@ pub fn build(
     let mut image_index: HashMap<PathBuf, usize> = HashMap::new();
     let mut jobs: Vec<PolyJob> = Vec::new();
     let mut base = 0usize;
-    let chain = crate::citymodel::chains(entities);
+    let chain = crate::semantics::chains(entities);
     for (fi, m) in models.iter().enumerate() {
         let dir = files[fi].parent().unwrap_or(Path::new(".")).to_path_buf();
         // ring id → (texture image index, uvs)
@@ -299,7 +300,7 @@ pub fn build(
                     info.openings.push(f);
                 }
             }
-            (Level::Surface, classes::WALL) if entities[id as usize].class == "WallSurface" => {
+            (Level::Surface, classes::WALL) if entities[id as usize].class == crate::semantics::Class::WallSurface => {
                 if let Some(f) = facet(id)
                     && f.normal.z.abs() < 0.3
                 {

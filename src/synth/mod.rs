@@ -31,7 +31,9 @@ use gaussians::{Builder, Truth};
 
 use crate::camera::{Camera, Pose, View};
 use crate::citygml::{self, CityModel};
-use crate::citymodel::{self, Alignment, Entity};
+use crate::alignment::Alignment;
+use crate::citymodel;
+use crate::semantics::Entity;
 use crate::classes;
 use crate::render::PreparedScene;
 

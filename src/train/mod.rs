@@ -37,8 +37,12 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::prediction;
+use crate::cache;
 use crate::classes;
-use crate::lift::{self, GaussianLabels, LabelMaps, LiftInputs};
+use crate::idmap::LabelMaps;
+use crate::prediction::{GaussianLabels, PredictionError};
+use crate::vote::{VoteError, VoteInputs, VoteOptions};
 use crate::progress::Bar;
 use model::{Active, Grads, Model, Optimiser, PixelBatch};
 use pool::Pool;
@@ -47,9 +51,13 @@ use pool::Pool;
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
     #[error(transparent)]
-    Cache(#[from] crate::render::cache::CacheError),
+    Cache(#[from] crate::cache::CacheError),
     #[error(transparent)]
-    Lift(#[from] lift::LiftError),
+    Vote(#[from] VoteError),
+    #[error(transparent)]
+    Prediction(#[from] PredictionError),
+    #[error(transparent)]
+    IdMap(#[from] crate::idmap::IdMapError),
     #[error(transparent)]
     Npy(#[from] crate::npy::NpyError),
     #[error(transparent)]
@@ -194,13 +202,13 @@ impl TrainOptions {
         if self.window == 0 {
             return bad("window must be positive".into());
         }
-        lift::LiftOptions { gamma: self.gamma }.validate()?;
+        VoteOptions { gamma: self.gamma }.validate()?;
         Ok(())
     }
 }
 
-/// The stage reads what `lift` reads.
-pub type TrainInputs<'a> = LiftInputs<'a>;
+/// The stage reads what the vote reads.
+pub type TrainInputs<'a> = VoteInputs<'a>;
 
 /// One window of the loss history.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -662,9 +670,7 @@ pub fn run(
     let classes = pool.class_ids.len();
     if classes < 2 {
         return Err(TrainError::Labels {
-            path: match inp.maps {
-                LabelMaps::City(d) | LabelMaps::Fused(d) => d.clone(),
-            },
+            path: inp.maps.dir().to_path_buf(),
             why: "the training views' label maps hold no label (only background)".into(),
         });
     }
@@ -715,7 +721,7 @@ pub fn run(
             )
         })
         .collect();
-    lift::write_gaussians(
+    prediction::write_gaussians(
         inp.ply,
         out,
         &GaussianLabels {
@@ -738,7 +744,7 @@ pub fn run(
         let c = inp.cache.load(&v.stem())?;
         let c = pool::truncate(&c, opts.top_k);
         let (cm, lm) = if opts.rule == predict::Rule::Gaussians {
-            lift::predict(&c, &label, &class)
+            cache::predict(&c, &label, &class)
         } else {
             let cand = if opts.exact_predict {
                 (0..classes as u32).collect()
@@ -748,7 +754,7 @@ pub fn run(
             let by_class = opts.rule == predict::Rule::Class;
             predict::predict_view(&c, &model, &cand, &pool.class_ids, &eval_class, by_class)
         };
-        lift::write_prediction(out, &v.stem(), c.width, c.height, &cm, &lm)?;
+        prediction::write_prediction(out, &v.stem(), c.width, c.height, &cm, &lm)?;
     }
     timing.predict_s = t.elapsed().as_secs_f64();
 

@@ -11,9 +11,10 @@ use std::time::Instant;
 use super::TrainError;
 use crate::camera::View;
 use crate::labels::LabelTable;
-use crate::lift::{self, LabelMaps, Votes};
+use crate::idmap::LabelMaps;
+use crate::vote::{self, Votes};
 use crate::progress::Bar;
-use crate::render::cache::{Cache, ViewContrib};
+use crate::cache::{Cache, ViewContrib};
 
 /// Pixels of one view kept for training.
 #[derive(Debug, Clone, Default)]
@@ -60,7 +61,7 @@ pub struct Pool {
     /// Label id per class (`class_ids[0] = −1`).
     pub class_ids: Vec<i32>,
     /// The vote's assignment per Gaussian.
-    pub vote: Vec<lift::Assignment>,
+    pub vote: Vec<vote::Assignment>,
     pub load_s: f64,
     pub vote_s: f64,
 }
@@ -137,7 +138,7 @@ fn extract(stem: &str, c: &ViewContrib, labels: &[i32], stride: usize) -> ViewPo
     for y in (0..c.height).step_by(stride) {
         for x in (0..c.width).step_by(stride) {
             let p = y * c.width + x;
-            if c.alpha[p] < crate::render::DEPTH_MIN_ALPHA {
+            if c.alpha[p] < crate::cache::DEPTH_MIN_ALPHA {
                 continue;
             }
             let (ids, ws) = c.pixel(p);
@@ -215,7 +216,7 @@ pub fn build(
     }
     bar.finish();
     let t = Instant::now();
-    let vote = lift::assign(&votes, n, gamma);
+    let vote = vote::assign(&votes, n, gamma);
     vote_s += t.elapsed().as_secs_f64();
     drop(votes);
     let mut class_ids = vec![-1];
@@ -250,7 +251,7 @@ pub fn build(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::Contributions;
+    use crate::cache::Contributions;
 
     #[test]
     fn truncation_keeps_the_largest_weights_in_depth_order() {

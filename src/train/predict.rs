@@ -8,7 +8,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::model::{CHUNK, Model};
-use crate::render::cache::ViewContrib;
+use crate::cache::ViewContrib;
 
 /// `classifier.json` (DESIGN.md): the linear classifier over the label ids, background first.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -118,7 +118,7 @@ pub enum Rule {
     /// metric scores instead of the single strongest label.
     Class,
     /// Each Gaussian's own label (the classifier's argmax of its code) rendered with the vote's
-    /// pixel rule (`lift::predict`): the plurality of weight per class, the untracked mass
+    /// pixel rule (`cache::predict`): the plurality of weight per class, the untracked mass
     /// counting for "none".
     Gaussians,
 }
@@ -175,7 +175,7 @@ pub fn predict_view(
             let mut z = e.dot(&w.t());
             let mut out = Vec::with_capacity(b - a);
             for (r, mut zr) in z.rows_mut().into_iter().enumerate() {
-                if c.alpha[a + r] < crate::render::DEPTH_MIN_ALPHA {
+                if c.alpha[a + r] < crate::cache::DEPTH_MIN_ALPHA {
                     out.push((-1, -1));
                     continue;
                 }
@@ -212,7 +212,7 @@ pub fn predict_view(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::Contributions;
+    use crate::cache::Contributions;
 
     /// One pixel whose rendered code gives logits (bg −5, wall A 1, wall B 1, wall C 1,
     /// window 1.5): the strongest single label is the window, but the three wall labels hold

@@ -10,7 +10,7 @@ use glam::DVec3;
 use gs4city::camera::{Camera, Distortion, Intrinsics, Pose, View};
 use gs4city::masks::{KeptMask, write_kept};
 use gs4city::render::PreparedScene;
-use gs4city::render::cache::{self, Cache, CacheOptions};
+use gs4city::cache::{self, Cache, CacheOptions};
 use gs4city::sam::SamMask;
 use gs4city::splat::{Gaussians, PlyEncoding, write_ply};
 use ndarray::Array2;

@@ -1,0 +1,778 @@
+//! The contributions cache: per view, the per-pixel lists of `(Gaussian id, α·T)` of the
+//! rasterizer (top-k by weight, in depth order, plus the dropped mass), the accumulated alpha and
+//! the expected depth — rendered once, stored one file per view, and reused by every stage that
+//! needs to know which Gaussians make a pixel (masks, associate, lift, train, query). Geometry is
+//! frozen, so a rendered per-Gaussian quantity `x` at pixel `p` is exactly
+//! `Σ_{i ∈ list(p)} w_i·x_i` (+ the truncated rest): forward passes are sparse products with
+//! these lists and backward passes their transposes.
+//!
+//! File `<stem>.contrib` (little endian):
+//! ```text
+//! magic "GS4CCONT", u32 version = 2, u32 width, u32 height, u32 k (0 = all lists kept),
+//! u64 gaussians (ids are < this), u64 entries, 24 reserved bytes         → 64-byte header
+//! u16 count[H·W]                           list length per pixel (row-major; ≤ 2344 by T_min)
+//! u32 id[entries], f16 weight[entries]     the lists, pixel after pixel, each in depth order
+//! f32 residual[H·W]                        α·T mass not kept (top-k), 0 otherwise
+//! f32 alpha[H·W]                           1 − T
+//! f32 depth[H·W]                           expected depth Σw·z/(1−T); NaN where 1−T < 1e-3
+//! ```
+//! Weights are IEEE half floats (round to nearest even; relative error ≤ 2⁻¹¹, absolute
+//! ≤ 3·10⁻⁸ below 2⁻¹⁴): 6 instead of 8 bytes per entry, 22 % of the street cache, with the
+//! error measured in BENCHMARKS.md. The top-k choice is made on the f32 weights before
+//! rounding, and the renderer (`render::cache::contrib`) rounds them at once, so a view in memory equals the
+//! view read back. Version 1 files (f32 weights) are still read.
+//!
+//! A format: it imports no stage; the render stage builds the files (`render::cache`).
+//!
+//! Reading checks every size against the file length before allocating, the counts against `k`
+//! and `entries`, ids against `gaussians`, and weights for finiteness.
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::fsutil;
+
+const MAGIC: &[u8; 8] = b"GS4CCONT";
+const VERSION: u32 = 2;
+/// Bytes per stored weight of each readable version.
+fn weight_bytes(version: u32) -> Option<usize> {
+    match version {
+        1 => Some(4),
+        2 => Some(2),
+        _ => None,
+    }
+}
+const HEADER: usize = 64;
+/// Longest list a pixel can have: `(1 − 1/255)^n ≥ 1e-4` ⇒ `n ≤ 2344`.
+pub const MAX_LIST: usize = 2344;
+
+/// Writes `v` in little-endian byte order.
+fn put<T: bytemuck::Pod + ToLe, W: std::io::Write>(w: &mut W, v: &[T]) -> std::io::Result<()> {
+    if cfg!(target_endian = "little") {
+        w.write_all(bytemuck::cast_slice(v))
+    } else {
+        v.iter()
+            .try_for_each(|x| w.write_all(bytemuck::bytes_of(&x.to_le())))
+    }
+}
+
+/// Reads little-endian values into `out`, reusing its memory (any alignment of `bytes`; its
+/// length is a multiple of the size).
+fn take_into<T: bytemuck::Pod + ToLe>(bytes: &[u8], out: &mut Vec<T>) {
+    out.resize(bytes.len() / std::mem::size_of::<T>(), T::zeroed());
+    bytemuck::cast_slice_mut::<T, u8>(out).copy_from_slice(bytes);
+    if cfg!(target_endian = "big") {
+        out.iter_mut().for_each(|x| *x = x.to_le());
+    }
+}
+
+/// Byte order swap to/from little endian (its own inverse).
+trait ToLe: Copy {
+    fn to_le(self) -> Self;
+}
+impl ToLe for u16 {
+    fn to_le(self) -> Self {
+        u16::to_le(self)
+    }
+}
+impl ToLe for u32 {
+    fn to_le(self) -> Self {
+        u32::to_le(self)
+    }
+}
+impl ToLe for half::f16 {
+    fn to_le(self) -> Self {
+        half::f16::from_bits(self.to_bits().to_le())
+    }
+}
+impl ToLe for f32 {
+    fn to_le(self) -> Self {
+        f32::from_bits(self.to_bits().to_le())
+    }
+}
+
+/// `depth` is NaN where the accumulated alpha is below this.
+pub const DEPTH_MIN_ALPHA: f32 = 1e-3;
+
+/// Per-pixel contribution lists in CSR form (row-major pixels).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Contributions {
+    /// `offsets[p]..offsets[p + 1]` are pixel `p`'s entries; `H·W + 1` values.
+    pub offsets: Vec<u64>,
+    /// Gaussian indices, in depth order per pixel.
+    pub ids: Vec<u32>,
+    /// Weights `α·T`.
+    pub weights: Vec<f32>,
+    /// Per pixel, the weight mass not kept (top-k mode; zeros otherwise).
+    pub residual: Vec<f32>,
+}
+
+impl Contributions {
+    /// Pixel `p`'s `(ids, weights)`.
+    pub fn pixel(&self, p: usize) -> (&[u32], &[f32]) {
+        let (a, b) = (self.offsets[p] as usize, self.offsets[p + 1] as usize);
+        (&self.ids[a..b], &self.weights[a..b])
+    }
+}
+
+/// Errors of reading a cache file.
+#[derive(Debug, thiserror::Error)]
+pub enum CacheError {
+    #[error("cannot read {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path}: not a gs4city contributions file: {why}")]
+    Format { path: PathBuf, why: String },
+    #[error("{path}: built for {found} Gaussians, the scene has {expected}: the cache is stale")]
+    Stale {
+        path: PathBuf,
+        found: usize,
+        expected: usize,
+    },
+    #[error(transparent)]
+    Fs(#[from] fsutil::FsError),
+}
+
+/// One view's contributions (see the module docs).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewContrib {
+    pub width: usize,
+    pub height: usize,
+    /// List length bound (0 = complete lists).
+    pub k: usize,
+    /// Number of Gaussians of the scene the lists index.
+    pub gaussians: usize,
+    pub lists: Contributions,
+    /// Accumulated alpha `1 − T` per pixel.
+    pub alpha: Vec<f32>,
+    /// Expected depth per pixel, NaN where the alpha is below `DEPTH_MIN_ALPHA`.
+    pub depth: Vec<f32>,
+}
+
+impl ViewContrib {
+    /// Pixel `p`'s `(ids, weights)`.
+    #[inline]
+    pub fn pixel(&self, p: usize) -> (&[u32], &[f32]) {
+        self.lists.pixel(p)
+    }
+
+    /// Number of pixels.
+    pub fn pixels(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// Number of `(id, weight)` entries.
+    pub fn entries(&self) -> usize {
+        self.lists.ids.len()
+    }
+
+    /// Bytes of the file this view is stored in.
+    pub fn file_bytes(&self) -> usize {
+        HEADER + self.pixels() * (2 + 12) + self.entries() * 6
+    }
+
+    /// The file's bytes.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let mut b = Vec::with_capacity(self.file_bytes());
+        self.write_to(&mut b).expect("writing to a Vec cannot fail");
+        b
+    }
+
+    /// Streams the file's bytes into `w` (no copy of the whole file in memory).
+    pub fn write_to<W: std::io::Write>(&self, w: &mut W) -> std::io::Result<()> {
+        let mut head = Vec::with_capacity(HEADER);
+        head.extend_from_slice(MAGIC);
+        for v in [
+            VERSION,
+            self.width as u32,
+            self.height as u32,
+            self.k as u32,
+        ] {
+            head.extend_from_slice(&v.to_le_bytes());
+        }
+        head.extend_from_slice(&(self.gaussians as u64).to_le_bytes());
+        head.extend_from_slice(&(self.entries() as u64).to_le_bytes());
+        head.resize(HEADER, 0);
+        w.write_all(&head)?;
+        let counts: Vec<u16> = self
+            .lists
+            .offsets
+            .windows(2)
+            .map(|w| (w[1] - w[0]) as u16)
+            .collect();
+        debug_assert_eq!(counts.len(), self.pixels());
+        put(w, &counts)?;
+        put(w, &self.lists.ids)?;
+        let halves: Vec<half::f16> =
+            half::vec::HalfFloatVecExt::from_f32_slice(&self.lists.weights);
+        put(w, &halves)?;
+        for arr in [&self.lists.residual, &self.alpha, &self.depth] {
+            put(w, arr)?;
+        }
+        Ok(())
+    }
+
+    /// Writes the view atomically.
+    pub fn write(&self, path: &Path) -> Result<(), CacheError> {
+        fsutil::atomic_write(path, |w| {
+            self.write_to(w).map_err(|err| {
+                CacheError::Fs(fsutil::FsError::Write {
+                    path: path.to_path_buf(),
+                    err,
+                })
+            })
+        })
+    }
+
+    /// An empty view (0×0), to be filled by [`ViewContrib::read_into`].
+    pub fn empty() -> Self {
+        ViewContrib {
+            width: 0,
+            height: 0,
+            k: 0,
+            gaussians: 0,
+            lists: Contributions::default(),
+            alpha: Vec::new(),
+            depth: Vec::new(),
+        }
+    }
+
+    /// Reads and checks a file; `expect_gaussians` (when given) must equal the stored count.
+    pub fn read(path: &Path, expect_gaussians: Option<usize>) -> Result<Self, CacheError> {
+        let mut v = Self::empty();
+        v.read_into(path, expect_gaussians, &mut Vec::new())?;
+        Ok(v)
+    }
+
+    /// [`ViewContrib::read`] into `self`, reusing its vectors and the file buffer `buf`: a stage
+    /// that reads view after view allocates (and page-faults) once instead of per view. On an
+    /// error `self` holds unspecified content.
+    pub fn read_into(
+        &mut self,
+        path: &Path,
+        expect_gaussians: Option<usize>,
+        buf: &mut Vec<u8>,
+    ) -> Result<(), CacheError> {
+        use std::io::Read;
+        let err = |source| CacheError::Read {
+            path: path.to_path_buf(),
+            source,
+        };
+        buf.clear();
+        std::fs::File::open(path)
+            .and_then(|mut f| f.read_to_end(buf))
+            .map_err(err)?;
+        self.parse_into(path, buf)?;
+        if let Some(n) = expect_gaussians
+            && n != self.gaussians
+        {
+            return Err(CacheError::Stale {
+                path: path.to_path_buf(),
+                found: self.gaussians,
+                expected: n,
+            });
+        }
+        Ok(())
+    }
+
+    /// Parses and checks a file's bytes (`path` names it in errors).
+    pub fn from_bytes(path: &Path, b: &[u8]) -> Result<Self, CacheError> {
+        let mut v = Self::empty();
+        v.parse_into(path, b)?;
+        Ok(v)
+    }
+
+    /// Parses and checks a file's bytes into `self`, reusing its vectors.
+    fn parse_into(&mut self, path: &Path, b: &[u8]) -> Result<(), CacheError> {
+        let bad = |why: String| CacheError::Format {
+            path: path.to_path_buf(),
+            why,
+        };
+        if b.len() < HEADER || &b[..8] != MAGIC {
+            return Err(bad("missing the GS4CCONT header".into()));
+        }
+        let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().expect("4 bytes"));
+        let u64_at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().expect("8 bytes"));
+        let version = u32_at(8);
+        let wb = weight_bytes(version)
+            .ok_or_else(|| bad(format!("version {version}, this program reads 1 and 2")))?
+            as u64;
+        let (width, height, k) = (
+            u32_at(12) as usize,
+            u32_at(16) as usize,
+            u32_at(20) as usize,
+        );
+        let (gaussians, entries) = (u64_at(24), u64_at(32));
+        let npx = (width as u64)
+            .checked_mul(height as u64)
+            .filter(|&n| n > 0 && n <= 1 << 31)
+            .ok_or_else(|| bad(format!("image size {width}×{height} is empty or too large")))?;
+        let expected = (HEADER as u64)
+            .checked_add(npx * 14)
+            .and_then(|x| entries.checked_mul(4 + wb).and_then(|e| x.checked_add(e)));
+        if expected != Some(b.len() as u64) {
+            return Err(bad(format!(
+                "{} bytes, the header ({width}×{height}, {entries} entries) needs {}",
+                b.len(),
+                expected.map_or("more than 2^64".to_string(), |e| e.to_string())
+            )));
+        }
+        if k > MAX_LIST || gaussians > u64::from(u32::MAX) + 1 {
+            return Err(bad(format!(
+                "k = {k} or {gaussians} Gaussians out of range"
+            )));
+        }
+        let (npx, entries) = (npx as usize, entries as usize);
+        let mut o = HEADER;
+        let bound = if k == 0 { MAX_LIST } else { k };
+        let offsets = &mut self.lists.offsets;
+        offsets.clear();
+        offsets.reserve(npx + 1);
+        offsets.push(0u64);
+        for (p, c) in b[o..o + 2 * npx].chunks_exact(2).enumerate() {
+            let n = usize::from(u16::from_le_bytes([c[0], c[1]]));
+            if n > bound {
+                return Err(bad(format!("pixel {p} has {n} entries, more than {bound}")));
+            }
+            offsets.push(offsets[p] + n as u64);
+        }
+        o += 2 * npx;
+        if offsets[npx] != entries as u64 {
+            return Err(bad(format!(
+                "the per-pixel counts sum to {}, the header says {entries}",
+                offsets[npx]
+            )));
+        }
+        let ids = &mut self.lists.ids;
+        take_into(&b[o..o + 4 * entries], ids);
+        if let Some(id) = ids.iter().find(|&&id| u64::from(id) >= gaussians) {
+            return Err(bad(format!(
+                "Gaussian id {id} is not below the Gaussian count {gaussians}"
+            )));
+        }
+        o += 4 * entries;
+        let weights = &mut self.lists.weights;
+        if wb == 4 {
+            take_into(&b[o..o + 4 * entries], weights);
+        } else {
+            // Through a small buffer: no second entries-long allocation.
+            weights.resize(entries, 0.0);
+            let mut halves = [half::f16::ZERO; 4096];
+            for (src, dst) in b[o..o + 2 * entries]
+                .chunks(2 * halves.len())
+                .zip(weights.chunks_mut(halves.len()))
+            {
+                let h = &mut halves[..dst.len()];
+                bytemuck::cast_slice_mut::<half::f16, u8>(h).copy_from_slice(src);
+                if cfg!(target_endian = "big") {
+                    h.iter_mut().for_each(|x| *x = x.to_le());
+                }
+                half::slice::HalfFloatSliceExt::convert_to_f32_slice(&h[..], dst);
+            }
+        }
+        o += wb as usize * entries;
+        for v in [&mut self.lists.residual, &mut self.alpha, &mut self.depth] {
+            take_into(&b[o..o + 4 * npx], v);
+            o += 4 * npx;
+        }
+        let unit = |x: &f32| x.is_finite() && (0.0..=1.0 + 1e-5).contains(x);
+        if let Some(i) = self.lists.weights.iter().position(|w| !unit(w)) {
+            return Err(bad(format!("weight {i} is {}", self.lists.weights[i])));
+        }
+        if let Some(p) = self
+            .lists
+            .residual
+            .iter()
+            .zip(&self.alpha)
+            .position(|(r, a)| !unit(r) || !unit(a))
+        {
+            return Err(bad(format!("pixel {p}: residual or alpha outside [0, 1]")));
+        }
+        self.width = width;
+        self.height = height;
+        self.k = k;
+        self.gaussians = gaussians as usize;
+        Ok(())
+    }
+}
+
+/// Rounds weights to the stored precision (IEEE half, nearest even).
+pub fn round_weights(w: &mut [f32]) {
+    let h: Vec<half::f16> = half::vec::HalfFloatVecExt::from_f32_slice(w);
+    half::slice::HalfFloatSliceExt::convert_to_f32_slice(&h[..], w);
+}
+
+/// Options of the cache.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CacheOptions {
+    /// List length per pixel (0 = all contributions).
+    pub top_k: usize,
+}
+
+impl Default for CacheOptions {
+    fn default() -> Self {
+        CacheOptions { top_k: 16 }
+    }
+}
+
+/// One cached view in [`CacheSummary`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CachedView {
+    pub name: String,
+    pub stem: String,
+    pub width: usize,
+    pub height: usize,
+    pub entries: u64,
+    /// Mean list length over pixels.
+    pub mean_list: f64,
+    /// Mean over covered pixels (alpha ≥ 1e-3) of the dropped mass `residual / alpha`.
+    pub mean_dropped_share: f64,
+    /// Fraction of pixels with alpha ≥ 1e-3.
+    pub coverage: f64,
+    pub bytes: u64,
+    pub render_s: f64,
+}
+
+/// The cache stage's `summary.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CacheSummary {
+    pub gaussians: usize,
+    pub skipped_gaussians: usize,
+    pub options: CacheOptions,
+    pub views: Vec<CachedView>,
+    pub bytes: u64,
+    pub render_s: f64,
+    pub write_s: f64,
+    pub total_s: f64,
+}
+
+impl CacheSummary {
+    /// The summary of a cache folder.
+    pub fn read(dir: &Path) -> Result<Self, fsutil::FsError> {
+        fsutil::read_json(&dir.join("summary.json"))
+    }
+}
+
+/// Path of view `stem`'s cache file in `dir`.
+pub fn cache_file(dir: &Path, stem: &str) -> PathBuf {
+    dir.join(format!("{stem}.contrib"))
+}
+
+/// A cache folder (written by the render stage, `render::cache::build`).
+#[derive(Debug, Clone)]
+pub struct Cache {
+    pub dir: PathBuf,
+    pub summary: CacheSummary,
+}
+
+impl Cache {
+    /// Opens a cache folder (reads its summary).
+    pub fn open(dir: &Path) -> Result<Cache, CacheError> {
+        Ok(Cache {
+            dir: dir.to_path_buf(),
+            summary: CacheSummary::read(dir)?,
+        })
+    }
+
+    /// Loads view `stem`, checking it indexes the cache's Gaussians.
+    pub fn load(&self, stem: &str) -> Result<ViewContrib, CacheError> {
+        ViewContrib::read(&cache_file(&self.dir, stem), Some(self.summary.gaussians))
+    }
+
+    /// [`Cache::load`] into `view`, reusing its memory and the file buffer `buf`.
+    pub fn load_into(
+        &self,
+        stem: &str,
+        view: &mut ViewContrib,
+        buf: &mut Vec<u8>,
+    ) -> Result<(), CacheError> {
+        view.read_into(
+            &cache_file(&self.dir, stem),
+            Some(self.summary.gaussians),
+            buf,
+        )
+    }
+
+    /// Whether the cache holds view `stem`.
+    pub fn has(&self, stem: &str) -> bool {
+        self.summary.views.iter().any(|v| v.stem == stem)
+    }
+}
+
+// The pixel prediction rules: what a cached view predicts per pixel from per-Gaussian values.
+
+/// Per-pixel predicted label and class maps of one cached view: for each pixel the label whose
+/// Gaussians carry the largest weight, where `1 − α`, the truncated mass and unlabelled
+/// Gaussians vote for −1; the class map is computed the same way over the Gaussians' classes.
+/// Returns `(class map, label map)`.
+pub fn predict(c: &ViewContrib, label: &[i32], class: &[i32]) -> (Vec<i32>, Vec<i32>) {
+    (0..c.pixels())
+        .into_par_iter()
+        .with_min_len(4096)
+        .map_init(Vec::new, |groups, p| {
+            (
+                pixel_value(c, p, class, groups),
+                pixel_value(c, p, label, groups),
+            )
+        })
+        .unzip()
+}
+
+/// One map of [`predict`]: per pixel, the value of `of` (per Gaussian) whose Gaussians carry
+/// the largest weight, or −1 where `1 − α`, the truncated mass and the Gaussians valued −1
+/// weigh more. Pixels are independent (parallel; the sums per pixel run in a fixed order).
+pub fn predict_map(c: &ViewContrib, of: &[i32]) -> Vec<i32> {
+    let mut out = Vec::new();
+    (0..c.pixels())
+        .into_par_iter()
+        .with_min_len(4096)
+        .map_init(Vec::new, |groups, p| pixel_value(c, p, of, groups))
+        .collect_into_vec(&mut out);
+    out
+}
+
+/// Pixel `p`'s value of `of` by [`pick_label`]; `groups` is scratch.
+fn pixel_value(c: &ViewContrib, p: usize, of: &[i32], groups: &mut Vec<(i32, f32)>) -> i32 {
+    let (ids, ws) = c.pixel(p);
+    let rest = 1.0 - c.alpha[p] + c.lists.residual[p];
+    pick_label(
+        ids.iter().zip(ws).map(|(&g, &w)| (of[g as usize], w)),
+        groups,
+        rest,
+    )
+}
+
+/// The label of one pixel from its `(label, weight)` entries in list order: the label with the
+/// largest summed weight (sums in list order), ties to the smaller label; −1 when `rest` plus
+/// the entries labelled −1 weigh at least as much. `groups` is scratch.
+fn pick_label(
+    entries: impl Iterator<Item = (i32, f32)>,
+    groups: &mut Vec<(i32, f32)>,
+    rest: f32,
+) -> i32 {
+    groups.clear();
+    // From −0.0, as `Iterator::sum` does.
+    let mut background = -0.0f32;
+    for (l, w) in entries {
+        if l == -1 {
+            background += w;
+            continue;
+        }
+        match groups.iter_mut().find(|g| g.0 == l) {
+            Some(g) => g.1 += w,
+            None => groups.push((l, 0.0 + w)),
+        }
+    }
+    let mut best = (-1, rest + background);
+    for &(l, w) in groups.iter() {
+        if w > best.1 || (w == best.1 && best.0 != -1 && l < best.0) {
+            best = (l, w);
+        }
+    }
+    best.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The rule written the plain way: sort by label, sum each run, keep the first strict
+    /// maximum over the background (rest + the −1 entries).
+    fn pick_by_sorting(entries: &[(i32, f32)], rest: f32) -> i32 {
+        let mut acc = entries.to_vec();
+        acc.sort_by_key(|x| x.0);
+        let bg: f32 = acc.iter().filter(|x| x.0 == -1).map(|x| x.1).sum();
+        let mut best = (-1, rest + bg);
+        for chunk in acc.chunk_by(|a, b| a.0 == b.0) {
+            let w = chunk.iter().fold(0.0f32, |s, x| s + x.1);
+            if chunk[0].0 != -1 && w > best.1 {
+                best = (chunk[0].0, w);
+            }
+        }
+        best.0
+    }
+
+    #[test]
+    fn pixel_labels_match_the_sorting_rule_including_ties() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let mut groups = Vec::new();
+        for case in 0..20_000 {
+            let n = rng.random_range(0..20);
+            // Few labels and weights from a small set: many exact ties.
+            let entries: Vec<(i32, f32)> = (0..n)
+                .map(|_| {
+                    (
+                        rng.random_range(-1..4) * if case % 2 == 0 { 1 } else { 1000 },
+                        [0.125f32, 0.25, 0.1, 0.3, 0.0][rng.random_range(0..5)],
+                    )
+                })
+                .collect();
+            let rest = [0.0f32, 0.25, 0.5, 1.0][rng.random_range(0..4)];
+            assert_eq!(
+                pick_label(entries.iter().copied(), &mut groups, rest),
+                pick_by_sorting(&entries, rest),
+                "{entries:?} rest {rest}"
+            );
+        }
+    }
+
+
+    fn sample() -> ViewContrib {
+        ViewContrib {
+            width: 3,
+            height: 2,
+            k: 2,
+            gaussians: 10,
+            lists: Contributions {
+                offsets: vec![0, 2, 2, 3, 5, 5, 6],
+                ids: vec![1, 4, 9, 0, 2, 7],
+                // Exact in half precision (binary fractions with few bits).
+                weights: vec![0.5, 0.25, 0.875, 0.125, 0.1875, 0.3125],
+                residual: vec![0.1, 0.0, 0.0, 0.05, 0.0, 0.0],
+            },
+            alpha: vec![0.85, 0.0, 0.9, 0.35, 0.0, 0.3],
+            depth: vec![2.0, f32::NAN, 3.0, 1.0, f32::NAN, 5.0],
+        }
+    }
+
+    #[test]
+    fn round_trip_is_exact_and_sizes_agree() {
+        let v = sample();
+        let b = v.to_bytes();
+        assert_eq!(b.len(), v.file_bytes());
+        let r = ViewContrib::from_bytes(Path::new("x"), &b).unwrap();
+        assert_eq!(r.lists, v.lists);
+        assert_eq!(r.alpha, v.alpha);
+        assert_eq!(r.depth[0], 2.0);
+        assert!(r.depth[1].is_nan());
+        assert_eq!(r.pixel(3), (&[0u32, 2][..], &[0.125f32, 0.1875][..]));
+    }
+
+    #[test]
+    fn weights_are_stored_in_half_precision_within_its_bound() {
+        let mut v = sample();
+        let w = [0.9f32, 0.1, 0.3, 1e-6, 0.99, 3.3e-3];
+        v.lists.weights = w.to_vec();
+        let r = ViewContrib::from_bytes(Path::new("x"), &v.to_bytes()).unwrap();
+        for (&a, &b) in w.iter().zip(&r.lists.weights) {
+            let (a, b) = (f64::from(a), f64::from(b));
+            // Half: 11 significant bits above 2^-14, a fixed step of 2^-24 below.
+            let bound = if a >= 2f64.powi(-14) {
+                a * 2f64.powi(-11)
+            } else {
+                2f64.powi(-25)
+            };
+            assert!((a - b).abs() <= bound, "{a} stored as {b}");
+        }
+        assert_ne!(r.lists.weights[0], 0.9, "rounded, not kept as f32");
+        // Rounding what is already rounded changes nothing: render rounds once, at once.
+        let mut again = r.lists.weights.clone();
+        round_weights(&mut again);
+        assert_eq!(again, r.lists.weights);
+    }
+
+    #[test]
+    fn reading_into_a_reused_view_equals_a_fresh_read() {
+        let dir = std::env::temp_dir().join(format!("gs4c-reuse-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let big = sample();
+        // A smaller view: every reused vector must shrink to it.
+        let small = ViewContrib {
+            width: 1,
+            height: 2,
+            k: 2,
+            gaussians: 10,
+            lists: Contributions {
+                offsets: vec![0, 1, 1],
+                ids: vec![3],
+                weights: vec![0.75],
+                residual: vec![0.0, 0.0],
+            },
+            alpha: vec![0.75, 0.0],
+            depth: vec![4.0, f32::NAN],
+        };
+        let (pb, ps) = (dir.join("big.contrib"), dir.join("small.contrib"));
+        big.write(&pb).unwrap();
+        small.write(&ps).unwrap();
+        let (mut v, mut buf) = (ViewContrib::empty(), Vec::new());
+        v.read_into(&pb, Some(10), &mut buf).unwrap();
+        assert_eq!(v.lists, big.lists);
+        v.read_into(&ps, Some(10), &mut buf).unwrap();
+        let fresh = ViewContrib::read(&ps, Some(10)).unwrap();
+        assert_eq!((v.width, v.height, v.k), (1, 2, 2));
+        assert_eq!(v.lists, fresh.lists);
+        assert_eq!(v.lists, small.lists);
+        assert_eq!(v.alpha, small.alpha);
+        assert!(v.depth[1].is_nan() && v.depth[0] == 4.0 && v.depth.len() == 2);
+        // A stale count is refused after a successful read, too.
+        assert!(matches!(
+            v.read_into(&pb, Some(11), &mut buf),
+            Err(CacheError::Stale { .. })
+        ));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn version_1_files_with_f32_weights_are_still_read() {
+        let v = sample();
+        let mut b = Vec::new();
+        b.extend_from_slice(b"GS4CCONT");
+        for x in [1u32, 3, 2, 2] {
+            b.extend_from_slice(&x.to_le_bytes());
+        }
+        b.extend_from_slice(&10u64.to_le_bytes());
+        b.extend_from_slice(&6u64.to_le_bytes());
+        b.resize(64, 0);
+        for n in [2u16, 0, 1, 2, 0, 1] {
+            b.extend_from_slice(&n.to_le_bytes());
+        }
+        for id in [1u32, 4, 9, 0, 2, 7] {
+            b.extend_from_slice(&id.to_le_bytes());
+        }
+        let weights = [0.9f32, 0.1, 0.3, 1e-6, 0.99, 3.3e-3];
+        for arr in [&weights[..], &v.lists.residual, &v.alpha, &v.depth] {
+            for x in arr {
+                b.extend_from_slice(&x.to_le_bytes());
+            }
+        }
+        let r = ViewContrib::from_bytes(Path::new("old.contrib"), &b).unwrap();
+        assert_eq!(
+            r.lists.weights, weights,
+            "f32 weights of version 1 are exact"
+        );
+        assert_eq!(r.lists.ids, v.lists.ids);
+        assert_eq!(r.alpha, v.alpha);
+    }
+
+    #[test]
+    fn damaged_files_are_refused_with_a_reason() {
+        let b = sample().to_bytes();
+        let e = |b: &[u8]| {
+            ViewContrib::from_bytes(Path::new("v.contrib"), b)
+                .unwrap_err()
+                .to_string()
+        };
+        assert!(e(&b[..b.len() - 1]).contains("bytes"), "truncated");
+        let mut x = b.clone();
+        x[0] = b'X';
+        assert!(e(&x).contains("header"));
+        let mut x = b.clone();
+        x[HEADER] = 3; // pixel 0 claims 3 entries > k = 2
+        assert!(e(&x).contains("more than 2"));
+        let mut x = b.clone();
+        let id0 = HEADER + 12;
+        x[id0..id0 + 4].copy_from_slice(&10u32.to_le_bytes());
+        assert!(e(&x).contains("not below"));
+        let mut x = b.clone();
+        x[12..16].copy_from_slice(&u32::MAX.to_le_bytes()); // width: size check before allocating
+        assert!(e(&x).contains("bytes") || e(&x).contains("too large"));
+        let mut x = b;
+        let w0 = HEADER + 12 + 24;
+        x[w0..w0 + 2].copy_from_slice(&0x7e00u16.to_le_bytes()); // a half NaN
+        assert!(e(&x).contains("weight 0"));
+    }
+}

@@ -1,0 +1,320 @@
+//! The closed-form weighted vote (FlashSplat) that lifts per-view label maps into the Gaussians
+//! through the contributions cache — the algorithm of the `lift` stage, also the initialisation
+//! of identity learning (`train`). A library module: it imports formats only.
+//!
+//! For every Gaussian `i` and label `n` (a label id, or background −1 for pixels no label
+//! covers) the vote accumulates `A[i][n] = Σ_views Σ_pixels α_i·T_i · [M(p) = n]` (in `f64`) over
+//! the pixels whose cached list holds the Gaussian. The votes are L1-normalised per Gaussian, a
+//! bias `γ` is added to the background entry, and the argmax is taken (ties: the smaller id).
+//! Views are processed in name order and pixels in raster order, so the result does not depend
+//! on the thread count.
+use std::collections::HashMap;
+use std::path::Path;
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use crate::cache::{Cache, CacheError, ViewContrib};
+use crate::camera::View;
+use crate::labels::LabelTable;
+use crate::semantics::Entity;
+use crate::idmap::{IdMapError, LabelMaps};
+use crate::progress::Bar;
+
+/// Errors of the vote.
+#[derive(Debug, thiserror::Error)]
+pub enum VoteError {
+    #[error(transparent)]
+    Cache(#[from] CacheError),
+    #[error(transparent)]
+    IdMap(#[from] IdMapError),
+    #[error("invalid option: {0}")]
+    Options(String),
+}
+
+/// Everything a vote-based stage reads (`lift`, and `train`, which starts from the vote).
+pub struct VoteInputs<'a> {
+    /// The pre-trained 3DGS PLY the cache was built from.
+    pub ply: &'a Path,
+    pub cache: &'a Cache,
+    pub train: &'a [View],
+    pub test: &'a [View],
+    pub maps: &'a LabelMaps,
+    pub labels: &'a LabelTable,
+    pub entities: &'a [Entity],
+}
+
+/// The background label (a pixel no label covers).
+pub const BACKGROUND: i32 = -1;
+
+/// Options of the vote (the lift stage's options).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct VoteOptions {
+    /// Background bias γ ∈ [−1, 1], added to the normalised background vote.
+    pub gamma: f32,
+}
+
+impl Default for VoteOptions {
+    fn default() -> Self {
+        VoteOptions { gamma: 0.0 }
+    }
+}
+
+impl VoteOptions {
+    /// Checks γ.
+    pub fn validate(&self) -> Result<(), VoteError> {
+        if !(-1.0..=1.0).contains(&self.gamma) {
+            return Err(VoteError::Options(format!(
+                "gamma must lie in [-1, 1], got {}",
+                self.gamma
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Per-Gaussian label votes: a few inline slots, and per Gaussian an overflow list for the
+/// rare rest (looked up by Gaussian, so reading all votes stays linear). Weights are `f64`:
+/// a Gaussian can collect millions of small terms.
+pub struct Votes {
+    slots: Vec<[(i32, f64); SLOTS]>,
+    overflow: HashMap<u32, Vec<(i32, f64)>>,
+}
+
+const SLOTS: usize = 4;
+const EMPTY: i32 = i32::MIN;
+
+impl Votes {
+    /// Empty votes for `n` Gaussians.
+    pub fn new(n: usize) -> Votes {
+        Votes {
+            slots: vec![[(EMPTY, 0.0); SLOTS]; n],
+            overflow: HashMap::new(),
+        }
+    }
+
+    /// Adds weight `w` for `label` to Gaussian `g`.
+    #[inline]
+    pub fn add(&mut self, g: u32, label: i32, w: f64) {
+        let s = &mut self.slots[g as usize];
+        for slot in s.iter_mut() {
+            if slot.0 == label {
+                slot.1 += w;
+                return;
+            }
+            if slot.0 == EMPTY {
+                *slot = (label, w);
+                return;
+            }
+        }
+        let list = self.overflow.entry(g).or_default();
+        match list.iter_mut().find(|e| e.0 == label) {
+            Some(e) => e.1 += w,
+            None => list.push((label, w)),
+        }
+    }
+
+    /// All `(label, weight)` votes of Gaussian `g`, in a deterministic order.
+    pub fn of(&self, g: u32) -> Vec<(i32, f64)> {
+        let mut v: Vec<(i32, f64)> = self.slots[g as usize]
+            .iter()
+            .copied()
+            .filter(|s| s.0 != EMPTY)
+            .collect();
+        if v.len() == SLOTS
+            && let Some(extra) = self.overflow.get(&g)
+        {
+            let mut extra = extra.clone();
+            extra.sort_by_key(|e| e.0);
+            v.extend(extra);
+        }
+        v
+    }
+
+    /// Votes kept in overflow lists.
+    pub fn overflow_votes(&self) -> usize {
+        self.overflow.values().map(Vec::len).sum()
+    }
+
+    /// Accumulates one view: `labels[p]` is pixel `p`'s label (or background).
+    pub fn accumulate(&mut self, c: &ViewContrib, labels: &[i32]) {
+        for (p, &label) in labels.iter().enumerate() {
+            let (ids, ws) = c.pixel(p);
+            for (&g, &w) in ids.iter().zip(ws) {
+                self.add(g, label, f64::from(w));
+            }
+        }
+    }
+}
+
+/// The label chosen for one Gaussian.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Assignment {
+    /// Label id, or −1 (background, or no vote at all).
+    pub label: i32,
+    /// Normalised vote of the winning label (0 when there was no vote).
+    pub confidence: f32,
+    /// Total vote weight.
+    pub weight: f64,
+}
+
+/// Chooses, per Gaussian, the label with the largest normalised vote (+γ on background).
+/// Ties go to the smaller label id.
+pub fn assign(votes: &Votes, n: usize, gamma: f32) -> Vec<Assignment> {
+    let gamma = f64::from(gamma);
+    (0..n as u32)
+        .map(|g| {
+            let v = votes.of(g);
+            let total: f64 = v.iter().map(|x| x.1).sum();
+            if total <= 0.0 {
+                return Assignment {
+                    label: BACKGROUND,
+                    confidence: 0.0,
+                    weight: 0.0,
+                };
+            }
+            let mut best = (BACKGROUND, f64::NEG_INFINITY);
+            let mut bg_seen = false;
+            let mut consider = |label: i32, score: f64| {
+                if score > best.1 || (score == best.1 && label < best.0) {
+                    best = (label, score);
+                }
+            };
+            for &(label, w) in &v {
+                let mut s = w / total;
+                if label == BACKGROUND {
+                    s += gamma;
+                    bg_seen = true;
+                }
+                consider(label, s);
+            }
+            if !bg_seen {
+                consider(BACKGROUND, gamma);
+            }
+            let conf = v
+                .iter()
+                .find(|x| x.0 == best.0)
+                .map_or(0.0, |x| x.1 / total);
+            Assignment {
+                label: best.0,
+                confidence: conf as f32,
+                weight: total,
+            }
+        })
+        .collect()
+}
+
+/// Timings and counts of a vote.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct VoteStats {
+    pub views: usize,
+    pub load_s: f64,
+    pub accumulate_s: f64,
+    pub assign_s: f64,
+    pub contributions: u64,
+    pub overflow_votes: usize,
+}
+
+/// Runs the vote over `views` (their cached lists and label maps); one assignment per Gaussian.
+pub fn vote(
+    cache: &Cache,
+    views: &[View],
+    maps: &LabelMaps,
+    opts: &VoteOptions,
+) -> Result<(Vec<Assignment>, VoteStats), VoteError> {
+    opts.validate()?;
+    let n = cache.summary.gaussians;
+    let mut votes = Votes::new(n);
+    let mut stats = VoteStats {
+        views: views.len(),
+        ..Default::default()
+    };
+    let bar = Bar::new("lift", views.len() as u64, "views");
+    // Two slots, reused: view i is accumulated from one while view i + 1 is loaded into the
+    // other (the accumulation order stays fixed; the memory is allocated once).
+    let load = |v: &View, s: &mut (ViewContrib, Vec<u8>, Vec<i32>)| -> Result<(), VoteError> {
+        cache.load_into(&v.stem(), &mut s.0, &mut s.1)?;
+        s.2 = maps.read(&v.stem(), s.0.width, s.0.height)?;
+        Ok(())
+    };
+    let mut slots: [(ViewContrib, Vec<u8>, Vec<i32>); 2] =
+        std::array::from_fn(|_| (ViewContrib::empty(), Vec::new(), Vec::new()));
+    let t = Instant::now();
+    if let Some(v) = views.first() {
+        load(v, &mut slots[0])?;
+    }
+    stats.load_s += t.elapsed().as_secs_f64();
+    for i in 0..views.len() {
+        let [a, b] = &mut slots;
+        let (cur, next) = if i % 2 == 0 { (a, b) } else { (b, a) };
+        let (loaded, acc_s) = rayon::join(
+            || views.get(i + 1).map(|v| load(v, next)).transpose(),
+            || {
+                let t = Instant::now();
+                votes.accumulate(&cur.0, &cur.2);
+                t.elapsed().as_secs_f64()
+            },
+        );
+        stats.accumulate_s += acc_s;
+        stats.contributions += cur.0.entries() as u64;
+        loaded?;
+        bar.inc(1);
+    }
+    bar.finish();
+    let t = Instant::now();
+    let a = assign(&votes, n, opts.gamma);
+    stats.assign_s = t.elapsed().as_secs_f64();
+    stats.overflow_votes = votes.overflow_votes();
+    Ok((a, stats))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn vote_argmax_normalisation_and_gamma() {
+        let mut v = Votes::new(3);
+        v.add(0, 7, 0.6);
+        v.add(0, BACKGROUND, 0.4);
+        v.add(1, 7, 0.3);
+        v.add(1, BACKGROUND, 0.5);
+        for l in 10..20 {
+            v.add(2, l, 0.01 * f64::from(l)); // overflows the inline slots
+        }
+        let a = assign(&v, 3, 0.0);
+        assert_eq!(a[0].label, 7);
+        assert!((a[0].confidence - 0.6).abs() < 1e-6);
+        assert_eq!(a[1].label, BACKGROUND);
+        assert_eq!(a[2].label, 19, "overflow votes count");
+        // γ = 0.3 moves Gaussian 0 (0.6 vs 0.4 + 0.3) to background; γ = −0.3 moves Gaussian 1 to 7.
+        assert_eq!(assign(&v, 3, 0.3)[0].label, BACKGROUND);
+        assert_eq!(assign(&v, 3, -0.3)[1].label, 7);
+        // No vote at all: background with zero confidence.
+        let empty = assign(&Votes::new(1), 1, 0.0);
+        assert_eq!(
+            empty[0],
+            Assignment {
+                label: BACKGROUND,
+                confidence: 0.0,
+                weight: 0.0
+            }
+        );
+    }
+
+    #[test]
+    fn long_sums_stay_exact_in_f64() {
+        // 30 million votes of 1e-7 (= 3.0) for one label and one vote of 2.5 for another: a
+        // sequential f32 sum stalls at 2.0 (NumPy `cumsum(dtype=float32)` gives 2.0), which
+        // would hand the Gaussian to the wrong label.
+        let mut v = Votes::new(1);
+        for _ in 0..30_000_000 {
+            v.add(0, 1, 1e-7);
+        }
+        v.add(0, 2, 2.5);
+        let votes = v.of(0);
+        let w1 = votes.iter().find(|x| x.0 == 1).unwrap().1;
+        assert!((w1 - 3.0).abs() < 1e-6, "{w1}");
+        assert_eq!(assign(&v, 1, 0.0)[0].label, 1);
+    }
+}
