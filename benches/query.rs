@@ -15,7 +15,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use gs4city::query::text::{self, LabelFeatures, TextOptions};
+use gs4city::selection::text::{self, LabelFeatures, TextOptions};
 use gs4city::query::{self, MaskRule, QueryOptions, Request, SemanticRun, Views};
 use gs4city::{sam, synth};
 

@@ -449,12 +449,7 @@ pub struct CacheSummary {
     pub total_s: f64,
 }
 
-impl CacheSummary {
-    /// The summary of a cache folder.
-    pub fn read(dir: &Path) -> Result<Self, fsutil::FsError> {
-        fsutil::read_json(&dir.join("summary.json"))
-    }
-}
+impl crate::layout::Summary for CacheSummary {}
 
 /// Path of view `stem`'s cache file in `dir`.
 pub fn cache_file(dir: &Path, stem: &str) -> PathBuf {
@@ -473,7 +468,7 @@ impl Cache {
     pub fn open(dir: &Path) -> Result<Cache, CacheError> {
         Ok(Cache {
             dir: dir.to_path_buf(),
-            summary: CacheSummary::read(dir)?,
+            summary: crate::layout::Summary::read(dir)?,
         })
     }
 

@@ -135,7 +135,7 @@ pub fn read_any_map(path: &Path) -> Result<([usize; 2], Vec<i32>), IdMapError> {
         [h, w] if h > 0 && w > 0 => Ok(([h, w], data)),
         _ => Err(IdMapError::Shape {
             path: path.to_path_buf(),
-            why: format!("shape {shape:?}, expected a non-empty int32 H×W map"),
+            why: format!("expected a non-empty 2-D H×W class map, found shape {shape:?}"),
         }),
     }
 }

@@ -24,6 +24,7 @@ pub mod groups;
 pub mod idmap;
 pub mod imageio;
 pub mod labels;
+pub mod layout;
 pub mod lift;
 
 pub mod maskfile;
@@ -41,6 +42,7 @@ pub mod report;
 pub mod run;
 pub mod sam;
 pub mod scene;
+pub mod selection;
 pub mod semantics;
 pub mod splat;
 pub mod synth;

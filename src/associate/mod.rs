@@ -309,12 +309,7 @@ pub struct AssociateSummary {
     pub warnings: Vec<String>,
 }
 
-impl AssociateSummary {
-    /// Reads an associate folder's `summary.json`.
-    pub fn read(dir: &Path) -> Result<Self, FsError> {
-        fsutil::read_json(&dir.join("summary.json"))
-    }
-}
+impl crate::layout::Summary for AssociateSummary {}
 
 /// One view's kept masks (checked against the image size) and their composite.
 struct MaskView {
@@ -1278,7 +1273,7 @@ pub fn run(
         },
         warnings,
     };
-    fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::layout::Summary::write(&summary, out)?;
     crate::progress::done(
         "associate",
         &format!(

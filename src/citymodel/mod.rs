@@ -283,12 +283,7 @@ pub struct CitymodelSummary {
     pub timing: CitymodelTiming,
 }
 
-impl CitymodelSummary {
-    /// Reads a citymodel folder's `summary.json`.
-    pub fn read(dir: &Path) -> Result<Self, FsError> {
-        fsutil::read_json(&dir.join("summary.json"))
-    }
-}
+impl crate::layout::Summary for CitymodelSummary {}
 
 /// Per-polygon triangulation outcome, for cross-checks (e.g. against CGAL).
 #[derive(Debug, Clone)]
@@ -669,7 +664,7 @@ pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
     out.mesh.write_ply(&out_dir.join("mesh.ply"))?;
     semantics::write(&out_dir.join("semantics.json"), &out.entities)?;
     fsutil::write_json(&out_dir.join("alignment.json"), &out.alignment.to_json())?;
-    fsutil::write_json(&out_dir.join("summary.json"), &out.summary)?;
+    crate::layout::Summary::write(&out.summary, out_dir)?;
     crate::progress::done(
         "citymodel",
         &format!(

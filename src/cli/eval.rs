@@ -1,13 +1,14 @@
 //! The `eval` subcommand: arguments and the call into [`crate::eval::run`]; writes
 //! `metrics.json` and `summary.json` and prints the paper-shaped tables. With `--by-query R`,
-//! the paper's query-driven evaluation of a run instead ([`crate::query::evaluate`]):
+//! the paper's query-driven evaluation of a run instead ([`crate::eval::by_query`]):
 //! `metrics_by_query.json`, printed next to the run's class-map evaluation.
 use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 
 use crate::eval;
-use crate::query::{self, MaskRule, Mode, TextOptions};
+use crate::layout::{Mode, Summary};
+use crate::selection::{MaskRule, TextOptions};
 
 /// Evaluate predicted class maps against ground truth (coarse and fine, paper and dataset level).
 #[derive(Debug, Clone, clap::Args, serde::Serialize)]
@@ -96,7 +97,7 @@ fn run_by_query(args: &EvalArgs, run: &std::path::Path) -> anyhow::Result<()> {
         );
     }
     let cache = sr.cache()?;
-    let r = query::evaluate::evaluate(
+    let r = eval::by_query::evaluate(
         &sr,
         &cache,
         &gt,

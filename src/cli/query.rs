@@ -6,9 +6,9 @@ use anyhow::{Context, bail};
 use clap::Args;
 
 use crate::citygml::Level;
-use crate::query::{
-    self, Expr, MaskRule, Mode, QueryOptions, Request, SemanticRun, TextOptions, Views,
-};
+use crate::layout::Mode;
+use crate::query::{self, QueryOptions, Request, Views};
+use crate::selection::{self, Expr, MaskRule, SemanticRun, TextOptions};
 
 #[derive(Debug, Args)]
 pub struct QueryArgs {
@@ -64,7 +64,7 @@ pub struct QueryArgs {
     #[arg(long, default_value = "argmax")]
     pub mask_rule: MaskRule,
     /// Text queries: a label matches when its relevancy is at least this.
-    #[arg(long, default_value_t = query::text::MIN_RELEVANCY)]
+    #[arg(long, default_value_t = selection::text::MIN_RELEVANCY)]
     pub min_relevancy: f64,
     /// Text queries: softmax temperature of the relevancy.
     #[arg(long, default_value_t = 10.0)]
@@ -118,8 +118,8 @@ fn parse_level(s: &str, flag: &str) -> anyhow::Result<Level> {
 }
 
 fn parse(what: &str, text: &str) -> anyhow::Result<Expr> {
-    query::grammar::parse(text).map_err(|source| {
-        anyhow::Error::new(query::QueryError::Parse {
+    selection::grammar::parse(text).map_err(|source| {
+        anyhow::Error::new(selection::SelectionError::Parse {
             what: what.to_string(),
             text: text.to_string(),
             source,
@@ -148,7 +148,7 @@ fn request(a: &QueryArgs) -> anyhow::Result<Request> {
     let q = |s: &str| format!("\"{}\"", s.replace('\\', "\\\\").replace('"', "\\\""));
     let mut parts: Vec<Expr> = Vec::new();
     if let Some(c) = &a.class {
-        parts.push(Expr::Term(query::Term::Class {
+        parts.push(Expr::Term(selection::Term::Class {
             name: c.clone(),
             column: 1,
         }));
@@ -161,13 +161,13 @@ fn request(a: &QueryArgs) -> anyhow::Result<Request> {
         parts.push(parse("--attr", c)?);
     }
     if let Some(id) = &a.id {
-        parts.push(Expr::Term(query::Term::Within {
+        parts.push(Expr::Term(selection::Term::Within {
             id: id.clone(),
             column: 1,
         }));
     }
     if let Some(t) = &a.text {
-        parts.push(Expr::Term(query::Term::Text {
+        parts.push(Expr::Term(selection::Term::Text {
             prompt: t.clone(),
             column: 1,
         }));

@@ -9,6 +9,7 @@
 //! prediction of another size is resized to the GT size by nearest neighbour (pixel
 //! centres: source index `⌊(2i+1)·src/(2·dst)⌋`, as PIL `Image.NEAREST`), with a warning.
 //! The metric arithmetic lives in [`metrics`] (pure functions over arrays).
+pub mod by_query;
 pub mod metrics;
 
 use std::collections::BTreeMap;
@@ -19,15 +20,15 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::classes::{self, FINE};
+use crate::idmap;
 use crate::fsutil::{self, FsError};
-use crate::npy::{self, NpyError};
+use crate::npy::NpyError;
 pub use metrics::{
     BinaryCounts, BinaryMetrics, ClassMetrics, Counts, DatasetMetrics, FineMetrics, Mean, N_FINE,
     OTHER_COL, PaperMetrics, accumulate, dataset, fine_metrics, paper,
 };
 
-/// The file name suffix of class maps (GT and prediction).
-pub const SUFFIX: &str = ".class.npy";
+use crate::idmap::CLASS_SUFFIX as SUFFIX;
 
 /// Errors of the evaluation stage.
 #[derive(Debug, thiserror::Error)]
@@ -36,13 +37,12 @@ pub enum EvalError {
     Npy(#[from] NpyError),
     #[error(transparent)]
     Fs(#[from] FsError),
-    #[error("cannot list {path}: {source}")]
-    ReadDir {
-        path: PathBuf,
-        source: std::io::Error,
-    },
-    #[error("{path}: expected a non-empty 2-D H×W class map, found shape {shape:?}")]
-    Shape { path: PathBuf, shape: Vec<usize> },
+    #[error(transparent)]
+    IdMap(#[from] idmap::IdMapError),
+    #[error(transparent)]
+    Selection(#[from] crate::selection::SelectionError),
+    #[error(transparent)]
+    Cache(#[from] crate::cache::CacheError),
     #[error(
         "{path}: ground-truth value {value} at row {row}, column {col} is not a class id (−1..=11)"
     )]
@@ -62,34 +62,12 @@ pub enum EvalError {
 
 /// The `<stem>` → path map of the `*.class.npy` files of a folder.
 pub fn list_maps(dir: &Path) -> Result<BTreeMap<String, PathBuf>, EvalError> {
-    let rd = |source| EvalError::ReadDir {
-        path: dir.to_path_buf(),
-        source,
-    };
-    let mut out = BTreeMap::new();
-    for entry in std::fs::read_dir(dir).map_err(rd)? {
-        let entry = entry.map_err(rd)?;
-        let name = entry.file_name().to_string_lossy().into_owned();
-        if let Some(stem) = name.strip_suffix(SUFFIX)
-            && !stem.is_empty()
-            && entry.path().is_file()
-        {
-            out.insert(stem.to_string(), entry.path());
-        }
-    }
-    Ok(out)
+    Ok(idmap::list_class_maps(dir)?)
 }
 
 /// Reads an int32 H×W class map; returns `([H, W], data)`.
 pub fn load_map(path: &Path) -> Result<([usize; 2], Vec<i32>), EvalError> {
-    let (shape, data) = npy::read::<i32>(path)?;
-    match shape[..] {
-        [h, w] if h > 0 && w > 0 => Ok(([h, w], data)),
-        _ => Err(EvalError::Shape {
-            path: path.to_path_buf(),
-            shape,
-        }),
-    }
+    Ok(idmap::read_any_map(path)?)
 }
 
 /// Nearest-neighbour resize of a `src` (H×W) map to `dst` (H×W), sampling at pixel
@@ -637,12 +615,7 @@ pub struct EvalSummary {
     pub warnings: Vec<String>,
 }
 
-impl EvalSummary {
-    /// Reads an eval folder's `summary.json`.
-    pub fn read(dir: &Path) -> Result<Self, fsutil::FsError> {
-        fsutil::read_json(&dir.join("summary.json"))
-    }
-}
+impl crate::layout::Summary for EvalSummary {}
 
 /// Evaluates `pred` against `gt`, writes `<out>/metrics.json` and `<out>/summary.json`;
 /// returns the summary and the full metrics.
@@ -713,7 +686,7 @@ pub fn run_for(
         seconds: t0.elapsed().as_secs_f64(),
         warnings: ev.warnings.clone(),
     };
-    fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::layout::Summary::write(&summary, out)?;
     crate::progress::done(
         "eval",
         &format!(

@@ -130,12 +130,7 @@ pub struct FuseSummary {
     pub warnings: Vec<String>,
 }
 
-impl FuseSummary {
-    /// Reads a fuse folder's `summary.json`.
-    pub fn read(dir: &Path) -> Result<Self, FsError> {
-        fsutil::read_json(&dir.join("summary.json"))
-    }
-}
+impl crate::layout::Summary for FuseSummary {}
 
 /// What one view yields.
 struct ViewOut {
@@ -438,7 +433,7 @@ pub fn run(inp: &FuseInputs<'_>, opts: &FuseOptions, out: &Path) -> Result<FuseS
     for w in &summary.warnings {
         log::warn!("fuse: {w}");
     }
-    fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::layout::Summary::write(&summary, out)?;
     crate::progress::done(
         "fuse",
         &format!(

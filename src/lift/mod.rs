@@ -75,12 +75,7 @@ pub struct LiftSummary {
     pub timing: LiftTiming,
 }
 
-impl LiftSummary {
-    /// Reads a lift folder's `summary.json`.
-    pub fn read(dir: &Path) -> Result<Self, crate::fsutil::FsError> {
-        crate::fsutil::read_json(&dir.join("summary.json"))
-    }
-}
+impl crate::layout::Summary for LiftSummary {}
 
 /// Runs the stage: the vote over the training views, `gaussians.npy`, `semantic.ply`, the
 /// test-view predictions, and `summary.json` (last).
@@ -152,7 +147,7 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
             total_s: t0.elapsed().as_secs_f64(),
         },
     };
-    crate::fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::layout::Summary::write(&summary, out)?;
     crate::progress::done(
         "lift",
         &format!(

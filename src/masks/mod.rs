@@ -348,12 +348,7 @@ pub struct MasksSummary {
     pub timing: MasksTiming,
 }
 
-impl MasksSummary {
-    /// Reads a masks folder's `summary.json`.
-    pub fn read(dir: &Path) -> Result<Self, FsError> {
-        fsutil::read_json(&dir.join("summary.json"))
-    }
-}
+impl crate::layout::Summary for MasksSummary {}
 
 /// The file name of a view's overlay.
 pub fn overlay_name(stem: &str) -> String {
@@ -535,7 +530,7 @@ pub fn run(
         views,
         timing,
     };
-    fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::layout::Summary::write(&summary, out)?;
     crate::progress::done(
         "masks",
         &format!(

@@ -4,50 +4,37 @@
 //! or a picked pixel — and their outputs: `selection.json`, per-view masks through the
 //! contributions cache, `extract.ply` / `remove.ply`, and the semantic table as SQLite.
 //!
-//! * [`grammar`] parses `--where` expressions (one-line errors with the column),
-//! * [`select`] evaluates them over the entities and the label table,
-//! * [`text`] scores per-label features against a prompt (LERF/LangSplat relevancy),
-//! * [`masks`], [`export`], [`sqlite`] write the outputs,
-//! * [`evaluate`] is the paper's query-driven evaluation (`gs4city eval --by-query`).
-pub mod evaluate;
+//! The selections themselves are the library [`crate::selection`]; this stage writes their
+//! outputs: [`export`] (PLY split), [`sqlite`] (the semantic table), `selection.json` and the
+//! per-view masks. The paper's query-driven evaluation is `eval::by_query`.
 pub mod export;
-pub mod grammar;
-pub mod masks;
-pub mod select;
 pub mod sqlite;
-pub mod text;
-pub mod units;
 
-use std::collections::{BTreeMap, HashMap, HashSet};
-use std::path::{Path, PathBuf};
+use std::collections::{BTreeMap, HashSet};
+use std::path::Path;
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
-use crate::citygml::Level;
-use crate::semantics::{self, Entity};
-use crate::labels::LabelTable;
+use ndarray::Array3;
+
 use crate::cache::{Cache, CacheError};
-use crate::sam::Prompts;
-use crate::scene::{Scene, SceneError};
+use crate::citygml::Level;
+use crate::layout::Mode;
+use crate::scene::SceneError;
+use crate::selection::{
+    self, Expr, MaskRule, SelectionError, SemanticRun, TextMatch, TextOptions, Term, masks,
+    select, text,
+};
+use crate::semantics;
 use crate::{classes, fsutil, npy};
 pub use export::ExportCounts;
-pub use grammar::{Expr, ParseError, Term};
-pub use masks::MaskRule;
-pub use select::SelectError;
-pub use text::{LabelFeatures, TextMatch, TextOptions};
 
 /// Errors of the query stage.
 #[derive(Debug, thiserror::Error)]
 pub enum QueryError {
-    #[error("{what} `{text}`: {source}")]
-    Parse {
-        what: String,
-        text: String,
-        source: ParseError,
-    },
-    #[error("selection `{text}`: {source}")]
-    Select { text: String, source: SelectError },
+    #[error(transparent)]
+    Selection(#[from] SelectionError),
     #[error("{0}")]
     Inputs(String),
     #[error(transparent)]
@@ -72,220 +59,27 @@ pub enum QueryError {
     Text(#[from] text::TextError),
     #[error(transparent)]
     Sam(#[from] crate::sam::SamError),
-    #[error(transparent)]
-    Eval(#[from] crate::eval::EvalError),
 }
 
-/// Which per-Gaussian labels a query reads.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Mode {
-    /// The closed-form vote (`R/lift/gaussians.npy`).
-    Vote,
-    /// Identity learning (`R/train/gaussians.npy`).
-    Learned,
-}
-
-impl std::str::FromStr for Mode {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Mode, String> {
-        match s {
-            "vote" => Ok(Mode::Vote),
-            "learned" => Ok(Mode::Learned),
-            _ => Err(format!("{s:?} is not one of vote, learned")),
-        }
-    }
-}
-
-impl Mode {
-    /// The run subfolder that holds this mode's `gaussians.npy` and test-view predictions.
-    pub fn dir(self) -> &'static str {
-        match self {
-            Mode::Vote => "lift",
-            Mode::Learned => "train",
-        }
-    }
-
-    /// `learned` when the run has `train/gaussians.npy`, else `vote`.
-    pub fn default_for(run: &Path) -> Mode {
-        if run.join("train/gaussians.npy").is_file() {
-            Mode::Learned
-        } else {
-            Mode::Vote
-        }
-    }
-}
-
-/// A finished run, loaded for queries: the semantic table, the label table, one label per
-/// Gaussian, and (where present) per-label features and prompts.
-pub struct SemanticRun {
-    pub run: PathBuf,
-    pub scene: Scene,
-    pub mode: Mode,
-    pub entities: Vec<Entity>,
-    pub labels: LabelTable,
-    /// Where the label table came from (`fuse/labels.json`, or the city table).
-    pub labels_source: String,
-    /// Label id per Gaussian (−1 none).
-    pub label_of: Vec<i32>,
-    /// Class id per Gaussian (−1 none).
-    pub class_of: Vec<i32>,
-    /// Row of each label id in `labels.labels`.
-    pub row_of: HashMap<i32, usize>,
-    pub features: Option<LabelFeatures>,
-    pub features_path: PathBuf,
-    pub prompts: Option<(Prompts, PathBuf)>,
-    /// Seconds spent loading.
-    pub load_s: f64,
-}
-
-impl SemanticRun {
-    /// Loads run folder `run` made from scene folder `scene`, in `mode` (default:
-    /// [`Mode::default_for`]).
-    pub fn open(run: &Path, scene: &Path, mode: Option<Mode>) -> Result<SemanticRun, QueryError> {
-        let t0 = Instant::now();
-        let mode = mode.unwrap_or_else(|| Mode::default_for(run));
-        let scene = Scene::open(scene)?;
-        let entities = semantics::read(&run.join("citymodel/semantics.json"))?;
-        let fuse = run.join("fuse");
-        let (labels, labels_source) = if fuse.is_dir() {
-            let p = fuse.join("labels.json");
-            (LabelTable::read(&p)?, p.display().to_string())
-        } else {
-            (
-                LabelTable::city(&entities, &classes::table(&entities))?,
-                "city labels of semantics.json (the run has no fuse/)".to_string(),
-            )
-        };
-        let gpath = run.join(mode.dir()).join("gaussians.npy");
-        if !gpath.is_file() {
-            return Err(QueryError::Inputs(format!(
-                "{}: missing; the run has no {} labels (--mode {})",
-                gpath.display(),
-                mode.dir(),
-                match mode {
-                    Mode::Vote => "vote",
-                    Mode::Learned => "learned",
-                }
-            )));
-        }
-        let (shape, table) = npy::read::<i32>(&gpath)?;
-        if shape.len() != 2 || shape[1] != 2 {
-            return Err(QueryError::Inputs(format!(
-                "{}: expected int32 N×2 (label, class), found shape {shape:?}",
-                gpath.display()
-            )));
-        }
-        let label_of: Vec<i32> = table.chunks(2).map(|r| r[0]).collect();
-        let class_of: Vec<i32> = table.chunks(2).map(|r| r[1]).collect();
-        let row_of: HashMap<i32, usize> = labels
-            .labels
-            .iter()
-            .enumerate()
-            .map(|(i, l)| (l.id, i))
-            .collect();
-        if let Some(g) = label_of
-            .iter()
-            .position(|l| *l != -1 && !row_of.contains_key(l))
-        {
-            return Err(QueryError::Inputs(format!(
-                "{}: Gaussian {g} has label {}, which the label table ({labels_source}) does not list",
-                gpath.display(),
-                label_of[g]
-            )));
-        }
-        let features_path = fuse.join("label_features.npy");
-        let features = if features_path.is_file() {
-            Some(LabelFeatures::read(&features_path, labels.labels.len())?)
-        } else {
-            None
-        };
-        let prompts = match scene.prompts_file() {
-            Some(p) => Some((crate::sam::read_prompts_json(&p)?, p)),
-            None => None,
-        };
-        Ok(SemanticRun {
-            run: run.to_path_buf(),
-            scene,
-            mode,
-            entities,
-            labels,
-            labels_source,
-            label_of,
-            class_of,
-            row_of,
-            features,
-            features_path,
-            prompts,
-            load_s: t0.elapsed().as_secs_f64(),
-        })
-    }
-
-    /// The contributions cache of the run (`R/render`), checked against the Gaussian count.
-    pub fn cache(&self) -> Result<Cache, QueryError> {
-        let dir = self.run.join("render");
-        let c = Cache::open(&dir)?;
-        if c.summary.gaussians != self.label_of.len() {
-            return Err(QueryError::Inputs(format!(
-                "{}: the cache indexes {} Gaussians, {}/gaussians.npy labels {}",
-                dir.display(),
-                c.summary.gaussians,
-                self.mode.dir(),
-                self.label_of.len()
-            )));
-        }
-        Ok(c)
-    }
-
-    /// The stems of the test views: those with a prediction `<stem>.class.npy` in the mode's folder.
-    pub fn test_views(&self) -> Result<Vec<String>, QueryError> {
-        Ok(crate::eval::list_maps(&self.run.join(self.mode.dir()))?
-            .into_keys()
-            .collect())
-    }
-
-    /// The selection context of [`select::evaluate`].
-    pub fn context(&self, text: TextOptions) -> select::Context<'_> {
-        select::Context {
-            entities: &self.entities,
-            labels: &self.labels,
-            features: self.features.as_ref(),
-            prompts: self.prompts.as_ref().map(|(p, f)| (p, f.as_path())),
-            features_path: self.features_path.clone(),
-            text,
-        }
-    }
-
-    /// Parses `text` (`what` names the flag in errors) and evaluates it.
-    pub fn select_text(
-        &self,
-        what: &str,
-        text: &str,
-        opts: TextOptions,
-    ) -> Result<(Expr, select::Selected), QueryError> {
-        let expr = grammar::parse(text).map_err(|source| QueryError::Parse {
-            what: what.to_string(),
-            text: text.to_string(),
-            source,
-        })?;
-        let sel = self.select(&expr, opts)?;
-        Ok((expr, sel))
-    }
-
-    /// Evaluates a parsed selection.
-    pub fn select(&self, expr: &Expr, opts: TextOptions) -> Result<select::Selected, QueryError> {
-        let index = select::Index::new(&self.entities);
-        select::evaluate(&self.context(opts), &index, expr).map_err(|source| QueryError::Select {
-            text: expr.to_string(),
-            source,
-        })
-    }
-
-    /// Whether each Gaussian's label is among `labels`.
-    pub fn gaussian_selection(&self, labels: &[i32]) -> Vec<bool> {
-        let set: HashSet<i32> = labels.iter().copied().collect();
-        self.label_of.iter().map(|l| set.contains(l)).collect()
-    }
+/// Writes `<stem>.mask.npy` (uint8 H×W) and `<stem>.mask.png` into `out`.
+pub fn write_mask(
+    out: &Path,
+    stem: &str,
+    width: usize,
+    height: usize,
+    mask: &[u8],
+    image: Option<&Array3<u8>>,
+) -> Result<(), QueryError> {
+    crate::npy::write(
+        &out.join(format!("{stem}.mask.npy")),
+        &[height, width],
+        mask,
+    )?;
+    crate::imageio::write_png(
+        &out.join(format!("{stem}.mask.png")),
+        &selection::masks::overlay(mask, width, height, image),
+    )?;
+    Ok(())
 }
 
 /// What to select.
@@ -445,12 +239,7 @@ pub struct QuerySummary {
     pub warnings: Vec<String>,
 }
 
-impl QuerySummary {
-    /// Reads a query folder's `summary.json`.
-    pub fn read(dir: &Path) -> Result<Self, fsutil::FsError> {
-        fsutil::read_json(&dir.join("summary.json"))
-    }
-}
+impl crate::layout::Summary for QuerySummary {}
 
 /// The cached view named `name` (a stem or an image name).
 fn find_view<'c>(
@@ -704,7 +493,7 @@ pub fn run(
                 }
                 None => None,
             };
-            masks::write_mask(out, stem, c.width, c.height, &mask, image.as_ref())?;
+            write_mask(out, stem, c.width, c.height, &mask, image.as_ref())?;
             views.push(ViewCount {
                 stem: stem.clone(),
                 width: c.width,
@@ -809,7 +598,7 @@ pub fn run(
         timing,
         warnings,
     };
-    fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::layout::Summary::write(&summary, out)?;
     crate::progress::done(
         "query",
         &format!(

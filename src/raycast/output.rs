@@ -184,7 +184,7 @@ pub fn run(
         single_pass: opts.single_pass,
         per_view,
     };
-    fsutil::write_json(&out_dir.join("summary.json"), &summary)?;
+    crate::layout::Summary::write(&summary, out_dir)?;
     crate::progress::done(
         "raycast",
         &format!(
@@ -203,12 +203,7 @@ pub fn run(
     Ok(summary)
 }
 
-impl RaycastSummary {
-    /// Reads a raycast folder's `summary.json`.
-    pub fn read(dir: &Path) -> Result<Self, fsutil::FsError> {
-        fsutil::read_json(&dir.join("summary.json"))
-    }
-}
+impl crate::layout::Summary for RaycastSummary {}
 
 #[cfg(test)]
 mod tests {

@@ -160,7 +160,7 @@ pub fn build(
     summary.write_s = written;
     bar.finish();
     summary.total_s = t0.elapsed().as_secs_f64();
-    fsutil::write_json(&out_dir.join("summary.json"), &summary)?;
+    crate::layout::Summary::write(&summary, out_dir)?;
     crate::progress::done(
         "render",
         &format!(

@@ -24,7 +24,7 @@ use crate::labels::LabelTable;
 use crate::idmap::LabelMaps;
 use crate::lift::{self, LiftOptions, LiftSummary};
 use crate::masks::{self, MasksOptions, MasksSummary};
-pub use crate::query::Mode;
+pub use crate::layout::Mode;
 use crate::raycast::{self, RaycastSummary};
 use crate::cache::{self, Cache, CacheOptions, CacheSummary};
 use crate::scene::{Scene, SceneError, Split};
@@ -111,7 +111,7 @@ pub enum RunError {
     #[error(transparent)]
     Refine(#[from] crate::refine::RefineError),
     #[error(transparent)]
-    Query(#[from] crate::query::QueryError),
+    Selection(#[from] crate::selection::SelectionError),
     #[error(transparent)]
     Masks(#[from] masks::MasksError),
     #[error(transparent)]
@@ -509,8 +509,8 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
                 let (mut e, _) =
                     crate::eval::run_for(&pred_dir, gt, dir, Some(&stems), Some(mode))?;
                 // The paper's query-driven evaluation, next to the class maps'.
-                let sr = crate::query::SemanticRun::open(out, &scene.root, Some(opts.mode))?;
-                let bq = crate::query::evaluate::evaluate(
+                let sr = crate::selection::SemanticRun::open(out, &scene.root, Some(opts.mode))?;
+                let bq = crate::eval::by_query::evaluate(
                     &sr,
                     &cache,
                     gt,

@@ -265,12 +265,7 @@ pub struct TrainSummary {
     pub peak_rss_mb: Option<f64>,
 }
 
-impl TrainSummary {
-    /// Reads a train folder's `summary.json`.
-    pub fn read(dir: &Path) -> Result<Self, crate::fsutil::FsError> {
-        crate::fsutil::read_json(&dir.join("summary.json"))
-    }
-}
+impl crate::layout::Summary for TrainSummary {}
 
 /// The initial model: see the module docs. `vote_class[i]` is Gaussian `i`'s voted class
 /// (0 = background / no vote).
@@ -788,7 +783,7 @@ pub fn run(
         step_times,
         peak_rss_mb: crate::progress::peak_rss_mb(),
     };
-    crate::fsutil::write_json(&out.join("summary.json"), &summary)?;
+    crate::layout::Summary::write(&summary, out)?;
     crate::progress::done(
         "train",
         &format!(

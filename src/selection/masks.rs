@@ -9,7 +9,6 @@
 //! which the predicted map gives to the smaller label id).
 //! [`MaskRule::Majority`] (FlashSplat's novel-view masks) instead needs the selected weight to
 //! exceed half the pixel: `Σ_sel w > 1 − Σ_sel w`.
-use std::path::Path;
 
 use ndarray::Array3;
 use serde::{Deserialize, Serialize};
@@ -87,26 +86,6 @@ pub fn overlay(mask: &[u8], width: usize, height: usize, image: Option<&Array3<u
     })
 }
 
-/// Writes `<stem>.mask.npy` (uint8 H×W) and `<stem>.mask.png` into `out`.
-pub fn write_mask(
-    out: &Path,
-    stem: &str,
-    width: usize,
-    height: usize,
-    mask: &[u8],
-    image: Option<&Array3<u8>>,
-) -> Result<(), super::QueryError> {
-    crate::npy::write(
-        &out.join(format!("{stem}.mask.npy")),
-        &[height, width],
-        mask,
-    )?;
-    crate::imageio::write_png(
-        &out.join(format!("{stem}.mask.png")),
-        &overlay(mask, width, height, image),
-    )?;
-    Ok(())
-}
 
 #[cfg(test)]
 mod tests {

@@ -5,7 +5,7 @@
 //! (`text("a tree")`, `"a person"`, `"a car"`) for the others where the run has per-label
 //! features and the scene has the prompt, else their semantic labels (`category=tree` …).
 //!
-//! Masks are the query masks of [`super::masks`]; the arithmetic is the pure metric code of
+//! Masks are the query masks of [`crate::selection::masks`]; the arithmetic is the pure metric code of
 //! [`crate::eval::metrics`]: per class `c`, the prediction map is `c` on the mask and −1
 //! elsewhere, so the one-vs-rest confusion of `c` over the GT fine pixels is exactly that of the
 //! class-map evaluation with this mask as class `c`. Masks of different classes may overlap, so
@@ -15,13 +15,13 @@ use std::path::Path;
 
 use serde::Serialize;
 
-use super::{QueryError, SemanticRun, TextMatch, TextOptions, masks::MaskRule};
-use crate::classes::{self, FINE};
-use crate::eval::{
-    self, CoarseJson, Counts, DatasetJson, FineJson, ImageJson, Mean, MetricsJson, N_FINE,
+use super::{
+    CoarseJson, Counts, DatasetJson, EvalError, FineJson, ImageJson, Mean, MetricsJson, N_FINE,
     PaperJson, accumulate, dataset, fine_metrics, paper,
 };
 use crate::cache::Cache;
+use crate::classes::{self, FINE};
+use crate::selection::{MaskRule, SemanticRun, TextMatch, TextOptions};
 
 /// The selection expression of the coarse "building" mask.
 pub const BUILDING: &str = "class=Building or class=BuildingPart or category=wall or category=roof or category=window or category=door or category=ground_surface or category=installation";
@@ -57,7 +57,7 @@ pub fn class_queries(sr: &SemanticRun) -> [String; N_FINE] {
 #[derive(Debug, Clone, Serialize)]
 pub struct ByQuery {
     pub protocol: &'static str,
-    pub mode: super::Mode,
+    pub mode: crate::layout::Mode,
     pub mask_rule: MaskRule,
     /// The selection behind each mask: `building`, then each fine class.
     pub queries: BTreeMap<&'static str, String>,
@@ -87,7 +87,7 @@ fn by_class<T>(f: impl Fn(usize) -> T) -> BTreeMap<&'static str, T> {
 
 /// Fine figures of one image (or the dataset) from the per-class counts `per[k]`.
 fn fine_json(per: &[Counts; N_FINE]) -> FineJson {
-    let m: [Option<eval::ClassMetrics>; N_FINE] =
+    let m: [Option<super::ClassMetrics>; N_FINE] =
         std::array::from_fn(|k| fine_metrics(&per[k]).classes[k]);
     let ious: Vec<f64> = m.iter().flatten().map(|c| c.iou).collect();
     FineJson {
@@ -117,7 +117,7 @@ pub fn evaluate(
     stems: &[String],
     rule: MaskRule,
     text: TextOptions,
-) -> Result<ByQuery, QueryError> {
+) -> Result<ByQuery, EvalError> {
     let fine_q = class_queries(sr);
     let mut texts = Vec::new();
     let mut selections = Vec::with_capacity(1 + N_FINE);
@@ -133,10 +133,10 @@ pub fn evaluate(
         let s = sr.gaussian_selection(&sel.labels);
         gaussians.insert(name, s.iter().filter(|&&x| x).count());
         queries.insert(name, q);
-        let merged = super::masks::merged_labels(&sr.label_of, &s);
+        let merged = crate::selection::masks::merged_labels(&sr.label_of, &s);
         selections.push((s, merged));
     }
-    let gts = eval::list_maps(gt_dir)?;
+    let gts = super::list_maps(gt_dir)?;
     let mut coarse: Vec<Counts> = Vec::new();
     let mut per: Vec<[Counts; N_FINE]> = Vec::new();
     let mut images = Vec::new();
@@ -145,13 +145,13 @@ pub fn evaluate(
     for stem in stems {
         let gpath = gts
             .get(stem)
-            .ok_or_else(|| eval::EvalError::MissingGroundTruth {
+            .ok_or_else(|| EvalError::MissingGroundTruth {
                 stem: stem.clone(),
                 dir: gt_dir.to_path_buf(),
             })?;
-        let (gsize, gt) = eval::load_map(gpath)?;
+        let (gsize, gt) = super::load_map(gpath)?;
         if let Some(i) = gt.iter().position(|&v| !(-1..=11).contains(&v)) {
-            return Err(eval::EvalError::GtValue {
+            return Err(EvalError::GtValue {
                 path: gpath.clone(),
                 value: gt[i],
                 row: i / gsize[1],
@@ -162,12 +162,12 @@ pub fn evaluate(
         cache.load_into(stem, &mut c, &mut buf)?;
         let psize = [c.height, c.width];
         let pred_map = |sel: &(Vec<bool>, Vec<i32>), class: i32| -> Vec<i32> {
-            let m = super::masks::view_mask(&c, &sel.1, &sel.0, rule);
+            let m = crate::selection::masks::view_mask(&c, &sel.1, &sel.0, rule);
             let p: Vec<i32> = m.iter().map(|&x| if x != 0 { class } else { -1 }).collect();
             if psize == gsize {
                 p
             } else {
-                eval::resize_nearest(&p, psize, gsize)
+                super::resize_nearest(&p, psize, gsize)
             }
         };
         let cb = accumulate(&gt, &pred_map(&selections[0], classes::WALL));
@@ -196,7 +196,7 @@ pub fn evaluate(
     // image mIoU over the classes present in that image.
     let pc = paper(&coarse);
     let class_counts = |k: usize| -> Vec<Counts> { per.iter().map(|p| p[k].clone()).collect() };
-    let class_paper: Vec<eval::PaperMetrics> =
+    let class_paper: Vec<super::PaperMetrics> =
         (0..N_FINE).map(|k| paper(&class_counts(k))).collect();
     let image_miou: Vec<f64> = images
         .iter()
@@ -204,7 +204,7 @@ pub fn evaluate(
         .collect();
     let d_coarse = dataset(&coarse);
     let summed: [Counts; N_FINE] = std::array::from_fn(|k| dataset(&class_counts(k)).counts);
-    let mut definitions = eval::definitions();
+    let mut definitions = super::definitions();
     definitions.insert(
         "by_query",
         "Query-driven evaluation (paper section 4): coarse = the mask of the `building` selection predicted as building; each fine class c = the mask of its own selection predicted as c, -1 elsewhere; one-vs-rest counts per class as in the class-map evaluation. Masks of different classes may overlap, so there is no confusion matrix.",
@@ -246,7 +246,7 @@ pub fn evaluate(
         },
         per_image: images,
     };
-    let tables = eval::tables(&metrics);
+    let tables = super::tables(&metrics);
     Ok(ByQuery {
         protocol: "by-query",
         mode: sr.mode,
