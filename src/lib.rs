@@ -38,7 +38,6 @@ pub mod query;
 pub mod raycast;
 pub mod refine;
 pub mod render;
-pub mod report;
 pub mod run;
 pub mod sam;
 pub mod scene;

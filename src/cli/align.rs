@@ -11,8 +11,7 @@ use crate::semantics;
 use crate::alignment::{self as align, Alignment};
 use crate::citymodel;
 use crate::mesh::TriMesh;
-use crate::refine::{self, RefineInput, RefineOptions};
-use crate::splat::{self, InvalidPolicy, ReadOptions};
+use crate::refine::{self, CityFrame, RefineOptions, RefineSources};
 use crate::{colmap, fsutil};
 
 #[derive(Debug, Args)]
@@ -200,17 +199,7 @@ fn run_refine(args: &AlignArgs) -> anyhow::Result<()> {
     }
     let t0 = Instant::now();
     let city = load_city(cm_dir, args.initial.as_deref())?;
-    let t_city = t0.elapsed().as_secs_f64();
-    let t1 = Instant::now();
-    let (gaussians, report) = splat::read_ply(
-        ply,
-        &ReadOptions {
-            invalid: InvalidPolicy::Drop,
-            ..Default::default()
-        },
-    )
-    .with_context(|| format!("reading {}", ply.display()))?;
-    let t_ply = t1.elapsed().as_secs_f64();
+    let load_s = t0.elapsed().as_secs_f64();
     let centres: Option<Vec<DVec3>> = match &args.colmap {
         None => None,
         Some(dir) => {
@@ -223,38 +212,35 @@ fn run_refine(args: &AlignArgs) -> anyhow::Result<()> {
         }
     };
     // Run.
-    let input = RefineInput {
-        mesh: &city.mesh,
-        entities: &city.entities,
-        initial: &city.alignment,
-        gaussians: &gaussians,
-        camera_centres: centres.as_deref(),
-    };
-    let out = refine::refine(&input, &opts).with_context(|| {
+    let summary = refine::run(
+        &CityFrame {
+            mesh: &city.mesh,
+            entities: &city.entities,
+            initial: &city.alignment,
+            load_s,
+        },
+        RefineSources {
+            citymodel: cm_dir.clone(),
+            city_source: city.source.into(),
+            initial_alignment: Some(input_alignment.clone()),
+            ply: ply.clone(),
+            ply_report: None,
+            colmap: args.colmap.clone(),
+            cameras: None,
+        },
+        centres.as_deref(),
+        &opts,
+        &args.out,
+        &out_dir,
+    )
+    .with_context(|| {
         format!(
             "refining {} against {}",
             input_alignment.display(),
             ply.display()
         )
     })?;
-    fsutil::create_dir(&out_dir)?;
-    let mut summary = serde_json::to_value(&out)?;
-    summary["inputs"] = serde_json::json!({
-        "citymodel": cm_dir,
-        "city_source": city.source,
-        "initial_alignment": input_alignment,
-        "ply": ply,
-        "ply_report": report,
-        "colmap": args.colmap,
-        "cameras": centres.as_ref().map(|c| c.len()),
-    });
-    summary["timings"]["load_citymodel_s"] = t_city.into();
-    summary["timings"]["read_ply_s"] = t_ply.into();
-    summary["timings"]["command_s"] = t0.elapsed().as_secs_f64().into();
-    // The alignment first, the summary (completion marker) last.
-    fsutil::write_json(&args.out, &out.alignment.to_json())?;
-    fsutil::write_json(&summary_path, &summary)?;
-
+    let out = &summary.refine;
     let s = &out.selection;
     println!(
         "Gaussians: {} → opaque {} → flat {} → in range {} → sampled {}; target triangles {} ({} hidden/degenerate left out)",
@@ -292,8 +278,8 @@ fn run_refine(args: &AlignArgs) -> anyhow::Result<()> {
     }
     println!(
         "time: city model {:.2} s, PLY {:.2} s, select {:.2} s, BVH {:.2} s, ICP {:.2} s, stats {:.2} s; total {:.2} s",
-        t_city,
-        t_ply,
+        out.timings.load_citymodel_s,
+        out.timings.read_ply_s,
         out.timings.select_s,
         out.timings.bvh_s,
         out.timings.icp_s,

@@ -12,6 +12,7 @@
 mod solve;
 
 use std::collections::HashMap;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use glam::{DMat3, DVec3};
@@ -22,7 +23,7 @@ use crate::alignment::{Alignment, Similarity};
 use crate::semantics::{Class, Entity};
 use crate::embree::{CommittedScene, Device, EmbreeError, Scene};
 use crate::mesh::TriMesh;
-use crate::splat::Gaussians;
+use crate::splat::{Gaussians, InvalidPolicy, PlyReport, ReadOptions};
 use solve::{Normal7, Solution};
 
 /// Errors (and refusals) of the refinement.
@@ -34,6 +35,10 @@ pub enum RefineError {
     Mesh(String),
     #[error(transparent)]
     Embree(#[from] EmbreeError),
+    #[error(transparent)]
+    Ply(#[from] crate::splat::PlyError),
+    #[error(transparent)]
+    Fs(#[from] crate::fsutil::FsError),
     #[error(
         "only {selected} of {total} Gaussians are opaque (≥ {min_opacity}), flat and inside the cameras' range; need ≥ {needed}"
     )]
@@ -229,18 +234,6 @@ pub struct RefineInput<'a> {
     pub camera_centres: Option<&'a [DVec3]>,
 }
 
-impl<'a> RefineInput<'a> {
-    /// The input for a `citymodel` stage output (mesh, entities and the alignment it used).
-    pub fn from_citymodel(city: &'a crate::citymodel::Output, gaussians: &'a Gaussians) -> Self {
-        RefineInput {
-            mesh: &city.mesh,
-            entities: &city.entities,
-            initial: &city.alignment,
-            gaussians,
-            camera_centres: None,
-        }
-    }
-}
 
 /// Distances of the selected Gaussian centres to the city-model surface (metres; only
 /// triangles of matching orientation count, within the initial search radius).
@@ -352,6 +345,12 @@ pub struct Iteration {
 /// Wall-clock seconds per phase.
 #[derive(Debug, Clone, Serialize, Deserialize, Default)]
 pub struct Timings {
+    /// Building the city model (set by the caller of [`run`]).
+    #[serde(default)]
+    pub load_citymodel_s: f64,
+    /// Reading the PLY ([`run`]).
+    #[serde(default)]
+    pub read_ply_s: f64,
     pub select_s: f64,
     pub bvh_s: f64,
     pub icp_s: f64,
@@ -699,6 +698,88 @@ fn residual_stats(matches: &[Option<Match>], unit: f64) -> ResidualStats {
     }
 }
 
+/// Where the city model and the Gaussians of a refinement came from (its summary's `inputs`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RefineSources {
+    /// The CityGML folder or `citymodel` stage folder.
+    pub citymodel: PathBuf,
+    /// `"CityGML"` (built in memory) or `"mesh.ply"` (a citymodel stage output).
+    pub city_source: String,
+    pub initial_alignment: Option<PathBuf>,
+    pub ply: PathBuf,
+    /// What reading the PLY dropped (invalid Gaussians are dropped and counted, never fatal:
+    /// the refinement uses a subset of opaque flat Gaussians anyway).
+    pub ply_report: Option<PlyReport>,
+    pub colmap: Option<PathBuf>,
+    /// Camera centres used to drop far background Gaussians.
+    pub cameras: Option<usize>,
+}
+
+/// The stage's `summary.json`: the refinement and its inputs.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RefineSummary {
+    #[serde(flatten)]
+    pub refine: RefineOutput,
+    pub inputs: RefineSources,
+}
+
+impl crate::layout::Summary for RefineSummary {}
+
+/// The city model a refinement starts from: the mesh in the scene frame of `initial` and its
+/// semantic table (built by the `citymodel` stage; the caller brings it).
+pub struct CityFrame<'a> {
+    pub mesh: &'a TriMesh,
+    pub entities: &'a [Entity],
+    pub initial: &'a Alignment,
+    /// Seconds the caller spent building it (recorded in the timings).
+    pub load_s: f64,
+}
+
+/// The stage, as `gs4city align --refine` and `gs4city run --refine-alignment` both run it:
+/// reads the PLY (invalid Gaussians dropped and counted), refines, writes the refined alignment
+/// to `alignment_out` and then `summary.json` into `dir` (last, the completion marker).
+pub fn run(
+    city: &CityFrame<'_>,
+    mut sources: RefineSources,
+    camera_centres: Option<&[DVec3]>,
+    opts: &RefineOptions,
+    alignment_out: &Path,
+    dir: &Path,
+) -> Result<RefineSummary, RefineError> {
+    opts.validate()?;
+    let t = Instant::now();
+    let (gaussians, report) = crate::splat::read_ply(
+        &sources.ply,
+        &ReadOptions {
+            invalid: InvalidPolicy::Drop,
+            ..Default::default()
+        },
+    )?;
+    let read_ply_s = t.elapsed().as_secs_f64();
+    sources.ply_report = Some(report);
+    sources.cameras = camera_centres.map(|c| c.len());
+    let mut out = refine(
+        &RefineInput {
+            mesh: city.mesh,
+            entities: city.entities,
+            initial: city.initial,
+            gaussians: &gaussians,
+            camera_centres,
+        },
+        opts,
+    )?;
+    out.timings.read_ply_s = read_ply_s;
+    out.timings.load_citymodel_s = city.load_s;
+    crate::fsutil::create_dir(dir)?;
+    crate::fsutil::write_json(alignment_out, &out.alignment.to_json())?;
+    let summary = RefineSummary {
+        refine: out,
+        inputs: sources,
+    };
+    crate::layout::Summary::write(&summary, dir)?;
+    Ok(summary)
+}
+
 /// Runs the refinement (see the module docs). Deterministic for given inputs and options,
 /// whatever the thread count (correspondences are collected in order, sums are sequential).
 pub fn refine(input: &RefineInput, opts: &RefineOptions) -> Result<RefineOutput, RefineError> {
@@ -916,6 +997,7 @@ pub fn refine(input: &RefineInput, opts: &RefineOptions) -> Result<RefineOutput,
             icp_s: t_icp,
             stats_s: t_stats,
             total_s: t0.elapsed().as_secs_f64(),
+            ..Default::default()
         },
         options: opts.clone(),
         warnings,

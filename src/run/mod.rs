@@ -8,6 +8,7 @@
 //! them: it passes paths and typed summaries, never reads a stage's JSON by key. The run store
 //! ([`store`]) decides what is resumed and makes every stage folder appear atomically.
 pub mod store;
+pub mod report;
 
 use std::path::{Path, PathBuf};
 
@@ -107,7 +108,7 @@ pub enum RunError {
     #[error(transparent)]
     Mesh(#[from] crate::mesh::MeshError),
     #[error(transparent)]
-    Report(#[from] crate::report::ReportError),
+    Report(#[from] report::ReportError),
     #[error(transparent)]
     Refine(#[from] crate::refine::RefineError),
     #[error(transparent)]
@@ -257,29 +258,38 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
         ins.extend(scene.alignment.clone());
         ins.push(scene.ply.clone());
         ins.extend(sparse_files.iter().cloned());
-        let _r: crate::refine::RefineOutput =
+        let _r: crate::refine::RefineSummary =
             st.stage("align", &opts.refine, &ins, &[], |dir| {
+                let t = std::time::Instant::now();
                 let initial = scene
                     .alignment
                     .as_deref()
                     .map(Alignment::read)
                     .transpose()?;
                 let city = citymodel::run(&scene.gml, &citymodel::Options { alignment: initial })?;
-                let (g, _) = crate::splat::read_ply(&scene.ply, &Default::default())?;
                 let centres: Vec<glam::DVec3> =
                     views.iter().map(|v| v.camera.pose.center()).collect();
-                let out = crate::refine::refine(
-                    &crate::refine::RefineInput {
+                Ok::<_, RunError>(crate::refine::run(
+                    &crate::refine::CityFrame {
                         mesh: &city.mesh,
                         entities: &city.entities,
                         initial: &city.alignment,
-                        gaussians: &g,
-                        camera_centres: Some(&centres),
+                        load_s: t.elapsed().as_secs_f64(),
                     },
+                    crate::refine::RefineSources {
+                        citymodel: scene.root.join("citymodel"),
+                        city_source: "CityGML".into(),
+                        initial_alignment: scene.alignment.clone(),
+                        ply: scene.ply.clone(),
+                        ply_report: None,
+                        colmap: Some(scene.sparse.clone()),
+                        cameras: None,
+                    },
+                    Some(&centres),
                     &opts.refine,
-                )?;
-                fsutil::write_json(&dir.join("alignment.json"), &out.alignment.to_json())?;
-                Ok::<_, RunError>(out)
+                    &dir.join("alignment.json"),
+                    dir,
+                )?)
             })?;
         Some(st.dir("align").join("alignment.json"))
     } else {
@@ -528,7 +538,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     }
 
     // Report (rewritten every time: it lists what this invocation resumed).
-    let report = crate::report::write(&crate::report::ReportInputs {
+    let report = report::write(&report::ReportInputs {
         scene: &scene,
         out,
         views: &split.test,

@@ -105,7 +105,7 @@ pub struct ReadOptions {
 }
 
 /// What reading found besides the Gaussians.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct PlyReport {
     pub encoding: PlyEncoding,
     /// Vertices in the file.

@@ -8,7 +8,7 @@ use ndarray::Array3;
 use crate::camera::View;
 use crate::classes;
 use crate::eval::EvalSummary;
-use crate::run::StageReport;
+use super::StageReport;
 use crate::scene::Scene;
 
 /// Errors of report writing.
@@ -22,6 +22,8 @@ pub enum ReportError {
     Fs(#[from] crate::fsutil::FsError),
     #[error(transparent)]
     Colmap(#[from] crate::colmap::ColmapError),
+    #[error(transparent)]
+    IdMap(#[from] crate::idmap::IdMapError),
     #[error("{path}: {why}")]
     Data { path: PathBuf, why: String },
 }
@@ -52,14 +54,7 @@ fn hstack(panels: &[Array3<u8>]) -> Array3<u8> {
 }
 
 fn read_map(path: &Path, h: usize, w: usize) -> Result<Vec<i32>, ReportError> {
-    let (shape, data) = crate::npy::read::<i32>(path)?;
-    if shape != [h, w] {
-        return Err(ReportError::Data {
-            path: path.to_path_buf(),
-            why: format!("shape {shape:?}, expected [{h}, {w}]"),
-        });
-    }
-    Ok(data)
+    Ok(crate::idmap::read_checked(path, &[h, w], "for this view")?)
 }
 
 fn esc(s: &str) -> String {
@@ -171,11 +166,11 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
                 why: format!("image is {:?}, camera is {w}×{h}", img.dim()),
             });
         }
-        let pred = read_map(&r.predictions.join(format!("{stem}.class.npy")), h, w)?;
+        let pred = read_map(&crate::idmap::class_file(&r.predictions, &stem), h, w)?;
         let gt = match scene
             .gt
             .as_ref()
-            .map(|g| g.join(format!("{stem}.class.npy")))
+            .map(|g| crate::idmap::class_file(g, &stem))
         {
             Some(p) if p.is_file() => read_map(&p, h, w)?,
             _ => vec![-1; w * h],
