@@ -30,24 +30,13 @@ use crate::raycast::{self, RaycastSummary};
 use crate::cache::{self, Cache, CacheOptions, CacheSummary};
 use crate::scene::{Scene, SceneError, Split};
 use crate::train::{self, TrainOptions, TrainSummary};
+use crate::layout::Stage;
 use crate::render;
+use crate::vote::VoteInputs;
 use crate::{classes, colmap, fsutil};
 pub use store::StageReport;
 use store::{Store, StoreError};
 
-/// The stage folders of a run, in order.
-pub const STAGES: [&str; 10] = [
-    "align",
-    "citymodel",
-    "raycast",
-    "render",
-    "masks",
-    "associate",
-    "fuse",
-    "lift",
-    "train",
-    "eval",
-];
 
 /// What the per-Gaussian labels are learned from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -200,10 +189,38 @@ fn files_in(dir: &Path) -> Vec<PathBuf> {
     v
 }
 
-/// Runs (or resumes) every stage of the scene folder `scene_dir` into `out`.
+/// Runs (or resumes) every stage of the scene folder `scene_dir` into `out`, in this order
+/// (the only place that knows it): align (optional) → citymodel → raycast → render → masks →
+/// associate → fuse (fused supervision) → lift → train (mode learned) → eval (with `gt/`) →
+/// report.
 pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary, RunError> {
-    // Validate before anything is written.
-    store::check_out_dir(scene_dir, out, &STAGES).map_err(RunError::Refused)?;
+    let mut r = open(scene_dir, out, opts)?;
+    let alignment_file = align_step(&mut r, opts)?;
+    let cm = citymodel_step(&mut r, alignment_file.as_deref(), opts)?;
+    raycast_step(&mut r, cm.alignment.scale, opts)?;
+    let cache = render_step(&mut r, opts)?;
+    let entities = semantics::read(&r.st.dir(Stage::Citymodel).join("semantics.json"))?;
+    let sup = match opts.supervision {
+        Supervision::City => city_supervision(&mut r, &entities)?,
+        Supervision::Fused => fused_supervision(&mut r, &cache, &entities, cm.alignment.scale, opts)?,
+    };
+    let pred_dir = vote_steps(&mut r, &cache, &entities, &sup, opts)?;
+    let eval = eval_step(&mut r, &cache, &pred_dir, out, opts)?;
+    finish(r, out, opts, &pred_dir, eval, sup.masks)
+}
+
+/// What every step of a run shares.
+struct Running {
+    scene: Scene,
+    views: Vec<View>,
+    split: Split,
+    st: Store,
+    sparse_files: Vec<PathBuf>,
+}
+
+/// Validates everything before anything is written, then opens the run store.
+fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunError> {
+    store::check_out_dir(scene_dir, out, &Stage::ALL).map_err(RunError::Refused)?;
     let scene = Scene::open(scene_dir)?;
     if scene.alignment.is_none() && !opts.local_origin {
         return Err(RunError::Refused(format!(
@@ -234,7 +251,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
             "the scene has gt/ but there are no test views to evaluate (--test-every 0?)".into(),
         ));
     }
-    let mut st = Store::open(
+    let st = Store::open(
         out,
         &scene.root,
         serde_json::to_value(opts).unwrap_or_default(),
@@ -251,336 +268,359 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
         }
     }
     let sparse_files = files_in(&scene.sparse);
+    Ok(Running {
+        scene,
+        views,
+        split,
+        st,
+        sparse_files,
+    })
+}
 
-    // 0. align --refine (optional): the alignment every later stage uses
-    let alignment_file = if opts.refine_alignment {
-        let mut ins = scene.gml.clone();
-        ins.extend(scene.alignment.clone());
-        ins.push(scene.ply.clone());
-        ins.extend(sparse_files.iter().cloned());
-        let _r: crate::refine::RefineSummary =
-            st.stage("align", &opts.refine, &ins, &[], |dir| {
-                let t = std::time::Instant::now();
-                let initial = scene
-                    .alignment
-                    .as_deref()
-                    .map(Alignment::read)
-                    .transpose()?;
-                let city = citymodel::run(&scene.gml, &citymodel::Options { alignment: initial })?;
-                let centres: Vec<glam::DVec3> =
-                    views.iter().map(|v| v.camera.pose.center()).collect();
-                Ok::<_, RunError>(crate::refine::run(
-                    &crate::refine::CityFrame {
-                        mesh: &city.mesh,
-                        entities: &city.entities,
-                        initial: &city.alignment,
-                        load_s: t.elapsed().as_secs_f64(),
-                    },
-                    crate::refine::RefineSources {
-                        citymodel: scene.root.join("citymodel"),
-                        city_source: "CityGML".into(),
-                        initial_alignment: scene.alignment.clone(),
-                        ply: scene.ply.clone(),
-                        ply_report: None,
-                        colmap: Some(scene.sparse.clone()),
-                        cameras: None,
-                    },
-                    Some(&centres),
-                    &opts.refine,
-                    &dir.join("alignment.json"),
-                    dir,
-                )?)
-            })?;
-        Some(st.dir("align").join("alignment.json"))
-    } else {
-        scene.alignment.clone()
-    };
-    let upstream_cm: &[&str] = if opts.refine_alignment {
-        &["align"]
-    } else {
-        &[]
-    };
-
-    // 1. citymodel
-    let mut inputs = scene.gml.clone();
-    inputs.extend(alignment_file.clone());
-    let cm: CitymodelSummary = st.stage(
-        "citymodel",
-        &opts.local_origin,
-        &inputs,
-        upstream_cm,
-        |dir| {
-            let alignment = alignment_file.as_deref().map(Alignment::read).transpose()?;
-            let o = citymodel::run(&scene.gml, &citymodel::Options { alignment })?;
-            citymodel::write(&o, dir)?;
-            Ok::<_, RunError>(o.summary)
-        },
-    )?;
-    let cm_dir = st.dir("citymodel");
-
-    // 2. raycast (every view)
-    let ro = raycast::RaycastOptions {
-        tau: opts.tau_m * cm.alignment.scale,
-        single_pass: opts.single_pass,
-    };
-    let mut inputs = sparse_files.clone();
-    if let Some(d) = &scene.images {
-        inputs.extend(files_in(d));
+/// 0. align --refine (optional): the alignment file every later stage uses.
+fn align_step(r: &mut Running, opts: &RunOptions) -> Result<Option<PathBuf>, RunError> {
+    if !opts.refine_alignment {
+        return Ok(r.scene.alignment.clone());
     }
-    let _rc: RaycastSummary = st.stage("raycast", &ro, &inputs, &["citymodel"], |dir| {
-        let mesh_path = cm_dir.join("mesh.ply");
-        let mesh = crate::mesh::TriMesh::read_ply(&mesh_path)?;
-        let entities = semantics::read(&cm_dir.join("semantics.json"))?;
-        semantics::check_mesh_labels(&mesh_path, &mesh, &entities)?;
-        Ok::<_, RunError>(raycast::run(
-            &mesh,
-            &views,
-            &ro,
-            scene.images.as_deref(),
+    let (scene, views) = (&r.scene, &r.views);
+    let mut ins = scene.gml.clone();
+    ins.extend(scene.alignment.clone());
+    ins.push(scene.ply.clone());
+    ins.extend(r.sparse_files.iter().cloned());
+    let _r: crate::refine::RefineSummary = r.st.stage(Stage::Align, &opts.refine, &ins, &[], |dir| {
+        let t = std::time::Instant::now();
+        let initial = scene
+            .alignment
+            .as_deref()
+            .map(Alignment::read)
+            .transpose()?;
+        let city = citymodel::run(&scene.gml, &citymodel::Options { alignment: initial })?;
+        let centres: Vec<glam::DVec3> = views.iter().map(|v| v.camera.pose.center()).collect();
+        Ok::<_, RunError>(crate::refine::run(
+            &crate::refine::CityFrame {
+                mesh: &city.mesh,
+                entities: &city.entities,
+                initial: &city.alignment,
+                load_s: t.elapsed().as_secs_f64(),
+            },
+            crate::refine::RefineSources {
+                citymodel: scene.root.join("citymodel"),
+                city_source: "CityGML".into(),
+                initial_alignment: scene.alignment.clone(),
+                ply: scene.ply.clone(),
+                ply_report: None,
+                colmap: Some(scene.sparse.clone()),
+                cameras: None,
+            },
+            Some(&centres),
+            &opts.refine,
+            &dir.join("alignment.json"),
             dir,
         )?)
     })?;
-    let rc_dir = st.dir("raycast");
+    Ok(Some(r.st.dir(Stage::Align).join("alignment.json")))
+}
 
-    // 3. render: the contributions cache of every view
+/// 1. citymodel: the hierarchy table and the aligned mesh.
+fn citymodel_step(
+    r: &mut Running,
+    alignment_file: Option<&Path>,
+    opts: &RunOptions,
+) -> Result<CitymodelSummary, RunError> {
+    let upstream: &[Stage] = if opts.refine_alignment {
+        &[Stage::Align]
+    } else {
+        &[]
+    };
+    let gml = &r.scene.gml;
+    let mut inputs = gml.clone();
+    inputs.extend(alignment_file.map(Path::to_path_buf));
+    r.st.stage(Stage::Citymodel, &opts.local_origin, &inputs, upstream, |dir| {
+        let alignment = alignment_file.map(Alignment::read).transpose()?;
+        let o = citymodel::run(gml, &citymodel::Options { alignment })?;
+        citymodel::write(&o, dir)?;
+        Ok::<_, RunError>(o.summary)
+    })
+}
+
+/// 2. raycast (every view): `M_city` and the city-model depth.
+fn raycast_step(r: &mut Running, scale: f64, opts: &RunOptions) -> Result<(), RunError> {
+    let ro = raycast::RaycastOptions {
+        tau: opts.tau_m * scale,
+        single_pass: opts.single_pass,
+    };
+    let mut inputs = r.sparse_files.clone();
+    if let Some(d) = &r.scene.images {
+        inputs.extend(files_in(d));
+    }
+    let cm_dir = r.st.dir(Stage::Citymodel);
+    let (views, images) = (&r.views, r.scene.images.as_deref());
+    let _rc: RaycastSummary =
+        r.st.stage(Stage::Raycast, &ro, &inputs, &[Stage::Citymodel], |dir| {
+            let mesh_path = cm_dir.join("mesh.ply");
+            let mesh = crate::mesh::TriMesh::read_ply(&mesh_path)?;
+            let entities = semantics::read(&cm_dir.join("semantics.json"))?;
+            semantics::check_mesh_labels(&mesh_path, &mesh, &entities)?;
+            Ok::<_, RunError>(raycast::run(&mesh, views, &ro, images, dir)?)
+        })?;
+    Ok(())
+}
+
+/// 3. render: the contributions cache of every view.
+fn render_step(r: &mut Running, opts: &RunOptions) -> Result<Cache, RunError> {
     let co = CacheOptions { top_k: opts.top_k };
-    let mut inputs = vec![scene.ply.clone()];
-    inputs.extend(sparse_files.iter().cloned());
-    let _cs: CacheSummary = st.stage("render", &co, &inputs, &[], |dir| {
-        let (g, _) = crate::splat::read_ply(&scene.ply, &Default::default())?;
+    let mut inputs = vec![r.scene.ply.clone()];
+    inputs.extend(r.sparse_files.iter().cloned());
+    let (ply, views) = (&r.scene.ply, &r.views);
+    let _cs: CacheSummary = r.st.stage(Stage::Render, &co, &inputs, &[], |dir| {
+        let (g, _) = crate::splat::read_ply(ply, &Default::default())?;
         let prepared = crate::render::PreparedScene::new(&g)?;
-        Ok::<_, RunError>(render::cache::build(&prepared, &views, &co, dir)?)
+        Ok::<_, RunError>(render::cache::build(&prepared, views, &co, dir)?)
     })?;
-    let cache = Cache::open(&st.dir("render"))?;
+    Ok(Cache::open(&r.st.dir(Stage::Render))?)
+}
 
-    let entities = semantics::read(&cm_dir.join("semantics.json"))?;
+/// The per-view label maps the vote reads, their label table, the stages they come from, and
+/// the masks stage's summary (fused supervision only).
+struct Supervised {
+    maps: LabelMaps,
+    labels: LabelTable,
+    upstream: Vec<Stage>,
+    masks: Option<MasksSummary>,
+}
 
-    // 4–6. masks → associate → fuse: the fused supervision (paper §3.2), training views only
-    let mut masks_summary = None;
-    let (maps, labels, label_stages): (LabelMaps, LabelTable, Vec<&str>) = match opts.supervision {
-        Supervision::City => {
-            for stage in ["masks", "associate", "fuse"] {
-                st.discard(stage)?;
-            }
-            (
-                LabelMaps::City(rc_dir.clone()),
-                LabelTable::city(&entities, &classes::table(&entities))?,
-                vec!["citymodel", "raycast"],
-            )
-        }
-        Supervision::Fused => {
-            let scale = cm.alignment.scale;
-            // The scene's SAM lists and features of the training views (their digests decide
-            // whether the mask stages rerun).
-            let mut inputs: Vec<PathBuf> = Vec::new();
-            for v in &split.train {
-                let stem = v.stem();
-                inputs.extend(scene.sam_file(&stem));
-                inputs.extend(scene.feature_file(&stem));
-            }
-            inputs.extend(scene.prompts_file());
-            let features = scene.features.clone();
-            let ms: MasksSummary = st.stage(
-                "masks",
+/// 4–6 skipped: `M_city` alone (paper §3.1); the mask stages' folders are removed.
+fn city_supervision(r: &mut Running, entities: &[semantics::Entity]) -> Result<Supervised, RunError> {
+    for stage in [Stage::Masks, Stage::Associate, Stage::Fuse] {
+        r.st.discard(stage)?;
+    }
+    Ok(Supervised {
+        maps: LabelMaps::City(r.st.dir(Stage::Raycast)),
+        labels: LabelTable::city(entities, &classes::table(entities))?,
+        upstream: vec![Stage::Citymodel, Stage::Raycast],
+        masks: None,
+    })
+}
+
+/// 4–6. masks → associate → fuse: the fused supervision (paper §3.2), training views only.
+fn fused_supervision(
+    r: &mut Running,
+    cache: &Cache,
+    entities: &[semantics::Entity],
+    scale: f64,
+    opts: &RunOptions,
+) -> Result<Supervised, RunError> {
+    let (scene, train) = (&r.scene, &r.split.train);
+    let rc_dir = r.st.dir(Stage::Raycast);
+    // The scene's SAM lists and features of the training views (their digests decide
+    // whether the mask stages rerun).
+    let mut inputs: Vec<PathBuf> = Vec::new();
+    for v in train {
+        let stem = v.stem();
+        inputs.extend(scene.sam_file(&stem));
+        inputs.extend(scene.feature_file(&stem));
+    }
+    inputs.extend(scene.prompts_file());
+    let features = scene.features.clone();
+    let ms: MasksSummary = r.st.stage(
+        Stage::Masks,
+        &opts.masks,
+        &inputs,
+        &[Stage::Citymodel, Stage::Raycast, Stage::Render],
+        |dir| {
+            Ok::<_, RunError>(masks::run(
+                &masks::MasksInputs {
+                    scene,
+                    views: train,
+                    raycast: &rc_dir,
+                    cache: Some(cache),
+                    alignment_scale: scale,
+                },
                 &opts.masks,
-                &inputs,
-                &["citymodel", "raycast", "render"],
-                |dir| {
-                    Ok::<_, RunError>(masks::run(
-                        &masks::MasksInputs {
-                            scene: &scene,
-                            views: &split.train,
-                            raycast: &rc_dir,
-                            cache: Some(&cache),
-                            alignment_scale: scale,
-                        },
-                        &opts.masks,
-                        dir,
-                    )?)
-                },
-            )?;
-            let masks_dir = st.dir("masks");
-            // The scene's SAM lists, when the masks stage filtered them (not for the mask-free
-            // source): view support of small groups and snapping read them.
-            let sam = scene
-                .masks
-                .as_deref()
-                .filter(|_| ms.source == masks::Source::Sam);
-            let _as: AssociateSummary = st.stage(
-                "associate",
-                &opts.associate,
-                &inputs,
-                &["masks", "render"],
-                |dir| {
-                    Ok::<_, RunError>(associate::run(
-                        &associate::AssociateInputs {
-                            views: &split.train,
-                            masks: &masks_dir,
-                            features: features.as_deref(),
-                            sam,
-                            cache: &cache,
-                            ply: &scene.ply,
-                            scale,
-                        },
-                        &opts.associate,
-                        dir,
-                    )?)
-                },
-            )?;
-            let as_dir = st.dir("associate");
-            let mut fo = opts.fuse;
-            fo.snap &= sam.is_some();
-            let _fs: FuseSummary = st.stage(
-                "fuse",
-                &fo,
-                &inputs,
-                &["citymodel", "raycast", "masks", "associate"],
-                |dir| {
-                    Ok::<_, RunError>(fuse::run(
-                        &fuse::FuseInputs {
-                            views: &split.train,
-                            associate: &as_dir,
-                            raycast: &rc_dir,
-                            entities: &entities,
-                            sam,
-                            features: features.as_deref(),
-                            kept: Some(&masks_dir),
-                        },
-                        &fo,
-                        dir,
-                    )?)
-                },
-            )?;
-            let fuse_dir = st.dir("fuse");
-            masks_summary = Some(ms);
-            (
-                LabelMaps::Fused(fuse_dir.clone()),
-                LabelTable::read(&fuse_dir.join("labels.json"))?,
-                vec!["citymodel", "fuse"],
-            )
-        }
-    };
-
-    // 7. lift: the vote of the labels over the training views
-    let lift_opts = (opts.lift, opts.test_every);
-    let mut upstream = label_stages.clone();
-    upstream.push("render");
-    let inputs = VoteInputs {
-        ply: &scene.ply,
-        cache: &cache,
-        split: &split,
-        maps: &maps,
-        labels: &labels,
-        entities: &entities,
-    };
-    let _lift: LiftSummary = st.stage(
-        "lift",
-        &lift_opts,
-        std::slice::from_ref(&scene.ply),
-        &upstream,
-        |dir| Ok::<_, RunError>(lift::run(&inputs.get(), &opts.lift, dir)?),
+                dir,
+            )?)
+        },
     )?;
+    let masks_dir = r.st.dir(Stage::Masks);
+    // The scene's SAM lists, when the masks stage filtered them (not for the mask-free
+    // source): view support of small groups and snapping read them.
+    let sam = scene
+        .masks
+        .as_deref()
+        .filter(|_| ms.source == masks::Source::Sam);
+    let _as: AssociateSummary = r.st.stage(
+        Stage::Associate,
+        &opts.associate,
+        &inputs,
+        &[Stage::Masks, Stage::Render],
+        |dir| {
+            Ok::<_, RunError>(associate::run(
+                &associate::AssociateInputs {
+                    views: train,
+                    masks: &masks_dir,
+                    features: features.as_deref(),
+                    sam,
+                    cache,
+                    ply: &scene.ply,
+                    scale,
+                },
+                &opts.associate,
+                dir,
+            )?)
+        },
+    )?;
+    let as_dir = r.st.dir(Stage::Associate);
+    let mut fo = opts.fuse;
+    fo.snap &= sam.is_some();
+    let _fs: FuseSummary = r.st.stage(
+        Stage::Fuse,
+        &fo,
+        &inputs,
+        &[Stage::Citymodel, Stage::Raycast, Stage::Masks, Stage::Associate],
+        |dir| {
+            Ok::<_, RunError>(fuse::run(
+                &fuse::FuseInputs {
+                    views: train,
+                    associate: &as_dir,
+                    raycast: &rc_dir,
+                    entities,
+                    sam,
+                    features: features.as_deref(),
+                    kept: Some(&masks_dir),
+                },
+                &fo,
+                dir,
+            )?)
+        },
+    )?;
+    let fuse_dir = r.st.dir(Stage::Fuse);
+    Ok(Supervised {
+        labels: LabelTable::read(&fuse_dir.join("labels.json"))?,
+        maps: LabelMaps::Fused(fuse_dir),
+        upstream: vec![Stage::Citymodel, Stage::Fuse],
+        masks: Some(ms),
+    })
+}
 
-    // 8. train (mode learned): identity codes + classifier, starting from the vote
-    if opts.mode == Mode::Learned {
-        let train_opts = (opts.train, opts.test_every);
-        let _t: TrainSummary = st.stage(
-            "train",
-            &train_opts,
-            std::slice::from_ref(&scene.ply),
-            &upstream,
-            |dir| Ok::<_, RunError>(train::run(&inputs.get(), &opts.train, dir)?),
-        )?;
+/// 7–8. lift (the vote over the training views) and, in mode learned, train (identity codes
+/// + classifier, starting from the vote); returns the folder of the mode's predictions.
+fn vote_steps(
+    r: &mut Running,
+    cache: &Cache,
+    entities: &[semantics::Entity],
+    sup: &Supervised,
+    opts: &RunOptions,
+) -> Result<PathBuf, RunError> {
+    let mut upstream = sup.upstream.clone();
+    upstream.push(Stage::Render);
+    let ply = r.scene.ply.clone();
+    let inputs = VoteInputs {
+        ply: &ply,
+        cache,
+        train: &r.split.train,
+        test: &r.split.test,
+        maps: &sup.maps,
+        labels: &sup.labels,
+        entities,
+    };
+    let lift_opts = (opts.lift, opts.test_every);
+    let _lift: LiftSummary = r.st.stage(
+        Stage::Lift,
+        &lift_opts,
+        std::slice::from_ref(&ply),
+        &upstream,
+        |dir| Ok::<_, RunError>(lift::run(&inputs, &opts.lift, dir)?),
+    )?;
+    match opts.mode {
+        Mode::Learned => {
+            let train_opts = (opts.train, opts.test_every);
+            let _t: TrainSummary = r.st.stage(
+                Stage::Train,
+                &train_opts,
+                std::slice::from_ref(&ply),
+                &upstream,
+                |dir| Ok::<_, RunError>(train::run(&inputs, &opts.train, dir)?),
+            )?;
+        }
+        Mode::Vote => r.st.discard(Stage::Train)?,
     }
-    if opts.mode == Mode::Vote {
-        st.discard("train")?;
-    }
-    let pred_dir = st.dir(opts.mode.dir());
+    Ok(r.st.dir(opts.mode.stage()))
+}
 
-    // 9. eval on the test views, when the scene has ground truth
-    let mut eval_summary = None;
-    if let Some(gt) = &scene.gt {
-        let stems = split.test_stems();
-        let inputs: Vec<PathBuf> = stems
-            .iter()
-            .map(|s| gt.join(format!("{s}.class.npy")))
-            .filter(|p| p.is_file())
-            .collect();
-        let mode = match opts.mode {
-            Mode::Vote => "vote",
-            Mode::Learned => "learned",
-        };
-        let e: EvalSummary = st.stage(
-            "eval",
-            &(mode, &stems),
-            &inputs,
-            &[opts.mode.dir()],
-            |dir| {
-                let (mut e, _) =
-                    crate::eval::run_for(&pred_dir, gt, dir, Some(&stems), Some(mode))?;
-                // The paper's query-driven evaluation, next to the class maps'.
-                let sr = crate::selection::SemanticRun::open(out, &scene.root, Some(opts.mode))?;
-                let bq = crate::eval::by_query::evaluate(
-                    &sr,
-                    &cache,
-                    gt,
-                    &stems,
-                    Default::default(),
-                    Default::default(),
-                )?;
-                fsutil::write_json(&dir.join("metrics_by_query.json"), &bq)?;
-                e.by_query_tables = Some(bq.tables);
-                fsutil::write_json(&dir.join("summary.json"), &e)?;
-                Ok::<_, RunError>(e)
-            },
-        )?;
-        eval_summary = Some(e);
-    }
+/// 9. eval on the test views, when the scene has ground truth: the class maps and the paper's
+/// query-driven evaluation next to them.
+fn eval_step(
+    r: &mut Running,
+    cache: &Cache,
+    pred_dir: &Path,
+    out: &Path,
+    opts: &RunOptions,
+) -> Result<Option<EvalSummary>, RunError> {
+    let Some(gt) = &r.scene.gt else {
+        return Ok(None);
+    };
+    let stems = r.split.test_stems();
+    let inputs: Vec<PathBuf> = stems
+        .iter()
+        .map(|s| crate::idmap::class_file(gt, s))
+        .filter(|p| p.is_file())
+        .collect();
+    let mode = opts.mode.name();
+    let scene_root = &r.scene.root;
+    let e: EvalSummary = r.st.stage(
+        Stage::Eval,
+        &(mode, &stems),
+        &inputs,
+        &[opts.mode.stage()],
+        |dir| {
+            let (mut e, _) = crate::eval::run_for(pred_dir, gt, dir, Some(&stems), Some(mode))?;
+            let sr = crate::selection::SemanticRun::open(out, scene_root, Some(opts.mode))?;
+            let bq = crate::eval::by_query::evaluate(
+                &sr,
+                cache,
+                gt,
+                &stems,
+                Default::default(),
+                Default::default(),
+            )?;
+            fsutil::write_json(&dir.join("metrics_by_query.json"), &bq)?;
+            e.by_query_tables = Some(bq.tables);
+            crate::layout::Summary::write(&e, dir)?;
+            Ok::<_, RunError>(e)
+        },
+    )?;
+    Ok(Some(e))
+}
 
-    // Report (rewritten every time: it lists what this invocation resumed).
+/// The report (rewritten every time: it lists what this invocation resumed), then the run's
+/// `summary.json` (last).
+fn finish(
+    r: Running,
+    out: &Path,
+    opts: &RunOptions,
+    pred_dir: &Path,
+    eval: Option<EvalSummary>,
+    masks: Option<MasksSummary>,
+) -> Result<RunSummary, RunError> {
     let report = report::write(&report::ReportInputs {
-        scene: &scene,
+        scene: &r.scene,
         out,
-        views: &split.test,
-        predictions: &pred_dir,
-        stages: &st.reports,
-        eval: eval_summary.as_ref(),
-        masks: masks_summary.as_ref(),
+        views: &r.split.test,
+        predictions: pred_dir,
+        stages: &r.st.reports,
+        eval: eval.as_ref(),
+        masks: masks.as_ref(),
     })?;
     let summary = RunSummary {
-        scene: scene.root.clone(),
+        scene: r.scene.root.clone(),
         options: opts.clone(),
-        stages: st.reports.clone(),
-        test_views: split.test_stems(),
-        eval: eval_summary,
+        stages: r.st.reports.clone(),
+        test_views: r.split.test_stems(),
+        eval,
         report,
     };
     fsutil::write_json(&out.join("summary.json"), &summary)?;
     Ok(summary)
-}
-
-/// The inputs the vote and the training share (both take [`lift::LiftInputs`]).
-struct VoteInputs<'a> {
-    ply: &'a Path,
-    cache: &'a Cache,
-    split: &'a Split,
-    maps: &'a LabelMaps,
-    labels: &'a LabelTable,
-    entities: &'a [semantics::Entity],
-}
-
-impl VoteInputs<'_> {
-    fn get(&self) -> lift::LiftInputs<'_> {
-        lift::LiftInputs {
-            ply: self.ply,
-            cache: self.cache,
-            train: &self.split.train,
-            test: &self.split.test,
-            maps: self.maps,
-            labels: self.labels,
-            entities: self.entities,
-        }
-    }
 }
 
 /// The views of `names` in `views` (for callers that hold stems).

@@ -26,6 +26,7 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 use crate::fsutil::{self, FsError};
+use crate::layout::Stage;
 
 /// Errors of the run store.
 #[derive(Debug, thiserror::Error)]
@@ -85,7 +86,7 @@ pub struct RunRecord {
 /// What happened to one stage in this invocation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StageReport {
-    pub stage: String,
+    pub stage: Stage,
     /// `true`: its complete output was reused.
     pub resumed: bool,
     /// Time spent now (near zero when resumed).
@@ -212,23 +213,23 @@ impl Store {
     }
 
     /// The folder of `stage`.
-    pub fn dir(&self, stage: &str) -> PathBuf {
-        self.root.join(stage)
+    pub fn dir(&self, stage: Stage) -> PathBuf {
+        stage.path(&self.root)
     }
 
     /// The record of a stage that ran or was resumed in this run.
-    pub fn record(&self, stage: &str) -> Option<&StageRecord> {
-        self.record.stages.get(stage)
+    pub fn record(&self, stage: Stage) -> Option<&StageRecord> {
+        self.record.stages.get(stage.dir())
     }
 
     /// The fingerprint of a stage: program version, stage name, options, input identities and
     /// the run ids of the upstream stages.
     fn fingerprint(
         &self,
-        stage: &str,
+        stage: Stage,
         options: &serde_json::Value,
         inputs: &[FileId],
-        upstream: &[&str],
+        upstream: &[Stage],
     ) -> String {
         let mut s = format!(
             "{} {}\n{stage}\n{options}\n",
@@ -241,7 +242,7 @@ impl Store {
             let id = self
                 .record
                 .stages
-                .get(*u)
+                .get(u.dir())
                 .map_or("missing", |r| r.run_id.as_str());
             s.push_str(&format!("upstream {u} {id}\n"));
         }
@@ -254,10 +255,10 @@ impl Store {
     /// resuming).
     pub fn stage<T, E, F>(
         &mut self,
-        stage: &str,
+        stage: Stage,
         options: &impl Serialize,
         inputs: &[PathBuf],
-        upstream: &[&str],
+        upstream: &[Stage],
         body: F,
     ) -> Result<T, E>
     where
@@ -267,7 +268,7 @@ impl Store {
     {
         let t0 = Instant::now();
         let options = serde_json::to_value(options).unwrap_or(serde_json::Value::Null);
-        let old = self.record.stages.get(stage).cloned();
+        let old = self.record.stages.get(stage.dir()).cloned();
         let ids = inputs
             .par_iter()
             .map(|p| {
@@ -291,7 +292,7 @@ impl Store {
                 dir.display()
             );
             self.reports.push(StageReport {
-                stage: stage.into(),
+                stage,
                 resumed: true,
                 seconds: t0.elapsed().as_secs_f64(),
                 compute_seconds: r.seconds,
@@ -339,14 +340,14 @@ impl Store {
                 ),
                 options,
                 inputs: ids,
-                upstream: upstream.iter().map(|s| s.to_string()).collect(),
+                upstream: upstream.iter().map(|s| s.dir().to_string()).collect(),
                 outputs,
                 seconds,
             },
         );
         self.save().map_err(E::from)?;
         self.reports.push(StageReport {
-            stage: stage.into(),
+            stage,
             resumed: false,
             seconds,
             compute_seconds: seconds,
@@ -357,12 +358,12 @@ impl Store {
 
     /// Removes a stage this run does not use (its folder and its record), so that nothing
     /// downstream — `gs4city query`, a later resume — mistakes it for part of the run.
-    pub fn discard(&mut self, stage: &str) -> Result<(), StoreError> {
+    pub fn discard(&mut self, stage: Stage) -> Result<(), StoreError> {
         let dir = self.dir(stage);
         if dir.exists() {
             std::fs::remove_dir_all(&dir).map_err(io(&dir))?;
         }
-        if self.record.stages.remove(stage).is_some() {
+        if self.record.stages.remove(stage.dir()).is_some() {
             self.save()?;
         }
         Ok(())
@@ -377,7 +378,7 @@ impl Store {
 
 /// Refuses a run folder equal to or inside the scene folder (checked before anything is
 /// written; `out` need not exist), or one that would put a stage folder onto the scene.
-pub fn check_out_dir(scene: &Path, out: &Path, stages: &[&str]) -> Result<(), String> {
+pub fn check_out_dir(scene: &Path, out: &Path, stages: &[Stage]) -> Result<(), String> {
     let scene_c = scene
         .canonicalize()
         .map_err(|e| format!("scene {}: {e}", scene.display()))?;
@@ -422,7 +423,7 @@ pub fn check_out_dir(scene: &Path, out: &Path, stages: &[&str]) -> Result<(), St
     }
     if let Ok(rel) = scene_c.strip_prefix(&out_c)
         && let Some(first) = rel.components().next()
-        && stages.iter().any(|s| first.as_os_str() == *s)
+        && stages.iter().any(|s| first.as_os_str() == s.dir())
     {
         return Err(format!(
             "--out {}: the scene {} sits where the run's `{}` stage folder would go",
@@ -461,7 +462,7 @@ mod tests {
     /// A stage that writes `a.txt` = the input's content + options; counts its executions.
     fn stage_a(store: &mut Store, input: &Path, opt: u32, runs: &mut u32) -> Sum {
         store
-            .stage::<Sum, E, _>("a", &opt, &[input.to_path_buf()], &[], |dir| {
+            .stage::<Sum, E, _>(Stage::Citymodel, &opt, &[input.to_path_buf()], &[], |dir| {
                 *runs += 1;
                 let text = std::fs::read_to_string(input).unwrap();
                 std::fs::write(dir.join("a.txt"), format!("{text}{opt}")).unwrap();
@@ -471,9 +472,9 @@ mod tests {
     }
 
     fn stage_b(store: &mut Store, runs: &mut u32) -> Sum {
-        let a = store.dir("a");
+        let a = store.dir(Stage::Citymodel);
         store
-            .stage::<Sum, E, _>("b", &0, &[], &["a"], |dir| {
+            .stage::<Sum, E, _>(Stage::Raycast, &0, &[], &[Stage::Citymodel], |dir| {
                 *runs += 1;
                 let t = std::fs::read_to_string(a.join("a.txt")).unwrap();
                 std::fs::write(dir.join("b.txt"), t.to_uppercase()).unwrap();
@@ -534,7 +535,7 @@ mod tests {
             stage_a(&mut s, &input, 1, &mut runs);
         }
         let mut s = Store::open(&root, &d, serde_json::json!({}), true).unwrap();
-        let r: Result<Sum, E> = s.stage("a", &1, std::slice::from_ref(&input), &[], |dir| {
+        let r: Result<Sum, E> = s.stage(Stage::Citymodel, &1, std::slice::from_ref(&input), &[], |dir| {
             std::fs::write(dir.join("a.txt"), "half").unwrap();
             Err(E::Boom)
         });
@@ -552,7 +553,7 @@ mod tests {
         let d = tmp("outdir");
         let scene = d.join("scene");
         std::fs::create_dir_all(&scene).unwrap();
-        let stages = ["citymodel", "raycast"];
+        let stages = [Stage::Citymodel, Stage::Raycast];
         assert!(check_out_dir(&scene, &scene, &stages).is_err());
         assert!(check_out_dir(&scene, &scene.join("run/x"), &stages).is_err());
         assert!(check_out_dir(&scene, &scene.join("../scene/./r"), &stages).is_err());
