@@ -16,14 +16,15 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use gs4city::associate::{self, AssociateOptions, CandidateMode};
 use gs4city::alignment::Alignment;
-use gs4city::fuse::{self, FuseOptions};
-use gs4city::labels::LabelTable;
-use gs4city::lift::{self, LabelMaps, LiftOptions};
+use gs4city::associate::{self, AssociateOptions, CandidateMode};
 use gs4city::cache::Cache;
+use gs4city::fuse::{self, FuseOptions};
+use gs4city::idmap::LabelMaps;
+use gs4city::labels::LabelTable;
+use gs4city::lift::{self, LiftOptions};
 use gs4city::scene::Split;
-use gs4city::{citymodel, colmap, eval, npy};
+use gs4city::{colmap, eval, npy, semantics};
 
 struct Args {
     scene: PathBuf,

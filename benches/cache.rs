@@ -13,10 +13,11 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use gs4city::lift::{self, LabelMaps, Votes};
-use gs4city::render::PreparedScene;
 use gs4city::cache::ViewContrib;
+use gs4city::idmap::LabelMaps;
+use gs4city::render::PreparedScene;
 use gs4city::scene::{Scene, Split};
+use gs4city::vote::Votes;
 
 fn main() {
     let Some(run) = std::env::var_os("GS4CITY_RUN").map(PathBuf::from) else {
@@ -67,9 +68,9 @@ fn main() {
         for v in &chosen {
             let t = Instant::now();
             let c = if rounded {
-                ViewContrib::render(&prepared, v, k).unwrap()
+                gs4city::render::cache::contrib(&prepared, v, k).unwrap()
             } else {
-                ViewContrib::render_unrounded(&prepared, v, k).unwrap()
+                gs4city::render::cache::contrib_unrounded(&prepared, v, k).unwrap()
             };
             secs += t.elapsed().as_secs_f64();
             // Unrounded weights would take 4 bytes each instead of 2 (cache version 1).
@@ -88,7 +89,7 @@ fn main() {
                 kept.push(c);
             }
         }
-        let assigned: Vec<i32> = lift::assign(&votes, n, 0.0)
+        let assigned: Vec<i32> = gs4city::vote::assign(&votes, n, 0.0)
             .iter()
             .map(|a| a.label)
             .collect();
@@ -105,8 +106,8 @@ fn main() {
                 let class: Vec<i32> = all_labels.clone();
                 let (mut pd, mut pt) = (0usize, 0usize);
                 for (full, trunc) in all_lists.iter().zip(&kept) {
-                    let (_, a) = lift::predict(full, all_labels, &class);
-                    let (_, b) = lift::predict(trunc, all_labels, &class);
+                    let (_, a) = gs4city::cache::predict(full, all_labels, &class);
+                    let (_, b) = gs4city::cache::predict(trunc, all_labels, &class);
                     pt += a.len();
                     pd += a.iter().zip(&b).filter(|(x, y)| x != y).count();
                 }

@@ -21,10 +21,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use gs4city::camera::View;
 use gs4city::alignment::Alignment;
-use gs4city::masks::{self, MasksInputs, MasksOptions, Source, Test};
 use gs4city::cache::Cache;
+use gs4city::camera::View;
+use gs4city::masks::{self, MasksInputs, MasksOptions, Source, Test};
 use gs4city::scene::Scene;
 use gs4city::{colmap, npy, sam};
 
@@ -142,7 +142,7 @@ const RHO_EVAL: f64 = 0.8;
 fn score_sam(out: &Path, truths: &BTreeMap<String, Vec<TruthMask>>, o: &MasksOptions) -> Score {
     let mut s = Score::default();
     for (stem, t) in truths {
-        let kept = masks::read_kept(&masks::kept_file(out, stem)).unwrap();
+        let kept = gs4city::maskfile::read_kept(&gs4city::maskfile::kept_file(out, stem)).unwrap();
         let set: std::collections::BTreeSet<usize> =
             kept.iter().map(|k| k.source_index as usize).collect();
         s.kept += kept.len();
@@ -176,7 +176,7 @@ fn score_free(
 ) -> Score {
     let mut s = Score::default();
     for (stem, t) in truths {
-        let kept = masks::read_kept(&masks::kept_file(out, stem)).unwrap();
+        let kept = gs4city::maskfile::read_kept(&gs4city::maskfile::kept_file(out, stem)).unwrap();
         let (shape, gt) = npy::read::<i32>(&scene.join(format!("gt/{stem}.class.npy"))).unwrap();
         let (h, w) = (shape[0], shape[1]);
         let mut union = vec![false; h * w];

@@ -15,8 +15,8 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use gs4city::selection::text::{self, LabelFeatures, TextOptions};
 use gs4city::query::{self, MaskRule, QueryOptions, Request, SemanticRun, Views};
+use gs4city::selection::text::{self, LabelFeatures, TextOptions};
 use gs4city::{sam, synth};
 
 fn best_of<T>(n: usize, mut f: impl FnMut() -> T) -> (f64, T) {

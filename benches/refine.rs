@@ -33,7 +33,7 @@ struct Scene {
     truth: Alignment,
     /// The mesh aligned by the truth (f32, as the citymodel stage writes it).
     mesh: TriMesh,
-    entities: Vec<citymodel::Entity>,
+    entities: Vec<gs4city::semantics::Entity>,
     gaussians: Gaussians,
     centre: DVec3,
 }

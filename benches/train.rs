@@ -16,11 +16,11 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use gs4city::cache::{Cache, ViewContrib};
 use gs4city::classes;
 use gs4city::eval::{self, Counts};
+use gs4city::idmap::LabelMaps;
 use gs4city::labels::LabelTable;
-use gs4city::lift::{self, LabelMaps};
-use gs4city::cache::{Cache, ViewContrib};
 use gs4city::scene::Split;
 use gs4city::train::model::{self, Active, Grads};
 use gs4city::train::{self, Init, Softmax, TrainOptions, knn, pool, predict};
@@ -143,8 +143,7 @@ fn context(a: &Args) -> Ctx {
         gs4city::colmap::read_model(&a.scene.join("sparse/0")).expect("colmap"),
         8,
     );
-    let entities =
-        gs4city::semantics::read(&a.run.join("citymodel/semantics.json")).expect("sem");
+    let entities = gs4city::semantics::read(&a.run.join("citymodel/semantics.json")).expect("sem");
     let (maps, table) = match &a.fuse {
         Some(f) => (
             LabelMaps::Fused(f.clone()),
@@ -211,7 +210,7 @@ fn predict_all(
         .iter()
         .map(|(_, v, _)| {
             if rule == predict::Rule::Gaussians {
-                return lift::predict(v, &gl, &gc);
+                return gs4city::cache::predict(v, &gl, &gc);
             }
             let cand = if exact {
                 (0..c as u32).collect()
@@ -384,7 +383,7 @@ fn sweep(a: &Args, ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
                     .iter()
                     .map(|(_, v, _)| {
                         let v = pool::truncate(v, top_k);
-                        lift::predict(&v, &vote_label, &vote_class).0
+                        gs4city::cache::predict(&v, &vote_label, &vote_class).0
                     })
                     .collect()
             };
@@ -617,8 +616,7 @@ fn softmax_error(ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
 /// persons, ground, water, other), else the run's `M_city`; `labels.json` lists every id. A
 /// stand-in for the `fuse` stage's output, built from simulation truth: benchmark only.
 fn simulate_fused(a: &Args, out: &Path) {
-    let entities =
-        gs4city::semantics::read(&a.run.join("citymodel/semantics.json")).expect("sem");
+    let entities = gs4city::semantics::read(&a.run.join("citymodel/semantics.json")).expect("sem");
     let city = LabelTable::city(&entities, &classes::table(&entities)).expect("table");
     let delta = city.delta;
     std::fs::create_dir_all(out).expect("mkdir");

@@ -615,7 +615,6 @@ mod tests {
         }
     }
 
-
     fn sample() -> ViewContrib {
         ViewContrib {
             width: 3,

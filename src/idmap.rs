@@ -70,7 +70,12 @@ pub fn read_checked<T: NpyElement>(
 }
 
 /// A raycast view's four channels (feature, surface, part, city), each row-major `H×W`.
-pub fn read_raycast(dir: &Path, stem: &str, width: usize, height: usize) -> Result<Vec<i32>, IdMapError> {
+pub fn read_raycast(
+    dir: &Path,
+    stem: &str,
+    width: usize,
+    height: usize,
+) -> Result<Vec<i32>, IdMapError> {
     read_checked(
         &ids_file(dir, stem),
         &[4, height, width],
@@ -95,7 +100,12 @@ pub fn write_raycast(
 }
 
 /// A raycast view's city-model depth (`H×W`).
-pub fn read_depth(dir: &Path, stem: &str, width: usize, height: usize) -> Result<Vec<f32>, IdMapError> {
+pub fn read_depth(
+    dir: &Path,
+    stem: &str,
+    width: usize,
+    height: usize,
+) -> Result<Vec<f32>, IdMapError> {
     read_checked(&depth_file(dir, stem), &[height, width], "for this camera")
 }
 
@@ -112,7 +122,12 @@ pub fn write_depth(
 }
 
 /// A one-channel id map (`H×W`: associate groups or fused labels).
-pub fn read_ids(dir: &Path, stem: &str, width: usize, height: usize) -> Result<Vec<i32>, IdMapError> {
+pub fn read_ids(
+    dir: &Path,
+    stem: &str,
+    width: usize,
+    height: usize,
+) -> Result<Vec<i32>, IdMapError> {
     read_checked(&ids_file(dir, stem), &[height, width], "for this camera")
 }
 
@@ -203,7 +218,9 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("gs4city-idmap-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let (w, h) = (3, 2);
-        let ch: Vec<Vec<i32>> = (0..4).map(|c| (0..6).map(|p| c * 10 + p).collect()).collect();
+        let ch: Vec<Vec<i32>> = (0..4)
+            .map(|c| (0..6).map(|p| c * 10 + p).collect())
+            .collect();
         write_raycast(&dir, "v", w, h, [&ch[0], &ch[1], &ch[2], &ch[3]]).unwrap();
         let all = read_raycast(&dir, "v", w, h).unwrap();
         assert_eq!(all[..6], ch[0][..]);

@@ -246,7 +246,7 @@ mod tests {
         let e = |id: i32| crate::semantics::Entity {
             id,
             object_id: format!("e{id}"),
-            class: "WallSurface".into(),
+            class: crate::semantics::Class::WallSurface,
             level: Level::Surface,
             parent: None,
             building: 0,

@@ -150,7 +150,10 @@ mod tests {
     fn stage_names_round_trip_and_modes_name_their_folders() {
         for s in Stage::ALL {
             assert_eq!(Stage::from_dir(s.dir()), Some(s));
-            assert_eq!(serde_json::to_string(&s).unwrap(), format!("\"{}\"", s.dir()));
+            assert_eq!(
+                serde_json::to_string(&s).unwrap(),
+                format!("\"{}\"", s.dir())
+            );
         }
         assert_eq!(Stage::from_dir("report"), None);
         assert_eq!(Mode::Vote.dir(), "lift");

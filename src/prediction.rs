@@ -33,7 +33,11 @@ pub fn write_prediction(
     label_map: &[i32],
 ) -> Result<(), PredictionError> {
     npy::write(&idmap::class_file(out, stem), &[height, width], class_map)?;
-    npy::write(&idmap::instance_file(out, stem), &[height, width], label_map)?;
+    npy::write(
+        &idmap::instance_file(out, stem),
+        &[height, width],
+        label_map,
+    )?;
     let img = ndarray::Array3::from_shape_fn((height, width, 3), |(y, x, c)| {
         classes::color(class_map[y * width + x])[c]
     });

@@ -16,10 +16,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::cache::{Cache, CacheError, ViewContrib};
 use crate::camera::View;
-use crate::labels::LabelTable;
-use crate::semantics::Entity;
 use crate::idmap::{IdMapError, LabelMaps};
+use crate::labels::LabelTable;
 use crate::progress::Bar;
+use crate::semantics::Entity;
 
 /// Errors of the vote.
 #[derive(Debug, thiserror::Error)]

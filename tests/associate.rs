@@ -7,7 +7,9 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 use boxes::{Built, OBJECTS};
-use gs4city::associate::{self, AssociateOptions, AssociateSummary, CandidateMode, GroupsFile};
+use gs4city::associate::{self, AssociateOptions, AssociateSummary, CandidateMode};
+use gs4city::groups::GroupsFile;
+use gs4city::maskfile::Rule;
 
 fn run(b: &Built, opts: &AssociateOptions, out: &Path, scale: f64) -> AssociateSummary {
     let cache = b.open_cache();
@@ -275,13 +277,13 @@ fn bad_inputs_are_errors_naming_the_file() {
         0.9,
         vec![],
     );
-    gs4city::masks::write_kept(
+    gs4city::maskfile::write_kept(
         &m2.join("v00.json"),
-        &[gs4city::masks::KeptMask {
+        &[gs4city::maskfile::KeptMask {
             sam: small,
             source_index: 0,
             r_ov: 0.0,
-            rule: "x".into(),
+            rule: Rule::LowOverlap,
             class: 8,
         }],
     )
@@ -325,7 +327,7 @@ fn bad_inputs_are_errors_naming_the_file() {
 /// Writes `<stem>.decisions.json` for every view of `b`: every SAM mask (the lists hold the
 /// objects with ≥ 20 pixels, in object order) is kept unless `dropped(view, object)` names the
 /// rule that dropped it.
-fn write_decisions(b: &Built, dropped: impl Fn(usize, usize) -> Option<&'static str>) {
+fn write_decisions(b: &Built, dropped: impl Fn(usize, usize) -> Option<Rule>) {
     for (v, view) in b.views.iter().enumerate() {
         let mut d = Vec::new();
         for o in 0..OBJECTS {
@@ -333,10 +335,10 @@ fn write_decisions(b: &Built, dropped: impl Fn(usize, usize) -> Option<&'static 
                 continue;
             }
             let rule = dropped(v, o);
-            d.push(gs4city::masks::Decision {
+            d.push(gs4city::maskfile::Decision {
                 source_index: d.len() as i64,
                 kept: rule.is_none(),
-                rule: rule.unwrap_or("test").into(),
+                rule: rule.unwrap_or(Rule::LowOverlap),
                 r_ov: 0.0,
                 scores: Default::default(),
             });
@@ -370,9 +372,7 @@ fn masks_dropped_for_quality_support_a_group_seen_in_too_few_views() {
     // Quality-dropped: the person's group survives, supported by other views that show the
     // person (only where those masks' Gaussians overlap the group's: the faces the two kept
     // views saw, not the far side).
-    write_decisions(&b, |v, o| {
-        skip(v, o).then_some(gs4city::masks::RULE_QUALITY)
-    });
+    write_decisions(&b, |v, o| skip(v, o).then_some(Rule::Quality));
     let (s, gf, per) = go("quality", &AssociateOptions::default());
     assert_eq!((s.groups, s.supported_groups), (OBJECTS, 1), "{s:?}");
     let person = gf.groups.iter().find(|g| g.class == 7).unwrap();
@@ -403,7 +403,7 @@ fn masks_dropped_for_quality_support_a_group_seen_in_too_few_views() {
     );
     assert!(gf.groups.iter().all(|g| g.class != 7));
     // Dropped as building: no support.
-    write_decisions(&b, |v, o| skip(v, o).then_some("on_surface"));
+    write_decisions(&b, |v, o| skip(v, o).then_some(Rule::OnSurface));
     let (s, _, _) = go("surface", &AssociateOptions::default());
     assert_eq!((s.groups, s.support_masks), (OBJECTS - 1, 0), "{s:?}");
 }
@@ -423,7 +423,7 @@ fn support_only_scene(name: &str, keep: usize) -> (boxes::Built, Vec<usize>, Vec
     let k2 = kept.clone();
     let b = boxes::build(name, move |v, o| o == 2 && !k2.contains(&v));
     write_decisions(&b, |v, o| {
-        (o == 2 && !kept.contains(&v)).then_some(gs4city::masks::RULE_LOW_QUALITY_SUPPORT)
+        (o == 2 && !kept.contains(&v)).then_some(Rule::LowQualitySupport)
     });
     (b, person_views, kept)
 }

@@ -308,7 +308,8 @@ fn bad_dtype_shape_and_values_name_the_file() {
     // 3-D prediction
     npy::write(&t.pred().join("a.class.npy"), &[1, 1, 2], &[0i32, 1]).unwrap();
     let err = eval::evaluate_dirs(&t.pred(), &t.gt()).unwrap_err();
-    assert!(matches!(&err, EvalError::Shape { .. }), "{err}");
+    assert!(matches!(&err, EvalError::IdMap(_)), "{err}");
+    assert!(err.to_string().contains("2-D H×W class map"), "{err}");
     assert!(err.to_string().contains("a.class.npy"), "{err}");
     // GT value 42 is not a class id
     put(&t.pred(), "a", [1, 2], &[WALL, ROOF]);

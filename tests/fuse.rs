@@ -8,18 +8,19 @@ mod boxes;
 use std::path::{Path, PathBuf};
 
 use boxes::{Built, H, W};
-use gs4city::associate::{self, AssociateOptions, GroupsFile};
+use gs4city::associate::{self, AssociateOptions};
 use gs4city::citygml::Level;
-use gs4city::semantics::Entity;
 use gs4city::fuse::{self, FuseOptions};
+use gs4city::groups::GroupsFile;
 use gs4city::labels::{LabelTable, Source};
+use gs4city::semantics::Entity;
 use ndarray::Array2;
 
 fn entity(id: i32, class: &str, level: Level, parent: Option<i32>) -> Entity {
     Entity {
         id,
         object_id: format!("E{id}"),
-        class: class.into(),
+        class: gs4city::semantics::Class::from_local_name(class).unwrap(),
         level,
         parent,
         building: 0,
@@ -444,8 +445,7 @@ fn outputs_do_not_depend_on_simulation_truth() {
     ]);
     let views = gs4city::colmap::read_model(&scene.join("sparse/0")).unwrap();
     let split = gs4city::scene::Split::new(views, 8);
-    let entities =
-        gs4city::semantics::read(&run.join("citymodel/semantics.json")).unwrap();
+    let entities = gs4city::semantics::read(&run.join("citymodel/semantics.json")).unwrap();
     let cache = gs4city::cache::Cache::open(&run.join("render")).unwrap();
     let pass = |tag: &str| -> PathBuf {
         let out = dir.join(tag);

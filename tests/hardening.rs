@@ -6,13 +6,13 @@
 use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DVec3};
-use gs4city::camera::{Camera, Distortion, Intrinsics, Pose, SCENE_COORD_LIMIT};
 use gs4city::alignment::{self as align, Alignment};
-use gs4city::{citymodel, semantics};
+use gs4city::camera::{Camera, Distortion, Intrinsics, Pose, SCENE_COORD_LIMIT};
 use gs4city::mesh::{FaceLabel, TriMesh};
 use gs4city::raycast::{RaycastError, TwoPassScene};
 use gs4city::splat::{self, InvalidPolicy, PlyError, ReadOptions};
 use gs4city::{citygml, colmap, npy, ply, sam};
+use gs4city::{citymodel, semantics};
 
 #[path = "../fuzz/src/checks.rs"]
 #[allow(dead_code)]
@@ -295,7 +295,7 @@ fn mesh_coordinates_beyond_the_scene_frame_are_refused_before_embree() {
 /// and never turned into a huge per-surface table.
 #[test]
 fn mesh_face_ids_beyond_the_semantic_table_are_refused() {
-    let entities: Vec<citymodel::Entity> = serde_json::from_str(
+    let entities: Vec<semantics::Entity> = serde_json::from_str(
         r#"[{"id":0,"object_id":"B","class":"Building","level":"feature","parent":null,"building":0,"source":"a","lod":3,"attributes":{}},
             {"id":1,"object_id":"W","class":"WallSurface","level":"surface","parent":0,"building":0,"source":"a","lod":3,"attributes":{}},
             {"id":2,"object_id":"O","class":"Window","level":"part","parent":1,"building":0,"source":"a","lod":3,"attributes":{}}]"#,

@@ -3,10 +3,11 @@
 mod common;
 
 use common::wall;
-use gs4city::labels::LabelTable;
-use gs4city::lift::{self, LabelMaps, LiftOptions};
-use gs4city::render::PreparedScene;
 use gs4city::cache::{self, Cache, CacheOptions};
+use gs4city::idmap::LabelMaps;
+use gs4city::labels::LabelTable;
+use gs4city::lift::{self, LiftOptions};
+use gs4city::render::PreparedScene;
 use gs4city::scene::Split;
 use gs4city::{citymodel, classes, npy, raycast};
 
@@ -36,7 +37,7 @@ fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
     )
     .unwrap();
     let prepared = PreparedScene::new(&s.gaussians).unwrap();
-    cache::build(
+    gs4city::render::cache::build(
         &prepared,
         &views,
         &CacheOptions { top_k },

@@ -8,12 +8,12 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DVec3};
-use gs4city::camera::{Camera, Distortion, Intrinsics, Pose, View};
-use gs4city::masks::{
-    self, GsDepth, KeptMask, MasksInputs, MasksOptions, MasksSummary, Source, Test,
-};
 use gs4city::cache::Contributions;
 use gs4city::cache::{Cache, CacheOptions, CacheSummary, CachedView, ViewContrib};
+use gs4city::camera::{Camera, Distortion, Intrinsics, Pose, View};
+use gs4city::layout::Summary;
+use gs4city::maskfile::KeptMask;
+use gs4city::masks::{self, GsDepth, MasksInputs, MasksOptions, MasksSummary, Source, Test};
 use gs4city::sam::{self, Prompts, SamMask};
 use gs4city::scene::Scene;
 use gs4city::splat::{Gaussians, PlyEncoding};
@@ -276,8 +276,7 @@ fn fixture(name: &str, with_features: bool) -> Fixture {
         alpha,
         depth: edepth,
     };
-    vc.write(&gs4city::cache::cache_file(&cache, STEM))
-        .unwrap();
+    vc.write(&gs4city::cache::cache_file(&cache, STEM)).unwrap();
     let summary = CacheSummary {
         gaussians: n,
         skipped_gaussians: 0,
@@ -342,10 +341,17 @@ fn run(
 
 /// `(source_index → rule)` and the kept set.
 fn rules(f: &Fixture, out: &str) -> (BTreeMap<i64, String>, Vec<KeptMask>) {
-    let d = masks::read_decisions(&masks::decisions_file(&f.root.join(out), STEM)).unwrap();
-    let kept = masks::read_kept(&masks::kept_file(&f.root.join(out), STEM)).unwrap();
+    let d = gs4city::maskfile::read_decisions(&gs4city::maskfile::decisions_file(
+        &f.root.join(out),
+        STEM,
+    ))
+    .unwrap();
+    let kept = gs4city::maskfile::read_kept(&gs4city::maskfile::kept_file(&f.root.join(out), STEM))
+        .unwrap();
     (
-        d.into_iter().map(|d| (d.source_index, d.rule)).collect(),
+        d.into_iter()
+            .map(|d| (d.source_index, d.rule.name().to_string()))
+            .collect(),
         kept,
     )
 }
@@ -468,7 +474,11 @@ fn features_test_is_the_papers_rule_with_classes_from_the_prompts() {
         vec![(2, 7), (3, 6), (4, 9)]
     );
     // Scores: feature (0.2, 0, 1, 0, 0)/|·| of the person: S_fore = 1/√1.04, S_city = 0.2/√1.04.
-    let d = masks::read_decisions(&masks::decisions_file(&f.root.join("feat"), STEM)).unwrap();
+    let d = gs4city::maskfile::read_decisions(&gs4city::maskfile::decisions_file(
+        &f.root.join("feat"),
+        STEM,
+    ))
+    .unwrap();
     let n = 1.04f64.sqrt();
     assert!((d[2].scores["s_fore"] - 1.0 / n).abs() < 1e-6);
     assert!((d[2].scores["s_city"] - 0.2 / n).abs() < 1e-6);
@@ -534,7 +544,7 @@ fn mask_free_source_finds_the_person_as_one_component() {
     assert_eq!(kept.len(), 1, "{kept:?}");
     let k = &kept[0];
     assert_eq!(
-        (k.source_index, k.rule.as_str(), k.class),
+        (k.source_index, k.rule.name(), k.class),
         (-1, "depth_component", -1)
     );
     assert_eq!(k.sam.segmentation.decode().unwrap(), mask_of(PERSON_R));
@@ -727,12 +737,12 @@ fn other_bad_inputs_are_refused_clearly() {
 fn kept_files_are_validated_on_reading() {
     let f = fixture("readkept", false);
     run(&f, &opts(Test::Geometry), "geo", true).unwrap();
-    let path = masks::kept_file(&f.root.join("geo"), STEM);
+    let path = gs4city::maskfile::kept_file(&f.root.join("geo"), STEM);
     let text = std::fs::read_to_string(&path).unwrap();
     let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
     v[0]["area"] = serde_json::json!(1);
     std::fs::write(&path, serde_json::to_vec(&v).unwrap()).unwrap();
-    let e = masks::read_kept(&path).unwrap_err().to_string();
+    let e = gs4city::maskfile::read_kept(&path).unwrap_err().to_string();
     assert!(e.contains("v0.json") && e.contains("area"), "{e}");
 }
 
@@ -757,7 +767,7 @@ fn command_line_runs_and_refuses_the_depth_test_without_a_cache() {
     assert_eq!((s.source, s.test), (Source::Sam, Test::Both));
     assert_eq!(
         s.kept,
-        masks::read_kept(&masks::kept_file(&out, STEM))
+        gs4city::maskfile::read_kept(&gs4city::maskfile::kept_file(&out, STEM))
             .unwrap()
             .len()
     );

@@ -7,13 +7,15 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use gs4city::citygml::Level;
-use gs4city::semantics::Entity;
-use gs4city::labels::{Label, LabelTable, Source};
-use gs4city::query::{self, MaskRule, QueryOptions, Request, SemanticRun, TextOptions, Views};
 use gs4city::cache::Contributions;
 use gs4city::cache::{CacheOptions, CacheSummary, CachedView, ViewContrib};
+use gs4city::citygml::Level;
+use gs4city::labels::{Label, LabelTable, Source};
+use gs4city::layout::Summary;
+use gs4city::query::{self, QueryOptions, Request, Views};
 use gs4city::sam::Prompts;
+use gs4city::selection::{self, MaskRule, SemanticRun, TextOptions};
+use gs4city::semantics::Entity;
 use gs4city::splat::{Gaussians, PlyEncoding};
 use gs4city::{fsutil, npy, splat};
 use serde_json::{Value, json};
@@ -33,7 +35,7 @@ fn entity(
     Entity {
         id,
         object_id: oid.into(),
-        class: class.into(),
+        class: gs4city::semantics::Class::from_local_name(class).unwrap(),
         level,
         parent,
         building,
@@ -601,7 +603,7 @@ fn text_queries_match_present_classes_and_refuse_absent_ones() {
 
     // Through the stage: "a car" writes match false, the score, and empty masks.
     let out = f.root.join("q_car");
-    let req = Request::Select(query::grammar::parse("text(\"a car\")").unwrap());
+    let req = Request::Select(selection::grammar::parse("text(\"a car\")").unwrap());
     let s = query::run(&sr, &req, &QueryOptions::default(), &out).unwrap();
     assert!(!s.matched);
     let sel: Value = fsutil::read_json(&out.join("selection.json")).unwrap();
@@ -622,7 +624,7 @@ fn masks_counts_table_and_exports() {
         export: true,
         ..Default::default()
     };
-    let req = Request::Select(query::grammar::parse("class=Window").unwrap());
+    let req = Request::Select(selection::grammar::parse("class=Window").unwrap());
     let s = query::run(&sr, &req, &opts, &out).unwrap();
     // Windows: g0 g1 (Win1), g2 (Win2), g11 (WS).
     assert_eq!(
@@ -781,7 +783,7 @@ fn masks_counts_table_and_exports() {
     };
     query::run(
         &sr,
-        &Request::Select(query::grammar::parse("class=Door").unwrap()),
+        &Request::Select(selection::grammar::parse("class=Door").unwrap()),
         &again,
         &out,
     )
@@ -810,7 +812,7 @@ fn ascii_input_is_exported_through_the_typed_path() {
     };
     let s = query::run(
         &sr,
-        &Request::Select(query::grammar::parse("within(B2)").unwrap()),
+        &Request::Select(selection::grammar::parse("within(B2)").unwrap()),
         &opts,
         &out,
     )
@@ -980,7 +982,7 @@ fn query_driven_evaluation_on_known_masks() {
         &[2, 0, 6, 2, -1, 0, 2, 7],
     )
     .unwrap();
-    let r = query::evaluate::evaluate(
+    let r = gs4city::eval::by_query::evaluate(
         &sr,
         &cache,
         &gt,
@@ -1036,8 +1038,8 @@ fn attribute_selections_match_an_independent_reading_of_the_citygml() {
     let out = gs4city::citymodel::run(&files, &Default::default()).unwrap();
     let entities = out.entities;
     let table = LabelTable::city(&entities, &gs4city::classes::table(&entities)).unwrap();
-    let index = query::select::Index::new(&entities);
-    let ctx = query::select::Context {
+    let index = selection::select::Index::new(&entities);
+    let ctx = selection::select::Context {
         entities: &entities,
         labels: &table,
         features: None,
@@ -1068,14 +1070,13 @@ fn attribute_selections_match_an_independent_reading_of_the_citygml() {
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let want: Value = serde_json::from_slice(&o.stdout).unwrap();
         let sel =
-            query::select::evaluate(&ctx, &index, &query::grammar::parse(expr).unwrap()).unwrap();
+            selection::select::evaluate(&ctx, &index, &selection::grammar::parse(expr).unwrap())
+                .unwrap();
         let ids = |v: &[i32], features_only: bool| -> Vec<String> {
             let mut x: Vec<String> = v
                 .iter()
                 .map(|&e| &entities[e as usize])
-                .filter(|e| {
-                    !features_only || matches!(e.class.as_str(), "Building" | "BuildingPart")
-                })
+                .filter(|e| !features_only || matches!(e.class.name(), "Building" | "BuildingPart"))
                 .map(|e| e.object_id.clone())
                 .collect();
             x.sort();
@@ -1140,7 +1141,7 @@ fn absent_class_in_a_simulated_scene_without_cars() {
         .iter()
         .flat_map(|g| g.feature.iter().copied())
         .collect();
-    let feats = query::LabelFeatures::new(Path::new("simulated"), 512, &flat).unwrap();
+    let feats = selection::LabelFeatures::new(Path::new("simulated"), 512, &flat).unwrap();
     let prompts = gs4city::sam::read_prompts_json(&scene.join("features/prompts.json")).unwrap();
     let o = TextOptions::default();
     let ids: Vec<i32> = (0..groups.len() as i32).collect();
@@ -1149,9 +1150,9 @@ fn absent_class_in_a_simulated_scene_without_cars() {
         ("a tree", gs4city::classes::TREE),
         ("a person", gs4city::classes::PERSON),
     ] {
-        let q =
-            query::text::build_query(&prompts, Path::new("prompts.json"), Ok(prompt), &o).unwrap();
-        let (scores, m) = query::text::score_labels(&q, &feats, &ids, &o);
+        let q = selection::text::build_query(&prompts, Path::new("prompts.json"), Ok(prompt), &o)
+            .unwrap();
+        let (scores, m) = selection::text::score_labels(&q, &feats, &ids, &o);
         let matched: Vec<usize> = (0..groups.len())
             .filter(|&i| scores[i].is_some_and(|s| s >= o.min_relevancy))
             .collect();

@@ -7,11 +7,11 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use glam::{DMat3, DQuat, DVec3};
-use gs4city::citygml::Level;
 use gs4city::alignment::{Alignment, Similarity};
-use gs4city::semantics::Entity;
+use gs4city::citygml::Level;
 use gs4city::mesh::{FaceLabel, TriMesh};
 use gs4city::refine::{self, RefineError, RefineInput, RefineOptions, RefineOutput};
+use gs4city::semantics::Entity;
 use gs4city::splat::Gaussians;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -103,7 +103,7 @@ fn entity(id: i32, class: &str, level: Level, parent: Option<i32>) -> Entity {
     Entity {
         id,
         object_id: format!("e{id}"),
-        class: class.into(),
+        class: gs4city::semantics::Class::from_local_name(class).unwrap(),
         level,
         parent,
         building: 0,

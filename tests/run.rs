@@ -10,7 +10,7 @@ fn reruns(s: &RunSummary) -> Vec<&str> {
     s.stages
         .iter()
         .filter(|r| !r.resumed)
-        .map(|r| r.stage.as_str())
+        .map(|r| r.stage.dir())
         .collect()
 }
 
@@ -28,7 +28,7 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
         ..Default::default()
     };
     let s = run(&scene, &dir.join("out"), &o).unwrap();
-    let names: Vec<&str> = s.stages.iter().map(|r| r.stage.as_str()).collect();
+    let names: Vec<&str> = s.stages.iter().map(|r| r.stage.dir()).collect();
     assert_eq!(
         names,
         [
@@ -223,7 +223,7 @@ fn city_supervision_and_learned_mode() {
     };
     o.train.iterations = 60;
     let s = run(&scene, &out, &o).unwrap();
-    let names: Vec<&str> = s.stages.iter().map(|r| r.stage.as_str()).collect();
+    let names: Vec<&str> = s.stages.iter().map(|r| r.stage.dir()).collect();
     assert_eq!(
         names,
         ["citymodel", "raycast", "render", "lift", "train", "eval"]
@@ -257,7 +257,11 @@ fn city_supervision_and_learned_mode() {
         },
     )
     .unwrap();
-    assert!(f.stages.iter().any(|r| r.stage == "fuse" && !r.resumed));
+    assert!(
+        f.stages
+            .iter()
+            .any(|r| r.stage.dir() == "fuse" && !r.resumed)
+    );
     run(
         &scene,
         &out,
@@ -389,7 +393,7 @@ fn refine_alignment_feeds_the_whole_run() {
         },
     )
     .unwrap();
-    assert_eq!(s.stages[0].stage, "align");
+    assert_eq!(s.stages[0].stage.dir(), "align");
     let refined = Alignment::read(&out.join("align/alignment.json")).unwrap();
     let used = Alignment::read(&out.join("citymodel/alignment.json")).unwrap();
     let read = |v: &serde_json::Value| {

@@ -8,13 +8,14 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use common::wall;
+use gs4city::cache::{Cache, CacheOptions};
 use gs4city::camera::View;
-use gs4city::semantics::Entity;
+use gs4city::idmap::LabelMaps;
 use gs4city::labels::{Label, LabelTable, Source};
-use gs4city::lift::{LabelMaps, LiftInputs};
+use gs4city::lift::LiftInputs;
 use gs4city::render::PreparedScene;
-use gs4city::cache::{self, Cache, CacheOptions};
 use gs4city::scene::Split;
+use gs4city::semantics::Entity;
 use gs4city::splat::{PlyEncoding, write_ply};
 use gs4city::train::model::{self, Active, Grads, Model, PixelBatch};
 use gs4city::train::{self, TrainOptions, knn, pool};
@@ -63,7 +64,7 @@ impl Fixture {
         )
         .unwrap();
         let prepared = PreparedScene::new(&s.gaussians).unwrap();
-        cache::build(
+        gs4city::render::cache::build(
             &prepared,
             &views,
             &CacheOptions { top_k: 16 },
@@ -419,7 +420,7 @@ fn outputs_are_standard_start_from_the_vote_and_predict_the_test_views() {
     let (_, inst) = npy::read::<i32>(&out.join("v04.instance.npy")).unwrap();
     // The default rule: the written per-Gaussian labels through the vote's pixel rule.
     let (gl, gc): (Vec<i32>, Vec<i32>) = g.iter().copied().unzip();
-    let (cm, lm) = gs4city::lift::predict(&fx.cache.load("v04").unwrap(), &gl, &gc);
+    let (cm, lm) = gs4city::cache::predict(&fx.cache.load("v04").unwrap(), &gl, &gc);
     assert_eq!((cm, lm), (class.clone(), inst.clone()));
     // The paper's rule (rendered code → label of the largest logit): class map = class of the
     // label map.

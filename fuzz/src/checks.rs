@@ -9,8 +9,8 @@
 use std::path::Path;
 
 use gs4city::alignment::{self as align, Alignment};
-use gs4city::{citymodel, semantics};
 use gs4city::mesh::TriMesh;
+use gs4city::semantics;
 use gs4city::splat::{InvalidPolicy, ReadOptions, read_ply_bytes};
 use gs4city::{citygml, colmap, npy, sam};
 

@@ -5,8 +5,8 @@
 //! 8×8 grid over the image).
 use serde::{Deserialize, Serialize};
 
-use crate::camera::Camera;
 use crate::cache::ViewContrib;
+use crate::camera::Camera;
 use crate::sam::{Rle, RleError};
 
 /// How a mask's candidate Gaussians are found.
@@ -50,7 +50,9 @@ pub fn composite(
     order.sort_by(|&a, &b| areas[b].cmp(&areas[a]).then(a.cmp(&b)));
     let mut label = vec![-1i32; width * height];
     for &i in &order {
-        masks[i].for_each_pixel(|p| label[p] = i as i32).map_err(|e| (i, e))?;
+        masks[i]
+            .for_each_pixel(|p| label[p] = i as i32)
+            .map_err(|e| (i, e))?;
     }
     let mut visible = vec![0u64; masks.len()];
     for &l in &label {
@@ -344,7 +346,7 @@ mod tests {
         let big = rle(3, 4, &[(0, 0), (0, 1), (1, 1), (2, 3), (1, 3)]);
         let small = rle(3, 4, &[(1, 1), (2, 3)]);
         let mut seen = Vec::new();
-        &big.for_each_pixel(|p| seen.push(p)).unwrap();
+        big.for_each_pixel(|p| seen.push(p)).unwrap();
         seen.sort_unstable();
         assert_eq!(seen, vec![0, 1, 5, 7, 11]);
         let vm = composite(&[&big, &small], 4, 3).unwrap();

@@ -39,6 +39,7 @@ use serde::{Deserialize, Serialize};
 pub use bank::{BankOptions, Consolidation};
 pub use candidates::{CandidateMode, ProjectedLimits, WeightedLimits};
 
+use crate::cache::{Cache, CacheError};
 use crate::camera::View;
 use crate::classes;
 use crate::fsutil::{self, FsError};
@@ -47,7 +48,6 @@ use crate::idmap::{self, IdMapError};
 use crate::maskfile::{self, KeptMask, MaskFileError, Rule};
 use crate::npy::{self, NpyError};
 use crate::progress::Bar;
-use crate::cache::{Cache, CacheError};
 
 /// Errors of the associate stage. Each names the file at fault.
 #[derive(Debug, thiserror::Error)]

@@ -10,11 +10,11 @@ use glam::DVec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::alignment::{AlignError, Alignment};
 use crate::camera::SCENE_COORD_LIMIT;
 use crate::citygml::{self, CityGmlError, CityModel, Class};
 use crate::fsutil::{self, FsError};
 use crate::mesh::{MeshError, TriMesh};
-use crate::alignment::{AlignError, Alignment};
 use crate::semantics::{self, Entity, SemanticsError};
 use triangulate::{Repair, SkipReason};
 

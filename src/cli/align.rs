@@ -7,11 +7,11 @@ use anyhow::{Context, bail};
 use clap::Args;
 use glam::DVec3;
 
-use crate::semantics;
 use crate::alignment::{self as align, Alignment};
 use crate::citymodel;
 use crate::mesh::TriMesh;
 use crate::refine::{self, CityFrame, RefineOptions, RefineSources};
+use crate::semantics;
 use crate::{colmap, fsutil};
 
 #[derive(Debug, Args)]

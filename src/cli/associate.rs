@@ -5,10 +5,10 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 
-use crate::associate::{self, AssociateOptions, CandidateMode};
 use crate::alignment::Alignment;
-use crate::colmap;
+use crate::associate::{self, AssociateOptions, CandidateMode};
 use crate::cache::Cache;
+use crate::colmap;
 use crate::scene::Split;
 
 /// Candidate Gaussians of a mask.

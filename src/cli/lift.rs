@@ -5,12 +5,12 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::Args;
 
-use crate::semantics;
-use crate::labels::LabelTable;
-use crate::idmap::LabelMaps;
-use crate::lift::{self, LiftOptions};
 use crate::cache::Cache;
+use crate::idmap::LabelMaps;
+use crate::labels::LabelTable;
+use crate::lift::{self, LiftOptions};
 use crate::scene::Split;
+use crate::semantics;
 use crate::{classes, colmap};
 
 #[derive(Debug, Args)]

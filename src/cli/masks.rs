@@ -6,9 +6,9 @@ use anyhow::{Context, bail};
 use clap::Args;
 
 use crate::alignment::Alignment;
+use crate::cache::Cache;
 use crate::colmap;
 use crate::masks::{self, GsDepth, MasksInputs, MasksOptions, Source, Test};
-use crate::cache::Cache;
 use crate::scene::Scene;
 
 #[derive(Debug, Args)]

@@ -143,12 +143,10 @@ pub fn evaluate(
     let bar = crate::progress::Bar::new("eval", stems.len() as u64, "views");
     let (mut c, mut buf) = (crate::cache::ViewContrib::empty(), Vec::new());
     for stem in stems {
-        let gpath = gts
-            .get(stem)
-            .ok_or_else(|| EvalError::MissingGroundTruth {
-                stem: stem.clone(),
-                dir: gt_dir.to_path_buf(),
-            })?;
+        let gpath = gts.get(stem).ok_or_else(|| EvalError::MissingGroundTruth {
+            stem: stem.clone(),
+            dir: gt_dir.to_path_buf(),
+        })?;
         let (gsize, gt) = super::load_map(gpath)?;
         if let Some(i) = gt.iter().position(|&v| !(-1..=11).contains(&v)) {
             return Err(EvalError::GtValue {

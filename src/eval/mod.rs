@@ -20,8 +20,8 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::classes::{self, FINE};
-use crate::idmap;
 use crate::fsutil::{self, FsError};
+use crate::idmap;
 use crate::npy::NpyError;
 pub use metrics::{
     BinaryCounts, BinaryMetrics, ClassMetrics, Counts, DatasetMetrics, FineMetrics, Mean, N_FINE,

@@ -30,15 +30,15 @@ use serde::{Deserialize, Serialize};
 
 pub use snap::{SnapLimits, SnapStats};
 
-use crate::groups::{GroupsError, GroupsFile};
-use crate::idmap::{self, IdMapError};
 use crate::camera::View;
-use crate::semantics::Entity;
 use crate::classes;
 use crate::fsutil::{self, FsError};
+use crate::groups::{GroupsError, GroupsFile};
+use crate::idmap::{self, IdMapError};
 use crate::labels::{self, LabelTable, LabelsError};
 use crate::npy::{self, NpyError};
 use crate::progress::Bar;
+use crate::semantics::Entity;
 
 /// Errors of the fuse stage. Each names the file at fault.
 #[derive(Debug, thiserror::Error)]

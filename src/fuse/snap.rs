@@ -121,7 +121,11 @@ pub fn snap_view(
             continue;
         }
         px.clear();
-        if m.segmentation.for_each_pixel(|p| px.push(p as u32)).is_err() || px.is_empty() {
+        if m.segmentation
+            .for_each_pixel(|p| px.push(p as u32))
+            .is_err()
+            || px.is_empty()
+        {
             continue;
         }
         let n = px.len() as f64;

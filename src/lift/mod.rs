@@ -161,4 +161,3 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
     );
     Ok(summary)
 }
-

@@ -15,9 +15,9 @@ use glam::DVec3;
 use ndarray::Array2;
 
 use super::MasksError;
+use crate::cache::ViewContrib;
 use crate::camera::Pose;
 use crate::imageio;
-use crate::cache::ViewContrib;
 
 /// No evidence: no city hit at the pixel, or no 3DGS depth.
 pub const NONE: u8 = 0;

@@ -46,15 +46,17 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::cache::{Cache, CacheError};
 use crate::camera::View;
 use crate::fsutil::{self, FsError};
+use crate::idmap;
 use crate::imageio::{self, ImageError};
+use crate::maskfile::{
+    Decision, KeptMask, MaskFileError, Rule, decisions_file, kept_file, write_kept,
+};
 use crate::npy::{self, NpyError};
 use crate::progress::Bar;
-use crate::cache::{Cache, CacheError};
 use crate::sam::{self, Rle, SamError, SamMask};
-use crate::idmap;
-use crate::maskfile::{Decision, KeptMask, MaskFileError, Rule, decisions_file, kept_file, write_kept};
 use crate::scene::Scene;
 use geometry::{ComponentParams, DepthTest, MaskCounts, ViewCodes};
 use prompts::{FeatureScores, PromptInfo, PromptTable};

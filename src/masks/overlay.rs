@@ -7,8 +7,8 @@ use std::path::Path;
 use ndarray::Array3;
 
 use super::MasksError;
-use crate::maskfile::{KeptMask, Rule};
 use crate::imageio;
+use crate::maskfile::{KeptMask, Rule};
 
 /// Colour of a keep rule (grey for a dropping rule).
 pub fn rule_color(rule: Rule) -> [u8; 3] {

@@ -23,8 +23,8 @@ use crate::citygml::Level;
 use crate::layout::Mode;
 use crate::scene::SceneError;
 use crate::selection::{
-    self, Expr, MaskRule, SelectionError, SemanticRun, TextMatch, TextOptions, Term, masks,
-    select, text,
+    self, Expr, MaskRule, SelectionError, SemanticRun, Term, TextMatch, TextOptions, masks, select,
+    text,
 };
 use crate::semantics;
 use crate::{classes, fsutil, npy};
@@ -242,10 +242,7 @@ pub struct QuerySummary {
 impl crate::layout::Summary for QuerySummary {}
 
 /// The cached view named `name` (a stem or an image name).
-fn find_view<'c>(
-    cache: &'c Cache,
-    name: &str,
-) -> Result<&'c crate::cache::CachedView, QueryError> {
+fn find_view<'c>(cache: &'c Cache, name: &str) -> Result<&'c crate::cache::CachedView, QueryError> {
     cache
         .summary
         .views

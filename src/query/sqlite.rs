@@ -24,9 +24,9 @@ use std::path::Path;
 use rusqlite::{Connection, params};
 use serde_json::Value;
 
-use crate::semantics::{Entity, chains};
 use crate::classes;
 use crate::labels::{LabelTable, Source};
+use crate::semantics::{Entity, chains};
 
 /// Errors of writing the table.
 #[derive(Debug, thiserror::Error)]

@@ -20,9 +20,9 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::alignment::{Alignment, Similarity};
-use crate::semantics::{Class, Entity};
 use crate::embree::{CommittedScene, Device, EmbreeError, Scene};
 use crate::mesh::TriMesh;
+use crate::semantics::{Class, Entity};
 use crate::splat::{Gaussians, InvalidPolicy, PlyReport, ReadOptions};
 use solve::{Normal7, Solution};
 
@@ -233,7 +233,6 @@ pub struct RefineInput<'a> {
     /// Camera centres in the scene frame (from COLMAP), to drop far background Gaussians.
     pub camera_centres: Option<&'a [DVec3]>,
 }
-
 
 /// Distances of the selected Gaussian centres to the city-model surface (metres; only
 /// triangles of matching orientation count, within the initial search radius).

@@ -12,49 +12,49 @@ use crate::camera::View;
 use crate::fsutil;
 use crate::progress::Bar;
 
-    /// Renders `view` with lists of at most `k` entries (0 = all), weights rounded as stored.
+/// Renders `view` with lists of at most `k` entries (0 = all), weights rounded as stored.
 pub fn contrib(scene: &PreparedScene, view: &View, k: usize) -> Result<ViewContrib, RenderError> {
-        let mut v = contrib_unrounded(scene, view, k)?;
-        round_weights(&mut v.lists.weights);
-        Ok(v)
-    }
+    let mut v = contrib_unrounded(scene, view, k)?;
+    round_weights(&mut v.lists.weights);
+    Ok(v)
+}
 
-    /// [`contrib`] with the rasterizer's f32 weights (what the cache's rounding is
-    /// measured against).
+/// [`contrib`] with the rasterizer's f32 weights (what the cache's rounding is
+/// measured against).
 pub fn contrib_unrounded(
-        scene: &PreparedScene,
-        view: &View,
-        k: usize,
-    ) -> Result<ViewContrib, RenderError> {
-        let mode = if k == 0 {
-            ContributionMode::All
-        } else {
-            ContributionMode::TopK(k)
-        };
-        // The cache keeps no colour: degree 0 skips the view-dependent SH evaluation.
-        let opts = RenderOptions {
-            features: false,
-            max_sh_degree: 0,
-            contributions: mode,
-            ..Default::default()
-        };
-        let out = super::render_view(scene, &view.camera, &opts).map_err(|e| match e {
-            RenderError::Camera { why, .. } => RenderError::Camera {
-                view: view.name.clone(),
-                why,
-            },
-            e => e,
-        })?;
-        Ok(ViewContrib {
-            width: out.width,
-            height: out.height,
-            k,
-            gaussians: scene.len(),
-            lists: out.contributions.unwrap_or_default(),
-            alpha: out.alpha,
-            depth: out.depth,
-        })
-    }
+    scene: &PreparedScene,
+    view: &View,
+    k: usize,
+) -> Result<ViewContrib, RenderError> {
+    let mode = if k == 0 {
+        ContributionMode::All
+    } else {
+        ContributionMode::TopK(k)
+    };
+    // The cache keeps no colour: degree 0 skips the view-dependent SH evaluation.
+    let opts = RenderOptions {
+        features: false,
+        max_sh_degree: 0,
+        contributions: mode,
+        ..Default::default()
+    };
+    let out = super::render_view(scene, &view.camera, &opts).map_err(|e| match e {
+        RenderError::Camera { why, .. } => RenderError::Camera {
+            view: view.name.clone(),
+            why,
+        },
+        e => e,
+    })?;
+    Ok(ViewContrib {
+        width: out.width,
+        height: out.height,
+        k,
+        gaussians: scene.len(),
+        lists: out.contributions.unwrap_or_default(),
+        alpha: out.alpha,
+        depth: out.depth,
+    })
+}
 
 /// Renders every view once with lists of at most `opts.top_k` entries and writes
 /// `<stem>.contrib` per view and `summary.json` (last) into `out_dir`.
@@ -173,4 +173,3 @@ pub fn build(
     );
     Ok(summary)
 }
-

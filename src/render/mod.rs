@@ -39,7 +39,6 @@ use crate::imageio::{self, ImageError};
 use crate::npy::{self, NpyError};
 use crate::splat::Gaussians;
 
-
 /// Errors of the render stage.
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {

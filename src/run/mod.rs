@@ -7,36 +7,35 @@
 //! Each stage is a library function from typed inputs to a typed summary; this module only wires
 //! them: it passes paths and typed summaries, never reads a stage's JSON by key. The run store
 //! ([`store`]) decides what is resumed and makes every stage folder appear atomically.
-pub mod store;
 pub mod report;
+pub mod store;
 
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::semantics;
-use crate::associate::{self, AssociateOptions, AssociateSummary};
-use crate::camera::View;
 use crate::alignment::Alignment;
+use crate::associate::{self, AssociateOptions, AssociateSummary};
+use crate::cache::{self, Cache, CacheOptions, CacheSummary};
+use crate::camera::View;
 use crate::citymodel::{self, CitymodelSummary};
 use crate::eval::EvalSummary;
 use crate::fuse::{self, FuseOptions, FuseSummary};
-use crate::labels::LabelTable;
 use crate::idmap::LabelMaps;
+use crate::labels::LabelTable;
+pub use crate::layout::Mode;
+use crate::layout::Stage;
 use crate::lift::{self, LiftOptions, LiftSummary};
 use crate::masks::{self, MasksOptions, MasksSummary};
-pub use crate::layout::Mode;
 use crate::raycast::{self, RaycastSummary};
-use crate::cache::{self, Cache, CacheOptions, CacheSummary};
-use crate::scene::{Scene, SceneError, Split};
-use crate::train::{self, TrainOptions, TrainSummary};
-use crate::layout::Stage;
 use crate::render;
+use crate::scene::{Scene, SceneError, Split};
+use crate::semantics;
+use crate::train::{self, TrainOptions, TrainSummary};
 use crate::vote::VoteInputs;
 use crate::{classes, colmap, fsutil};
 pub use store::StageReport;
 use store::{Store, StoreError};
-
 
 /// What the per-Gaussian labels are learned from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -202,7 +201,9 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     let entities = semantics::read(&r.st.dir(Stage::Citymodel).join("semantics.json"))?;
     let sup = match opts.supervision {
         Supervision::City => city_supervision(&mut r, &entities)?,
-        Supervision::Fused => fused_supervision(&mut r, &cache, &entities, cm.alignment.scale, opts)?,
+        Supervision::Fused => {
+            fused_supervision(&mut r, &cache, &entities, cm.alignment.scale, opts)?
+        }
     };
     let pred_dir = vote_steps(&mut r, &cache, &entities, &sup, opts)?;
     let eval = eval_step(&mut r, &cache, &pred_dir, out, opts)?;
@@ -287,37 +288,38 @@ fn align_step(r: &mut Running, opts: &RunOptions) -> Result<Option<PathBuf>, Run
     ins.extend(scene.alignment.clone());
     ins.push(scene.ply.clone());
     ins.extend(r.sparse_files.iter().cloned());
-    let _r: crate::refine::RefineSummary = r.st.stage(Stage::Align, &opts.refine, &ins, &[], |dir| {
-        let t = std::time::Instant::now();
-        let initial = scene
-            .alignment
-            .as_deref()
-            .map(Alignment::read)
-            .transpose()?;
-        let city = citymodel::run(&scene.gml, &citymodel::Options { alignment: initial })?;
-        let centres: Vec<glam::DVec3> = views.iter().map(|v| v.camera.pose.center()).collect();
-        Ok::<_, RunError>(crate::refine::run(
-            &crate::refine::CityFrame {
-                mesh: &city.mesh,
-                entities: &city.entities,
-                initial: &city.alignment,
-                load_s: t.elapsed().as_secs_f64(),
-            },
-            crate::refine::RefineSources {
-                citymodel: scene.root.join("citymodel"),
-                city_source: "CityGML".into(),
-                initial_alignment: scene.alignment.clone(),
-                ply: scene.ply.clone(),
-                ply_report: None,
-                colmap: Some(scene.sparse.clone()),
-                cameras: None,
-            },
-            Some(&centres),
-            &opts.refine,
-            &dir.join("alignment.json"),
-            dir,
-        )?)
-    })?;
+    let _r: crate::refine::RefineSummary =
+        r.st.stage(Stage::Align, &opts.refine, &ins, &[], |dir| {
+            let t = std::time::Instant::now();
+            let initial = scene
+                .alignment
+                .as_deref()
+                .map(Alignment::read)
+                .transpose()?;
+            let city = citymodel::run(&scene.gml, &citymodel::Options { alignment: initial })?;
+            let centres: Vec<glam::DVec3> = views.iter().map(|v| v.camera.pose.center()).collect();
+            Ok::<_, RunError>(crate::refine::run(
+                &crate::refine::CityFrame {
+                    mesh: &city.mesh,
+                    entities: &city.entities,
+                    initial: &city.alignment,
+                    load_s: t.elapsed().as_secs_f64(),
+                },
+                crate::refine::RefineSources {
+                    citymodel: scene.root.join("citymodel"),
+                    city_source: "CityGML".into(),
+                    initial_alignment: scene.alignment.clone(),
+                    ply: scene.ply.clone(),
+                    ply_report: None,
+                    colmap: Some(scene.sparse.clone()),
+                    cameras: None,
+                },
+                Some(&centres),
+                &opts.refine,
+                &dir.join("alignment.json"),
+                dir,
+            )?)
+        })?;
     Ok(Some(r.st.dir(Stage::Align).join("alignment.json")))
 }
 
@@ -335,12 +337,18 @@ fn citymodel_step(
     let gml = &r.scene.gml;
     let mut inputs = gml.clone();
     inputs.extend(alignment_file.map(Path::to_path_buf));
-    r.st.stage(Stage::Citymodel, &opts.local_origin, &inputs, upstream, |dir| {
-        let alignment = alignment_file.map(Alignment::read).transpose()?;
-        let o = citymodel::run(gml, &citymodel::Options { alignment })?;
-        citymodel::write(&o, dir)?;
-        Ok::<_, RunError>(o.summary)
-    })
+    r.st.stage(
+        Stage::Citymodel,
+        &opts.local_origin,
+        &inputs,
+        upstream,
+        |dir| {
+            let alignment = alignment_file.map(Alignment::read).transpose()?;
+            let o = citymodel::run(gml, &citymodel::Options { alignment })?;
+            citymodel::write(&o, dir)?;
+            Ok::<_, RunError>(o.summary)
+        },
+    )
 }
 
 /// 2. raycast (every view): `M_city` and the city-model depth.
@@ -390,7 +398,10 @@ struct Supervised {
 }
 
 /// 4–6 skipped: `M_city` alone (paper §3.1); the mask stages' folders are removed.
-fn city_supervision(r: &mut Running, entities: &[semantics::Entity]) -> Result<Supervised, RunError> {
+fn city_supervision(
+    r: &mut Running,
+    entities: &[semantics::Entity],
+) -> Result<Supervised, RunError> {
     for stage in [Stage::Masks, Stage::Associate, Stage::Fuse] {
         r.st.discard(stage)?;
     }
@@ -476,7 +487,12 @@ fn fused_supervision(
         Stage::Fuse,
         &fo,
         &inputs,
-        &[Stage::Citymodel, Stage::Raycast, Stage::Masks, Stage::Associate],
+        &[
+            Stage::Citymodel,
+            Stage::Raycast,
+            Stage::Masks,
+            Stage::Associate,
+        ],
         |dir| {
             Ok::<_, RunError>(fuse::run(
                 &fuse::FuseInputs {

@@ -5,10 +5,10 @@ use std::path::{Path, PathBuf};
 
 use ndarray::Array3;
 
+use super::StageReport;
 use crate::camera::View;
 use crate::classes;
 use crate::eval::EvalSummary;
-use super::StageReport;
 use crate::scene::Scene;
 
 /// Errors of report writing.

@@ -535,10 +535,16 @@ mod tests {
             stage_a(&mut s, &input, 1, &mut runs);
         }
         let mut s = Store::open(&root, &d, serde_json::json!({}), true).unwrap();
-        let r: Result<Sum, E> = s.stage(Stage::Citymodel, &1, std::slice::from_ref(&input), &[], |dir| {
-            std::fs::write(dir.join("a.txt"), "half").unwrap();
-            Err(E::Boom)
-        });
+        let r: Result<Sum, E> = s.stage(
+            Stage::Citymodel,
+            &1,
+            std::slice::from_ref(&input),
+            &[],
+            |dir| {
+                std::fs::write(dir.join("a.txt"), "half").unwrap();
+                Err(E::Boom)
+            },
+        );
         assert!(r.is_err());
         assert_eq!(std::fs::read_to_string(root.join("a/a.txt")).unwrap(), "x1");
         // The partial folder of the failed attempt is removed when the store is next opened.

@@ -86,7 +86,6 @@ pub fn overlay(mask: &[u8], width: usize, height: usize, image: Option<&Array3<u
     })
 }
 
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -84,7 +84,11 @@ pub struct SemanticRun {
 impl SemanticRun {
     /// Loads run folder `run` made from scene folder `scene`, in `mode` (default:
     /// [`Mode::default_for`]).
-    pub fn open(run: &Path, scene: &Path, mode: Option<Mode>) -> Result<SemanticRun, SelectionError> {
+    pub fn open(
+        run: &Path,
+        scene: &Path,
+        mode: Option<Mode>,
+    ) -> Result<SemanticRun, SelectionError> {
         let t0 = Instant::now();
         let mode = mode.unwrap_or_else(|| Mode::default_for(run));
         let scene = Scene::open(scene)?;
@@ -181,9 +185,11 @@ impl SemanticRun {
 
     /// The stems of the test views: those with a prediction `<stem>.class.npy` in the mode's folder.
     pub fn test_views(&self) -> Result<Vec<String>, SelectionError> {
-        Ok(crate::idmap::list_class_maps(&self.run.join(self.mode.dir()))?
-            .into_keys()
-            .collect())
+        Ok(
+            crate::idmap::list_class_maps(&self.run.join(self.mode.dir()))?
+                .into_keys()
+                .collect(),
+        )
     }
 
     /// The selection context of [`select::evaluate`].
@@ -215,11 +221,17 @@ impl SemanticRun {
     }
 
     /// Evaluates a parsed selection.
-    pub fn select(&self, expr: &Expr, opts: TextOptions) -> Result<select::Selected, SelectionError> {
+    pub fn select(
+        &self,
+        expr: &Expr,
+        opts: TextOptions,
+    ) -> Result<select::Selected, SelectionError> {
         let index = select::Index::new(&self.entities);
-        select::evaluate(&self.context(opts), &index, expr).map_err(|source| SelectionError::Select {
-            text: expr.to_string(),
-            source,
+        select::evaluate(&self.context(opts), &index, expr).map_err(|source| {
+            SelectionError::Select {
+                text: expr.to_string(),
+                source,
+            }
         })
     }
 

@@ -28,10 +28,10 @@ use super::grammar::{Expr, Literal, Op, Term};
 use super::text::{self, LabelFeatures, TextMatch, TextOptions, TextQuery};
 use super::units;
 use crate::citygml::{Class, Level};
-use crate::semantics::Entity;
 use crate::classes;
 use crate::labels::LabelTable;
 use crate::sam::Prompts;
+use crate::semantics::Entity;
 
 /// Errors of a selection that parses but does not fit the scene (each names the column).
 #[derive(Debug, thiserror::Error)]

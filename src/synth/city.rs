@@ -17,8 +17,8 @@ use super::config::Splats;
 use super::gaussians::{Builder, Splat, frame_from_normal, hash01, value_noise};
 use crate::citygml::{CityModel, Level};
 use crate::citymodel::triangulate;
-use crate::semantics::Entity;
 use crate::classes;
+use crate::semantics::Entity;
 
 /// One building (root feature) in the local metric frame.
 #[derive(Debug, Clone)]
@@ -300,7 +300,9 @@ pub fn build(
                     info.openings.push(f);
                 }
             }
-            (Level::Surface, classes::WALL) if entities[id as usize].class == crate::semantics::Class::WallSurface => {
+            (Level::Surface, classes::WALL)
+                if entities[id as usize].class == crate::semantics::Class::WallSurface =>
+            {
                 if let Some(f) = facet(id)
                     && f.normal.z.abs() < 0.3
                 {

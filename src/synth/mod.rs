@@ -29,13 +29,13 @@ use serde_json::json;
 pub use config::{Preset, SynthConfig};
 use gaussians::{Builder, Truth};
 
+use crate::alignment::Alignment;
 use crate::camera::{Camera, Pose, View};
 use crate::citygml::{self, CityModel};
-use crate::alignment::Alignment;
 use crate::citymodel;
-use crate::semantics::Entity;
 use crate::classes;
 use crate::render::PreparedScene;
+use crate::semantics::Entity;
 
 /// Errors of the synth stage.
 #[derive(Debug, thiserror::Error)]

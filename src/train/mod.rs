@@ -37,13 +37,13 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::prediction;
 use crate::cache;
 use crate::classes;
 use crate::idmap::LabelMaps;
+use crate::prediction;
 use crate::prediction::{GaussianLabels, PredictionError};
-use crate::vote::{VoteError, VoteInputs, VoteOptions};
 use crate::progress::Bar;
+use crate::vote::{VoteError, VoteInputs, VoteOptions};
 use model::{Active, Grads, Model, Optimiser, PixelBatch};
 use pool::Pool;
 

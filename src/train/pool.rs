@@ -9,12 +9,12 @@ use std::collections::BTreeSet;
 use std::time::Instant;
 
 use super::TrainError;
-use crate::camera::View;
-use crate::labels::LabelTable;
-use crate::idmap::LabelMaps;
-use crate::vote::{self, Votes};
-use crate::progress::Bar;
 use crate::cache::{Cache, ViewContrib};
+use crate::camera::View;
+use crate::idmap::LabelMaps;
+use crate::labels::LabelTable;
+use crate::progress::Bar;
+use crate::vote::{self, Votes};
 
 /// Pixels of one view kept for training.
 #[derive(Debug, Clone, Default)]

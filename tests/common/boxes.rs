@@ -7,10 +7,10 @@
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
+use gs4city::cache::{Cache, CacheOptions};
 use gs4city::camera::{Camera, Distortion, Intrinsics, Pose, View};
-use gs4city::masks::{KeptMask, write_kept};
+use gs4city::maskfile::{KeptMask, write_kept};
 use gs4city::render::PreparedScene;
-use gs4city::cache::{self, Cache, CacheOptions};
 use gs4city::sam::SamMask;
 use gs4city::splat::{Gaussians, PlyEncoding, write_ply};
 use ndarray::Array2;
@@ -218,7 +218,7 @@ pub fn build(name: &str, skip: impl Fn(usize, usize) -> bool) -> Built {
     write_ply(&ply, &g, PlyEncoding::BinaryLittleEndian).unwrap();
     let views = views();
     let prepared = PreparedScene::new(&g).unwrap();
-    cache::build(
+    gs4city::render::cache::build(
         &prepared,
         &views,
         &CacheOptions { top_k: 16 },
@@ -247,7 +247,7 @@ pub fn build(name: &str, skip: impl Fn(usize, usize) -> bool) -> Built {
                     sam: m,
                     source_index: index,
                     r_ov: 0.0,
-                    rule: "test".into(),
+                    rule: gs4city::maskfile::Rule::LowOverlap,
                     class,
                 });
             }
