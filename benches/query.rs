@@ -15,8 +15,9 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use gs4city::query::{self, MaskRule, QueryOptions, Request, SemanticRun, Views};
+use gs4city::query::{self, QueryOptions, Request, Views};
 use gs4city::selection::text::{self, LabelFeatures, TextOptions};
+use gs4city::selection::{self, MaskRule, SemanticRun};
 use gs4city::{sam, synth};
 
 fn best_of<T>(n: usize, mut f: impl FnMut() -> T) -> (f64, T) {
@@ -222,12 +223,12 @@ fn timing(run: &Path) {
     let cache = sr.cache().unwrap();
     let stem = sr.test_views().unwrap()[0].clone();
     let (t_load, c) = best_of(3, || cache.load(&stem).unwrap());
-    let merged = query::masks::merged_labels(&sr.label_of, &selected);
+    let merged = selection::masks::merged_labels(&sr.label_of, &selected);
     let (t_arg, _) = best_of(3, || {
-        query::masks::view_mask(&c, &merged, &selected, MaskRule::Argmax)
+        selection::masks::view_mask(&c, &merged, &selected, MaskRule::Argmax)
     });
     let (t_maj, _) = best_of(3, || {
-        query::masks::view_mask(&c, &merged, &selected, MaskRule::Majority)
+        selection::masks::view_mask(&c, &merged, &selected, MaskRule::Majority)
     });
     println!(
         "| one view `{stem}` ({}×{}): cache load {t_load:.3}, argmax mask {t_arg:.3}, majority mask {t_maj:.3} | {:.3} |",
@@ -243,7 +244,7 @@ fn timing(run: &Path) {
         k += 1;
         query::run(
             &sr,
-            &Request::Select(query::grammar::parse("class=Window").unwrap()),
+            &Request::Select(selection::grammar::parse("class=Window").unwrap()),
             &opts,
             &tmp.join(format!("full{k}")),
         )
@@ -269,7 +270,7 @@ fn timing(run: &Path) {
         let sr2 = SemanticRun::open(run, &rec.scene, None).unwrap();
         query::run(
             &sr2,
-            &Request::Select(query::grammar::parse("class=Window").unwrap()),
+            &Request::Select(selection::grammar::parse("class=Window").unwrap()),
             &none,
             &tmp.join(format!("sel{k}")),
         )
