@@ -164,7 +164,7 @@ fn timing(run: &Path) {
     let building = sr
         .entities
         .iter()
-        .find(|e| e.class == "Building")
+        .find(|e| e.class == gs4city::semantics::Class::Building)
         .unwrap()
         .object_id
         .clone();

@@ -3,7 +3,7 @@
 mod common;
 
 use common::wall;
-use gs4city::cache::{self, Cache, CacheOptions};
+use gs4city::cache::{Cache, CacheOptions};
 use gs4city::idmap::LabelMaps;
 use gs4city::labels::LabelTable;
 use gs4city::lift::{self, LiftOptions};
