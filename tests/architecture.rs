@@ -1,0 +1,310 @@
+//! The layering rule of ARCHITECTURE.md, checked on the source: every top-level module of
+//! `src/` is listed in the module table with its kind, and its `crate::` imports obey the
+//! layers — formats and library modules (the ground floor) import no stage, a stage imports no
+//! other stage, the orchestrators (`run`, `synth`) import no orchestrator, only `cli` imports
+//! everything — the import graph has no circle, and the table's "depends on" column names every
+//! module a module imports. The expectation is the table as written by hand; the imports are read
+//! from the source text, independently of the compiler.
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// The layer of a kind in the table: 0 ground floor, 1 stages, 2 orchestrators, 3 the CLI.
+fn rank(kind: &str) -> Option<u8> {
+    match kind {
+        "format" | "library" => Some(0),
+        "stage" => Some(1),
+        "orchestrator" => Some(2),
+        "cli" => Some(3),
+        _ => None,
+    }
+}
+
+struct Row {
+    kind: String,
+    depends: String,
+}
+
+/// The module table of ARCHITECTURE.md: `| modules | kind | role | depends on |`, modules in
+/// backticks (several per row allowed).
+fn table() -> BTreeMap<String, Row> {
+    let text = std::fs::read_to_string(root().join("ARCHITECTURE.md")).unwrap();
+    let start = text.find("## Modules").expect("ARCHITECTURE.md has a Modules section");
+    let mut out = BTreeMap::new();
+    for line in text[start..].lines().skip_while(|l| !l.starts_with('|')) {
+        if !line.starts_with('|') {
+            break;
+        }
+        let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+        if cells.len() < 5 || cells[1] == "module" || cells[1].starts_with("---") {
+            continue;
+        }
+        for m in cells[1].split('`').skip(1).step_by(2) {
+            let prev = out.insert(
+                m.to_string(),
+                Row {
+                    kind: cells[2].to_string(),
+                    depends: cells[4].to_string(),
+                },
+            );
+            assert!(prev.is_none(), "ARCHITECTURE.md lists `{m}` twice");
+        }
+    }
+    out
+}
+
+/// The `pub mod` names of `src/lib.rs`.
+fn modules() -> BTreeSet<String> {
+    let lib = std::fs::read_to_string(root().join("src/lib.rs")).unwrap();
+    lib.lines()
+        .filter_map(|l| l.trim().strip_prefix("pub mod "))
+        .map(|m| m.trim_end_matches(';').to_string())
+        .collect()
+}
+
+fn rs_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            rs_files(&p, out);
+        } else if p.extension().is_some_and(|x| x == "rs") {
+            out.push(p);
+        }
+    }
+}
+
+/// Source text without comments (line comments, doc comments and block comments) and without
+/// the contents of string literals.
+fn code_only(text: &str) -> String {
+    let b = text.as_bytes();
+    let (mut out, mut i) = (String::with_capacity(text.len()), 0);
+    while i < b.len() {
+        if b[i..].starts_with(b"//") {
+            while i < b.len() && b[i] != b'\n' {
+                i += 1;
+            }
+        } else if b[i..].starts_with(b"/*") {
+            let mut depth = 0;
+            while i < b.len() {
+                if b[i..].starts_with(b"/*") {
+                    depth += 1;
+                    i += 2;
+                } else if b[i..].starts_with(b"*/") {
+                    depth -= 1;
+                    i += 2;
+                    if depth == 0 {
+                        break;
+                    }
+                } else {
+                    i += 1;
+                }
+            }
+        } else if b[i] == b'"' && (i == 0 || b[i - 1] != b'\'') {
+            // A string literal (raw strings of this code base contain no unbalanced quote).
+            out.push('"');
+            i += 1;
+            while i < b.len() && b[i] != b'"' {
+                if b[i] == b'\\' {
+                    i += 1;
+                }
+                i += 1;
+            }
+            out.push('"');
+            i += 1;
+        } else {
+            let c = text[i..].chars().next().unwrap();
+            out.push(c);
+            i += c.len_utf8();
+        }
+    }
+    out
+}
+
+/// The top-level modules a piece of code names through `crate::` — in paths and in grouped
+/// imports (`use crate::{a::x, b}` names `a` and `b`).
+fn imports(code: &str) -> BTreeSet<String> {
+    let mut out = BTreeSet::new();
+    let ident = |s: &str| -> String {
+        s.chars()
+            .take_while(|c| c.is_alphanumeric() || *c == '_')
+            .collect()
+    };
+    let mut rest = code;
+    while let Some(k) = rest.find("crate::") {
+        let before = rest[..k].chars().last();
+        rest = &rest[k + "crate::".len()..];
+        if before.is_some_and(|c| c.is_alphanumeric() || c == '_' || c == ':') {
+            continue;
+        }
+        if let Some(group) = rest.strip_prefix('{') {
+            // Top-level names of the group: after `{` or a comma at depth 1.
+            let (mut depth, mut start) = (1, true);
+            for (j, c) in group.char_indices() {
+                match c {
+                    '{' => depth += 1,
+                    '}' => {
+                        depth -= 1;
+                        if depth == 0 {
+                            break;
+                        }
+                    }
+                    ',' if depth == 1 => start = true,
+                    c if c.is_whitespace() => {}
+                    _ => {
+                        if start && depth == 1 {
+                            let name = ident(&group[j..]);
+                            if !name.is_empty() && name != "self" {
+                                out.insert(name);
+                            }
+                        }
+                        start = false;
+                    }
+                }
+            }
+        } else {
+            let name = ident(rest);
+            if !name.is_empty() {
+                out.insert(name);
+            }
+        }
+    }
+    out
+}
+
+/// module → the other top-level modules it imports.
+fn graph() -> BTreeMap<String, BTreeSet<String>> {
+    let src = root().join("src");
+    let mut files = Vec::new();
+    rs_files(&src, &mut files);
+    let mut g: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for f in files {
+        let rel = f.strip_prefix(&src).unwrap();
+        let top = rel
+            .components()
+            .next()
+            .unwrap()
+            .as_os_str()
+            .to_string_lossy()
+            .trim_end_matches(".rs")
+            .to_string();
+        if top == "lib" || top == "main" {
+            continue;
+        }
+        let code = code_only(&std::fs::read_to_string(&f).unwrap());
+        let e = g.entry(top.clone()).or_default();
+        e.extend(imports(&code).into_iter().filter(|m| *m != top));
+    }
+    g
+}
+
+#[test]
+fn every_module_is_in_the_table_with_a_known_kind() {
+    let (t, m) = (table(), modules());
+    let listed: BTreeSet<String> = t.keys().cloned().collect();
+    assert_eq!(
+        listed, m,
+        "ARCHITECTURE.md's module table and src/lib.rs disagree"
+    );
+    for (name, row) in &t {
+        assert!(
+            rank(&row.kind).is_some(),
+            "`{name}`: unknown kind `{}` (format, library, stage, orchestrator, cli)",
+            row.kind
+        );
+    }
+}
+
+#[test]
+fn imports_obey_the_layers_and_form_no_circle() {
+    let (t, g) = (table(), graph());
+    let kind = |m: &str| {
+        t.get(m)
+            .unwrap_or_else(|| panic!("`{m}` is not in ARCHITECTURE.md"))
+            .kind
+            .clone()
+    };
+    let mut bad = Vec::new();
+    for (a, deps) in &g {
+        let ra = rank(&kind(a)).unwrap();
+        for b in deps {
+            let Some(row) = t.get(b) else {
+                bad.push(format!("{a} → {b}: `{b}` is not a module of the table"));
+                continue;
+            };
+            let rb = rank(&row.kind).unwrap();
+            let ok = rb < ra || (ra == 0 && rb == 0);
+            if !ok {
+                bad.push(format!("{a} ({}) imports {b} ({})", kind(a), row.kind));
+            }
+        }
+    }
+    assert!(bad.is_empty(), "layering broken:\n{}", bad.join("\n"));
+    // No circle: repeatedly remove modules that import nothing left.
+    let mut left: BTreeMap<&String, BTreeSet<&String>> = g
+        .iter()
+        .map(|(a, d)| (a, d.iter().filter(|b| g.contains_key(*b)).collect()))
+        .collect();
+    loop {
+        let leaves: Vec<&String> = left
+            .iter()
+            .filter(|(_, d)| d.is_empty())
+            .map(|(a, _)| *a)
+            .collect();
+        if leaves.is_empty() {
+            break;
+        }
+        for l in &leaves {
+            left.remove(l);
+        }
+        for d in left.values_mut() {
+            for l in &leaves {
+                d.remove(l);
+            }
+        }
+    }
+    assert!(
+        left.is_empty(),
+        "import circle among: {:?}",
+        left.keys().collect::<Vec<_>>()
+    );
+}
+
+#[test]
+fn the_table_names_every_import() {
+    let (t, g) = (table(), graph());
+    let mut missing = Vec::new();
+    for (a, deps) in &g {
+        let cell = &t[a].depends;
+        if cell.contains("everything") {
+            continue;
+        }
+        let named: BTreeSet<&str> = cell
+            .split(|c: char| !(c.is_alphanumeric() || c == '_'))
+            .filter(|w| !w.is_empty())
+            .collect();
+        for b in deps {
+            let every_stage = cell.contains("every stage") && t[b].kind == "stage";
+            if !named.contains(b.as_str()) && !every_stage {
+                missing.push(format!("{a} imports {b}"));
+            }
+        }
+    }
+    assert!(
+        missing.is_empty(),
+        "ARCHITECTURE.md's \"depends on\" column misses:\n{}",
+        missing.join("\n")
+    );
+}
+
+#[test]
+fn the_import_reader_sees_paths_groups_and_skips_comments() {
+    let code = code_only(
+        "use crate::a::X;\nuse crate::{b::{self, Y}, c, self};\n// crate::d\n/// crate::e\n\
+         let s = \"crate::f\";\nfn g() { crate::h::run(); my_crate::i(); }\n/* crate::j */",
+    );
+    let got: Vec<String> = imports(&code).into_iter().collect();
+    assert_eq!(got, ["a", "b", "c", "h"]);
+}
