@@ -1,7 +1,6 @@
 //! The associate stage on a hand-built scene with known answers (tests/common/boxes.rs): two
 //! identical-looking cars, a person and the ground, 8 views, masks from the geometry.
-#[path = "common/boxes.rs"]
-mod boxes;
+use crate::boxes;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;

@@ -2,8 +2,7 @@
 //! raycast folder: a "building" band across the top of every image (sky there, so no image
 //! group covers it) with a window in it. Expected maps, labels and features are computed here
 //! from the files, independently of the stage.
-#[path = "common/boxes.rs"]
-mod boxes;
+use crate::boxes;
 
 use std::path::{Path, PathBuf};
 

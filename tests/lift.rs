@@ -1,8 +1,7 @@
 //! The weighted vote on a hand-built scene whose truth is known per Gaussian and per pixel
 //! (tests/common/wall.rs): CityGML → citymodel → raycast → contributions cache → lift.
-mod common;
 
-use common::wall;
+use crate::common::wall;
 use gs4city::cache::{Cache, CacheOptions};
 use gs4city::idmap::LabelMaps;
 use gs4city::labels::LabelTable;

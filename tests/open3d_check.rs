@@ -1,12 +1,11 @@
 //! Cross-check of the global pass against Open3D's `RaycastingScene`
 //! (`scripts/open3d_check.py`): primitive → feature ids must agree on ≥ 99.99 % of rays.
 //! Skipped, with a message, where python3 cannot import open3d.
-mod common;
 
 use std::path::Path;
 use std::process::Command;
 
-use common::*;
+use crate::common::*;
 use gs4city::mesh::TriMesh;
 use gs4city::raycast::{RaycastOptions, TwoPassScene, pixel_ray, raycast_view};
 

@@ -1105,8 +1105,7 @@ fn attribute_selections_match_an_independent_reading_of_the_citygml() {
     }
 }
 
-#[path = "common/sim_labels.rs"]
-mod sim_labels;
+use crate::sim_labels;
 
 /// A SIMULATED scene without cars (`synth --preset small`, `objects.cars = 0`): with label
 /// features standing in for the fuse stage's (instance groups of simulated mask features,

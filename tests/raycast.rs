@@ -3,9 +3,8 @@
 //! The camera sits at the origin looking along +z (x right, y down), 100×100 px, f = 50,
 //! principal point (50, 50). Pixel index `i` casts through `i + 0.5`, so a plane at depth
 //! `z` covers `|x| < X` exactly for `|i + 0.5 − 50| < 50·X/z`.
-mod common;
 
-use common::*;
+use crate::common::*;
 use gs4city::mesh::TriMesh;
 use gs4city::raycast::{RaycastOptions, TwoPassScene, ViewIds, raycast_view};
 

@@ -1,9 +1,8 @@
 //! `gs4city run` on a hand-built scene with analytic ground truth (tests/common/wall.rs): the
 //! metrics, and the run store's promises — resume, reruns of exactly what depends on a changed,
 //! deleted or truncated file, no stale predictions, refusal of a run folder inside the scene.
-mod common;
 
-use common::wall;
+use crate::common::wall;
 use gs4city::run::{RunOptions, RunSummary, run};
 
 fn reruns(s: &RunSummary) -> Vec<&str> {
@@ -312,14 +311,14 @@ fn another_test_split_leaves_no_stale_prediction() {
 fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
     let dir = wall::tmp("run-refuse");
     let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
-    let before = common::files(&scene);
+    let before = crate::common::files(&scene);
     for out in [scene.clone(), scene.join("run"), scene.join("gt/../x")] {
         let e = run(&scene, &out, &RunOptions::default())
             .unwrap_err()
             .to_string();
         assert!(e.contains("scene folder"), "{e}");
         assert_eq!(
-            common::files(&scene),
+            crate::common::files(&scene),
             before,
             "the scene must stay unchanged"
         );
@@ -470,8 +469,8 @@ fn the_pipeline_never_reads_the_simulation_truth() {
                 .filter(|(k, _)| k != "summary.json")
                 .collect::<std::collections::BTreeMap<_, _>>()
         };
-        let fa = strip(common::files(&dir.join("ra").join(stage)));
-        let fb = strip(common::files(&dir.join("rb").join(stage)));
+        let fa = strip(crate::common::files(&dir.join("ra").join(stage)));
+        let fb = strip(crate::common::files(&dir.join("rb").join(stage)));
         assert!(!fa.is_empty(), "{stage}");
         assert!(
             fa == fb,

@@ -1,7 +1,6 @@
 //! `synth`: determinism, truth semantics, GT consistency (windows, occluders), config errors.
 //! Tiny configurations (one bundled building, few small views) keep this fast.
-mod common;
-use common::files;
+use crate::common::files;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

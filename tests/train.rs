@@ -2,12 +2,11 @@
 //! truth is known per Gaussian and per pixel: gradients against finite differences, the 3D
 //! term on a hidden Gaussian, determinism over thread counts, the outputs (a standard PLY read
 //! by Python's `plyfile`), and bad label maps.
-mod common;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use common::wall;
+use crate::common::wall;
 use gs4city::cache::{Cache, CacheOptions};
 use gs4city::camera::View;
 use gs4city::idmap::LabelMaps;

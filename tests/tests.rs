@@ -1,0 +1,30 @@
+//! Every integration test, as modules of one test binary (one link of the crate instead of one
+//! per file; ripgrep's layout). The shared fixtures are `common` (with `common::wall`), `boxes`
+//! (the associate/fuse box scene) and `sim_labels` (simulated label features).
+mod common;
+#[path = "common/boxes.rs"]
+mod boxes;
+#[path = "common/sim_labels.rs"]
+mod sim_labels;
+
+mod architecture;
+mod associate;
+mod cgal;
+mod citymodel;
+mod cli;
+mod eval;
+mod fuse;
+mod hardening;
+mod lift;
+mod masks;
+mod open3d_check;
+mod query;
+mod raycast;
+mod real_raycast;
+mod refine;
+mod render;
+mod run;
+mod sam;
+mod synth;
+mod synth_masks;
+mod train;
