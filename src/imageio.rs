@@ -116,6 +116,28 @@ pub fn write_png(path: &Path, rgb: &Array3<u8>) -> Result<(), ImageError> {
     Ok(())
 }
 
+/// The one overlay blend of the overlays (raycast, report, query masks): each pixel `p` with
+/// a colour `colour_at(p)` becomes `(1 − alpha)·base + alpha·colour`, every other pixel
+/// `dim·base`, rounded; the base is `image` (H×W×3) or, without one, the grey `background`.
+pub fn blend_overlay(
+    image: Option<&Array3<u8>>,
+    height: usize,
+    width: usize,
+    background: f32,
+    alpha: f32,
+    dim: f32,
+    colour_at: impl Fn(usize) -> Option<[u8; 3]>,
+) -> Array3<u8> {
+    Array3::from_shape_fn((height, width, 3), |(y, x, ch)| {
+        let base = image.map_or(background, |im| f32::from(im[[y, x, ch]]));
+        let v = match colour_at(y * width + x) {
+            Some(c) => (1.0 - alpha) * base + alpha * f32::from(c[ch]),
+            None => dim * base,
+        };
+        v.round().clamp(0.0, 255.0) as u8
+    })
+}
+
 /// 8-connected components of a binary mask (`H×W`, nonzero = foreground) by OpenCV.
 /// Returns the label image (0 = background, 1..n) and the pixel count of each label.
 pub fn connected_components(

@@ -63,13 +63,8 @@ impl Default for VoteOptions {
 impl VoteOptions {
     /// Checks γ.
     pub fn validate(&self) -> Result<(), VoteError> {
-        if !(-1.0..=1.0).contains(&self.gamma) {
-            return Err(VoteError::Options(format!(
-                "gamma must lie in [-1, 1], got {}",
-                self.gamma
-            )));
-        }
-        Ok(())
+        use crate::check::{End, range};
+        range("gamma", self.gamma, End::Closed(-1.0), End::Closed(1.0)).map_err(VoteError::Options)
     }
 }
 

@@ -32,7 +32,9 @@ struct Row {
 /// backticks (several per row allowed).
 fn table() -> BTreeMap<String, Row> {
     let text = std::fs::read_to_string(root().join("ARCHITECTURE.md")).unwrap();
-    let start = text.find("## Modules").expect("ARCHITECTURE.md has a Modules section");
+    let start = text
+        .find("## Modules")
+        .expect("ARCHITECTURE.md has a Modules section");
     let mut out = BTreeMap::new();
     for line in text[start..].lines().skip_while(|l| !l.starts_with('|')) {
         if !line.starts_with('|') {

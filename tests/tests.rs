@@ -1,9 +1,9 @@
 //! Every integration test, as modules of one test binary (one link of the crate instead of one
 //! per file; ripgrep's layout). The shared fixtures are `common` (with `common::wall`), `boxes`
 //! (the associate/fuse box scene) and `sim_labels` (simulated label features).
-mod common;
 #[path = "common/boxes.rs"]
 mod boxes;
+mod common;
 #[path = "common/sim_labels.rs"]
 mod sim_labels;
 

@@ -630,13 +630,8 @@ const SPLIT_MIN_VIEWS: usize = 3;
 /// groups use a deterministic hash sample of their Gaussians.
 const LINK_SAMPLE: usize = 400_000;
 
-/// SplitMix64 finaliser (a deterministic hash of a Gaussian id).
-fn mix(mut x: u64) -> u64 {
-    x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    x ^ (x >> 31)
-}
+// A deterministic hash of a Gaussian id.
+use crate::hash::splitmix64 as mix;
 
 fn find(p: &mut [u32], mut x: u32) -> u32 {
     while p[x as usize] != x {

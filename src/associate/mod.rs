@@ -188,16 +188,19 @@ impl Default for AssociateOptions {
 impl AssociateOptions {
     /// Checks the ranges.
     pub fn validate(&self) -> Result<(), AssociateError> {
+        use crate::check::{End, range};
         let bad = |s: String| Err(AssociateError::Options(s));
-        if !(0.0..1.0).contains(&self.tau_geo) {
-            return bad(format!("tau_geo must lie in [0, 1), got {}", self.tau_geo));
-        }
-        if !(-1.0..1.0).contains(&self.tau_sim) {
-            return bad(format!("tau_sim must lie in [-1, 1), got {}", self.tau_sim));
-        }
-        if self.far_field_m.is_nan() || self.far_field_m <= 0.0 {
-            return bad(format!("far_field_m must be > 0, got {}", self.far_field_m));
-        }
+        range("tau_geo", self.tau_geo, End::Closed(0.0), End::Open(1.0))
+            .and_then(|_| range("tau_sim", self.tau_sim, End::Closed(-1.0), End::Open(1.0)))
+            .and_then(|_| {
+                range(
+                    "far_field_m",
+                    self.far_field_m,
+                    End::Open(0.0),
+                    End::Unbounded,
+                )
+            })
+            .map_err(AssociateError::Options)?;
         let w = &self.weighted;
         if !((0.0..1.0).contains(&w.min_share) && w.min_mass >= 0.0 && w.min_mass.is_finite()) {
             return bad(format!(
@@ -209,10 +212,8 @@ impl AssociateOptions {
         if self.join_views == 0 {
             return bad("join_views must be ≥ 1".into());
         }
-        if let Some(f) = self.fill
-            && !(f > 0.0 && f <= 1.0)
-        {
-            return bad(format!("fill must lie in (0, 1], got {f}"));
+        if let Some(f) = self.fill {
+            range("fill", f, End::Open(0.0), End::Closed(1.0)).map_err(AssociateError::Options)?;
         }
         if !(p.front_fraction > 0.0 && p.front_fraction <= 1.0) || p.grid == 0 || p.grid > 4096 {
             return bad(format!(
@@ -367,17 +368,16 @@ pub(crate) type MaskFeatures = (usize, Vec<Option<Vec<f32>>>, usize);
 /// Per-mask features of a view (`features/<stem>.npy`), rows at the kept masks' source indices,
 /// normalised. Returns the dimension, the features and the count of zero rows (no feature).
 pub(crate) fn mask_features(path: &Path, sources: &[i64]) -> Result<MaskFeatures, AssociateError> {
-    let (shape, data) = npy::read::<f32>(path)?;
+    let (rows, d, data) = crate::sam::read_features(path, None)?;
     let bad = |why: String| AssociateError::Invalid {
         path: path.to_path_buf(),
         why,
     };
-    if shape.len() != 2 || shape[1] == 0 {
+    if d == 0 {
         return Err(bad(format!(
-            "shape {shape:?}, expected [masks, D] with D ≥ 1"
+            "shape [{rows}, 0], expected [masks, D] with D ≥ 1"
         )));
     }
-    let (rows, d) = (shape[0], shape[1]);
     let mut zero = 0;
     let mut out = Vec::with_capacity(sources.len());
     for &s in sources {
@@ -392,9 +392,6 @@ pub(crate) fn mask_features(path: &Path, sources: &[i64]) -> Result<MaskFeatures
             )));
         }
         let row = &data[r * d..(r + 1) * d];
-        if let Some(j) = row.iter().position(|x| !x.is_finite()) {
-            return Err(bad(format!("row {r}, column {j} is {}", row[j])));
-        }
         let norm = row
             .iter()
             .map(|&x| f64::from(x) * f64::from(x))

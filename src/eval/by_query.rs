@@ -17,7 +17,7 @@ use serde::Serialize;
 
 use super::{
     CoarseJson, Counts, DatasetJson, EvalError, FineJson, ImageJson, Mean, MetricsJson, N_FINE,
-    PaperJson, accumulate, dataset, fine_metrics, paper,
+    PaperJson, accumulate, dataset, paper,
 };
 use crate::cache::Cache;
 use crate::classes::{self, FINE};
@@ -73,40 +73,14 @@ pub struct ByQuery {
 
 fn mean(xs: &[f64]) -> Mean {
     Mean {
-        mean: (!xs.is_empty()).then(|| xs.iter().sum::<f64>() / xs.len() as f64),
+        mean: super::metrics::mean_of(xs),
         images: xs.len(),
     }
 }
 
-fn by_class<T>(f: impl Fn(usize) -> T) -> BTreeMap<&'static str, T> {
-    FINE.iter()
-        .enumerate()
-        .map(|(k, &c)| (classes::name(c), f(k)))
-        .collect()
-}
-
 /// Fine figures of one image (or the dataset) from the per-class counts `per[k]`.
 fn fine_json(per: &[Counts; N_FINE]) -> FineJson {
-    let m: [Option<super::ClassMetrics>; N_FINE] =
-        std::array::from_fn(|k| fine_metrics(&per[k]).classes[k]);
-    let ious: Vec<f64> = m.iter().flatten().map(|c| c.iou).collect();
-    FineJson {
-        pixels: per[0].fine_pixels(),
-        miou: mean(&ious).mean,
-        classes_present: FINE
-            .iter()
-            .enumerate()
-            .filter(|(k, _)| m[*k].is_some())
-            .map(|(_, &c)| classes::name(c))
-            .collect(),
-        iou: by_class(|k| m[k].map(|c| c.iou)),
-        precision: by_class(|k| m[k].map(|c| c.precision)),
-        recall: by_class(|k| m[k].map(|c| c.recall)),
-        gt_pixels: by_class(|k| per[k].fine_gt(k)),
-        pred_pixels: by_class(|k| per[k].fine_pred(k)),
-        tp: by_class(|k| per[k].fine[k][k]),
-        confusion: vec![],
-    }
+    FineJson::per_class(|k| &per[k])
 }
 
 /// Evaluates the query masks of `stems` against `gt_dir/<stem>.class.npy`.
@@ -229,9 +203,9 @@ pub fn evaluate(
                 ("f1", pc.f1),
             ]),
             miou: mean(&image_miou),
-            iou: by_class(|k| class_paper[k].class_iou[k]),
-            precision: by_class(|k| class_paper[k].class_precision[k]),
-            recall: by_class(|k| class_paper[k].class_recall[k]),
+            iou: super::by_class(|k| class_paper[k].class_iou[k]),
+            precision: super::by_class(|k| class_paper[k].class_precision[k]),
+            recall: super::by_class(|k| class_paper[k].class_recall[k]),
         },
         dataset: DatasetJson {
             valid_pixels: d_coarse.counts.valid,

@@ -243,7 +243,8 @@ pub fn fine_metrics(c: &Counts) -> FineMetrics {
     m
 }
 
-fn mean_of(xs: &[f64]) -> Option<f64> {
+/// The mean of `xs`, none when empty.
+pub fn mean_of(xs: &[f64]) -> Option<f64> {
     (!xs.is_empty()).then(|| xs.iter().sum::<f64>() / xs.len() as f64)
 }
 

@@ -263,7 +263,7 @@ fn list_some(items: &[String]) -> String {
 
 type ByClass<T> = BTreeMap<&'static str, T>;
 
-fn by_class<T>(f: impl Fn(usize) -> T) -> ByClass<T> {
+pub(crate) fn by_class<T>(f: impl Fn(usize) -> T) -> ByClass<T> {
     FINE.iter()
         .enumerate()
         .map(|(k, &c)| (classes::name(c), f(k)))
@@ -299,24 +299,35 @@ pub struct FineJson {
 
 impl FineJson {
     fn new(c: &Counts) -> FineJson {
-        let m = fine_metrics(c);
-        let get = |f: fn(&ClassMetrics) -> f64| by_class(|k| m.classes[k].as_ref().map(f));
+        let mut f = FineJson::per_class(|_| c);
+        f.confusion = c.fine.iter().map(|r| r.to_vec()).collect();
+        f
+    }
+
+    /// The fine figures where class `k`'s come from `counts_of(k)`: the same counts for every
+    /// class in a class-map evaluation, one query mask per class in [`by_query`] (masks of
+    /// different classes may overlap, so there is no confusion matrix: it is left empty).
+    pub fn per_class<'a>(counts_of: impl Fn(usize) -> &'a Counts) -> FineJson {
+        let m: [Option<ClassMetrics>; N_FINE] =
+            std::array::from_fn(|k| fine_metrics(counts_of(k)).classes[k]);
+        let ious: Vec<f64> = m.iter().flatten().map(|c| c.iou).collect();
+        let get = |f: fn(&ClassMetrics) -> f64| by_class(|k| m[k].as_ref().map(f));
         FineJson {
-            pixels: c.fine_pixels(),
-            miou: m.miou,
+            pixels: counts_of(0).fine_pixels(),
+            miou: metrics::mean_of(&ious),
             classes_present: FINE
                 .iter()
                 .enumerate()
-                .filter(|(k, _)| m.classes[*k].is_some())
+                .filter(|(k, _)| m[*k].is_some())
                 .map(|(_, &id)| classes::name(id))
                 .collect(),
             iou: get(|c| c.iou),
             precision: get(|c| c.precision),
             recall: get(|c| c.recall),
-            gt_pixels: by_class(|k| c.fine_gt(k)),
-            pred_pixels: by_class(|k| c.fine_pred(k)),
-            tp: by_class(|k| c.fine[k][k]),
-            confusion: c.fine.iter().map(|r| r.to_vec()).collect(),
+            gt_pixels: by_class(|k| counts_of(k).fine_gt(k)),
+            pred_pixels: by_class(|k| counts_of(k).fine_pred(k)),
+            tp: by_class(|k| counts_of(k).fine[k][k]),
+            confusion: vec![],
         }
     }
 }

@@ -230,23 +230,14 @@ fn fuse_view(
     let (mut features, mut dim) = (Vec::new(), None);
     if let (Some(dir), false) = (inp.features, sam.is_empty()) {
         let path = dir.join(format!("{stem}.npy"));
-        let (shape, data) = npy::read::<f32>(&path)?;
-        if shape.len() != 2 || shape[0] != sam.len() || shape[1] == 0 {
+        let (_, d, data) = crate::sam::read_features(&path, Some(sam.len()))?;
+        if d == 0 {
             return Err(FuseError::Invalid {
                 path,
-                why: format!(
-                    "shape {shape:?}, expected [{}, D]: one feature row per SAM mask",
-                    sam.len()
-                ),
+                why: format!("shape [{}, 0]: features of dimension 0", sam.len()),
             });
         }
-        if let Some(j) = data.iter().position(|x| !x.is_finite()) {
-            return Err(FuseError::Invalid {
-                path,
-                why: format!("value {j} is {}", data[j]),
-            });
-        }
-        dim = Some(shape[1]);
+        dim = Some(d);
         features = data;
         let mut counts: BTreeMap<i32, u64> = BTreeMap::new();
         for (i, m) in sam.iter().enumerate() {

@@ -54,7 +54,7 @@ use crate::imageio::{self, ImageError};
 use crate::maskfile::{
     Decision, KeptMask, MaskFileError, Rule, decisions_file, kept_file, write_kept,
 };
-use crate::npy::{self, NpyError};
+use crate::npy::NpyError;
 use crate::progress::Bar;
 use crate::sam::{self, Rle, SamError, SamMask};
 use crate::scene::Scene;
@@ -241,14 +241,10 @@ impl MasksOptions {
             ("min_alpha", self.min_alpha),
         ];
         for (k, v) in unit {
-            if !(0.0..=1.0).contains(&v) {
-                return bad(format!("{k} = {v} is outside [0, 1]"));
-            }
+            crate::check::unit(k, v).map_err(MasksError::Options)?;
         }
-        if let Some(f) = self.support_floor
-            && !(0.0..=1.0).contains(&f)
-        {
-            return bad(format!("support_floor = {f} is outside [0, 1]"));
+        if let Some(f) = self.support_floor {
+            crate::check::unit("support_floor", f).map_err(MasksError::Options)?;
         }
         if !self.delta.is_finite() {
             return bad(format!("delta = {} is not finite", self.delta));
@@ -259,9 +255,7 @@ impl MasksOptions {
             ("bias_max_m", self.bias_max_m),
             ("split_rel", self.split_rel),
         ] {
-            if !v.is_finite() || v < 0.0 {
-                return bad(format!("{k} = {v} must be finite and not negative"));
-            }
+            crate::check::non_negative(k, v).map_err(MasksError::Options)?;
         }
         if self.surface_radius_px > 16 {
             return bad(format!(
@@ -555,32 +549,15 @@ fn read_features(
     dim: usize,
     prompts: &Path,
 ) -> Result<Vec<f32>, MasksError> {
-    let (s, data) = npy::read::<f32>(path)?;
-    let bad = |why: String| MasksError::Invalid {
-        path: path.to_path_buf(),
-        why,
-    };
-    if s.len() != 2 {
-        return Err(bad(format!("shape {s:?}: expected N×D (2 dimensions)")));
-    }
-    if s[0] != n {
-        return Err(bad(format!(
-            "{} feature rows, but the view's SAM list holds {n} masks",
-            s[0]
-        )));
-    }
-    if s[1] != dim {
-        return Err(bad(format!(
-            "feature dimension {}, but {} has dimension {dim}",
-            s[1],
-            prompts.display()
-        )));
-    }
-    if let Some(i) = data.iter().position(|v| !v.is_finite()) {
-        return Err(bad(format!(
-            "row {}: a value is not finite",
-            i / dim.max(1)
-        )));
+    let (_, d, data) = sam::read_features(path, Some(n))?;
+    if d != dim {
+        return Err(MasksError::Invalid {
+            path: path.to_path_buf(),
+            why: format!(
+                "feature dimension {d}, but {} has dimension {dim}",
+                prompts.display()
+            ),
+        });
     }
     Ok(data)
 }

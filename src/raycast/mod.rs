@@ -73,13 +73,7 @@ impl Default for RaycastOptions {
 impl RaycastOptions {
     /// Checks τ (finite, ≥ 0).
     pub fn validate(&self) -> Result<(), RaycastError> {
-        if !self.tau.is_finite() || self.tau < 0.0 {
-            return Err(RaycastError::Option(format!(
-                "tau must be finite and ≥ 0, got {}",
-                self.tau
-            )));
-        }
-        Ok(())
+        crate::check::non_negative("tau", self.tau).map_err(RaycastError::Option)
     }
 }
 

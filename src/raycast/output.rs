@@ -65,25 +65,15 @@ fn id_colour(id: i32) -> [u8; 3] {
     ]
 }
 
-/// The overlay: city-id colours, blended 50 % over `image` where given (same size).
+/// The overlay: city-id colours, blended 50 % over `image` where given (same size); without
+/// an image, the colours alone (id −1 is black, its own colour).
 fn overlay(ids: &ViewIds, image: Option<&Array3<u8>>) -> Array3<u8> {
-    let mut out = Array3::<u8>::zeros((ids.height, ids.width, 3));
-    for j in 0..ids.height {
-        for i in 0..ids.width {
-            let id = ids.city[j * ids.width + i];
-            let c = id_colour(id);
-            for ch in 0..3 {
-                out[[j, i, ch]] = match image {
-                    Some(img) if id >= 0 => {
-                        ((u16::from(img[[j, i, ch]]) + u16::from(c[ch])) / 2) as u8
-                    }
-                    Some(img) => img[[j, i, ch]],
-                    None => c[ch],
-                };
-            }
-        }
-    }
-    out
+    let colour = |p: usize| {
+        let id = ids.city[p];
+        (image.is_none() || id >= 0).then(|| id_colour(id))
+    };
+    let alpha = if image.is_some() { 0.5 } else { 1.0 };
+    imageio::blend_overlay(image, ids.height, ids.width, 0.0, alpha, 1.0, colour)
 }
 
 /// Runs the stage: builds the scenes once, raycasts every view and writes its files and

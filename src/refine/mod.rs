@@ -171,32 +171,28 @@ impl RefineOptions {
             ("max_rotation_deg", self.max_rotation_deg),
             ("max_scale_change", self.max_scale_change),
         ];
+        use crate::check::{End, positive, range, unit};
         for (k, v) in pos {
-            if !v.is_finite() || v <= 0.0 {
-                return bad(format!("{k} must be finite and > 0, got {v}"));
-            }
+            positive(k, v).map_err(RefineError::Options)?;
         }
-        if !(0.0..=1.0).contains(&self.min_opacity) {
-            return bad(format!(
-                "min_opacity must be in [0, 1], got {}",
-                self.min_opacity
-            ));
-        }
-        if self.max_flatness.is_nan() || self.max_flatness <= 0.0 || self.max_flatness > 1.0 {
-            return bad(format!(
-                "max_flatness must be in (0, 1], got {}",
-                self.max_flatness
-            ));
-        }
-        if self.max_normal_angle_deg.is_nan()
-            || self.max_normal_angle_deg <= 0.0
-            || self.max_normal_angle_deg > 90.0
-        {
-            return bad(format!(
-                "max_normal_angle_deg must be in (0, 90], got {}",
-                self.max_normal_angle_deg
-            ));
-        }
+        unit("min_opacity", self.min_opacity)
+            .and_then(|_| {
+                range(
+                    "max_flatness",
+                    self.max_flatness,
+                    End::Open(0.0),
+                    End::Closed(1.0),
+                )
+            })
+            .and_then(|_| {
+                range(
+                    "max_normal_angle_deg",
+                    self.max_normal_angle_deg,
+                    End::Open(0.0),
+                    End::Closed(90.0),
+                )
+            })
+            .map_err(RefineError::Options)?;
         if self.final_radius_m > self.initial_radius_m {
             return bad(format!(
                 "final_radius_m ({}) exceeds initial_radius_m ({})",
@@ -401,14 +397,10 @@ struct Selection {
     stats: SelectionStats,
 }
 
-/// SplitMix64: a well-mixed hash of an index and the seed.
+/// A well-mixed hash of an index and the seed (SplitMix64 at state `i + seed·γ`).
 fn mix(i: u64, seed: u64) -> u64 {
-    let mut z = i
-        .wrapping_add(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15))
-        .wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
+    use crate::hash::{GAMMA, splitmix64};
+    splitmix64(i.wrapping_add(seed.wrapping_mul(GAMMA)))
 }
 
 /// Opaque, flat Gaussians (normal = the axis of the smallest scale), in camera range, one per

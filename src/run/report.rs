@@ -31,14 +31,8 @@ pub enum ReportError {
 /// Blends class colours over an image (α = 0.55 where a class is set).
 pub fn overlay(img: &Array3<u8>, class: &[i32]) -> Array3<u8> {
     let (h, w, _) = img.dim();
-    Array3::from_shape_fn((h, w, 3), |(y, x, c)| {
-        let k = class[y * w + x];
-        if k < 0 {
-            (img[[y, x, c]] as f32 * 0.6) as u8
-        } else {
-            (img[[y, x, c]] as f32 * 0.45 + classes::color(k)[c] as f32 * 0.55).round() as u8
-        }
-    })
+    let colour = |p: usize| (class[p] >= 0).then(|| classes::color(class[p]));
+    crate::imageio::blend_overlay(Some(img), h, w, 0.0, 0.55, 0.6, colour)
 }
 
 fn hstack(panels: &[Array3<u8>]) -> Array3<u8> {

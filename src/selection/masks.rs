@@ -75,15 +75,8 @@ pub fn view_mask(c: &ViewContrib, merged: &[i32], selected: &[bool], rule: MaskR
 /// An overlay of `mask` on `image` (H×W×3; `None`: a grey background): selected pixels tinted
 /// red at 50 %, the rest dimmed to 60 %.
 pub fn overlay(mask: &[u8], width: usize, height: usize, image: Option<&Array3<u8>>) -> Array3<u8> {
-    Array3::from_shape_fn((height, width, 3), |(y, x, ch)| {
-        let base = image.map_or(96.0, |im| f32::from(im[[y, x, ch]]));
-        let v = if mask[y * width + x] != 0 {
-            0.5 * base + 0.5 * [255.0, 40.0, 40.0][ch]
-        } else {
-            0.6 * base
-        };
-        v.round().clamp(0.0, 255.0) as u8
-    })
+    let colour = |p: usize| (mask[p] != 0).then_some([255, 40, 40]);
+    crate::imageio::blend_overlay(image, height, width, 96.0, 0.5, 0.6, colour)
 }
 
 #[cfg(test)]

@@ -62,25 +62,18 @@ impl Default for TextOptions {
 impl TextOptions {
     /// Checks the ranges.
     pub fn validate(&self) -> Result<(), TextError> {
-        if !(self.temperature.is_finite() && self.temperature > 0.0) {
-            return Err(TextError::Refused(format!(
-                "temperature {} must be a positive number",
-                self.temperature
-            )));
-        }
-        if !(0.0..=1.0).contains(&self.min_relevancy) {
-            return Err(TextError::Refused(format!(
-                "min relevancy {} must lie in [0, 1]",
-                self.min_relevancy
-            )));
-        }
-        if !(-1.0..=1.0).contains(&self.synonym_cos) {
-            return Err(TextError::Refused(format!(
-                "synonym cosine {} must lie in [-1, 1]",
-                self.synonym_cos
-            )));
-        }
-        Ok(())
+        use crate::check::{End, positive, range, unit};
+        positive("temperature", self.temperature)
+            .and_then(|_| unit("min relevancy", self.min_relevancy))
+            .and_then(|_| {
+                range(
+                    "synonym cosine",
+                    self.synonym_cos,
+                    End::Closed(-1.0),
+                    End::Closed(1.0),
+                )
+            })
+            .map_err(TextError::Refused)
     }
 }
 

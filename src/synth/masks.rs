@@ -255,12 +255,7 @@ const TAG_BUILDING: u64 = 8;
 const TAG_FEATURE: u64 = 9;
 const TAG_PROMPT: u64 = 10;
 
-fn splitmix(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
-}
+use crate::hash::splitmix64 as splitmix;
 
 fn rng_for(seed: u64, tag: u64, ids: &[u64]) -> ChaCha8Rng {
     let mut h = splitmix(seed ^ splitmix(tag));

@@ -186,16 +186,9 @@ impl TrainOptions {
             ("tol", self.tol),
             ("class_weight", self.class_weight),
         ] {
-            if !v.is_finite() || v < 0.0 {
-                return bad(format!("{name} must be finite and ≥ 0, got {v}"));
-            }
+            crate::check::non_negative(name, v).map_err(TrainError::Options)?;
         }
-        if self.class_weight > 1.0 {
-            return bad(format!(
-                "class_weight must lie in [0, 1], got {}",
-                self.class_weight
-            ));
-        }
+        crate::check::unit("class_weight", self.class_weight).map_err(TrainError::Options)?;
         if let Softmax::Sampled { negatives: 0 } = self.softmax {
             return bad("sampled softmax needs at least one negative".into());
         }
