@@ -328,25 +328,6 @@ impl Camera {
         self.pose.validate()
     }
 
-    /// Projects a camera-frame point with the pinhole part only (no distortion);
-    /// `None` behind or on the camera plane.
-    pub fn project_pinhole(&self, p_cam: DVec3) -> Option<DVec2> {
-        if p_cam.z <= 0.0 {
-            return None;
-        }
-        let k = &self.intrinsics;
-        Some(DVec2::new(
-            k.fx * p_cam.x / p_cam.z + k.cx,
-            k.fy * p_cam.y / p_cam.z + k.cy,
-        ))
-    }
-
-    /// The camera-frame direction (z = 1) of an undistorted pixel position.
-    pub fn pinhole_direction(&self, pixel: DVec2) -> DVec3 {
-        let k = &self.intrinsics;
-        DVec3::new((pixel.x - k.cx) / k.fx, (pixel.y - k.cy) / k.fy, 1.0)
-    }
-
     /// Projects a camera-frame point through the full lens model to a (distorted) pixel
     /// position; `None` behind or on the camera plane.
     pub fn project(&self, p_cam: DVec3) -> Option<DVec2> {

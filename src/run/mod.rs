@@ -638,8 +638,3 @@ fn finish(
     fsutil::write_json(&out.join("summary.json"), &summary)?;
     Ok(summary)
 }
-
-/// The views of `names` in `views` (for callers that hold stems).
-pub fn views_named<'a>(views: &'a [View], stems: &[String]) -> Vec<&'a View> {
-    views.iter().filter(|v| stems.contains(&v.stem())).collect()
-}

@@ -141,16 +141,6 @@ impl Gaussians {
     pub fn extra(&self, name: &str) -> Option<&ExtraProperty> {
         self.extras.iter().find(|e| e.name == name)
     }
-
-    /// SH coefficient `k` (0 = DC) of channel `c` of Gaussian `i`.
-    pub fn sh_coeff(&self, i: usize, k: usize, c: usize) -> f32 {
-        if k == 0 {
-            self.f_dc[i][c]
-        } else {
-            let kk = self.rest_per_gaussian() / 3;
-            self.f_rest[i * self.rest_per_gaussian() + c * kk + (k - 1)]
-        }
-    }
 }
 
 /// The logistic function, as INRIA's opacity activation.

@@ -11,6 +11,7 @@
 pub mod cameras;
 pub mod city;
 pub mod config;
+pub mod features;
 pub mod gaussians;
 pub mod gt;
 pub mod masks;

@@ -22,6 +22,7 @@
 //! Everything random comes from one seeded generator used in a fixed order, and parallel work
 //! is cut into fixed chunks added in order: the same inputs and seed give the same outputs for
 //! any number of threads.
+mod kl;
 pub mod knn;
 pub mod model;
 pub mod pool;
