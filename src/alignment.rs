@@ -1,4 +1,4 @@
-//! Georeferenced CRS → scene frame: `p_scene = s · R · (p_geo − origin) + t` (DESIGN.md),
+//! Georeferenced CRS → scene frame: `p_scene = s · R · (p_geo − origin) + t` (`docs/design.md`),
 //! evaluated in f64; `alignment.json` reading/writing; estimation of a similarity from ≥ 3
 //! point pairs (Umeyama's least-squares similarity, rotation by Horn's quaternion method).
 //!

@@ -1,4 +1,4 @@
-//! The evaluation class ids (DESIGN.md) and the mapping of city-model entities onto them.
+//! The evaluation class ids (`docs/design.md`) and the mapping of city-model entities onto them.
 //!
 //! | id | class | coarse |  | id | class | coarse |
 //! |---|---|---|---|---|---|---|

@@ -1,4 +1,4 @@
-//! The fused label space (DESIGN.md, "Wave 2 contract", `fuse/labels.json`): every label id
+//! The fused label space (`docs/design.md`, "Wave 2 contract", `fuse/labels.json`): every label id
 //! that a fused per-view map can hold, with where it comes from and its class.
 //!
 //! * City labels are the entity ids of `semantics.json` (`0 … E−1`), `source = "city"`.
@@ -47,7 +47,7 @@ pub struct Label {
     /// Image labels: the group id (= `id − Δ`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub group: Option<i32>,
-    /// Evaluation class id (DESIGN.md), −1 unknown.
+    /// Evaluation class id (`docs/design.md`), −1 unknown.
     pub class: i32,
     /// City labels: the entity's hierarchy level; image labels: none.
     pub level: Option<Level>,

@@ -1,5 +1,5 @@
 //! The labelled triangle mesh handed from the `citymodel` stage to raycasting, and its
-//! `mesh.ply` layout on the shared PLY layer [`crate::ply`] (DESIGN.md fixes it; written
+//! `mesh.ply` layout on the shared PLY layer [`crate::ply`] (`docs/design.md` fixes it; written
 //! binary little-endian): `vertex {float x,y,z}`,
 //! `face {list uchar int vertex_indices; int feature_id; int surface_id; int part_id}`.
 //! Reading accepts any PLY encoding and scalar types that hold these values exactly, and

@@ -606,7 +606,7 @@ pub struct Prompts {
     pub dim: usize,
     /// Prompt text → vector.
     pub prompts: BTreeMap<String, Vec<f32>>,
-    /// Optional prompt text → class id (DESIGN.md class table, −1 = none). Prompts not listed
+    /// Optional prompt text → class id (`docs/design.md` class table, −1 = none). Prompts not listed
     /// get their class from their text (`masks::prompts::class_from_text`).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub classes: BTreeMap<String, i32>,

@@ -1,4 +1,4 @@
-//! The scene folder (DESIGN.md): which of its parts exist, and the train/test split of its views.
+//! The scene folder (`docs/design.md`): which of its parts exist, and the train/test split of its views.
 //!
 //! ```text
 //! scene/
@@ -12,7 +12,7 @@
 //! ```
 //! Pipeline stages take the paths they need from [`Scene`]; only evaluation uses [`Scene::gt`].
 //! Nothing else of the folder is listed here: a simulator's own files are not inputs
-//! (DESIGN.md, "Inputs the algorithms may read").
+//! (`docs/design.md`, "Inputs the algorithms may read").
 use std::path::{Path, PathBuf};
 
 use crate::camera::View;

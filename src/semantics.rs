@@ -35,7 +35,7 @@ pub struct Entity {
     pub attributes: BTreeMap<String, serde_json::Value>,
 }
 
-/// Reads the `entities` of a `semantics.json` written by [`write`] and checks the table:
+/// Reads the `entities` of a `semantics.json` written by [`write()`] and checks the table:
 /// ids equal row indices, every parent comes before its child (so the hierarchy has no
 /// cycle and every ancestor walk ends), and `building` is the root of the parent chain.
 pub fn read(path: &Path) -> Result<Vec<Entity>, SemanticsError> {

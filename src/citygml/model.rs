@@ -106,7 +106,7 @@ impl Class {
         }
     }
 
-    /// The hierarchy level (DESIGN.md): buildings, parts and installations are features,
+    /// The hierarchy level (`docs/design.md`): buildings, parts and installations are features,
     /// thematic surfaces are surfaces, openings are parts.
     pub fn level(self) -> Level {
         match self {

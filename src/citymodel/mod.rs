@@ -63,7 +63,7 @@ pub struct Options {
     pub alignment: Option<Alignment>,
 }
 
-/// Everything the stage computed (also written to disk by [`write`]).
+/// Everything the stage computed (also written to disk by [`write()`]).
 pub struct Output {
     pub mesh: TriMesh,
     pub entities: Vec<Entity>,
@@ -245,7 +245,7 @@ pub struct CitymodelTiming {
     pub triangulate_s: f64,
 }
 
-/// The stage's `summary.json` (DESIGN.md: counts, skipped polygons with reasons, warnings).
+/// The stage's `summary.json` (`docs/design.md`: counts, skipped polygons with reasons, warnings).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CitymodelSummary {
     pub files: Vec<FileSummary>,

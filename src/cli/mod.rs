@@ -1,4 +1,4 @@
-//! The command line: one subcommand per stage (DESIGN.md). Only this module uses `anyhow`.
+//! The command line: one subcommand per stage (`docs/design.md`). Only this module uses `anyhow`.
 //! Each subcommand parses its arguments, validates them into a config, then runs.
 mod align;
 mod associate;

@@ -9,7 +9,7 @@ use crate::run::{self, Mode, RunOptions, RunSummary, Supervision};
 
 #[derive(Debug, Args)]
 pub struct RunArgs {
-    /// Scene folder (DESIGN.md): images/, sparse/0/, point_cloud.ply, citymodel/*.gml +
+    /// Scene folder (`docs/design.md`): images/, sparse/0/, point_cloud.ply, citymodel/*.gml +
     /// alignment.json, optional masks/, features/, gt/.
     #[arg(long)]
     pub scene: PathBuf,

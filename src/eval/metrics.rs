@@ -1,4 +1,4 @@
-//! Pure evaluation metrics over label maps (class ids of DESIGN.md), so that other stages
+//! Pure evaluation metrics over label maps (class ids of `docs/design.md`), so that other stages
 //! (`lift`, `run`) can evaluate in-process without files.
 //!
 //! * [`accumulate`] turns one (ground truth, prediction) pair of equal-length label maps

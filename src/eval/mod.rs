@@ -5,7 +5,7 @@
 //! mean over images) and at the dataset level (counts summed over all images).
 //!
 //! Files: GT `<gt>/<stem>.class.npy` and prediction `<pred>/<stem>.class.npy`, int32 H×W
-//! (DESIGN.md). A missing prediction is an error; a prediction without GT is a warning. A
+//! (`docs/design.md`). A missing prediction is an error; a prediction without GT is a warning. A
 //! prediction of another size is resized to the GT size by nearest neighbour (pixel
 //! centres: source index `⌊(2i+1)·src/(2·dst)⌋`, as PIL `Image.NEAREST`), with a warning.
 //! The metric arithmetic lives in [`metrics`] (pure functions over arrays).

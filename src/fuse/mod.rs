@@ -16,7 +16,7 @@
 //! `overlap² / mask area` (the overlap, discounted by how much of the mask lies elsewhere), then
 //! normalised — the paper's crop-feature average with the masks standing in for the crops.
 //!
-//! Outputs (DESIGN.md): `<stem>.ids.npy` (int32 H×W), `labels.json` ([`LabelTable`]: every city
+//! Outputs (`docs/design.md`): `<stem>.ids.npy` (int32 H×W), `labels.json` ([`LabelTable`]: every city
 //! entity and every group, with source, entity/group, class, level), `label_features.npy` (when
 //! features exist), `summary.json` (last).
 pub mod snap;

@@ -27,10 +27,10 @@
 //! without any foundation model: connected components of the pixels where the 3DGS stands in
 //! front of the city model ([`geometry::components`], rule `depth_component`).
 //!
-//! The stage reads only the scene files DESIGN.md allows ("Inputs the algorithms may read"):
+//! The stage reads only the scene files `docs/design.md` allows ("Inputs the algorithms may read"):
 //! the SAM list `<stem>.json` of each view, its features and the prompts.
 //!
-//! Output files (DESIGN.md, "Wave 2 contract"): per view `<stem>.json` = the kept masks in SAM
+//! Output files (`docs/design.md`, "Wave 2 contract"): per view `<stem>.json` = the kept masks in SAM
 //! format, each with the extra keys `source_index`, `r_ov`, `rule`, `class` ([`KeptMask`]);
 //! `<stem>.decisions.json` = one [`Decision`] per input mask; `overlay_<stem>.png` for a few
 //! views; `summary.json` ([`MasksSummary`]) last.
@@ -148,7 +148,7 @@ parse_enum!(GsDepth, "median" => GsDepth::Median, "expected" => GsDepth::Expecte
 parse_enum!(Test, "auto" => Test::Auto, "features" => Test::Features, "geometry" => Test::Geometry,
     "both" => Test::Both, "overlap" => Test::Overlap);
 
-/// Options of the stage (defaults: DESIGN.md and `docs/masks.md`).
+/// Options of the stage (defaults: `docs/design.md` and `docs/masks.md`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MasksOptions {
     pub source: Source,

@@ -7,7 +7,7 @@
 //!          class TEXT, level TEXT,                -- CityGML class; feature | surface | part
 //!          parent_id INTEGER, building_id INTEGER, building_object_id TEXT,
 //!          feature_id INTEGER, surface_id INTEGER, part_id INTEGER,  -- the ancestor chain (NULL = none)
-//!          category TEXT,                         -- evaluation class (DESIGN.md)
+//!          category TEXT,                         -- evaluation class (`docs/design.md`)
 //!          gaussians INTEGER, gaussians_subtree INTEGER,  -- Gaussians labelled with it (and its descendants)
 //!          pixels INTEGER, pixels_subtree INTEGER,        -- predicted pixels over the query's views
 //!          selected INTEGER)                      -- 1 when the query selected it

@@ -108,7 +108,7 @@ pub enum Term {
     Id { id: String, column: usize },
     /// An entity and all its descendants.
     Within { id: String, column: usize },
-    /// An evaluation class of the label table (`wall … car`, DESIGN.md class ids).
+    /// An evaluation class of the label table (`wall … car`, `docs/design.md` class ids).
     Category { name: String, column: usize },
     /// A label id of the fused label table.
     Label { id: i64, column: usize },

@@ -8,7 +8,7 @@
 //!   `BoundarySurface` = the six thematic surfaces. Image labels have no CityGML class.
 //! * `level=L` — the entity's own level. `id=G` — the entity with gml:id G alone;
 //!   `within(G)` — G and all its descendants.
-//! * `category=C` — labels (city or image) whose evaluation class is C (DESIGN.md class ids).
+//! * `category=C` — labels (city or image) whose evaluation class is C (`docs/design.md` class ids).
 //! * `label=N` — label id N.
 //! * `name OP value` — the entity's attribute `name`, **inherited**: an entity without it takes
 //!   its nearest ancestor's value (so `measuredHeight>15` selects whole buildings). Numbers

@@ -1,4 +1,4 @@
-//! `synth`: a SIMULATED scene folder (DESIGN.md) with exact ground truth, built from real
+//! `synth`: a SIMULATED scene folder (`docs/design.md`) with exact ground truth, built from real
 //! CityGML: Gaussians on the true city model (textured, windows/doors recessed, glass
 //! view-dependent), a ground plane, water, trees, cars, persons (some occluding openings),
 //! floaters; drone-orbit and street-level PINHOLE cameras (COLMAP bin + txt); images from the

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use super::model::{CHUNK, Model};
 use crate::cache::ViewContrib;
 
-/// `classifier.json` (DESIGN.md): the linear classifier over the label ids, background first.
+/// `classifier.json` (`docs/design.md`): the linear classifier over the label ids, background first.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Classifier {
     /// Code dimension `D`.
