@@ -502,19 +502,19 @@ mod tests {
         assert_eq!((ra, rb), (1, 1), "nothing changed: both resumed");
         go(2, &mut ra, &mut rb);
         assert_eq!((ra, rb), (2, 2), "an option of a: a and b rerun");
-        std::fs::remove_file(root.join("b/b.txt")).unwrap();
+        std::fs::remove_file(root.join("raycast/b.txt")).unwrap();
         go(2, &mut ra, &mut rb);
         assert_eq!((ra, rb), (2, 3), "an output of b deleted: only b reruns");
         let f = std::fs::OpenOptions::new()
             .write(true)
-            .open(root.join("a/a.txt"))
+            .open(root.join("citymodel/a.txt"))
             .unwrap();
         f.set_len(2).unwrap();
         drop(f);
         go(2, &mut ra, &mut rb);
         assert_eq!((ra, rb), (3, 4), "an output of a truncated: a and b rerun");
         assert_eq!(
-            std::fs::read_to_string(root.join("b/b.txt")).unwrap(),
+            std::fs::read_to_string(root.join("raycast/b.txt")).unwrap(),
             "HELLO2"
         );
         std::fs::write(&input, "HELLO").unwrap();
@@ -546,11 +546,11 @@ mod tests {
             },
         );
         assert!(r.is_err());
-        assert_eq!(std::fs::read_to_string(root.join("a/a.txt")).unwrap(), "x1");
+        assert_eq!(std::fs::read_to_string(root.join("citymodel/a.txt")).unwrap(), "x1");
         // The partial folder of the failed attempt is removed when the store is next opened.
-        assert!(root.join(".a.partial").exists());
+        assert!(root.join(".citymodel.partial").exists());
         Store::open(&root, &d, serde_json::json!({}), false).unwrap();
-        assert!(!root.join(".a.partial").exists());
+        assert!(!root.join(".citymodel.partial").exists());
         let _ = std::fs::remove_dir_all(&d);
     }
 
