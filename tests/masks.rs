@@ -663,7 +663,7 @@ fn features_with_the_wrong_rows_or_dimension_are_errors_naming_the_file() {
     npy::write(&path, &[8], &[0.0f32; 8]).unwrap();
     let e = err(&f, Test::Features, false);
     assert!(
-        e.contains("features/v0.npy") && e.contains("2 dimensions"),
+        e.contains("features/v0.npy") && e.contains("not 2-D"),
         "{e}"
     );
     let mut bad = vec![vec![0.0; PROMPTS.len()]; 8];
