@@ -4,6 +4,10 @@
 //! surfaces and openings with their attributes and LoD geometry (f64, file CRS), resolves
 //! `xlink:href` so shared polygons are counted once, and chooses LoD3 per building with a
 //! named fallback to LoD2/LoD1. Unknown elements are skipped and counted.
+mod appearance;
+mod encoding;
+mod geometry;
+mod hierarchy;
 mod model;
 mod reader;
 
