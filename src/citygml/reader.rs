@@ -173,7 +173,7 @@ pub(super) struct Parser {
 }
 
 /// Reads one CityGML file (1.0, 2.0 or 3.0). The file is read whole and decoded to UTF-8
-/// first ([`decode_text`]), so line numbers count the file's own lines in every encoding.
+/// first (`encoding::decode_text`), so line numbers count the file's own lines in every encoding.
 pub fn read(path: &Path) -> Result<CityModel, CityGmlError> {
     let bytes = std::fs::read(path).map_err(|err| CityGmlError::Open {
         path: path.to_path_buf(),

@@ -128,8 +128,7 @@ pub fn evaluate(
                 value: gt[i],
                 row: i / gsize[1],
                 col: i % gsize[1],
-            }
-            .into());
+            });
         }
         cache.load_into(stem, &mut c, &mut buf)?;
         let psize = [c.height, c.width];

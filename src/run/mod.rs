@@ -278,7 +278,7 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
     })
 }
 
-/// 0. align --refine (optional): the alignment file every later stage uses.
+/// Step 0: align --refine (optional): the alignment file every later stage uses.
 fn align_step(r: &mut Running, opts: &RunOptions) -> Result<Option<PathBuf>, RunError> {
     if !opts.refine_alignment {
         return Ok(r.scene.alignment.clone());
@@ -323,7 +323,7 @@ fn align_step(r: &mut Running, opts: &RunOptions) -> Result<Option<PathBuf>, Run
     Ok(Some(r.st.dir(Stage::Align).join("alignment.json")))
 }
 
-/// 1. citymodel: the hierarchy table and the aligned mesh.
+/// Step 1: citymodel: the hierarchy table and the aligned mesh.
 fn citymodel_step(
     r: &mut Running,
     alignment_file: Option<&Path>,
@@ -351,7 +351,7 @@ fn citymodel_step(
     )
 }
 
-/// 2. raycast (every view): `M_city` and the city-model depth.
+/// Step 2: raycast (every view): `M_city` and the city-model depth.
 fn raycast_step(r: &mut Running, scale: f64, opts: &RunOptions) -> Result<(), RunError> {
     let ro = raycast::RaycastOptions {
         tau: opts.tau_m * scale,
@@ -374,7 +374,7 @@ fn raycast_step(r: &mut Running, scale: f64, opts: &RunOptions) -> Result<(), Ru
     Ok(())
 }
 
-/// 3. render: the contributions cache of every view.
+/// Step 3: render: the contributions cache of every view.
 fn render_step(r: &mut Running, opts: &RunOptions) -> Result<Cache, RunError> {
     let co = CacheOptions { top_k: opts.top_k };
     let mut inputs = vec![r.scene.ply.clone()];
@@ -397,7 +397,7 @@ struct Supervised {
     masks: Option<MasksSummary>,
 }
 
-/// 4–6 skipped: `M_city` alone (paper §3.1); the mask stages' folders are removed.
+/// Steps 4–6 skipped: `M_city` alone (paper §3.1); the mask stages' folders are removed.
 fn city_supervision(
     r: &mut Running,
     entities: &[semantics::Entity],
@@ -413,7 +413,7 @@ fn city_supervision(
     })
 }
 
-/// 4–6. masks → associate → fuse: the fused supervision (paper §3.2), training views only.
+/// Steps 4–6: masks → associate → fuse: the fused supervision (paper §3.2), training views only.
 fn fused_supervision(
     r: &mut Running,
     cache: &Cache,
@@ -518,7 +518,7 @@ fn fused_supervision(
     })
 }
 
-/// 7–8. lift (the vote over the training views) and, in mode learned, train (identity codes
+/// Steps 7–8: lift (the vote over the training views) and, in mode learned, train (identity codes
 /// + classifier, starting from the vote); returns the folder of the mode's predictions.
 fn vote_steps(
     r: &mut Running,
@@ -563,7 +563,7 @@ fn vote_steps(
     Ok(r.st.dir(opts.mode.stage()))
 }
 
-/// 9. eval on the test views, when the scene has ground truth: the class maps and the paper's
+/// Step 9: eval on the test views, when the scene has ground truth: the class maps and the paper's
 /// query-driven evaluation next to them.
 fn eval_step(
     r: &mut Running,

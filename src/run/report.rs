@@ -160,12 +160,8 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
                 why: format!("image is {:?}, camera is {w}×{h}", img.dim()),
             });
         }
-        let pred = read_map(&crate::idmap::class_file(&r.predictions, &stem), h, w)?;
-        let gt = match scene
-            .gt
-            .as_ref()
-            .map(|g| crate::idmap::class_file(g, &stem))
-        {
+        let pred = read_map(&crate::idmap::class_file(r.predictions, stem), h, w)?;
+        let gt = match scene.gt.as_ref().map(|g| crate::idmap::class_file(g, stem)) {
             Some(p) if p.is_file() => read_map(&p, h, w)?,
             _ => vec![-1; w * h],
         };

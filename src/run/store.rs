@@ -546,7 +546,10 @@ mod tests {
             },
         );
         assert!(r.is_err());
-        assert_eq!(std::fs::read_to_string(root.join("citymodel/a.txt")).unwrap(), "x1");
+        assert_eq!(
+            std::fs::read_to_string(root.join("citymodel/a.txt")).unwrap(),
+            "x1"
+        );
         // The partial folder of the failed attempt is removed when the store is next opened.
         assert!(root.join(".citymodel.partial").exists());
         Store::open(&root, &d, serde_json::json!({}), false).unwrap();
