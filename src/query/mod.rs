@@ -21,10 +21,8 @@ use ndarray::Array3;
 use crate::cache::{Cache, CacheError};
 use crate::citygml::Level;
 use crate::layout::Mode;
-use crate::scene::SceneError;
 use crate::selection::{
     self, Expr, MaskRule, SelectionError, SemanticRun, Term, TextMatch, TextOptions, masks, select,
-    text,
 };
 use crate::semantics;
 use crate::{classes, fsutil, npy};
@@ -38,12 +36,6 @@ pub enum QueryError {
     #[error("{0}")]
     Inputs(String),
     #[error(transparent)]
-    Scene(#[from] SceneError),
-    #[error(transparent)]
-    Semantics(#[from] semantics::SemanticsError),
-    #[error(transparent)]
-    Labels(#[from] crate::labels::LabelsError),
-    #[error(transparent)]
     Npy(#[from] npy::NpyError),
     #[error(transparent)]
     Cache(#[from] CacheError),
@@ -55,10 +47,6 @@ pub enum QueryError {
     Fs(#[from] fsutil::FsError),
     #[error(transparent)]
     Sqlite(#[from] sqlite::SqliteError),
-    #[error(transparent)]
-    Text(#[from] text::TextError),
-    #[error(transparent)]
-    Sam(#[from] crate::sam::SamError),
 }
 
 /// Writes `<stem>.mask.npy` (uint8 H×W) and `<stem>.mask.png` into `out`.
