@@ -152,6 +152,19 @@ fn view_count_and_far_field_filters() {
         1.0,
     );
     assert_eq!((s.groups, s.dropped_min_views), (0, OBJECTS));
+    // A collapse is said in one loud line with its cause and the option to change.
+    let loud: Vec<&String> = s
+        .warnings
+        .iter()
+        .filter(|w| w.contains("COLLAPSED"))
+        .collect();
+    assert_eq!(loud.len(), 1, "{:?}", s.warnings);
+    assert!(
+        loud[0].contains("in groups seen in fewer than 13 views")
+            && loud[0].contains("--min-views"),
+        "{}",
+        loud[0]
+    );
     // Cameras are ≈ 13 m from the objects: 80 m × scale 0.1 = 8 m drops all, 80 m × 1 none.
     let s = run(&b, &AssociateOptions::default(), &b.dir.join("far"), 0.1);
     assert_eq!((s.groups, s.dropped_far_field), (0, OBJECTS));
@@ -160,6 +173,75 @@ fn view_count_and_far_field_filters() {
     let gf = GroupsFile::read(&b.dir.join("near")).unwrap();
     for g in &gf.groups {
         assert!((8.0..16.0).contains(&g.nearest_camera_distance), "{g:?}");
+    }
+}
+
+/// Features that carry nothing (an independent random direction per mask, so two masks of one
+/// object are no more alike than two of different objects) turn the feature test off — a
+/// geometry-only association that still finds every object — where the fixed τ_sim makes every
+/// mask its own group and none survives m_view: the silent collapse of issue 23, now a loud one.
+/// Separating features keep the configured τ_sim (the cap).
+#[test]
+fn useless_features_give_a_geometry_only_association() {
+    use rand::{Rng, SeedableRng};
+    let b = boxes::build("calib", |_, _| false);
+    let s = run(&b, &AssociateOptions::default(), &b.dir.join("good"), 1.0);
+    let c = s.calibration.clone().unwrap();
+    assert_eq!((c.mode.as_str(), c.tau_sim), ("features", 0.7), "{c:?}");
+    assert!(c.linked_pairs >= 20 && c.unlinked_pairs >= 20, "{c:?}");
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(23);
+    for v in &b.views {
+        let p = b.features.join(format!("{}.npy", v.stem()));
+        let (n, d, _) = gs4city::sam::read_features(&p, None).unwrap();
+        let rows: Vec<Vec<f32>> = (0..n)
+            .map(|_| (0..d).map(|_| rng.random::<f32>() - 0.5).collect())
+            .collect();
+        gs4city::sam::write_features_npy(&p, d, &rows).unwrap();
+    }
+    let fixed = AssociateOptions {
+        calibrate: false,
+        ..Default::default()
+    };
+    let s = run(&b, &fixed, &b.dir.join("fixed"), 1.0);
+    // Every object splits into groups of one view each, which m_view drops: a loud line.
+    assert!(
+        s.groups < OBJECTS && s.dropped_min_views > 2 * OBJECTS,
+        "{s:?}"
+    );
+    assert!(
+        s.warnings.iter().any(|w| w.contains("COLLAPSED")),
+        "{:?}",
+        s.warnings
+    );
+    let s = run(
+        &b,
+        &AssociateOptions::default(),
+        &b.dir.join("useless"),
+        1.0,
+    );
+    let c = s.calibration.clone().unwrap();
+    assert_eq!(
+        (c.mode.as_str(), c.tau_sim),
+        ("geometry_only", -1.0),
+        "{c:?}"
+    );
+    assert!(c.auc.unwrap() < 0.75, "{c:?}");
+    assert!(
+        s.warnings.iter().any(|w| w.contains("geometry-only")),
+        "{:?}",
+        s.warnings
+    );
+    // Geometry alone finds every object, the two identical-looking cars apart.
+    assert_eq!(s.groups, OBJECTS, "{s:?}");
+    let per = groups_per_object(&b, &b.dir.join("useless"));
+    let ids: BTreeSet<i32> = per.iter().flatten().copied().filter(|&g| g >= 0).collect();
+    assert_eq!(ids.len(), OBJECTS, "{per:?}");
+    for (o, g) in per.iter().enumerate() {
+        assert_eq!(
+            g.iter().filter(|&&x| x >= 0).count(),
+            1,
+            "object {o}: {g:?}"
+        );
     }
 }
 

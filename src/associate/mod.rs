@@ -30,6 +30,7 @@
 //! candidate Gaussians ([`candidates`]), view support and support-only masks (`support.rs`),
 //! the filters and numbering (`filters.rs`), transfer back with the fill (`transfer.rs`).
 pub mod bank;
+pub mod calibrate;
 pub mod candidates;
 mod filters;
 mod support;
@@ -91,8 +92,12 @@ pub struct AssociateOptions {
     pub candidates: CandidateMode,
     /// Geometric overlap a mask needs to join a group (`R_geo > τ_geo`).
     pub tau_geo: f64,
-    /// Feature cosine a mask needs to join a group, when both have features.
+    /// Feature cosine a mask needs to join a group, when both have features: the cap of the
+    /// calibrated value ([`calibrate`]), or the value itself with `calibrate` off.
     pub tau_sim: f64,
+    /// Choose `τ_sim` from the scene's own statistics ([`calibrate`]; on by default).
+    #[serde(default = "yes")]
+    pub calibrate: bool,
     /// Groups seen in fewer views are dropped (`m_view`).
     pub min_views: usize,
     /// Groups whose centroid is farther than this (metres, × alignment scale) from every
@@ -159,6 +164,10 @@ pub struct AssociateOptions {
     pub fill_over_masks: bool,
 }
 
+fn yes() -> bool {
+    true
+}
+
 fn default_join_views() -> u32 {
     2
 }
@@ -169,6 +178,7 @@ impl Default for AssociateOptions {
             candidates: CandidateMode::Weighted,
             tau_geo: 0.2,
             tau_sim: 0.7,
+            calibrate: true,
             min_views: 3,
             far_field_m: 80.0,
             weighted: WeightedLimits::default(),
@@ -253,6 +263,9 @@ pub struct AssociateInputs<'a> {
 /// Time per step.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct AssociateTiming {
+    /// Calibrating τ_sim ([`calibrate`]).
+    #[serde(default)]
+    pub calibrate_s: f64,
     /// Reading the PLY (Gaussian centres).
     pub ply_s: f64,
     /// Reading masks, features and cache views, compositing and candidate sets (wall time of
@@ -313,6 +326,9 @@ pub struct AssociateSummary {
     pub filled_pixels: u64,
     pub timing: AssociateTiming,
     pub warnings: Vec<String>,
+    /// How τ_sim was chosen ([`calibrate`]).
+    #[serde(default)]
+    pub calibration: Option<calibrate::Calibration>,
 }
 
 impl crate::layout::Summary for AssociateSummary {}
@@ -348,6 +364,7 @@ struct Tally {
     labelled_pixels: u64,
     filled_pixels: u64,
     timing: AssociateTiming,
+    calibration: Option<calibrate::Calibration>,
 }
 
 /// Runs the stage: association, filters, per-view group maps, `groups.json`, `features.npy`,
@@ -374,8 +391,17 @@ pub fn run(
         out,
     };
 
-    // Per view: the kept masks composited, their candidate Gaussians; pass 1 of the memory bank.
+    // Per view: the kept masks composited, their candidate Gaussians; τ_sim from the scene's
+    // statistics; pass 1 of the memory bank. Every later step uses the calibrated τ_sim.
     let pass1 = views::pass_one(&st, &mut tally)?;
+    let given = *opts;
+    let calibrated = AssociateOptions {
+        tau_sim: pass1.calibration.tau_sim,
+        ..*opts
+    };
+    let opts = &calibrated;
+    let st = Stage { opts, ..st };
+    tally.calibration = Some(pass1.calibration.clone());
 
     // Consolidation; fill members and weak groups (pre-filter group indices); support-only
     // masks join their groups' fill members.
@@ -396,7 +422,7 @@ pub fn run(
     let groups = write_groups(out, tally.dim, kept)?;
     tally.timing.write_s = t.elapsed().as_secs_f64();
 
-    write_summary(opts, fin.consolidation, &groups, tally, t0, out)
+    write_summary(&given, fin.consolidation, &groups, tally, t0, out)
 }
 
 /// Checks the options and the alignment scale, and returns the views in name order (an error
@@ -477,6 +503,39 @@ fn write_groups(
     Ok(groups_file)
 }
 
+/// The one loud line of a collapse: masks went in, no group came out (the fused supervision
+/// falls back to the city model alone), with the likely cause and the option to change.
+fn collapse_warning(opts: &AssociateOptions, tally: &Tally, groups: usize) -> String {
+    let cause = if tally.dropped_views > 0 && tally.dropped_far == 0 {
+        format!(
+            "{} of {} masks are in groups seen in fewer than {} views ({} groups dropped): the masks are not linked across views — features that do not match ({}), masks too fragmented for R_geo > τ_geo = {}, or too few views of each object; try --min-views 2, a lower --tau-geo, or the feature calibration (on by default)",
+            tally.masks_dropped,
+            tally.offered,
+            opts.min_views,
+            tally.dropped_views,
+            tally
+                .calibration
+                .as_ref()
+                .map_or("no calibration".to_string(), |c| format!(
+                    "τ_sim {}: {}",
+                    c.tau_sim, c.mode
+                )),
+            opts.tau_geo
+        )
+    } else if tally.dropped_far > 0 {
+        format!(
+            "{} groups lie farther than {} m from every camera (far field): check the alignment scale or raise --far-field",
+            tally.dropped_far, opts.far_field_m
+        )
+    } else {
+        "no mask joined or founded a group".to_string()
+    };
+    format!(
+        "associate COLLAPSED: {} masks of {} views → {groups} groups; the fused supervision is (almost) the city model alone (no tree, car, person). Cause: {cause}",
+        tally.offered, tally.views
+    )
+}
+
 /// The summary from the counts of every step, written last (`summary.json`), and the closing
 /// progress line.
 fn write_summary(
@@ -499,6 +558,22 @@ fn write_summary(
         warnings.push(format!(
             "{zero_f} kept masks have an all-zero feature row: associated without a feature"
         ));
+    }
+    if let Some(c) = tally
+        .calibration
+        .as_ref()
+        .filter(|c| c.mode == "geometry_only")
+    {
+        warnings.push(format!("associate: {}", c.why));
+    }
+    // (Almost) nothing: no group, or 90 % of the masks in groups the filters dropped.
+    if tally.offered > 0
+        && (groups_file.groups.is_empty() || tally.masks_dropped * 10 >= tally.offered * 9)
+    {
+        warnings.push(collapse_warning(opts, &tally, groups_file.groups.len()));
+    }
+    for w in &warnings {
+        log::warn!("{w}");
     }
     let summary = AssociateSummary {
         views: tally.views,
@@ -528,6 +603,7 @@ fn write_summary(
             ..tally.timing
         },
         warnings,
+        calibration: tally.calibration,
     };
     crate::layout::Summary::write(&summary, out)?;
     crate::progress::done(

@@ -265,11 +265,14 @@ pub(super) struct PassOne {
     pub(super) bank: bank::Bank,
     /// Per view (canonical index): its visible Gaussians (only for the fill).
     pub(super) visible: Vec<Option<Vec<u64>>>,
+    /// How τ_sim was chosen; the bank used its value.
+    pub(super) calibration: super::calibrate::Calibration,
 }
 
-/// Pass 1 of the memory bank: the views are read in parallel blocks ([`view_work`]) and their
-/// masks offered to the bank in the visiting order (by name, or a seeded shuffle). The counts
-/// and times go to `tally`.
+/// Pass 1 of the memory bank: the views are read in parallel blocks ([`view_work`]), τ_sim is
+/// calibrated on all their masks ([`super::calibrate`], unless switched off), and the masks are
+/// offered to the bank in the visiting order (by name, or a seeded shuffle). The counts and times
+/// go to `tally`.
 pub(super) fn pass_one(st: &Stage<'_>, tally: &mut Tally) -> Result<PassOne, AssociateError> {
     let (inp, opts, views, centres) = (st.inp, st.opts, st.views, st.centres);
     // Visiting order: by name, or a seeded shuffle.
@@ -277,23 +280,11 @@ pub(super) fn pass_one(st: &Stage<'_>, tally: &mut Tally) -> Result<PassOne, Ass
     if let Some(seed) = opts.shuffle_seed {
         order.shuffle(&mut rand_chacha::ChaCha8Rng::seed_from_u64(seed));
     }
-    let mut bank = bank::Bank::new(
-        centres.len(),
-        BankOptions {
-            tau_geo: opts.tau_geo,
-            tau_sim: opts.tau_sim,
-            consolidate: opts.consolidate,
-            merge_support: opts.merge_support,
-            merge_fraction: opts.merge_fraction,
-            tau_link: opts.tau_link,
-            specific_owner: opts.specific_owner,
-        },
-    );
     let bar = Bar::new("associate", views.len() as u64, "views");
     let (mut views_s, mut bank_s) = (0.0, 0.0);
     let mut counts = MaskCounts::default();
     let mut dim: Option<usize> = None;
-    let mut offered = 0usize;
+    let mut observations: Vec<bank::Observation> = Vec::new();
     let mut visible: Vec<Option<Vec<u64>>> = vec![None; views.len()];
     let chunk = rayon::current_num_threads().max(1) * 2;
     for block in order.chunks(chunk) {
@@ -320,19 +311,45 @@ pub(super) fn pass_one(st: &Stage<'_>, tally: &mut Tally) -> Result<PassOne, Ass
             dim = dim.or(wk.dim);
             counts.add(&wk.counts);
             visible[vi as usize] = wk.visible;
-            for o in wk.observations {
-                bank.offer(o);
-                offered += 1;
-            }
+            observations.extend(wk.observations);
             bar.inc(1);
         }
         bank_s += t.elapsed().as_secs_f64();
     }
     bar.finish();
+    let t = Instant::now();
+    let calibration = if opts.calibrate {
+        super::calibrate::calibrate(&observations, opts.tau_sim)
+    } else {
+        super::calibrate::configured(opts.tau_sim, "calibration off: the configured τ_sim")
+    };
+    tally.timing.calibrate_s = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let mut bank = bank::Bank::new(
+        centres.len(),
+        BankOptions {
+            tau_geo: opts.tau_geo,
+            tau_sim: calibration.tau_sim,
+            consolidate: opts.consolidate,
+            merge_support: opts.merge_support,
+            merge_fraction: opts.merge_fraction,
+            tau_link: opts.tau_link,
+            specific_owner: opts.specific_owner,
+        },
+    );
+    let offered = observations.len();
+    for o in observations {
+        bank.offer(o);
+    }
+    bank_s += t.elapsed().as_secs_f64();
     tally.counts = counts;
     tally.dim = dim;
     tally.offered = offered;
     tally.timing.views_s = views_s;
     tally.timing.bank_s = bank_s;
-    Ok(PassOne { bank, visible })
+    Ok(PassOne {
+        bank,
+        visible,
+        calibration,
+    })
 }

@@ -74,9 +74,13 @@ pub struct AssociateArgs {
     /// Geometric overlap R_geo a mask needs to join a group.
     #[arg(long, default_value_t = 0.2)]
     tau_geo: f64,
-    /// Feature cosine a mask needs to join a group (when features exist).
+    /// Feature cosine a mask needs to join a group (when features exist): the cap of the value
+    /// calibrated on the scene's own mask pairs, or the value itself with --no-calibrate.
     #[arg(long, default_value_t = 0.7)]
     tau_sim: f64,
+    /// Use --tau-sim as given instead of calibrating it (docs/associate.md, "Calibration").
+    #[arg(long)]
+    no_calibrate: bool,
     /// Groups seen in fewer views are dropped (m_view).
     #[arg(long, default_value_t = 3)]
     min_views: usize,
@@ -105,6 +109,7 @@ pub fn run(args: &AssociateArgs) -> anyhow::Result<()> {
         },
         tau_geo: args.tau_geo,
         tau_sim: args.tau_sim,
+        calibrate: !args.no_calibrate,
         min_views: args.min_views,
         far_field_m: args.far_field,
         consolidate: !args.no_consolidate,

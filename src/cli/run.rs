@@ -58,6 +58,13 @@ pub struct RunArgs {
     /// Support-only masks (fail only τ_q) do not join associated groups (the ablation).
     #[arg(long)]
     pub no_support_masks: bool,
+    /// Feature cosine τ_sim of the association: the cap of the value calibrated on the scene's
+    /// own mask pairs, or the value itself with --no-calibrate.
+    #[arg(long, default_value_t = crate::associate::AssociateOptions::default().tau_sim)]
+    pub tau_sim: f64,
+    /// Use --tau-sim as given instead of calibrating it on the scene (docs/associate.md).
+    #[arg(long)]
+    pub no_calibrate: bool,
     /// Per-Gaussian labels that are evaluated and queried: vote (closed form) or learned
     /// (identity codes trained from the vote, the train stage).
     #[arg(long, default_value = "vote")]
@@ -102,6 +109,8 @@ impl RunArgs {
         let associate = crate::associate::AssociateOptions {
             min_views: self.min_views,
             support_masks: !self.no_support_masks,
+            tau_sim: self.tau_sim,
+            calibrate: !self.no_calibrate,
             ..d.associate
         };
         associate.validate()?;

@@ -344,9 +344,27 @@ pub struct MasksSummary {
     pub overlays: Vec<String>,
     pub views: Vec<ViewSummary>,
     pub timing: MasksTiming,
+    /// Loud lines: the stage kept (almost) nothing.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 impl crate::layout::Summary for MasksSummary {}
+
+/// The loud line when the stage keeps no mask of many (the fused supervision falls back to the
+/// city model alone), with the rules that dropped them and what to change.
+fn collapse_warning(input: usize, kept: usize, rules: &BTreeMap<String, usize>) -> Option<String> {
+    if input == 0 || kept > 0 {
+        return None;
+    }
+    let mut by: Vec<(&String, &usize)> = rules.iter().collect();
+    by.sort_by(|a, b| b.1.cmp(a.1).then(a.0.cmp(b.0)));
+    let top: Vec<String> = by.iter().take(3).map(|(r, n)| format!("{r} {n}")).collect();
+    Some(format!(
+        "masks COLLAPSED: all {input} masks dropped ({}); the fused supervision is the city model alone. Check --tau-q (quality), --area-frac (area), --rho (overlap with the city model) and the alignment (on_surface / features_building mean the masks lie on the model's surfaces)",
+        top.join(", ")
+    ))
+}
 
 /// The file name of a view's overlay.
 pub fn overlay_name(stem: &str) -> String {
@@ -527,7 +545,17 @@ pub fn run(
         overlays: plan.overlay_stems.iter().map(|s| overlay_name(s)).collect(),
         views,
         timing,
+        warnings: Vec::new(),
     };
+    let mut summary = summary;
+    summary.warnings.extend(collapse_warning(
+        summary.input,
+        summary.kept,
+        &summary.rules,
+    ));
+    for w in &summary.warnings {
+        log::warn!("{w}");
+    }
     crate::layout::Summary::write(&summary, out)?;
     crate::progress::done(
         "masks",

@@ -173,6 +173,9 @@ pub struct RunSummary {
     /// The evaluation, when the scene has ground truth.
     pub eval: Option<EvalSummary>,
     pub report: PathBuf,
+    /// The stages' loud lines: a stage that contributed (almost) nothing, with the likely cause.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 /// Every file directly in `dir` (sorted; none when it does not exist).
@@ -207,7 +210,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     };
     let pred_dir = vote_steps(&mut r, &cache, &entities, &sup, opts)?;
     let eval = eval_step(&mut r, &cache, &pred_dir, out, opts)?;
-    finish(r, out, opts, &pred_dir, eval, sup.masks)
+    finish(r, out, opts, &pred_dir, eval, sup)
 }
 
 /// What every step of a run shares.
@@ -395,6 +398,9 @@ struct Supervised {
     labels: LabelTable,
     upstream: Vec<Stage>,
     masks: Option<MasksSummary>,
+    /// The mask stages' loud lines and the thresholds they chose (for the report).
+    warnings: Vec<String>,
+    choices: Vec<String>,
 }
 
 /// Steps 4–6 skipped: `M_city` alone (paper §3.1); the mask stages' folders are removed.
@@ -410,6 +416,8 @@ fn city_supervision(
         labels: LabelTable::city(entities, &classes::table(entities))?,
         upstream: vec![Stage::Citymodel, Stage::Raycast],
         masks: None,
+        warnings: Vec::new(),
+        choices: Vec::new(),
     })
 }
 
@@ -459,7 +467,7 @@ fn fused_supervision(
         .masks
         .as_deref()
         .filter(|_| ms.source == masks::Source::Sam);
-    let _as: AssociateSummary = r.st.stage(
+    let asum: AssociateSummary = r.st.stage(
         Stage::Associate,
         &opts.associate,
         &inputs,
@@ -510,11 +518,20 @@ fn fused_supervision(
         },
     )?;
     let fuse_dir = r.st.dir(Stage::Fuse);
+    let mut warnings = ms.warnings.clone();
+    warnings.extend(asum.warnings.iter().cloned());
+    let choices = asum
+        .calibration
+        .iter()
+        .map(|c| format!("associate: τ_sim = {} ({}): {}", c.tau_sim, c.mode, c.why))
+        .collect();
     Ok(Supervised {
         labels: LabelTable::read(&fuse_dir.join("labels.json"))?,
         maps: LabelMaps::Fused(fuse_dir),
         upstream: vec![Stage::Citymodel, Stage::Fuse],
         masks: Some(ms),
+        warnings,
+        choices,
     })
 }
 
@@ -616,7 +633,7 @@ fn finish(
     opts: &RunOptions,
     pred_dir: &Path,
     eval: Option<EvalSummary>,
-    masks: Option<MasksSummary>,
+    sup: Supervised,
 ) -> Result<RunSummary, RunError> {
     let report = report::write(&report::ReportInputs {
         scene: &r.scene,
@@ -625,7 +642,9 @@ fn finish(
         predictions: pred_dir,
         stages: &r.st.reports,
         eval: eval.as_ref(),
-        masks: masks.as_ref(),
+        masks: sup.masks.as_ref(),
+        warnings: &sup.warnings,
+        choices: &sup.choices,
     })?;
     let summary = RunSummary {
         scene: r.scene.root.clone(),
@@ -634,6 +653,7 @@ fn finish(
         test_views: r.split.test_stems(),
         eval,
         report,
+        warnings: sup.warnings,
     };
     fsutil::write_json(&out.join("summary.json"), &summary)?;
     Ok(summary)

@@ -70,6 +70,10 @@ pub struct ReportInputs<'a> {
     pub eval: Option<&'a EvalSummary>,
     /// The masks stage's summary, when the run has one: its counts per rule and overlays.
     pub masks: Option<&'a crate::masks::MasksSummary>,
+    /// The stages' loud lines (a stage that contributed almost nothing), shown first.
+    pub warnings: &'a [String],
+    /// Thresholds a stage chose from the scene, and why (e.g. the association's τ_sim).
+    pub choices: &'a [String],
 }
 
 /// Writes `out/report.html` and `out/report/<stem>.png`; returns the report path.
@@ -89,6 +93,20 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
         esc(&scene.root.display().to_string()),
         esc(&out.display().to_string())
     );
+    for w in r.warnings {
+        let _ = write!(
+            html,
+            "<p style=\"background:#fdd;border:2px solid #c00;padding:8px\"><b>Warning:</b> {}</p>",
+            esc(w)
+        );
+    }
+    if !r.choices.is_empty() {
+        html.push_str("<h2>Thresholds chosen from the scene</h2><ul>");
+        for c in r.choices {
+            let _ = write!(html, "<li>{}</li>", esc(c));
+        }
+        html.push_str("</ul>");
+    }
     if let Some(e) = r.eval {
         let _ = write!(
             html,

@@ -1,0 +1,350 @@
+//! The feature threshold `τ_sim` from the scene's own statistics (issue 23): before the memory
+//! bank runs, pairs of kept masks in different views are split by geometry alone — **linked**
+//! when each puts at least half of its candidates' α·T mass on the other's candidates (the same
+//! object seen twice), **unlinked** when they share no candidate Gaussian — and the cosine of
+//! their features is compared between the two sets.
+//!
+//! * Features of one object **agree across views** when the [`LINKED_QUANTILE`] quantile of the
+//!   linked cosines reaches the configured `τ_sim`: the configured value stays (90 % of the pairs
+//!   geometry links pass the feature test; on `street` the quantile is 0.715 for τ_sim 0.7).
+//! * Otherwise, when features still **separate** linked from unlinked pairs — the probability
+//!   that a linked pair is more similar than an unlinked one (the AUC, Mann–Whitney) is at least
+//!   [`MIN_AUC`] — `τ_sim` drops to that quantile.
+//! * Otherwise the features carry no information the association can use: `τ_sim` = −1, a
+//!   **geometry-only** association (the paper's `R_geo > τ_geo` alone), and a warning says so.
+//! * With too few pairs of either kind, or no features, the configured value stays.
+//!
+//! Unlinked pairs share no Gaussian; they include parts of one large object seen in different
+//! places (a road), which is why agreement is judged on the linked pairs first and the AUC only
+//! decides between a lower threshold and none.
+//!
+//! Sampling keeps the cost bounded and deterministic: Gaussians enter the pair count through a
+//! SplitMix64 hash sample sized to at most [`PAIR_BUDGET`] mask pairs, and unlinked pairs are a
+//! strided sample of at most [`UNLINKED_MAX`]; nothing depends on the thread count.
+use std::collections::HashMap;
+
+use serde::{Deserialize, Serialize};
+
+use super::bank::Observation;
+use crate::hash::splitmix64;
+
+/// Features separate when the AUC of linked against unlinked cosines reaches this.
+pub const MIN_AUC: f64 = 0.75;
+/// `τ_sim` is this quantile of the linked pairs' cosines.
+pub const LINKED_QUANTILE: f64 = 0.10;
+/// Each mask of a linked pair puts at least this share of its candidate mass on the other's.
+pub const LINK_SHARE: f64 = 0.5;
+/// At least this many pairs of each kind are needed to calibrate.
+pub const MIN_PAIRS: usize = 20;
+/// At most this many (mask, mask) entries are accumulated for the overlaps.
+pub const PAIR_BUDGET: u64 = 20_000_000;
+/// At most this many unlinked pairs are compared.
+pub const UNLINKED_MAX: usize = 200_000;
+
+/// How `τ_sim` was chosen (the associate summary's `calibration`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Calibration {
+    /// `features` (calibrated), `geometry_only` (features do not separate), `configured` (not
+    /// enough evidence, no features, or calibration switched off).
+    pub mode: String,
+    /// The value the association used.
+    pub tau_sim: f64,
+    /// The configured value (the cap).
+    pub configured: f64,
+    /// Linked and unlinked pairs with features on both sides.
+    pub linked_pairs: usize,
+    pub unlinked_pairs: usize,
+    /// Quantiles 10/25/50/75/90 % of the cosines.
+    pub linked_cosine: Option<[f32; 5]>,
+    pub unlinked_cosine: Option<[f32; 5]>,
+    /// P(cos linked > cos unlinked) (ties count half).
+    pub auc: Option<f64>,
+    /// One Gaussian in `sample` entered the overlaps (1 = all).
+    pub sample: u64,
+    pub why: String,
+}
+
+/// The calibration off: the configured value and why.
+pub fn configured(tau_sim: f64, why: &str) -> Calibration {
+    Calibration {
+        mode: "configured".into(),
+        tau_sim,
+        configured: tau_sim,
+        linked_pairs: 0,
+        unlinked_pairs: 0,
+        linked_cosine: None,
+        unlinked_cosine: None,
+        auc: None,
+        sample: 1,
+        why: why.into(),
+    }
+}
+
+/// Linked and unlinked pairs of `obs` (indices into it, `a < b`, different views), and the
+/// Gaussian sampling modulus used.
+pub fn pairs(obs: &[Observation]) -> (Vec<(u32, u32)>, Vec<(u32, u32)>, u64) {
+    // Gaussian → (mask, share of the mask's candidate mass), masks in observation order.
+    let mut lists: HashMap<u32, Vec<(u32, f32)>> = HashMap::new();
+    for (i, o) in obs.iter().enumerate() {
+        let total = o.candidate.mass();
+        if total <= 0.0 {
+            continue;
+        }
+        for (&g, &w) in o.candidate.ids.iter().zip(&o.candidate.weights) {
+            lists
+                .entry(g)
+                .or_default()
+                .push((i as u32, (f64::from(w) / total) as f32));
+        }
+    }
+    let entries: u64 = lists
+        .values()
+        .map(|l| (l.len() as u64) * (l.len() as u64).saturating_sub(1) / 2)
+        .sum();
+    let sample = entries.div_ceil(PAIR_BUDGET).max(1);
+    let kept = |g: u32| sample == 1 || splitmix64(u64::from(g)) % sample == 0;
+    // Per mask the sampled mass, per pair the shared sampled mass of each side.
+    let mut mass = vec![0.0f64; obs.len()];
+    let mut shared: HashMap<(u32, u32), (f64, f64)> = HashMap::new();
+    let mut gs: Vec<u32> = lists.keys().copied().filter(|&g| kept(g)).collect();
+    gs.sort_unstable();
+    for g in gs {
+        let l = &lists[&g];
+        for &(a, s) in l {
+            mass[a as usize] += f64::from(s);
+        }
+        for (x, &(a, sa)) in l.iter().enumerate() {
+            for &(b, sb) in &l[x + 1..] {
+                if obs[a as usize].view == obs[b as usize].view {
+                    continue;
+                }
+                let e = shared.entry((a, b)).or_insert((0.0, 0.0));
+                e.0 += f64::from(sa);
+                e.1 += f64::from(sb);
+            }
+        }
+    }
+    let mut linked: Vec<(u32, u32)> = shared
+        .iter()
+        .filter(|&(&(a, b), &(sa, sb))| {
+            mass[a as usize] > 0.0
+                && mass[b as usize] > 0.0
+                && sa / mass[a as usize] >= LINK_SHARE
+                && sb / mass[b as usize] >= LINK_SHARE
+        })
+        .map(|(&k, _)| k)
+        .collect();
+    linked.sort_unstable();
+    // Unlinked: a strided sample of the pairs of different views that share nothing.
+    let n = obs.len() as u64;
+    let all = n * n.saturating_sub(1) / 2;
+    let stride = all.div_ceil(UNLINKED_MAX as u64).max(1);
+    let mut unlinked = Vec::new();
+    let mut k = 0u64;
+    for a in 0..obs.len() {
+        for b in a + 1..obs.len() {
+            k += 1;
+            if k % stride != 0 || obs[a].view == obs[b].view {
+                continue;
+            }
+            // Pairs that share a Gaussian outside the sample are rare and count as unlinked.
+            if !shared.contains_key(&(a as u32, b as u32)) {
+                unlinked.push((a as u32, b as u32));
+            }
+        }
+    }
+    (linked, unlinked, sample)
+}
+
+fn cosine(a: &[f32], b: &[f32]) -> f32 {
+    // Unit features: the dot product, summed in f64.
+    a.iter()
+        .zip(b)
+        .map(|(&x, &y)| f64::from(x) * f64::from(y))
+        .sum::<f64>() as f32
+}
+
+/// Quantiles 10/25/50/75/90 % of sorted values (nearest rank).
+fn quantiles(sorted: &[f32]) -> [f32; 5] {
+    [0.10, 0.25, 0.50, 0.75, 0.90].map(|q| quantile(sorted, q))
+}
+
+fn quantile(sorted: &[f32], q: f64) -> f32 {
+    let i = ((q * (sorted.len() - 1) as f64).round() as usize).min(sorted.len() - 1);
+    sorted[i]
+}
+
+/// P(x > y) for x from `pos`, y from `neg`, ties half (Mann–Whitney U / |pos|·|neg|).
+pub fn auc(pos: &[f32], neg: &[f32]) -> f64 {
+    let mut all: Vec<(f32, bool)> = pos
+        .iter()
+        .map(|&x| (x, true))
+        .chain(neg.iter().map(|&y| (y, false)))
+        .collect();
+    all.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // Mid-ranks over ties.
+    let mut rank_sum = 0.0f64;
+    let mut i = 0;
+    while i < all.len() {
+        let mut j = i;
+        while j < all.len() && all[j].0 == all[i].0 {
+            j += 1;
+        }
+        let mid = (i + j + 1) as f64 / 2.0; // ranks i+1..=j
+        rank_sum += mid * all[i..j].iter().filter(|e| e.1).count() as f64;
+        i = j;
+    }
+    let (p, n) = (pos.len() as f64, neg.len() as f64);
+    (rank_sum - p * (p + 1.0) / 2.0) / (p * n)
+}
+
+/// Chooses `τ_sim` for the observations (see the module docs).
+pub fn calibrate(obs: &[Observation], configured_tau: f64) -> Calibration {
+    if obs.iter().all(|o| o.feature.is_none()) {
+        return configured(configured_tau, "no mask has a feature");
+    }
+    let (linked, unlinked, sample) = pairs(obs);
+    let cos = |ps: &[(u32, u32)]| -> Vec<f32> {
+        let mut v: Vec<f32> = ps
+            .iter()
+            .filter_map(
+                |&(a, b)| match (&obs[a as usize].feature, &obs[b as usize].feature) {
+                    (Some(x), Some(y)) => Some(cosine(x, y)),
+                    _ => None,
+                },
+            )
+            .collect();
+        v.sort_by(|a, b| a.total_cmp(b));
+        v
+    };
+    let (pos, neg) = (cos(&linked), cos(&unlinked));
+    let mut c = configured(configured_tau, "");
+    c.linked_pairs = pos.len();
+    c.unlinked_pairs = neg.len();
+    c.sample = sample;
+    if pos.len() < MIN_PAIRS || neg.len() < MIN_PAIRS {
+        c.why = format!(
+            "too few mask pairs to calibrate ({} linked by geometry, {} unlinked; {MIN_PAIRS} of each needed): the configured τ_sim",
+            pos.len(),
+            neg.len()
+        );
+        return c;
+    }
+    c.linked_cosine = Some(quantiles(&pos));
+    c.unlinked_cosine = Some(quantiles(&neg));
+    let a = auc(&pos, &neg);
+    c.auc = Some(a);
+    let q = quantile(&pos, LINKED_QUANTILE);
+    if f64::from(q) >= configured_tau {
+        c.mode = "features".into();
+        c.why = format!(
+            "features of one object agree across views: {:.0} % of the mask pairs geometry links have cosine ≥ {q:.3} ≥ the configured τ_sim {configured_tau} (AUC {a:.2})",
+            (1.0 - LINKED_QUANTILE) * 100.0
+        );
+    } else if a < MIN_AUC {
+        c.mode = "geometry_only".into();
+        c.tau_sim = -1.0;
+        c.why = format!(
+            "features do not separate masks that geometry links from masks it does not (AUC {a:.2} < {MIN_AUC}; median cosine {:.2} linked, {:.2} unlinked): geometry-only association (τ_sim off)",
+            quantile(&pos, 0.5),
+            quantile(&neg, 0.5)
+        );
+    } else {
+        c.mode = "features".into();
+        c.tau_sim = f64::from(q);
+        c.why = format!(
+            "features of one object disagree across views ({:.0} % quantile of the linked cosines {q:.3} < the configured τ_sim {configured_tau}) but still separate linked from unlinked mask pairs (AUC {a:.2}): τ_sim = {q:.3}",
+            LINKED_QUANTILE * 100.0
+        );
+    }
+    c
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::associate::candidates::Candidate;
+
+    fn obs(view: u32, ids: &[u32], feature: Option<Vec<f32>>) -> Observation {
+        Observation {
+            view,
+            mask: 0,
+            feature,
+            class: -1,
+            pixels: 1,
+            candidate: Candidate {
+                ids: ids.to_vec(),
+                weights: vec![1.0; ids.len()],
+            },
+            centroid_sum: [0.0; 3],
+            weight_sum: ids.len() as f64,
+        }
+    }
+
+    #[test]
+    fn auc_of_separated_mixed_and_tied_sets() {
+        assert_eq!(auc(&[0.9, 0.8], &[0.1, 0.2, 0.3]), 1.0);
+        assert_eq!(auc(&[0.1], &[0.9]), 0.0);
+        // Ties count half: one tie of 2·2 comparisons.
+        assert_eq!(auc(&[0.5, 0.7], &[0.5, 0.1]), (1.0 + 0.5 + 1.0 + 1.0) / 4.0);
+    }
+
+    #[test]
+    fn pairs_by_geometry() {
+        // Object A seen in views 0 and 1 (same Gaussians), object B in view 2 only; view 0 also
+        // has a mask that half overlaps A's Gaussians (not linked: 2 of 4 shared, both ways
+        // under the link share? 2/4 = 0.5 of its own mass, 2/4 of A's: linked at exactly 0.5).
+        let o = vec![
+            obs(0, &[1, 2, 3, 4], None),
+            obs(1, &[1, 2, 3, 4], None),
+            obs(2, &[10, 11], None),
+            obs(1, &[3, 4, 20, 21], None),
+        ];
+        let (linked, unlinked, sample) = pairs(&o);
+        assert_eq!(sample, 1);
+        // (0,1): all shared. (0,3): 2 of 4 each way = 0.5 ≥ LINK_SHARE. (1,3) same view.
+        assert_eq!(linked, vec![(0, 1), (0, 3)]);
+        // Different views sharing nothing: (0,2), (1,2), (2,3).
+        assert_eq!(unlinked, vec![(0, 2), (1, 2), (2, 3)]);
+    }
+
+    fn unit(v: &[f32]) -> Vec<f32> {
+        let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        v.iter().map(|x| x / n).collect()
+    }
+
+    #[test]
+    fn separating_features_calibrate_and_useless_ones_turn_the_test_off() {
+        // 30 objects, each seen in 2 views (linked pairs); features either the object's own
+        // direction (separating) or one shared direction (useless).
+        let build = |separating: bool| {
+            let mut o = Vec::new();
+            for k in 0..30u32 {
+                let mut f = vec![0.0f32; 32];
+                if separating {
+                    f[k as usize % 32] = 1.0;
+                    f[(k as usize + 1) % 32] = 0.2;
+                } else {
+                    f[0] = 1.0;
+                }
+                for v in 0..2 {
+                    o.push(obs(2 * k + v, &[100 * k, 100 * k + 1], Some(unit(&f))));
+                }
+            }
+            o
+        };
+        let c = calibrate(&build(true), 0.7);
+        assert_eq!(c.mode, "features", "{c:?}");
+        assert_eq!(c.linked_pairs, 30);
+        assert!(c.auc.unwrap() > 0.95, "{c:?}");
+        // Linked cosines are 1 ≥ 0.7: the configured value stays.
+        assert_eq!(c.tau_sim, 0.7);
+        let c = calibrate(&build(false), 0.7);
+        assert_eq!(c.mode, "geometry_only", "{c:?}");
+        assert_eq!(c.auc, Some(0.5));
+        assert_eq!(c.tau_sim, -1.0);
+        // No features: the configured value.
+        let none: Vec<Observation> = (0..4).map(|v| obs(v, &[1], None)).collect();
+        assert_eq!(calibrate(&none, 0.7).mode, "configured");
+    }
+}
