@@ -80,9 +80,11 @@ pub fn configured(tau_sim: f64, why: &str) -> Calibration {
     }
 }
 
-/// Linked and unlinked pairs of `obs` (indices into it, `a < b`, different views), and the
-/// Gaussian sampling modulus used.
-pub fn pairs(obs: &[Observation]) -> (Vec<(u32, u32)>, Vec<(u32, u32)>, u64) {
+/// Pairs of masks: indices into the observations, `a < b`, of different views.
+pub type Pairs = Vec<(u32, u32)>;
+
+/// Linked and unlinked pairs of `obs`, and the Gaussian sampling modulus used.
+pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
     // Gaussian → (mask, share of the mask's candidate mass), masks in observation order.
     let mut lists: HashMap<u32, Vec<(u32, f32)>> = HashMap::new();
     for (i, o) in obs.iter().enumerate() {
