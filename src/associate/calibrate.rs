@@ -293,9 +293,9 @@ mod tests {
 
     #[test]
     fn pairs_by_geometry() {
-        // Object A seen in views 0 and 1 (same Gaussians), object B in view 2 only; view 0 also
-        // has a mask that half overlaps A's Gaussians (not linked: 2 of 4 shared, both ways
-        // under the link share? 2/4 = 0.5 of its own mass, 2/4 of A's: linked at exactly 0.5).
+        // Object A seen in views 0 and 1 (the same Gaussians), object B in view 2; a second mask
+        // of view 1 shares 2 of its 4 Gaussians with A: 0.5 of the mass each way, linked to A's
+        // view-0 mask at exactly the link share, and never to A's mask of its own view.
         let o = vec![
             obs(0, &[1, 2, 3, 4], None),
             obs(1, &[1, 2, 3, 4], None),
@@ -317,31 +317,41 @@ mod tests {
 
     #[test]
     fn separating_features_calibrate_and_useless_ones_turn_the_test_off() {
-        // 30 objects, each seen in 2 views (linked pairs); features either the object's own
-        // direction (separating) or one shared direction (useless).
-        let build = |separating: bool| {
+        // 30 objects, each seen in 2 views (linked pairs). Features: the object's own direction
+        // (separating), one direction for every mask (uninformative but consistent), or a
+        // direction of each mask's own (noise: two views of one object are orthogonal).
+        let build = |kind: u8| {
             let mut o = Vec::new();
             for k in 0..30u32 {
-                let mut f = vec![0.0f32; 32];
-                if separating {
-                    f[k as usize % 32] = 1.0;
-                    f[(k as usize + 1) % 32] = 0.2;
-                } else {
-                    f[0] = 1.0;
-                }
                 for v in 0..2 {
+                    let mut f = vec![0.0f32; 64];
+                    match kind {
+                        0 => {
+                            f[k as usize % 64] = 1.0;
+                            f[(k as usize + 1) % 64] = 0.2;
+                        }
+                        1 => f[0] = 1.0,
+                        _ => f[(2 * k + v) as usize] = 1.0,
+                    }
                     o.push(obs(2 * k + v, &[100 * k, 100 * k + 1], Some(unit(&f))));
                 }
             }
             o
         };
-        let c = calibrate(&build(true), 0.7);
+        let c = calibrate(&build(0), 0.7);
         assert_eq!(c.mode, "features", "{c:?}");
         assert_eq!(c.linked_pairs, 30);
         assert!(c.auc.unwrap() > 0.95, "{c:?}");
         // Linked cosines are 1 ≥ 0.7: the configured value stays.
         assert_eq!(c.tau_sim, 0.7);
-        let c = calibrate(&build(false), 0.7);
+        // One direction for all: every pair agrees, nothing blocks a join: the value stays.
+        let c = calibrate(&build(1), 0.7);
+        assert_eq!(
+            (c.mode.as_str(), c.tau_sim, c.auc),
+            ("features", 0.7, Some(0.5))
+        );
+        // Noise: linked pairs disagree and do not separate (all cosines 0): geometry only.
+        let c = calibrate(&build(2), 0.7);
         assert_eq!(c.mode, "geometry_only", "{c:?}");
         assert_eq!(c.auc, Some(0.5));
         assert_eq!(c.tau_sim, -1.0);
