@@ -26,9 +26,6 @@ pub enum IdMapError {
     },
 }
 
-/// Channels of a raycast id map, in file order.
-pub const RAYCAST_CHANNELS: [&str; 4] = ["feature", "surface", "part", "city"];
-
 /// Suffix of a class map (prediction or ground truth).
 pub const CLASS_SUFFIX: &str = ".class.npy";
 

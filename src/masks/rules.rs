@@ -41,7 +41,8 @@ pub(super) fn decide_sam(
             scores.insert("surface_share".into(), c.surface_share());
             scores.insert("behind_share".into(), c.behind_share());
         }
-        let (keep, rule) = rule_for(plan, m, &c, fs.as_ref(), min_area);
+        let rule = rule_for(plan, m, &c, fs.as_ref(), min_area);
+        let keep = rule.keeps();
         let r_ov = c.r_ov();
         if keep {
             kept.push(KeptMask {
@@ -63,23 +64,24 @@ pub(super) fn decide_sam(
     Ok((kept, decisions))
 }
 
-/// The decision on one SAM mask (see the module docs): `(kept, rule)`.
+/// The decision on one SAM mask (see the module docs): its rule, which keeps it when
+/// [`Rule::keeps`].
 fn rule_for(
     plan: &Plan<'_>,
     m: &SamMask,
     c: &MaskCounts,
     fs: Option<&FeatureScores>,
     min_area: u64,
-) -> (bool, Rule) {
+) -> Rule {
     let opts = plan.opts;
     if m.predicted_iou < opts.tau_q {
         // Support-only: the other rules decide whether it is a foreground candidate at all.
         if opts.support_floor.is_some_and(|f| m.predicted_iou >= f)
-            && rule_after_quality(plan, m, c, fs, min_area).0
+            && rule_after_quality(plan, m, c, fs, min_area).keeps()
         {
-            return (false, Rule::LowQualitySupport);
+            return Rule::LowQualitySupport;
         }
-        return (false, Rule::Quality);
+        return Rule::Quality;
     }
     rule_after_quality(plan, m, c, fs, min_area)
 }
@@ -91,10 +93,10 @@ fn rule_after_quality(
     c: &MaskCounts,
     fs: Option<&FeatureScores>,
     min_area: u64,
-) -> (bool, Rule) {
+) -> Rule {
     let opts = plan.opts;
     if m.area < min_area {
-        return (false, Rule::Area);
+        return Rule::Area;
     }
     // Features decide only in the tests that use them (they still give the class).
     let fs = fs.filter(|_| matches!(plan.test, Test::Features | Test::Both));
@@ -111,41 +113,41 @@ fn rule_after_quality(
                 _ => evidence && c.front_share() < opts.occluder_share,
             };
             if building {
-                return (false, Rule::LowOverlapBuilding);
+                return Rule::LowOverlapBuilding;
             }
         }
-        return (true, Rule::LowOverlap);
+        return Rule::LowOverlap;
     }
     match plan.test {
         Test::Features => {
             if features_fore == Some(true) {
-                (true, Rule::FeaturesForeground)
+                Rule::FeaturesForeground
             } else {
-                (false, Rule::FeaturesBuilding)
+                Rule::FeaturesBuilding
             }
         }
         Test::Geometry => {
             if occluder {
-                (true, Rule::Occluder)
+                Rule::Occluder
             } else if evidence {
-                (false, Rule::OnSurface)
+                Rule::OnSurface
             } else {
-                (false, Rule::NoDepth)
+                Rule::NoDepth
             }
         }
         Test::Both => {
             if occluder && features_city != Some(true) {
-                (true, Rule::OccluderAndFeatures)
+                Rule::OccluderAndFeatures
             } else if !evidence && features_fore == Some(true) {
-                (true, Rule::FeaturesForeground)
+                Rule::FeaturesForeground
             } else if occluder {
-                (false, Rule::FeaturesBuilding)
+                Rule::FeaturesBuilding
             } else if evidence {
-                (false, Rule::OnSurface)
+                Rule::OnSurface
             } else {
-                (false, Rule::NoDepth)
+                Rule::NoDepth
             }
         }
-        Test::Overlap | Test::Auto => (false, Rule::HighOverlap),
+        Test::Overlap | Test::Auto => Rule::HighOverlap,
     }
 }
