@@ -6,6 +6,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 use boxes::{Built, OBJECTS};
+use gs4city::associate::calibrate::CalibrationMode;
 use gs4city::associate::{self, AssociateOptions, AssociateSummary, CandidateMode};
 use gs4city::groups::GroupsFile;
 use gs4city::maskfile::Rule;
@@ -187,7 +188,11 @@ fn useless_features_give_a_geometry_only_association() {
     let b = boxes::build("calib", |_, _| false);
     let s = run(&b, &AssociateOptions::default(), &b.dir.join("good"), 1.0);
     let c = s.calibration.clone().unwrap();
-    assert_eq!((c.mode.as_str(), c.tau_sim), ("features", 0.7), "{c:?}");
+    assert_eq!(
+        (c.mode, c.tau_sim),
+        (CalibrationMode::Features, 0.7),
+        "{c:?}"
+    );
     assert!(c.linked_pairs >= 20 && c.unlinked_pairs >= 20, "{c:?}");
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(23);
     for v in &b.views {
@@ -221,8 +226,8 @@ fn useless_features_give_a_geometry_only_association() {
     );
     let c = s.calibration.clone().unwrap();
     assert_eq!(
-        (c.mode.as_str(), c.tau_sim),
-        ("geometry_only", -1.0),
+        (c.mode, c.tau_sim),
+        (CalibrationMode::GeometryOnly, -1.0),
         "{c:?}"
     );
     assert!(c.auc.unwrap() < 0.75, "{c:?}");

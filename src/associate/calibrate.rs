@@ -41,12 +41,32 @@ pub const PAIR_BUDGET: u64 = 20_000_000;
 /// At most this many unlinked pairs are compared.
 pub const UNLINKED_MAX: usize = 200_000;
 
+/// Which rule chose `τ_sim`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CalibrationMode {
+    /// From the features: the configured value where they agree, else the linked quantile.
+    Features,
+    /// Features do not separate: the feature test is off.
+    GeometryOnly,
+    /// Not enough evidence, no features, or calibration switched off: the configured value.
+    Configured,
+}
+
+impl std::fmt::Display for CalibrationMode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            CalibrationMode::Features => "features",
+            CalibrationMode::GeometryOnly => "geometry_only",
+            CalibrationMode::Configured => "configured",
+        })
+    }
+}
+
 /// How `τ_sim` was chosen (the associate summary's `calibration`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Calibration {
-    /// `features` (calibrated), `geometry_only` (features do not separate), `configured` (not
-    /// enough evidence, no features, or calibration switched off).
-    pub mode: String,
+    pub mode: CalibrationMode,
     /// The value the association used.
     pub tau_sim: f64,
     /// The configured value (the cap).
@@ -67,7 +87,7 @@ pub struct Calibration {
 /// The calibration off: the configured value and why.
 pub fn configured(tau_sim: f64, why: &str) -> Calibration {
     Calibration {
-        mode: "configured".into(),
+        mode: CalibrationMode::Configured,
         tau_sim,
         configured: tau_sim,
         linked_pairs: 0,
@@ -238,13 +258,13 @@ pub fn calibrate(obs: &[Observation], configured_tau: f64) -> Calibration {
     c.auc = Some(a);
     let q = quantile(&pos, LINKED_QUANTILE);
     if f64::from(q) >= configured_tau {
-        c.mode = "features".into();
+        c.mode = CalibrationMode::Features;
         c.why = format!(
             "features of one object agree across views: {:.0} % of the mask pairs geometry links have cosine ≥ {q:.3} ≥ the configured τ_sim {configured_tau} (AUC {a:.2})",
             (1.0 - LINKED_QUANTILE) * 100.0
         );
     } else if a < MIN_AUC {
-        c.mode = "geometry_only".into();
+        c.mode = CalibrationMode::GeometryOnly;
         c.tau_sim = -1.0;
         c.why = format!(
             "features do not separate masks that geometry links from masks it does not (AUC {a:.2} < {MIN_AUC}; median cosine {:.2} linked, {:.2} unlinked): geometry-only association (τ_sim off)",
@@ -252,7 +272,7 @@ pub fn calibrate(obs: &[Observation], configured_tau: f64) -> Calibration {
             quantile(&neg, 0.5)
         );
     } else {
-        c.mode = "features".into();
+        c.mode = CalibrationMode::Features;
         c.tau_sim = f64::from(q);
         c.why = format!(
             "features of one object disagree across views ({:.0} % quantile of the linked cosines {q:.3} < the configured τ_sim {configured_tau}) but still separate linked from unlinked mask pairs (AUC {a:.2}): τ_sim = {q:.3}",
@@ -339,7 +359,7 @@ mod tests {
             o
         };
         let c = calibrate(&build(0), 0.7);
-        assert_eq!(c.mode, "features", "{c:?}");
+        assert_eq!(c.mode, CalibrationMode::Features, "{c:?}");
         assert_eq!(c.linked_pairs, 30);
         assert!(c.auc.unwrap() > 0.95, "{c:?}");
         // Linked cosines are 1 ≥ 0.7: the configured value stays.
@@ -347,16 +367,16 @@ mod tests {
         // One direction for all: every pair agrees, nothing blocks a join: the value stays.
         let c = calibrate(&build(1), 0.7);
         assert_eq!(
-            (c.mode.as_str(), c.tau_sim, c.auc),
-            ("features", 0.7, Some(0.5))
+            (c.mode, c.tau_sim, c.auc),
+            (CalibrationMode::Features, 0.7, Some(0.5))
         );
         // Noise: linked pairs disagree and do not separate (all cosines 0): geometry only.
         let c = calibrate(&build(2), 0.7);
-        assert_eq!(c.mode, "geometry_only", "{c:?}");
+        assert_eq!(c.mode, CalibrationMode::GeometryOnly, "{c:?}");
         assert_eq!(c.auc, Some(0.5));
         assert_eq!(c.tau_sim, -1.0);
         // No features: the configured value.
         let none: Vec<Observation> = (0..4).map(|v| obs(v, &[1], None)).collect();
-        assert_eq!(calibrate(&none, 0.7).mode, "configured");
+        assert_eq!(calibrate(&none, 0.7).mode, CalibrationMode::Configured);
     }
 }

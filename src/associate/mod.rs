@@ -562,7 +562,7 @@ fn write_summary(
     if let Some(c) = tally
         .calibration
         .as_ref()
-        .filter(|c| c.mode == "geometry_only")
+        .filter(|c| c.mode == calibrate::CalibrationMode::GeometryOnly)
     {
         warnings.push(format!("associate: {}", c.why));
     }

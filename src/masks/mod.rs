@@ -786,3 +786,25 @@ fn depth_source(
     }
     Ok((kept, decisions))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_stage_that_keeps_nothing_says_so_with_its_largest_rules() {
+        let rules: BTreeMap<String, usize> = [("area", 2), ("on_surface", 1), ("quality", 3)]
+            .into_iter()
+            .map(|(k, n)| (k.to_string(), n))
+            .collect();
+        let w = collapse_warning(6, 0, &rules).unwrap();
+        assert!(
+            w.starts_with("masks COLLAPSED: all 6 masks dropped (quality 3, area 2, on_surface 1)"),
+            "{w}"
+        );
+        assert!(w.contains("--tau-q") && w.contains("--area-frac"), "{w}");
+        // One kept mask, or no input at all, is no collapse.
+        assert_eq!(collapse_warning(6, 1, &rules), None);
+        assert_eq!(collapse_warning(0, 0, &BTreeMap::new()), None);
+    }
+}
