@@ -104,8 +104,19 @@ fn code_only(text: &str) -> String {
                     i += 1;
                 }
             }
+        } else if let Some(hashes) = raw_string_start(b, i) {
+            // A raw string `r#…#"…"#…#`: skip to the quote followed by as many `#`.
+            i += 2 + hashes;
+            let close: Vec<u8> = std::iter::once(b'"')
+                .chain(std::iter::repeat_n(b'#', hashes))
+                .collect();
+            while i < b.len() && !b[i..].starts_with(&close) {
+                i += 1;
+            }
+            out.push_str("\"\"");
+            i += close.len();
         } else if b[i] == b'"' && (i == 0 || b[i - 1] != b'\'') {
-            // A string literal (raw strings of this code base contain no unbalanced quote).
+            // A string literal.
             out.push('"');
             i += 1;
             while i < b.len() && b[i] != b'"' {
@@ -123,6 +134,16 @@ fn code_only(text: &str) -> String {
         }
     }
     out
+}
+
+/// At `i`, the number of `#` of a raw string's opening `r#…#"` (none when there is none).
+fn raw_string_start(b: &[u8], i: usize) -> Option<usize> {
+    let ident = |c: u8| c.is_ascii_alphanumeric() || c == b'_';
+    if b[i] != b'r' || (i > 0 && ident(b[i - 1])) {
+        return None;
+    }
+    let hashes = b[i + 1..].iter().take_while(|&&c| c == b'#').count();
+    (b.get(i + 1 + hashes) == Some(&b'"')).then_some(hashes)
 }
 
 /// The top-level modules a piece of code names through `crate::` — in paths and in grouped
@@ -305,8 +326,9 @@ fn the_table_names_every_import() {
 fn the_import_reader_sees_paths_groups_and_skips_comments() {
     let code = code_only(
         "use crate::a::X;\nuse crate::{b::{self, Y}, c, self};\n// crate::d\n/// crate::e\n\
-         let s = \"crate::f\";\nfn g() { crate::h::run(); my_crate::i(); }\n/* crate::j */",
+         let s = \"crate::f\";\nfn g() { crate::h::run(); my_crate::i(); }\n/* crate::j */\n\
+         let r = r#\"{\"k\": \"crate::k\"}\"#; let c = '\"'; crate::l::x();",
     );
     let got: Vec<String> = imports(&code).into_iter().collect();
-    assert_eq!(got, ["a", "b", "c", "h"]);
+    assert_eq!(got, ["a", "b", "c", "h", "l"]);
 }
