@@ -402,6 +402,7 @@ fn main() {
                 maps: &LabelMaps::Fused(fd.clone()),
                 labels: &labels,
                 entities: &entities,
+                city_depth: None,
             },
             &LiftOptions::default(),
             &ld,

@@ -353,7 +353,7 @@ fn sweep(a: &Args, ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
         for &top_k in &a.top_ks {
             let t = Instant::now();
             let pool = pool::build(
-                &ctx.cache, &ctx.train, &ctx.maps, &ctx.table, stride, top_k, 0.0,
+                &ctx.cache, &ctx.train, &ctx.maps, &ctx.table, None, stride, top_k, 0.0,
             )
             .expect("pool");
             let pool_s = t.elapsed().as_secs_f64();
@@ -514,7 +514,10 @@ fn sweep(a: &Args, ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
 /// Sampled vs exact softmax on the same batches: loss and gradient error.
 fn softmax_error(ctx: &Ctx, out: &mut Vec<serde_json::Value>) {
     let opts = TrainOptions::default();
-    let pool = pool::build(&ctx.cache, &ctx.train, &ctx.maps, &ctx.table, 4, 0, 0.0).expect("pool");
+    let pool = pool::build(
+        &ctx.cache, &ctx.train, &ctx.maps, &ctx.table, None, 4, 0, 0.0,
+    )
+    .expect("pool");
     let (g, _) = gs4city::splat::read_ply(&ctx.ply, &Default::default()).expect("ply");
     let graph = knn::build(&g.positions, 5);
     drop(g);

@@ -30,6 +30,14 @@ pub enum VoteError {
     IdMap(#[from] IdMapError),
     #[error("invalid option: {0}")]
     Options(String),
+    #[error(transparent)]
+    Ply(#[from] crate::splat::PlyError),
+    #[error("{path}: {n} Gaussians, but the contributions cache was built from {cache}")]
+    Gaussians {
+        path: std::path::PathBuf,
+        n: usize,
+        cache: usize,
+    },
 }
 
 /// Everything a vote-based stage reads (`lift`, and `train`, which starts from the vote).
@@ -42,6 +50,9 @@ pub struct VoteInputs<'a> {
     pub maps: &'a LabelMaps,
     pub labels: &'a LabelTable,
     pub entities: &'a [Entity],
+    /// The raycast folder (its z-depth maps) and the alignment scale (scene units per metre)
+    /// for the depth gate of city votes ([`CityGate`]); `None` leaves city votes ungated.
+    pub city_depth: Option<(&'a Path, f64)>,
 }
 
 /// The background label (a pixel no label covers).
@@ -49,22 +60,121 @@ pub const BACKGROUND: i32 = -1;
 
 /// Options of the vote (the lift stage's options).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct VoteOptions {
     /// Background bias γ ∈ [−1, 1], added to the normalised background vote.
     pub gamma: f32,
+    /// Depth gate of city votes, in metres ([`CityGate`]); 0 turns it off.
+    pub city_gate_m: f32,
 }
+
+/// The default depth gate of city votes (metres): a Gaussian more than this in front of the
+/// city model's surface takes no vote from the city label of that surface.
+pub const CITY_GATE_M: f32 = 0.5;
 
 impl Default for VoteOptions {
     fn default() -> Self {
-        VoteOptions { gamma: 0.0 }
+        VoteOptions {
+            gamma: 0.0,
+            city_gate_m: CITY_GATE_M,
+        }
     }
 }
 
 impl VoteOptions {
-    /// Checks γ.
+    /// Checks γ and the gate.
     pub fn validate(&self) -> Result<(), VoteError> {
-        use crate::check::{End, range};
-        range("gamma", self.gamma, End::Closed(-1.0), End::Closed(1.0)).map_err(VoteError::Options)
+        use crate::check::{End, non_negative, range};
+        range("gamma", self.gamma, End::Closed(-1.0), End::Closed(1.0))
+            .and_then(|()| non_negative("city_gate_m", self.city_gate_m))
+            .map_err(VoteError::Options)
+    }
+}
+
+/// The depth gate of city votes. A city label (`M_city`, or a fused label below `Δ`) names
+/// the city-model surface a pixel's ray hits at z-depth `d`; it says nothing of what stands in
+/// front of that surface. So a city-labelled pixel votes only for the Gaussians of its list whose
+/// centre lies no more than `tol` in front of the surface (z ≥ `d − tol`); the weight of the
+/// Gaussians further in front (a person, a car or a tree whose mask is missing in this view) is
+/// left out of their vote instead of counting for the wall behind them. Gaussians behind the
+/// surface keep the vote (recessed windows, reflections modelled behind the glass). Image
+/// labels and background pixels are not gated.
+pub struct CityGate {
+    centres: Vec<[f32; 3]>,
+    raycast: std::path::PathBuf,
+    /// Tolerance in scene units.
+    tol: f64,
+    /// Labels in `0..city_below` are city labels.
+    city_below: i32,
+}
+
+/// The gate of one view: Gaussian z-depths and the raycast z-depth per pixel.
+pub struct GateView {
+    z: Vec<f32>,
+    depth: Vec<f32>,
+    tol: f32,
+    city_below: i32,
+}
+
+impl CityGate {
+    /// The gate of a vote's inputs: `None` when `gate_m` is 0 or the inputs name no raycast.
+    pub fn for_inputs(inp: &VoteInputs<'_>, gate_m: f32) -> Result<Option<CityGate>, VoteError> {
+        let Some((raycast, scene_per_metre)) = inp.city_depth else {
+            return Ok(None);
+        };
+        if gate_m <= 0.0 {
+            return Ok(None);
+        }
+        let (g, _) = crate::splat::read_ply(inp.ply, &Default::default())?;
+        let cache = inp.cache.summary.gaussians;
+        if g.len() != cache {
+            return Err(VoteError::Gaussians {
+                path: inp.ply.to_path_buf(),
+                n: g.len(),
+                cache,
+            });
+        }
+        let city_below = match inp.maps {
+            LabelMaps::City(_) => i32::MAX,
+            LabelMaps::Fused(_) => inp.labels.delta,
+        };
+        Ok(Some(CityGate::new(
+            g.positions,
+            raycast,
+            f64::from(gate_m) * scene_per_metre,
+            city_below,
+        )))
+    }
+
+    /// A gate from Gaussian centres (scene frame, cache order), the raycast folder, the
+    /// tolerance in scene units and the first non-city label id.
+    pub fn new(centres: Vec<[f32; 3]>, raycast: &Path, tol: f64, city_below: i32) -> CityGate {
+        CityGate {
+            centres,
+            raycast: raycast.to_path_buf(),
+            tol,
+            city_below,
+        }
+    }
+
+    /// The gate of view `v` (`width × height`, the cached view's size).
+    pub fn view(&self, v: &View, width: usize, height: usize) -> Result<GateView, IdMapError> {
+        let depth = crate::idmap::read_depth(&self.raycast, &v.stem(), width, height)?;
+        let pose = v.camera.pose;
+        let z = self
+            .centres
+            .iter()
+            .map(|c| {
+                let p = glam::DVec3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]));
+                pose.world_to_camera(p).z as f32
+            })
+            .collect();
+        Ok(GateView {
+            z,
+            depth,
+            tol: self.tol as f32,
+            city_below: self.city_below,
+        })
     }
 }
 
@@ -133,12 +243,37 @@ impl Votes {
 
     /// Accumulates one view: `labels[p]` is pixel `p`'s label (or background).
     pub fn accumulate(&mut self, c: &ViewContrib, labels: &[i32]) {
+        self.accumulate_gated(c, labels, None);
+    }
+
+    /// [`Votes::accumulate`] with the depth gate of city votes ([`CityGate`]); returns the
+    /// weight the gate left out and the weight of the gated (city-labelled) pixels' lists.
+    pub fn accumulate_gated(
+        &mut self,
+        c: &ViewContrib,
+        labels: &[i32],
+        gate: Option<&GateView>,
+    ) -> (f64, f64) {
+        let (mut gated, mut city) = (0.0f64, 0.0f64);
         for (p, &label) in labels.iter().enumerate() {
             let (ids, ws) = c.pixel(p);
+            // The nearest z a Gaussian may have and still take this pixel's city label.
+            let near = gate
+                .filter(|g| label >= 0 && label < g.city_below)
+                .map(|g| (g, g.depth[p] - g.tol))
+                .filter(|(_, d)| d.is_finite());
             for (&g, &w) in ids.iter().zip(ws) {
+                if let Some((gv, near)) = near {
+                    city += f64::from(w);
+                    if gv.z[g as usize] < near {
+                        gated += f64::from(w);
+                        continue;
+                    }
+                }
                 self.add(g, label, f64::from(w));
             }
         }
+        (gated, city)
     }
 }
 
@@ -208,6 +343,12 @@ pub struct VoteStats {
     pub assign_s: f64,
     pub contributions: u64,
     pub overflow_votes: usize,
+    /// Weight of city votes the depth gate left out, and the total weight of city-labelled
+    /// pixels' contributions (both summed over views).
+    #[serde(default)]
+    pub city_gated_weight: f64,
+    #[serde(default)]
+    pub city_weight: f64,
 }
 
 /// Runs the vote over `views` (their cached lists and label maps); one assignment per Gaussian.
@@ -215,6 +356,7 @@ pub fn vote(
     cache: &Cache,
     views: &[View],
     maps: &LabelMaps,
+    gate: Option<&CityGate>,
     opts: &VoteOptions,
 ) -> Result<(Vec<Assignment>, VoteStats), VoteError> {
     opts.validate()?;
@@ -227,13 +369,15 @@ pub fn vote(
     let bar = Bar::new("lift", views.len() as u64, "views");
     // Two slots, reused: view i is accumulated from one while view i + 1 is loaded into the
     // other (the accumulation order stays fixed; the memory is allocated once).
-    let load = |v: &View, s: &mut (ViewContrib, Vec<u8>, Vec<i32>)| -> Result<(), VoteError> {
+    type Slot = (ViewContrib, Vec<u8>, Vec<i32>, Option<GateView>);
+    let load = |v: &View, s: &mut Slot| -> Result<(), VoteError> {
         cache.load_into(&v.stem(), &mut s.0, &mut s.1)?;
         s.2 = maps.read(&v.stem(), s.0.width, s.0.height)?;
+        s.3 = gate.map(|g| g.view(v, s.0.width, s.0.height)).transpose()?;
         Ok(())
     };
-    let mut slots: [(ViewContrib, Vec<u8>, Vec<i32>); 2] =
-        std::array::from_fn(|_| (ViewContrib::empty(), Vec::new(), Vec::new()));
+    let mut slots: [Slot; 2] =
+        std::array::from_fn(|_| (ViewContrib::empty(), Vec::new(), Vec::new(), None));
     let t = Instant::now();
     if let Some(v) = views.first() {
         load(v, &mut slots[0])?;
@@ -246,10 +390,13 @@ pub fn vote(
             || views.get(i + 1).map(|v| load(v, next)).transpose(),
             || {
                 let t = Instant::now();
-                votes.accumulate(&cur.0, &cur.2);
-                t.elapsed().as_secs_f64()
+                let w = votes.accumulate_gated(&cur.0, &cur.2, cur.3.as_ref());
+                (t.elapsed().as_secs_f64(), w)
             },
         );
+        let (acc_s, (gated, city)) = acc_s;
+        stats.city_gated_weight += gated;
+        stats.city_weight += city;
         stats.accumulate_s += acc_s;
         stats.contributions += cur.0.entries() as u64;
         loaded?;

@@ -55,8 +55,12 @@ fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
             maps: &LabelMaps::City(dir.join("raycast")),
             labels: &labels,
             entities: &cm.entities,
+            city_depth: None,
         },
-        &LiftOptions { gamma },
+        &LiftOptions {
+            gamma,
+            ..Default::default()
+        },
         &dir.join("lift"),
     )
     .unwrap();

@@ -116,6 +116,7 @@ impl Fixture {
                 maps,
                 labels: table,
                 entities: &self.entities,
+                city_depth: None,
             },
             opts,
             &self.dir.join(out),
@@ -212,7 +213,17 @@ fn selected(
 #[test]
 fn gradients_agree_with_finite_differences_in_f64() {
     let fx = Fixture::new("train-grad", None);
-    let pool = pool::build(&fx.cache, &fx.split.train, &fx.maps(), &fx.table, 1, 0, 0.0).unwrap();
+    let pool = pool::build(
+        &fx.cache,
+        &fx.split.train,
+        &fx.maps(),
+        &fx.table,
+        None,
+        1,
+        0,
+        0.0,
+    )
+    .unwrap();
     let positions = gs4city::splat::read_ply(&fx.ply, &Default::default())
         .unwrap()
         .0
@@ -307,7 +318,17 @@ fn the_3d_term_pulls_a_hidden_gaussian_to_its_neighbours_label() {
     // unlabelled, and its nearest neighbours are wall Gaussians.
     let fx = Fixture::new("train-kl", Some([2.0, 0.05, 3.0]));
     let h = fx.splats.real.len() - 1;
-    let pool = pool::build(&fx.cache, &fx.split.train, &fx.maps(), &fx.table, 1, 0, 0.0).unwrap();
+    let pool = pool::build(
+        &fx.cache,
+        &fx.split.train,
+        &fx.maps(),
+        &fx.table,
+        None,
+        1,
+        0,
+        0.0,
+    )
+    .unwrap();
     assert_eq!(
         pool.vote[h].weight, 0.0,
         "the hidden Gaussian must not be seen"
@@ -383,7 +404,17 @@ fn outputs_are_standard_start_from_the_vote_and_predict_the_test_views() {
         },
     );
     assert_eq!(s0.changed_from_vote, 0);
-    let pool = pool::build(&fx.cache, &fx.split.train, &fx.maps(), &fx.table, 1, 0, 0.0).unwrap();
+    let pool = pool::build(
+        &fx.cache,
+        &fx.split.train,
+        &fx.maps(),
+        &fx.table,
+        None,
+        1,
+        0,
+        0.0,
+    )
+    .unwrap();
     let init = fx.gaussians("init");
     for (g, a) in init.iter().zip(&pool.vote) {
         assert_eq!(g.0, a.label);

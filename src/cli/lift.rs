@@ -20,6 +20,11 @@ pub struct LiftArgs {
     /// Background bias γ in [-1, 1] (FlashSplat), added to the normalised background vote.
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     gamma: f32,
+    /// Depth gate of city votes in metres: a Gaussian more than this in front of the city
+    /// surface its pixel's ray hits takes no vote from that surface's label (needs the raycast's
+    /// depth: --raycast, or --depth with --fuse); 0 = off.
+    #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]
+    city_gate_m: f32,
     /// Every N-th view (sorted by name) is a test view, not voted on (3DGS --eval: 8); 0 = none.
     #[arg(long, default_value_t = 8)]
     test_every: usize,
@@ -50,6 +55,9 @@ pub(super) struct LabelSourceArgs {
     /// … or the fused labels of this `gs4city fuse` output (labels.json, <stem>.ids.npy).
     #[arg(long)]
     pub(super) fuse: Option<PathBuf>,
+    /// The `gs4city raycast` output whose depth maps gate the city votes (default: --raycast).
+    #[arg(long)]
+    pub(super) depth: Option<PathBuf>,
 }
 
 /// What [`LabelSourceArgs`] name, read and checked.
@@ -59,6 +67,8 @@ pub(super) struct Loaded {
     pub(super) entities: Vec<semantics::Entity>,
     pub(super) maps: LabelMaps,
     pub(super) labels: LabelTable,
+    /// The raycast folder of the depth gate and the alignment scale (citymodel/alignment.json).
+    pub(super) depth: Option<(PathBuf, f64)>,
 }
 
 impl LabelSourceArgs {
@@ -73,7 +83,20 @@ impl LabelSourceArgs {
             .with_context(|| format!("opening the contributions cache {}", self.cache.display()))?;
         let entities = semantics::read(&self.citymodel.join("semantics.json"))?;
         let (maps, labels) = label_source(self.raycast.as_ref(), self.fuse.as_ref(), &entities)?;
+        let depth = match self.depth.as_ref().or(self.raycast.as_ref()) {
+            Some(d) => {
+                let a = self.citymodel.join("alignment.json");
+                let scale = if a.is_file() {
+                    crate::alignment::Alignment::read(&a)?.scale
+                } else {
+                    1.0
+                };
+                Some((d.clone(), scale))
+            }
+            None => None,
+        };
         Ok(Loaded {
+            depth,
             split,
             cache,
             entities,
@@ -94,12 +117,16 @@ impl Loaded {
             maps: &self.maps,
             labels: &self.labels,
             entities: &self.entities,
+            city_depth: self.depth.as_ref().map(|(d, s)| (d.as_path(), *s)),
         }
     }
 }
 
 pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
-    let opts = LiftOptions { gamma: args.gamma };
+    let opts = LiftOptions {
+        gamma: args.gamma,
+        city_gate_m: args.city_gate_m,
+    };
     opts.validate()?;
     let l = args.src.load(args.test_every)?;
     let s = lift::run(&l.inputs(&args.src.ply), &opts, &args.out)?;

@@ -22,6 +22,10 @@ pub struct RunArgs {
     /// Background bias γ of the vote, in [-1, 1].
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     pub gamma: f32,
+    /// Depth gate of city votes in metres: a Gaussian more than this in front of the city
+    /// surface its pixel's ray hits takes no vote from that surface's label; 0 = off.
+    #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]
+    pub city_gate_m: f32,
     /// Contributions per pixel kept in the cache (top-k by α·T); 0 = all.
     #[arg(long, default_value_t = 16)]
     pub top_k: usize,
@@ -89,7 +93,10 @@ impl RunArgs {
                 self.tau
             );
         }
-        let lift = LiftOptions { gamma: self.gamma };
+        let lift = LiftOptions {
+            gamma: self.gamma,
+            city_gate_m: self.city_gate_m,
+        };
         lift.validate()?;
         if self.top_k > crate::cache::MAX_LIST {
             anyhow::bail!(
@@ -120,6 +127,7 @@ impl RunArgs {
         };
         let train = crate::train::TrainOptions {
             iterations: self.iterations,
+            city_gate_m: self.city_gate_m,
             ..d.train
         };
         train.validate()?;

@@ -72,6 +72,9 @@ pub struct TrainArgs {
     /// Background bias γ of the initial vote, in [-1, 1].
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     gamma: f32,
+    /// Depth gate of the initial vote's city votes, metres (as `lift`); 0 = off.
+    #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]
+    city_gate_m: f32,
     /// Stop when the windowed loss falls by less than this fraction twice in a row (0 = never).
     #[arg(long, default_value_t = TrainOptions::default().tol)]
     tol: f64,
@@ -119,6 +122,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
             Init::Vote
         },
         gamma: args.gamma,
+        city_gate_m: args.city_gate_m,
         window: args.window,
         tol: args.tol,
         seed: args.seed,

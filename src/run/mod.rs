@@ -208,7 +208,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
             fused_supervision(&mut r, &cache, &entities, cm.alignment.scale, opts)?
         }
     };
-    let pred_dir = vote_steps(&mut r, &cache, &entities, &sup, opts)?;
+    let pred_dir = vote_steps(&mut r, &cache, &entities, &sup, cm.alignment.scale, opts)?;
     let eval = eval_step(&mut r, &cache, &pred_dir, out, opts)?;
     finish(r, out, opts, &pred_dir, eval, sup)
 }
@@ -542,12 +542,19 @@ fn vote_steps(
     cache: &Cache,
     entities: &[semantics::Entity],
     sup: &Supervised,
+    scale: f64,
     opts: &RunOptions,
 ) -> Result<PathBuf, RunError> {
     let mut upstream = sup.upstream.clone();
     upstream.push(Stage::Render);
+    // The depth gate of city votes reads the raycast's depth maps.
+    if !upstream.contains(&Stage::Raycast) {
+        upstream.push(Stage::Raycast);
+    }
     let ply = r.scene.ply.clone();
+    let raycast = r.st.dir(Stage::Raycast);
     let inputs = VoteInputs {
+        city_depth: Some((&raycast, scale)),
         ply: &ply,
         cache,
         train: &r.split.train,

@@ -123,6 +123,9 @@ pub struct TrainOptions {
     pub init_scale: f64,
     /// Background bias γ of the initial vote (as `lift`).
     pub gamma: f32,
+    /// Depth gate of the initial vote's city votes, metres (as `lift`; 0 = off).
+    #[serde(default = "default_city_gate")]
+    pub city_gate_m: f32,
     /// Iterations per loss window (progress, history, stopping rule).
     pub window: usize,
     /// Stop when the mean loss of two consecutive windows fell by less than this fraction
@@ -136,6 +139,10 @@ pub struct TrainOptions {
     /// Weight μ of the class-level term of the 2D loss (0 = labels only; see
     /// `model::cross_entropy_mixed`).
     pub class_weight: f64,
+}
+
+fn default_city_gate() -> f32 {
+    crate::vote::CITY_GATE_M
 }
 
 impl Default for TrainOptions {
@@ -156,6 +163,7 @@ impl Default for TrainOptions {
             init: Init::Vote,
             init_scale: 8.0,
             gamma: 0.0,
+            city_gate_m: crate::vote::CITY_GATE_M,
             window: 200,
             tol: 0.005,
             seed: 0,
@@ -196,7 +204,11 @@ impl TrainOptions {
         if self.window == 0 {
             return bad("window must be positive".into());
         }
-        VoteOptions { gamma: self.gamma }.validate()?;
+        VoteOptions {
+            gamma: self.gamma,
+            city_gate_m: self.city_gate_m,
+        }
+        .validate()?;
         Ok(())
     }
 }
@@ -645,11 +657,13 @@ pub fn run(
     let mut timing = TrainTiming::default();
 
     let t = Instant::now();
+    let gate = crate::vote::CityGate::for_inputs(inp, opts.city_gate_m)?;
     let pool = pool::build(
         inp.cache,
         inp.train,
         inp.maps,
         inp.labels,
+        gate.as_ref(),
         opts.stride,
         opts.top_k,
         opts.gamma,

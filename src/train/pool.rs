@@ -158,6 +158,7 @@ pub fn build(
     views: &[View],
     maps: &LabelMaps,
     table: &LabelTable,
+    gate: Option<&vote::CityGate>,
     stride: usize,
     top_k: usize,
     gamma: f32,
@@ -165,7 +166,8 @@ pub fn build(
     let n = cache.summary.gaussians;
     let mut votes = Votes::new(n);
     let bar = Bar::new("train", views.len() as u64, "views read");
-    let load = |v: &View| -> Result<(ViewContrib, Vec<i32>), TrainError> {
+    type Loaded = (ViewContrib, Vec<i32>, Option<vote::GateView>);
+    let load = |v: &View| -> Result<Loaded, TrainError> {
         let c = cache.load(&v.stem())?;
         let c = truncate(&c, top_k).into_owned();
         let labels = maps.read(&v.stem(), c.width, c.height)?;
@@ -184,7 +186,8 @@ pub fn build(
                 });
             }
         }
-        Ok((c, labels))
+        let g = gate.map(|g| g.view(v, c.width, c.height)).transpose()?;
+        Ok((c, labels, g))
     };
     let (mut load_s, mut vote_s) = (0.0, 0.0);
     let t = Instant::now();
@@ -193,13 +196,13 @@ pub fn build(
     let mut out = Vec::with_capacity(views.len());
     let mut present: BTreeSet<i32> = BTreeSet::new();
     for i in 0..views.len() {
-        let (c, labels) = next.take().expect("loaded");
+        let (c, labels, g) = next.take().expect("loaded");
         let t = Instant::now();
         let (loaded, (pool, acc_s)) = rayon::join(
             || views.get(i + 1).map(&load).transpose(),
             || {
                 let t = Instant::now();
-                votes.accumulate(&c, &labels);
+                votes.accumulate_gated(&c, &labels, g.as_ref());
                 let s = t.elapsed().as_secs_f64();
                 let mut seen: Vec<i32> = labels.iter().copied().filter(|&l| l >= 0).collect();
                 seen.sort_unstable();
