@@ -12,6 +12,7 @@ mod associate;
 mod cgal;
 mod citymodel;
 mod cli;
+mod cli_stages;
 mod colmap;
 mod eval;
 mod fuse;
