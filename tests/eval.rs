@@ -408,13 +408,6 @@ fn perturb(rng: &mut ChaCha8Rng, gt: &[i32], h: usize, w: usize) -> Vec<i32> {
     p
 }
 
-fn python_numpy() -> bool {
-    Command::new("python3")
-        .args(["-c", "import numpy"])
-        .output()
-        .is_ok_and(|o| o.status.success())
-}
-
 /// Every key, number (≤ 1e-9), null, string and bool of gs4city's metrics.json agrees with
 /// the reference's; `definitions` is gs4city's only extra key.
 fn compare(a: &Value, b: &Value, path: &str, n: &mut usize) {
@@ -447,12 +440,7 @@ fn compare(a: &Value, b: &Value, path: &str, n: &mut usize) {
 
 #[test]
 fn agrees_with_numpy_reference() {
-    if !python_numpy() {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "python3 cannot import numpy: scripts/setup.sh installs it, and CI must run this cross-check"
-        );
-        eprintln!("SKIPPED: python3 cannot import numpy");
+    if !crate::common::python_can_import("eval::agrees_with_numpy_reference", &["numpy"]) {
         return;
     }
     let t = TmpDir::new("xcheck");

@@ -37,16 +37,10 @@ pub fn export(m: &TriMesh, cams: &[gs4city::camera::Camera], dir: &Path) -> usiz
 
 #[test]
 fn global_pass_agrees_with_open3d() {
-    let has_o3d = Command::new("python3")
-        .args(["-c", "import open3d"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if !has_o3d {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "python3 cannot import open3d: scripts/setup.sh installs it, and CI must run this cross-check"
-        );
-        eprintln!("SKIPPED: python3 cannot import open3d (pip install open3d)");
+    if !python_can_import(
+        "open3d_check::global_pass_agrees_with_open3d",
+        &["open3d", "numpy"],
+    ) {
         return;
     }
     let m = city_block(40, 4, 11);

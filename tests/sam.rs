@@ -137,16 +137,10 @@ fn broken_files_name_file_and_mask() {
 
 #[test]
 fn two_way_cross_check_with_pycocotools() {
-    let ok = Command::new("python3")
-        .args(["-c", "import pycocotools.mask, numpy"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if !ok {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "python3 cannot import pycocotools: scripts/setup.sh installs it, and CI must run this cross-check"
-        );
-        eprintln!("SKIPPED: python3 cannot import pycocotools (pip install pycocotools)");
+    if !crate::common::python_can_import(
+        "sam::two_way_cross_check_with_pycocotools",
+        &["pycocotools.mask", "numpy"],
+    ) {
         return;
     }
     let dir = tmp_dir("xcheck");

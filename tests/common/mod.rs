@@ -179,4 +179,45 @@ pub fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
     out
 }
 
+/// Whether `python3` can import every module of `modules` (the packages of a Python
+/// cross-check named `test`). When it cannot, the cross-check must not pass silently: with `CI`
+/// or `GS4CITY_REQUIRE_PY` set (`scripts/test.sh` sets the latter once `scripts/setup.sh` has
+/// installed the packages) this panics; otherwise it prints `SKIPPED: <test>: <why>` and
+/// appends that line to the file `$GS4CITY_SKIP_LOG`, which `scripts/test.sh` counts into its
+/// totals line, and returns false (the caller returns).
+pub fn python_can_import(test: &str, modules: &[&str]) -> bool {
+    let code = if modules.is_empty() {
+        "import sys".to_string()
+    } else {
+        format!("import {}", modules.join(", "))
+    };
+    let ok = std::process::Command::new("python3")
+        .args(["-c", &code])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if ok {
+        return true;
+    }
+    let why = format!(
+        "python3 cannot `{code}` (scripts/setup.sh installs {})",
+        if modules.is_empty() { "python3" } else { "it" }
+    );
+    assert!(
+        std::env::var_os("CI").is_none() && std::env::var_os("GS4CITY_REQUIRE_PY").is_none(),
+        "{test}: {why}; with CI or GS4CITY_REQUIRE_PY set this cross-check must run"
+    );
+    let line = format!("SKIPPED: {test}: {why}");
+    eprintln!("{line}");
+    if let Some(log) = std::env::var_os("GS4CITY_SKIP_LOG") {
+        use std::io::Write;
+        let mut f = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(log)
+            .expect("GS4CITY_SKIP_LOG cannot be opened");
+        writeln!(f, "{line}").expect("GS4CITY_SKIP_LOG cannot be written");
+    }
+    false
+}
+
 pub mod wall;
