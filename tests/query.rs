@@ -603,12 +603,18 @@ fn text_queries_match_present_classes_and_refuse_absent_ones() {
         labels(&sr, "text(\"a window of a building\") and within(B1)"),
         vec![2, 3]
     );
-    // A prompt that is not in prompts.json: the error lists the prompts.
-    let e = sr
-        .select_text("--text", "text(\"a bus\")", o)
+    // A text that is not in prompts.json is free text; without a sentence-embedding model the
+    // error lists the prompts (free text with the model: tests/textembed.rs).
+    let mut ctx = sr.context(o);
+    ctx.embed = None;
+    let expr = selection::grammar::parse("text(\"a bus\")").unwrap();
+    let e = selection::select::evaluate(&ctx, &selection::select::Index::new(&sr.entities), &expr)
         .unwrap_err()
         .to_string();
-    assert!(e.contains("not a prompt") && e.contains("\"a car\""), "{e}");
+    assert!(
+        e.contains("not a prompt") && e.contains("\"a car\"") && e.contains("free text needs"),
+        "{e}"
+    );
 
     // Through the stage: "a car" writes match false, the score, and empty masks.
     let out = f.root.join("q_car");
@@ -1055,6 +1061,7 @@ fn attribute_selections_match_an_independent_reading_of_the_citygml() {
         prompts: None,
         features_path: PathBuf::new(),
         text: TextOptions::default(),
+        embed: None,
     };
     if !crate::common::python_can_import(
         "query::attribute_selections_match_an_independent_reading_of_the_citygml",

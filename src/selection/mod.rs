@@ -3,7 +3,8 @@
 //! table, label table, per-Gaussian labels and label features; [`grammar`] parses `--where`
 //! expressions (one-line errors with the column), [`select`] evaluates them over the entities
 //! and the label table, [`text`] scores per-label features against a prompt (LERF/LangSplat
-//! relevancy), [`masks`] turns a selection into per-view masks through the contributions cache.
+//! relevancy) and resolves free text to a prompt, class or attribute name (sentence
+//! embeddings, [`crate::textembed`]), [`masks`] turns a selection into per-view masks through the contributions cache.
 //! It imports formats only.
 pub mod grammar;
 pub mod masks;
@@ -25,7 +26,7 @@ use crate::{classes, npy};
 pub use grammar::{Expr, ParseError, Term};
 pub use masks::MaskRule;
 pub use select::SelectError;
-pub use text::{LabelFeatures, TextMatch, TextOptions};
+pub use text::{Candidate, FreeText, LabelFeatures, TextMatch, TextOptions};
 
 /// Errors of loading a finished run and evaluating selections over it.
 #[derive(Debug, thiserror::Error)]
@@ -77,6 +78,8 @@ pub struct SemanticRun {
     pub features: Option<LabelFeatures>,
     pub features_path: PathBuf,
     pub prompts: Option<(Prompts, PathBuf)>,
+    /// The sentence-embedding model of free text, loaded on the first free-text term.
+    pub text_model: crate::textembed::Lazy,
     /// Seconds spent loading.
     pub load_s: f64,
 }
@@ -163,6 +166,7 @@ impl SemanticRun {
             features,
             features_path,
             prompts,
+            text_model: crate::textembed::Lazy::default(),
             load_s: t0.elapsed().as_secs_f64(),
         })
     }
@@ -201,6 +205,7 @@ impl SemanticRun {
             prompts: self.prompts.as_ref().map(|(p, f)| (p, f.as_path())),
             features_path: self.features_path.clone(),
             text,
+            embed: Some(&self.text_model),
         }
     }
 

@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 use serde_json::Value;
 
 use super::grammar::{Expr, Literal, Op, Term};
-use super::text::{self, LabelFeatures, TextMatch, TextOptions, TextQuery};
+use super::text::{self, Candidate, FreeText, LabelFeatures, TextMatch, TextOptions, TextQuery};
 use super::units;
 use crate::citygml::{Class, Level};
 use crate::classes;
@@ -119,6 +119,9 @@ pub struct Context<'a> {
     /// Where the features would come from (for messages when they are missing).
     pub features_path: PathBuf,
     pub text: TextOptions,
+    /// The sentence-embedding model that resolves free text (`text(…)` that is not a prompt);
+    /// `None`: only prompts are accepted.
+    pub embed: Option<&'a dyn text::Embed>,
 }
 
 /// The outcome of a selection over the table.
@@ -134,6 +137,8 @@ pub struct Selected {
     pub text: Vec<TextMatch>,
     /// Relevancy per label row of the first text term (for the SQLite table).
     pub relevancy: Option<Vec<Option<f64>>>,
+    /// One per free-text term (a `text(…)` that is not a prompt), in order.
+    pub free_text: Vec<FreeText>,
     /// Counts of comparisons that could not be made, as sentences.
     pub warnings: Vec<String>,
 }
@@ -155,6 +160,10 @@ enum Check {
     Label(i32),
     /// Index into the text results.
     Text(usize),
+    /// Entities that have the attribute (own or inherited): free text resolved to its name.
+    HasAttr(String),
+    /// Nothing: free text that matches no candidate.
+    Nothing,
     Attr {
         name: String,
         op: Op,
@@ -325,7 +334,8 @@ pub fn evaluate(
 ) -> Result<Selected, SelectError> {
     ctx.text.validate()?;
     let mut texts: Vec<(Vec<Option<f64>>, TextMatch)> = Vec::new();
-    let compiled = compile(ctx, index, expr, &mut texts)?;
+    let mut free: Vec<FreeText> = Vec::new();
+    let compiled = compile(ctx, index, expr, &mut texts, &mut free)?;
     // The domain: every label, then the entities that have no label in the table.
     let mut rows: Vec<Row> = Vec::with_capacity(ctx.labels.labels.len());
     let mut has_label = vec![false; ctx.entities.len()];
@@ -376,10 +386,16 @@ pub fn evaluate(
                 .is_none_or(|p| !entity_sel.get(p as usize).copied().unwrap_or(false))
         })
         .collect();
-    let warnings = skipped
+    let mut warnings: Vec<String> = skipped
         .into_iter()
         .map(|(k, n)| format!("{n} entities: {k}"))
         .collect();
+    for f in free.iter().filter(|f| f.resolved.is_none()) {
+        warnings.push(format!(
+            "text(\"{}\"): no match — the nearest prompt, class or attribute, {} (cosine {:.3}), is not closer than the canonical phrase \"{}\" ({:.3}) by {:.2}; nothing selected",
+            f.query, f.best, f.cosine, f.canonical, f.canonical_cosine, f.threshold
+        ));
+    }
     let relevancy = texts.first().map(|t| t.0.clone());
     Ok(Selected {
         labels,
@@ -387,6 +403,7 @@ pub fn evaluate(
         roots,
         text: texts.into_iter().map(|t| t.1).collect(),
         relevancy,
+        free_text: free,
         warnings,
     })
 }
@@ -396,24 +413,25 @@ fn compile(
     index: &Index<'_>,
     e: &Expr,
     texts: &mut Vec<(Vec<Option<f64>>, TextMatch)>,
+    free: &mut Vec<FreeText>,
 ) -> Result<Compiled, SelectError> {
     Ok(match e {
         Expr::And(a, b) => Compiled::And(
-            Box::new(compile(ctx, index, a, texts)?),
-            Box::new(compile(ctx, index, b, texts)?),
+            Box::new(compile(ctx, index, a, texts, free)?),
+            Box::new(compile(ctx, index, b, texts, free)?),
         ),
         Expr::Or(a, b) => Compiled::Or(
-            Box::new(compile(ctx, index, a, texts)?),
-            Box::new(compile(ctx, index, b, texts)?),
+            Box::new(compile(ctx, index, a, texts, free)?),
+            Box::new(compile(ctx, index, b, texts, free)?),
         ),
-        Expr::Not(a) => Compiled::Not(Box::new(compile(ctx, index, a, texts)?)),
+        Expr::Not(a) => Compiled::Not(Box::new(compile(ctx, index, a, texts, free)?)),
         Expr::TextFeature { path, vector } => Compiled::Term(text_term(
             ctx,
             Err((path.as_str(), vector.as_slice())),
             1,
             texts,
         )?),
-        Expr::Term(t) => Compiled::Term(check(ctx, index, t, texts)?),
+        Expr::Term(t) => Compiled::Term(check(ctx, index, t, texts, free)?),
     })
 }
 
@@ -457,11 +475,81 @@ fn text_term(
     Ok(Check::Text(texts.len() - 1))
 }
 
+/// The candidates of free text: the prompts (when the run has label features to score them),
+/// the CityGML class names, the attribute names of the table.
+pub fn candidates(ctx: &Context<'_>, index: &Index<'_>) -> Vec<Candidate> {
+    let mut out = Vec::new();
+    if let (Some((prompts, _)), Some(f)) = (ctx.prompts, ctx.features) {
+        if f.dim == prompts.dim {
+            out.extend(prompts.prompts.keys().cloned().map(Candidate::Prompt));
+        }
+    }
+    out.extend(
+        CLASSES
+            .iter()
+            .map(|c| Candidate::Class(c.name().to_string())),
+    );
+    out.extend(
+        index
+            .attrs
+            .keys()
+            .filter(|k| !k.ends_with(".uom"))
+            .map(|k| Candidate::Attribute(k.to_string())),
+    );
+    out
+}
+
+/// `text(T)` where T is not a prompt: resolved to a prompt, a class or an attribute
+/// ([`text::resolve`]), or to nothing.
+fn free_text_term(
+    ctx: &Context<'_>,
+    index: &Index<'_>,
+    query: &str,
+    column: usize,
+    texts: &mut Vec<(Vec<Option<f64>>, TextMatch)>,
+    free: &mut Vec<FreeText>,
+) -> Result<Check, SelectError> {
+    let not_prompt = match ctx.prompts {
+        Some((p, path)) => format!(
+            "\"{query}\" is not a prompt of {} (prompts: {})",
+            path.display(),
+            p.prompts
+                .keys()
+                .map(|k| format!("\"{k}\""))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+        None => format!("\"{query}\" is free text (the scene has no features/prompts.json)"),
+    };
+    let Some(model) = ctx.embed else {
+        return Err(invalid(
+            column,
+            format!("{not_prompt}, and free text needs a sentence-embedding model"),
+        ));
+    };
+    let f = text::resolve(query, &candidates(ctx, index), model, ctx.text.min_margin)
+        .map_err(|e| invalid(column, format!("{not_prompt}; {e}")))?;
+    let c = match &f.resolved {
+        None => Check::Nothing,
+        Some(Candidate::Prompt(p)) => text_term(ctx, Ok(p.as_str()), column, texts)?,
+        Some(Candidate::Class(n)) => Check::Classes(
+            class_names(n)
+                .expect("a name of CLASSES")
+                .into_iter()
+                .collect(),
+        ),
+        Some(Candidate::Attribute(a)) => Check::HasAttr(a.clone()),
+    };
+    free.push(f);
+    Ok(c)
+}
+
 fn check(
     ctx: &Context<'_>,
     index: &Index<'_>,
     t: &Term,
     texts: &mut Vec<(Vec<Option<f64>>, TextMatch)>,
+    free: &mut Vec<FreeText>,
 ) -> Result<Check, SelectError> {
     Ok(match t {
         Term::Class { name, column } => {
@@ -531,7 +619,16 @@ fn check(
                 .ok_or_else(|| invalid(*column, format!("label {id} is not in the label table")))?;
             Check::Label(id)
         }
-        Term::Text { prompt, column } => text_term(ctx, Ok(prompt.as_str()), *column, texts)?,
+        Term::Text { prompt, column } => {
+            let is_prompt = ctx
+                .prompts
+                .is_some_and(|(p, _)| text::find_prompt(p, prompt).is_some());
+            if is_prompt {
+                text_term(ctx, Ok(prompt.as_str()), *column, texts)?
+            } else {
+                free_text_term(ctx, index, prompt, *column, texts, free)?
+            }
+        }
         Term::Attr {
             name,
             op,
@@ -653,6 +750,12 @@ fn term(
             None => entity.is_some_and(|e| classes::of_entity(ctx.entities, e as i32) == *c),
         },
         Check::Label(id) => r.label.is_some_and(|l| ctx.labels.labels[l].id == *id),
+        Check::HasAttr(name) => entity.is_some_and(|e| {
+            index
+                .ancestry(e)
+                .any(|a| a.attributes.contains_key(name.as_str()))
+        }),
+        Check::Nothing => false,
         Check::Text(k) => r
             .label
             .and_then(|l| texts[*k].0[l])

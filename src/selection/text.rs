@@ -16,6 +16,12 @@
 //! `min_relevancy`: it is closer to the query than to every negative by a margin
 //! `ln(τ/(1−τ))/T`. Unlike the reference's per-view min–max normalisation (REFERENCE.md §5),
 //! the score is absolute, so a query for something absent returns nothing.
+//!
+//! **Free text** (a query that is not a prompt of `prompts.json`) is first [`resolve`]d with a
+//! sentence-embedding model ([`crate::textembed`]) to the nearest of the run's candidates —
+//! the prompts, the CityGML class names and the attribute names, by cosine — and refused as
+//! "no match" unless that cosine beats the query's cosine with every one of LERF's canonical
+//! phrases ([`CANONICAL`]) by at least [`MIN_MARGIN`] (calibrated in docs/query.md).
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -32,6 +38,8 @@ pub enum TextError {
     Invalid { path: PathBuf, why: String },
     #[error("{0}")]
     Refused(String),
+    #[error(transparent)]
+    Embed(#[from] crate::textembed::EmbedError),
 }
 
 /// Options of text matching.
@@ -44,10 +52,27 @@ pub struct TextOptions {
     pub min_relevancy: f64,
     /// Prompts at least this similar to the query are synonyms, not negatives.
     pub synonym_cos: f64,
+    /// Free text resolves to its nearest candidate (prompt, class, attribute) only when their
+    /// cosine beats the text's cosine with every canonical phrase by at least this
+    /// ([`MIN_MARGIN`]).
+    #[serde(default = "min_margin")]
+    pub min_margin: f64,
 }
 
 /// The calibrated default threshold (docs/query.md, "Calibration").
 pub const MIN_RELEVANCY: f64 = 0.85;
+
+/// The calibrated margin below which free text matches no candidate (docs/query.md, "Free
+/// text").
+pub const MIN_MARGIN: f64 = 0.13;
+
+fn min_margin() -> f64 {
+    MIN_MARGIN
+}
+
+/// LERF's canonical phrases: what anything is somewhat similar to. Free text must be closer
+/// to its candidate than to each of them by [`TextOptions::min_margin`].
+pub const CANONICAL: [&str; 4] = ["object", "things", "stuff", "texture"];
 
 impl Default for TextOptions {
     fn default() -> Self {
@@ -55,6 +80,7 @@ impl Default for TextOptions {
             temperature: 10.0,
             min_relevancy: MIN_RELEVANCY,
             synonym_cos: 0.8,
+            min_margin: MIN_MARGIN,
         }
     }
 }
@@ -71,6 +97,14 @@ impl TextOptions {
                     self.synonym_cos,
                     End::Closed(-1.0),
                     End::Closed(1.0),
+                )
+            })
+            .and_then(|_| {
+                range(
+                    "free-text margin",
+                    self.min_margin,
+                    End::Closed(-2.0),
+                    End::Closed(2.0),
                 )
             })
             .map_err(TextError::Refused)
@@ -161,7 +195,7 @@ pub struct TextQuery {
 }
 
 /// The prompt named `text` (exact, else ignoring case and surrounding spaces).
-fn find_prompt<'a>(prompts: &'a Prompts, text: &str) -> Option<(&'a String, &'a Vec<f32>)> {
+pub fn find_prompt<'a>(prompts: &'a Prompts, text: &str) -> Option<(&'a String, &'a Vec<f32>)> {
     prompts.prompts.get_key_value(text).or_else(|| {
         let t = text.trim();
         prompts
@@ -324,6 +358,148 @@ pub fn score_labels(
     (scores, m)
 }
 
+/// Sentence embeddings of texts (unit vectors): the model behind free text.
+pub trait Embed {
+    fn embed(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, TextError>;
+}
+
+impl Embed for crate::textembed::TextModel {
+    fn embed(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, TextError> {
+        Ok(crate::textembed::TextModel::embed(self, texts)?)
+    }
+}
+
+impl Embed for crate::textembed::Lazy {
+    fn embed(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, TextError> {
+        Ok(self.get()?.embed(texts)?)
+    }
+}
+
+/// What free text can resolve to.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[serde(tag = "kind", content = "name", rename_all = "lowercase")]
+pub enum Candidate {
+    /// A prompt of `prompts.json` (then scored against the label features like `text(P)`).
+    Prompt(String),
+    /// A CityGML class name (then selected like `class=NAME`).
+    Class(String),
+    /// An attribute name (then: the entities that have the attribute, inherited).
+    Attribute(String),
+}
+
+/// Words of an identifier: namespace prefix dropped, camelCase and `_ - .` split, lowercase
+/// (`bldg:WallSurface` → "wall surface", `measuredHeight` → "measured height").
+pub fn words(name: &str) -> String {
+    let local = name.rsplit(':').next().unwrap_or(name);
+    let mut out = String::new();
+    let mut prev: Option<char> = None;
+    for c in local.chars() {
+        if matches!(c, '_' | '-' | '.' | '@' | ' ') {
+            prev = Some(' ');
+            if !out.ends_with(' ') && !out.is_empty() {
+                out.push(' ');
+            }
+            continue;
+        }
+        if c.is_uppercase() && prev.is_some_and(|p| p.is_lowercase() || p.is_ascii_digit()) {
+            out.push(' ');
+        }
+        out.extend(c.to_lowercase());
+        prev = Some(c);
+    }
+    out.trim().to_string()
+}
+
+impl Candidate {
+    /// The phrase that is embedded: the prompt itself, or the name in words.
+    pub fn phrase(&self) -> String {
+        match self {
+            Candidate::Prompt(p) => p.clone(),
+            Candidate::Class(n) | Candidate::Attribute(n) => words(n),
+        }
+    }
+}
+
+impl std::fmt::Display for Candidate {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Candidate::Prompt(p) => write!(f, "prompt \"{p}\""),
+            Candidate::Class(n) => write!(f, "class {n}"),
+            Candidate::Attribute(n) => write!(f, "attribute {n}"),
+        }
+    }
+}
+
+/// One free-text term's resolution.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FreeText {
+    /// The text as given.
+    pub query: String,
+    /// The calibrated threshold of the margin ([`TextOptions::min_margin`]).
+    pub threshold: f64,
+    /// The candidate the text stands for; `None`: no match (the margin is below the
+    /// threshold).
+    pub resolved: Option<Candidate>,
+    /// The nearest candidate and its cosine (also when there is no match).
+    pub best: Candidate,
+    pub cosine: f64,
+    /// The canonical phrase nearest to the text, and its cosine.
+    pub canonical: String,
+    pub canonical_cosine: f64,
+    /// `cosine − canonical_cosine`: the text matches when this is ≥ the threshold.
+    pub margin: f64,
+    /// Up to 5 nearest candidates with their cosines.
+    pub top: Vec<(Candidate, f64)>,
+}
+
+/// Resolves free text `query` to the nearest of `candidates` by the cosine of their sentence
+/// embeddings (ties: the earlier candidate), or to none when that cosine does not beat the
+/// query's cosine with each [`CANONICAL`] phrase by `min_margin`.
+pub fn resolve(
+    query: &str,
+    candidates: &[Candidate],
+    model: &dyn Embed,
+    min_margin: f64,
+) -> Result<FreeText, TextError> {
+    if candidates.is_empty() {
+        return Err(TextError::Refused(format!(
+            "\"{query}\": nothing to match free text against (no prompts, classes or attributes)"
+        )));
+    }
+    let phrases: Vec<String> = candidates.iter().map(Candidate::phrase).collect();
+    let mut texts: Vec<&str> = vec![query];
+    texts.extend(CANONICAL);
+    texts.extend(phrases.iter().map(String::as_str));
+    let e = model.embed(&texts)?;
+    let (q, rest) = e.split_first().expect("one embedding per text");
+    let (canon, rest) = rest.split_at(CANONICAL.len());
+    let (canonical, canonical_cosine) = CANONICAL
+        .iter()
+        .zip(canon)
+        .map(|(n, v)| (n.to_string(), dot(q, v)))
+        .reduce(|a, b| if b.1 > a.1 { b } else { a }) // ties: the first
+        .expect("canonical phrases");
+    let mut ranked: Vec<(usize, f64)> = rest.iter().map(|c| dot(q, c)).enumerate().collect();
+    ranked.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+    let (best, cosine) = ranked[0];
+    let margin = cosine - canonical_cosine;
+    Ok(FreeText {
+        query: query.to_string(),
+        threshold: min_margin,
+        resolved: (margin >= min_margin).then(|| candidates[best].clone()),
+        best: candidates[best].clone(),
+        cosine,
+        canonical,
+        canonical_cosine,
+        margin,
+        top: ranked
+            .iter()
+            .take(5)
+            .map(|&(i, c)| (candidates[i].clone(), c))
+            .collect(),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -377,6 +553,60 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("no prompt to compare"), "{e}");
+    }
+
+    /// A stand-in model: fixed unit vectors per text.
+    struct Table(Vec<(&'static str, Vec<f32>)>);
+
+    impl Embed for Table {
+        fn embed(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, TextError> {
+            texts
+                .iter()
+                .map(|t| {
+                    self.0
+                        .iter()
+                        .find(|(k, _)| k == t)
+                        .map(|(_, v)| unit(v).unwrap())
+                        .ok_or_else(|| TextError::Refused(format!("no vector for {t:?}")))
+                })
+                .collect()
+        }
+    }
+
+    #[test]
+    fn free_text_resolves_to_the_nearest_candidate_beyond_the_canonical_margin() {
+        // Axes: 0 car, 1 window, 2 the canonical phrases' direction, 3 other.
+        let mut t = vec![
+            ("a car", vec![1.0, 0.0, 0.0, 0.0]),
+            ("window", vec![0.0, 1.0, 0.0, 0.0]),
+            ("measured height", vec![0.0, 0.0, 0.0, 1.0]),
+            ("automobile", vec![0.9, 0.0, 0.3, 0.0]),
+            ("a submarine", vec![0.5, 0.0, 0.8, 0.0]),
+        ];
+        t.extend(CANONICAL.map(|c| (c, vec![0.0, 0.0, 1.0, 0.0])));
+        let model = Table(t);
+        let cands = [
+            Candidate::Prompt("a car".into()),
+            Candidate::Class("Window".into()),
+            Candidate::Attribute("measuredHeight".into()),
+        ];
+        let f = resolve("automobile", &cands, &model, MIN_MARGIN).unwrap();
+        let n = (0.81f64 + 0.09).sqrt();
+        assert!((f.cosine - 0.9 / n).abs() < 1e-6 && (f.canonical_cosine - 0.3 / n).abs() < 1e-6);
+        assert_eq!(f.resolved, Some(Candidate::Prompt("a car".into())));
+        assert_eq!(f.top.len(), 3);
+        // Nearest to "a car" (0.53), but nearer still to "object" (0.85): no match.
+        let f = resolve("a submarine", &cands, &model, MIN_MARGIN).unwrap();
+        assert_eq!(f.best, Candidate::Prompt("a car".into()));
+        assert_eq!((f.resolved, f.canonical.as_str()), (None, "object"));
+        assert!(f.margin < 0.0);
+        // Class and attribute names are embedded in words.
+        assert_eq!(words("bldg:WallSurface"), "wall surface");
+        assert_eq!(words("measuredHeight"), "measured height");
+        assert_eq!(words("@cityeditor:layer"), "layer");
+        assert_eq!(words("storeys_above-ground2D"), "storeys above ground2 d");
+        assert_eq!(cands[2].phrase(), "measured height");
+        assert!(resolve("x", &[], &model, MIN_MARGIN).is_err());
     }
 
     #[test]
