@@ -195,7 +195,13 @@ fn files_in(dir: &Path) -> Vec<PathBuf> {
 /// (the only place that knows it): align (optional) → citymodel → raycast → render → masks →
 /// associate → fuse (fused supervision) → lift → train (mode learned) → eval (with `gt/`) →
 /// report.
+///
+/// The scene folder is used by its canonical path (`S`, `./S/` and `/abs/S` are one scene
+/// to the run store, and `run.json` names it absolutely, so `query --run R` works from any
+/// working directory). The scene is checked first ([`crate::inspect`]): every problem is
+/// reported at once and nothing runs while one is an error.
 pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary, RunError> {
+    let scene_dir = &canonical(scene_dir)?;
     let mut r = open(scene_dir, out, opts)?;
     let alignment_file = align_step(&mut r, opts)?;
     let cm = citymodel_step(&mut r, alignment_file.as_deref(), opts)?;
@@ -211,6 +217,16 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     let pred_dir = vote_steps(&mut r, &cache, &entities, &sup, opts)?;
     let eval = eval_step(&mut r, &cache, &pred_dir, out, opts)?;
     finish(r, out, opts, &pred_dir, eval, sup)
+}
+
+/// The canonical path of the scene folder (one clear line when it does not exist).
+fn canonical(scene_dir: &Path) -> Result<PathBuf, RunError> {
+    scene_dir.canonicalize().map_err(|e| {
+        RunError::Scene(SceneError {
+            scene: scene_dir.to_path_buf(),
+            why: format!("cannot open the scene folder: {e}"),
+        })
+    })
 }
 
 /// What every step of a run shares.
@@ -384,7 +400,7 @@ fn render_step(r: &mut Running, opts: &RunOptions) -> Result<Cache, RunError> {
     inputs.extend(r.sparse_files.iter().cloned());
     let (ply, views) = (&r.scene.ply, &r.views);
     let _cs: CacheSummary = r.st.stage(Stage::Render, &co, &inputs, &[], |dir| {
-        let (g, _) = crate::splat::read_ply(ply, &Default::default())?;
+        let (g, _) = crate::splat::read_ply(ply, &crate::splat::ReadOptions::KEEP)?;
         let prepared = crate::render::PreparedScene::new(&g)?;
         Ok::<_, RunError>(render::cache::build(&prepared, views, &co, dir)?)
     })?;
