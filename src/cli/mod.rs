@@ -2,6 +2,7 @@
 //! Each subcommand parses its arguments, validates them into a config, then runs.
 mod align;
 mod associate;
+mod check;
 mod citymodel;
 mod demo;
 mod eval;
@@ -12,6 +13,7 @@ mod query;
 mod raycast;
 mod render;
 mod run;
+mod scene;
 mod synth;
 mod train;
 
@@ -50,6 +52,11 @@ enum Command {
     Train(train::TrainArgs),
     /// Filter the scene's SAM masks against the city model (paper §3.2; depth test; mask-free source).
     Masks(masks::MasksArgs),
+    /// Scene folders: `scene import` builds one from a 3DGS training output, its COLMAP folder
+    /// and the CityGML model.
+    Scene(scene::SceneArgs),
+    /// Check a scene folder before any stage runs: every problem at once, each naming its file.
+    Check(check::CheckArgs),
     /// A scene folder through every stage (citymodel → raycast → render cache → lift → eval), resuming complete stages; report.html.
     Run(run::RunArgs),
     /// The demo: bundled data → simulated scene → every stage → report.html.
@@ -85,6 +92,8 @@ pub fn main() -> anyhow::Result<()> {
         Command::Train(args) => train::run(&args),
         Command::Masks(args) => masks::run(&args),
         Command::Run(args) => run::run(&args),
+        Command::Check(args) => check::run(&args),
+        Command::Scene(args) => scene::run(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),
     }

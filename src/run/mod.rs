@@ -65,6 +65,8 @@ impl std::str::FromStr for Supervision {
 pub enum RunError {
     #[error(transparent)]
     Scene(#[from] SceneError),
+    #[error(transparent)]
+    Check(#[from] crate::inspect::InspectError),
     #[error("{0}")]
     Refused(String),
     #[error(transparent)]
@@ -129,14 +131,18 @@ pub struct RunOptions {
     /// (the `train` stage, which starts from the vote).
     pub mode: Mode,
     pub train: TrainOptions,
-    /// Every `test_every`-th view (by name) is a test view; 0 = none.
-    pub test_every: usize,
+    /// Every `test_every`-th view (by name) is a test view; 0 = none. `None`: 8 when the
+    /// scene has ground truth (`gt/`), else 0 (no ground truth, so every view trains).
+    pub test_every: Option<usize>,
     /// Run without `citymodel/alignment.json` (the CityGML coordinates minus a local origin).
     pub local_origin: bool,
     /// Refine the alignment from the 3DGS scene first (`R/align/`, `align --refine`); every
     /// later stage uses the refined transform.
     pub refine_alignment: bool,
     pub refine: crate::refine::RefineOptions,
+    /// The scene check that runs first ([`crate::inspect`]; `local_origin` is this run's).
+    #[serde(default)]
+    pub check: crate::inspect::CheckOptions,
     /// Rerun every stage even when its output is complete.
     pub force: bool,
 }
@@ -154,10 +160,11 @@ impl Default for RunOptions {
             fuse: FuseOptions::default(),
             mode: Mode::Vote,
             train: TrainOptions::default(),
-            test_every: 8,
+            test_every: None,
             local_origin: false,
             refine_alignment: false,
             refine: crate::refine::RefineOptions::default(),
+            check: crate::inspect::CheckOptions::default(),
             force: false,
         }
     }
@@ -235,12 +242,54 @@ struct Running {
     views: Vec<View>,
     split: Split,
     st: Store,
+    /// The test-view split: `RunOptions::test_every`, resolved.
+    test_every: usize,
+    /// The scene check's warnings (CityGML warnings stay in `R/citymodel/summary.json`).
+    check_warnings: Vec<String>,
     sparse_files: Vec<PathBuf>,
 }
 
 /// Validates everything before anything is written, then opens the run store.
 fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunError> {
     store::check_out_dir(scene_dir, out, &Stage::ALL).map_err(RunError::Refused)?;
+    let check = crate::inspect::check(
+        scene_dir,
+        &crate::inspect::CheckOptions {
+            local_origin: opts.local_origin,
+            ..opts.check
+        },
+    );
+    let mut shown = 0;
+    let mut check_warnings = Vec::new();
+    for f in check.of(crate::inspect::Severity::Warning) {
+        shown += 1;
+        if shown <= 5 || crate::progress::verbose() {
+            log::warn!("{f}");
+        }
+        let citygml = f
+            .file
+            .extension()
+            .is_some_and(|x| x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml"));
+        if !citygml {
+            check_warnings.push(f.to_string());
+        }
+    }
+    if shown > 5 && !crate::progress::verbose() {
+        log::warn!(
+            "{} more warnings of the scene check (-v shows them all; `gs4city check --scene {}`)",
+            shown - 5,
+            scene_dir.display()
+        );
+    }
+    let check = check.into_result()?;
+    if let Some(a) = &check.alignment {
+        log::info!(
+            "check: the city model projects into {} of {} views; median distance of opaque Gaussians to it {:.2} m",
+            a.views_seeing_model,
+            a.views,
+            a.median_distance_m
+        );
+    }
     let scene = Scene::open(scene_dir)?;
     if scene.alignment.is_none() && !opts.local_origin {
         return Err(RunError::Refused(format!(
@@ -260,7 +309,10 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         )));
     }
     let views = colmap::read_model(&scene.sparse)?;
-    let split = Split::new(views.clone(), opts.test_every);
+    let test_every = opts
+        .test_every
+        .unwrap_or(if scene.gt.is_some() { 8 } else { 0 });
+    let split = Split::new(views.clone(), test_every);
     if split.train.is_empty() {
         return Err(RunError::Refused(
             "no training views: every view is a test view (--test-every 1?)".into(),
@@ -293,6 +345,8 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         views,
         split,
         st,
+        test_every,
+        check_warnings,
         sparse_files,
     })
 }
@@ -572,7 +626,7 @@ fn vote_steps(
         labels: &sup.labels,
         entities,
     };
-    let lift_opts = (opts.lift, opts.test_every);
+    let lift_opts = (opts.lift, r.test_every);
     let _lift: LiftSummary = r.st.stage(
         Stage::Lift,
         &lift_opts,
@@ -582,7 +636,7 @@ fn vote_steps(
     )?;
     match opts.mode {
         Mode::Learned => {
-            let train_opts = (opts.train, opts.test_every);
+            let train_opts = (opts.train, r.test_every);
             let _t: TrainSummary = r.st.stage(
                 Stage::Train,
                 &train_opts,
@@ -651,6 +705,8 @@ fn finish(
     eval: Option<EvalSummary>,
     sup: Supervised,
 ) -> Result<RunSummary, RunError> {
+    let mut warnings = r.check_warnings.clone();
+    warnings.extend(sup.warnings);
     let report = report::write(&report::ReportInputs {
         scene: &r.scene,
         out,
@@ -659,7 +715,7 @@ fn finish(
         stages: &r.st.reports,
         eval: eval.as_ref(),
         masks: sup.masks.as_ref(),
-        warnings: &sup.warnings,
+        warnings: &warnings,
         choices: &sup.choices,
     })?;
     let summary = RunSummary {
@@ -669,7 +725,7 @@ fn finish(
         test_views: r.split.test_stems(),
         eval,
         report,
-        warnings: sup.warnings,
+        warnings,
     };
     fsutil::write_json(&out.join("summary.json"), &summary)?;
     Ok(summary)
