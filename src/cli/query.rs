@@ -59,8 +59,8 @@ pub struct QueryArgs {
     /// Write extract.ply (selected Gaussians) and remove.ply (the rest).
     #[arg(long)]
     pub export: bool,
-    /// Pixel rule of the masks: argmax (the selection beats every other label and the
-    /// background, as in the predicted maps) or majority (more than half of the pixel).
+    /// Pixel rule of the masks: argmax (the rule of the class maps: the selection beats every
+    /// other class and the background) or majority (more than half of the pixel).
     #[arg(long, default_value = "argmax")]
     pub mask_rule: MaskRule,
     /// Text queries: a label matches when its relevancy is at least this.
