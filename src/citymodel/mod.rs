@@ -689,7 +689,10 @@ pub const WARNINGS_SHOWN: usize = 5;
 /// Prints the first [`WARNINGS_SHOWN`] warnings (file, line, gml:id, what), all with `-v`.
 fn show_warnings(items: &[String]) {
     let all = crate::progress::verbose();
-    for w in items.iter().take(if all { items.len() } else { WARNINGS_SHOWN }) {
+    for w in items
+        .iter()
+        .take(if all { items.len() } else { WARNINGS_SHOWN })
+    {
         log::warn!("citymodel: {w}");
     }
     if !all && items.len() > WARNINGS_SHOWN {

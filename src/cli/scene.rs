@@ -17,7 +17,7 @@ pub enum SceneCommand {
     /// Build a scene folder by links (or copies) from a 3DGS training output, its COLMAP
     /// folder and the CityGML model; then checks it (`gs4city check`).
     #[command(
-        after_help = "Example:\n  gs4city scene import --model output/street --citygml lod3/ \\\n      --alignment alignment.json --out scenes/street"
+        after_help = "Example:\n  gs4city scene import --model output/street --citygml lod3/ --alignment alignment.json --out S"
     )]
     Import(ImportArgs),
 }
