@@ -14,8 +14,9 @@
 //! * every CityGML file: parse errors, and the reader's warnings with their gml:ids; a city
 //!   object's gml:id used in two files;
 //! * the alignment's plausibility: in how many views the aligned city model projects inside the
-//!   image, and the median distance between opaque Gaussian centres and the nearest city-model
-//!   surface, in metres — with a verdict (`alignment looks off by ~X m: run align --refine`).
+//!   image, and the distances between opaque Gaussian centres and the nearest city-model
+//!   surface, in metres (median and lower quartile, [`AlignmentCheck::quartile_distance_m`]) —
+//!   with a verdict (`alignment looks off by ~X m: run align --refine`).
 //!
 //! Severities: [`Severity::Error`] (the run would fail or give a silently bad result: nothing
 //! runs), [`Severity::Warning`] (the run goes on; say it), [`Severity::Note`] (what the run
@@ -86,8 +87,14 @@ pub struct AlignmentCheck {
     pub views_seeing_model: usize,
     /// Opaque Gaussian centres measured (a regular subsample).
     pub gaussians_measured: usize,
-    /// Median distance of those centres to the nearest city-model surface, in metres (scene
-    /// units divided by the alignment's scale).
+    /// Lower quartile of the distances of those centres to the nearest city-model surface, in
+    /// metres (scene units divided by the alignment's scale): the verdict's measure. A 3DGS
+    /// city scene holds much besides the modelled buildings (ground, trees, cars), which moves
+    /// the median even when the alignment is exact (3.35 m on a sparse simulated scene whose
+    /// buildings' Gaussians lie on the surfaces); the buildings' own Gaussians, a quarter of the
+    /// scene or more, keep the lower quartile near 0 until the model moves away from them.
+    pub quartile_distance_m: f64,
+    /// The median of the same distances, in metres.
     pub median_distance_m: f64,
     /// Whether both measures pass ([`CheckOptions`]).
     pub plausible: bool,
@@ -135,7 +142,8 @@ impl CheckReport {
 pub struct CheckOptions {
     /// A scene without `citymodel/alignment.json` is fine (the run uses a local origin).
     pub local_origin: bool,
-    /// Largest plausible median distance (metres) of opaque Gaussian centres to the city model.
+    /// Largest plausible lower-quartile distance (metres) of opaque Gaussian centres to the city
+    /// model.
     pub max_offset_m: f64,
     /// Smallest plausible share of views in which the city model projects inside the image.
     pub min_view_share: f64,
@@ -706,11 +714,13 @@ fn plausibility(
     }
     d.sort_by(f64::total_cmp);
     let median = d[d.len() / 2] / a.scale;
+    let quartile = d[d.len() / 4] / a.scale;
     let share = seeing as f64 / views.len() as f64;
-    let plausible = median <= opts.max_offset_m && share >= opts.min_view_share;
+    let plausible = quartile <= opts.max_offset_m && share >= opts.min_view_share;
     let facts = format!(
-        "the city model projects into {seeing} of {} views; median distance of {} opaque \
-         Gaussian centres to the nearest city-model surface {median:.2} m",
+        "the city model projects into {seeing} of {} views; distance of {} opaque Gaussian \
+         centres to the nearest city-model surface: lower quartile {quartile:.2} m, median \
+         {median:.2} m",
         views.len(),
         d.len()
     );
@@ -720,10 +730,10 @@ fn plausibility(
         f.error(
             &file,
             format!(
-                "alignment looks off by ~{:.0} m ({facts}; plausible: ≤ {} m and ≥ {:.0} % of \
-                 views): run `gs4city align --refine`, or check the ground-control points \
-                 (README, \"alignment.json\")",
-                median.max(0.5),
+                "alignment looks off by ~{:.0} m ({facts}; plausible: a lower quartile ≤ {} m \
+                 and ≥ {:.0} % of views): run `gs4city align --refine`, or check the \
+                 ground-control points (README, \"alignment.json\")",
+                quartile.max(0.5),
                 opts.max_offset_m,
                 100.0 * opts.min_view_share
             ),
@@ -733,6 +743,7 @@ fn plausibility(
         views: views.len(),
         views_seeing_model: seeing,
         gaussians_measured: d.len(),
+        quartile_distance_m: quartile,
         median_distance_m: median,
         plausible,
     })

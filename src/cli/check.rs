@@ -14,8 +14,8 @@ pub struct CheckArgs {
     /// A scene without citymodel/alignment.json is fine (`run --local-origin`).
     #[arg(long)]
     pub local_origin: bool,
-    /// Largest plausible median distance (metres) between opaque Gaussian centres and the
-    /// nearest city-model surface; beyond it the alignment is reported as off.
+    /// Largest plausible distance (metres, lower quartile) between opaque Gaussian centres and
+    /// the nearest city-model surface; beyond it the alignment is reported as off.
     #[arg(long, default_value_t = CheckOptions::default().max_offset_m)]
     pub max_offset: f64,
     /// Write the report as JSON to this file.

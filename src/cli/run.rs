@@ -74,8 +74,8 @@ pub struct RunArgs {
     /// Training iterations of --mode learned.
     #[arg(long, default_value_t = crate::train::TrainOptions::default().iterations)]
     pub iterations: usize,
-    /// The scene check that runs first: largest plausible median distance (metres) between
-    /// opaque Gaussian centres and the city model (`gs4city check --max-offset`).
+    /// The scene check that runs first: largest plausible distance (metres, lower quartile)
+    /// between opaque Gaussian centres and the city model (`gs4city check --max-offset`).
     #[arg(long, default_value_t = crate::inspect::CheckOptions::default().max_offset_m)]
     pub max_offset: f64,
     /// Rerun every stage even when its output is complete.

@@ -106,8 +106,7 @@ pub struct PreparedScene {
     pub features: Vec<f32>,
     pub channels: usize,
     /// Gaussians that are never drawn: zero or non-finite quaternion, a non-finite
-    /// position, scale, opacity or SH value, any value the PLY reader's checks reject
-    /// ([`crate::splat::ply::is_valid`]: kept in place by [`crate::splat::InvalidPolicy::Keep`]),
+    /// position, scale, opacity or SH value (e.g. hidden by [`crate::splat::ply::hide_invalid`]),
     /// or a covariance that overflows `f32`.
     pub skipped: usize,
 }
@@ -135,8 +134,7 @@ impl PreparedScene {
         let mut skipped = 0;
         let cov3d = (0..n)
             .map(|i| {
-                let finite = crate::splat::ply::is_valid(g, i)
-                    && g.positions[i].iter().all(|v| v.is_finite())
+                let finite = g.positions[i].iter().all(|v| v.is_finite())
                     && g.scale[i].iter().all(|v| v.is_finite())
                     && g.opacity[i].is_finite()
                     && sh[i * coeffs..(i + 1) * coeffs]

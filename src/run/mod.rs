@@ -252,6 +252,17 @@ struct Running {
 /// Validates everything before anything is written, then opens the run store.
 fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunError> {
     store::check_out_dir(scene_dir, out, &Stage::ALL).map_err(RunError::Refused)?;
+    // The run's own completion markers are written last; a run that fails part-way (or at
+    // the scene check) must not leave the previous run's summary and report looking like
+    // this one's.
+    for f in ["summary.json", "report.html"] {
+        let p = out.join(f);
+        if p.exists() {
+            std::fs::remove_file(&p).map_err(|e| {
+                RunError::Refused(format!("cannot remove the old {}: {e}", p.display()))
+            })?;
+        }
+    }
     let check = crate::inspect::check(
         scene_dir,
         &crate::inspect::CheckOptions {
@@ -284,9 +295,10 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
     let check = check.into_result()?;
     if let Some(a) = &check.alignment {
         log::info!(
-            "check: the city model projects into {} of {} views; median distance of opaque Gaussians to it {:.2} m",
+            "check: the city model projects into {} of {} views; opaque Gaussians lie {:.2} m from it (lower quartile; median {:.2} m)",
             a.views_seeing_model,
             a.views,
+            a.quartile_distance_m,
             a.median_distance_m
         );
     }
@@ -329,16 +341,6 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         serde_json::to_value(opts).unwrap_or_default(),
         opts.force,
     )?;
-    // The run's own completion markers are written last; a run that fails part-way must not
-    // leave the previous run's summary and report looking like this one's.
-    for f in ["summary.json", "report.html"] {
-        let p = out.join(f);
-        if p.exists() {
-            std::fs::remove_file(&p).map_err(|e| {
-                RunError::Refused(format!("cannot remove the old {}: {e}", p.display()))
-            })?;
-        }
-    }
     let sparse_files = files_in(&scene.sparse);
     Ok(Running {
         scene,
@@ -454,7 +456,8 @@ fn render_step(r: &mut Running, opts: &RunOptions) -> Result<Cache, RunError> {
     inputs.extend(r.sparse_files.iter().cloned());
     let (ply, views) = (&r.scene.ply, &r.views);
     let _cs: CacheSummary = r.st.stage(Stage::Render, &co, &inputs, &[], |dir| {
-        let (g, _) = crate::splat::read_ply(ply, &crate::splat::ReadOptions::KEEP)?;
+        let (mut g, _) = crate::splat::read_ply(ply, &crate::splat::ReadOptions::KEEP)?;
+        crate::splat::ply::hide_invalid(&mut g);
         let prepared = crate::render::PreparedScene::new(&g)?;
         Ok::<_, RunError>(render::cache::build(&prepared, views, &co, dir)?)
     })?;

@@ -25,8 +25,8 @@
 //! the vertex (and line in ASCII) and the property. Under [`InvalidPolicy::Drop`] it is
 //! dropped and counted in [`PlyReport`]; this is safe because a Gaussian has no links to
 //! others. Under [`InvalidPolicy::Keep`] (the pipeline's policy) it is kept in place, as read,
-//! and counted: Gaussian `i` of the file stays Gaussian `i`, the renderer never draws it
-//! ([`is_valid`] is false) and `semantic.ply` labels it −1. Extra properties are never checked
+//! and counted: Gaussian `i` of the file stays Gaussian `i`, the pipeline never draws it
+//! ([`is_valid`] is false, [`hide_invalid`]) and `semantic.ply` labels it −1. Extra properties are never checked
 //! (NaN there is kept as is).
 //!
 //! Core properties are stored as `f32` (INRIA's type); extras keep their PLY type.
@@ -514,6 +514,16 @@ fn core_valid(
         && scale.iter().all(|v| (lo..=hi).contains(v))
         && rot.iter().all(|v| v.is_finite())
         && rot.iter().any(|&r| r != 0.0)
+}
+
+/// Makes every invalid Gaussian ([`is_valid`] false) undrawable, in place: its opacity becomes
+/// NaN, which the renderer skips. Returns how many. The pipeline's renderer input.
+pub fn hide_invalid(g: &mut Gaussians) -> usize {
+    let bad: Vec<usize> = (0..g.len()).filter(|&i| !is_valid(g, i)).collect();
+    for &i in &bad {
+        g.opacity[i] = f32::NAN;
+    }
+    bad.len()
 }
 
 /// Whether Gaussian `i` of `g` passes the per-Gaussian checks of the module docs (false only
