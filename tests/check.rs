@@ -463,7 +463,7 @@ fn invalid_gaussians_stay_in_semantic_ply_and_class_query_masks_equal_the_class_
             .iter()
             .map(|&c| u8::from(c == gs4city::classes::WINDOW))
             .collect();
-        assert!(want.iter().any(|&x| x == 1), "{stem} shows windows");
+        assert!(want.contains(&1), "{stem} shows windows");
         assert_eq!(mask, want, "{stem}");
         compared += 1;
     }

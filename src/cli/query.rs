@@ -127,9 +127,12 @@ fn parse(what: &str, text: &str) -> anyhow::Result<Expr> {
     })
 }
 
-/// The request the flags describe (selection flags combined with `and`), and each flag's part
-/// (flag, its text, its expression) so that an error names the flag it comes from.
-fn request(a: &QueryArgs) -> anyhow::Result<(Request, Vec<(&'static str, String, Expr)>)> {
+/// One selection flag: its name, its text and its expression.
+type Part = (&'static str, String, Expr);
+
+/// The request the flags describe (selection flags combined with `and`), and each flag's part,
+/// so that an error names the flag it comes from.
+fn request(a: &QueryArgs) -> anyhow::Result<(Request, Vec<Part>)> {
     if !a.pick.is_empty() {
         let coord = |s: &str, n: &str| -> anyhow::Result<usize> {
             s.parse::<usize>()
@@ -150,7 +153,7 @@ fn request(a: &QueryArgs) -> anyhow::Result<(Request, Vec<(&'static str, String,
         ));
     }
     let q = |s: &str| format!("\"{}\"", s.replace('\\', "\\\\").replace('"', "\\\""));
-    let mut parts: Vec<(&'static str, String, Expr)> = Vec::new();
+    let mut parts: Vec<Part> = Vec::new();
     if let Some(c) = &a.class {
         parts.push((
             "--class",
