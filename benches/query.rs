@@ -223,7 +223,7 @@ fn timing(run: &Path) {
     let cache = sr.cache().unwrap();
     let stem = sr.test_views().unwrap()[0].clone();
     let (t_load, c) = best_of(3, || cache.load(&stem).unwrap());
-    let merged = selection::masks::merged_labels(&sr.label_of, &selected);
+    let merged = selection::masks::merged_values(&sr.class_of, &selected);
     let (t_arg, _) = best_of(3, || {
         selection::masks::view_mask(&c, &merged, &selected, MaskRule::Argmax)
     });

@@ -25,6 +25,7 @@ pub mod groups;
 pub mod hash;
 pub mod idmap;
 pub mod imageio;
+pub mod inspect;
 pub mod labels;
 pub mod layout;
 pub mod lift;

@@ -58,15 +58,17 @@ pub struct GaussianLabels<'a> {
 
 /// Writes `gaussians.npy` (int32 N×2: label, class) and `semantic.ply` (the input PLY plus
 /// `label`, `class`, the city hierarchy `feature_id surface_id part_id` of city labels, and the
-/// extra float properties).
+/// extra float properties). Every Gaussian of the input PLY is kept, in input order; an invalid
+/// one ([`crate::splat::ply::is_valid`], kept by [`crate::splat::InvalidPolicy::Keep`] and
+/// never drawn) is labelled −1. Returns the number of invalid Gaussians.
 pub fn write_gaussians(
     ply: &Path,
     out: &Path,
     g: &GaussianLabels<'_>,
     labels: &LabelTable,
     entities: &[Entity],
-) -> Result<(), PredictionError> {
-    let (mut gaussians, _) = crate::splat::read_ply(ply, &Default::default())?;
+) -> Result<usize, PredictionError> {
+    let (mut gaussians, report) = crate::splat::read_ply(ply, &crate::splat::ReadOptions::KEEP)?;
     let n = gaussians.len();
     if g.label.len() != n || g.class.len() != n {
         return Err(PredictionError::Labels {
@@ -76,6 +78,12 @@ pub fn write_gaussians(
                 g.label.len()
             ),
         });
+    }
+    let (mut label, mut class) = (g.label.to_vec(), g.class.to_vec());
+    if report.kept_invalid > 0 {
+        for i in (0..n).filter(|&i| !crate::splat::ply::is_valid(&gaussians, i)) {
+            (label[i], class[i]) = (-1, -1);
+        }
     }
     let chain = crate::semantics::chains(entities);
     let hier = |l: i32| -> crate::mesh::FaceLabel {
@@ -91,11 +99,11 @@ pub fn write_gaussians(
         values: (0..n).map(|i| f64::from(f(i))).collect(),
     };
     let mut props = vec![
-        int_prop("label", &|i| g.label[i]),
-        int_prop("class", &|i| g.class[i]),
-        int_prop("feature_id", &|i| hier(g.label[i]).feature),
-        int_prop("surface_id", &|i| hier(g.label[i]).surface),
-        int_prop("part_id", &|i| hier(g.label[i]).part),
+        int_prop("label", &|i| label[i]),
+        int_prop("class", &|i| class[i]),
+        int_prop("feature_id", &|i| hier(label[i]).feature),
+        int_prop("surface_id", &|i| hier(label[i]).surface),
+        int_prop("part_id", &|i| hier(label[i]).part),
     ];
     for (name, values) in &g.extra {
         props.push(crate::splat::ExtraProperty {
@@ -113,7 +121,7 @@ pub fn write_gaussians(
         &gaussians,
         crate::splat::PlyEncoding::BinaryLittleEndian,
     )?;
-    let table: Vec<i32> = (0..n).flat_map(|i| [g.label[i], g.class[i]]).collect();
+    let table: Vec<i32> = (0..n).flat_map(|i| [label[i], class[i]]).collect();
     crate::npy::write(&out.join("gaussians.npy"), &[n, 2], &table)?;
-    Ok(())
+    Ok(report.kept_invalid)
 }

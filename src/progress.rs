@@ -65,6 +65,11 @@ pub fn init(verbosity: i8) {
     log::set_max_level(max_level().to_level_filter());
 }
 
+/// Whether `-v` (or `-vv`) was given: lists that are shortened by default are shown whole.
+pub fn verbose() -> bool {
+    VERBOSITY.load(Ordering::Relaxed) >= 1
+}
+
 /// Whether bars are drawn: standard error is a terminal and the verbosity is not quiet.
 pub fn bars_enabled() -> bool {
     VERBOSITY.load(Ordering::Relaxed) >= 0 && std::io::stderr().is_terminal()

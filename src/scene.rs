@@ -13,6 +13,7 @@
 //! Pipeline stages take the paths they need from [`Scene`]; only evaluation uses [`Scene::gt`].
 //! Nothing else of the folder is listed here: a simulator's own files are not inputs
 //! (`docs/design.md`, "Inputs the algorithms may read").
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 use crate::camera::View;
@@ -149,5 +150,235 @@ impl Split {
     /// The test views' stems.
     pub fn test_stems(&self) -> Vec<String> {
         self.test.iter().map(|v| v.stem()).collect()
+    }
+}
+
+/// Where the parts of a scene folder come from ([`import`]).
+#[derive(Debug, Clone, Default)]
+pub struct ImportSpec {
+    /// A 3DGS training output (INRIA `-m` folder: `point_cloud/iteration_N/point_cloud.ply`,
+    /// `cameras.json`, `cfg_args`), or `None` with [`ImportSpec::ply`].
+    pub model: Option<PathBuf>,
+    /// The iteration to take (default: the highest `point_cloud/iteration_N`).
+    pub iteration: Option<u32>,
+    /// A PLY in the INRIA layout (nerfstudio `ns-export gaussian-splat`, gsplat's export);
+    /// overrides the training output's.
+    pub ply: Option<PathBuf>,
+    /// The COLMAP folder the scene was trained from (`sparse/0/`, `images/`); default: the
+    /// `source_path` recorded in the training output's `cfg_args`.
+    pub source: Option<PathBuf>,
+    /// The CityGML files, or folders holding them (`*.gml`, `*.xml`).
+    pub citygml: Vec<PathBuf>,
+    /// `alignment.json` (copied: it is the file a user edits or refines).
+    pub alignment: Option<PathBuf>,
+    /// SAM lists (`masks/`) and per-mask features (`features/`), optional.
+    pub masks: Option<PathBuf>,
+    pub features: Option<PathBuf>,
+    /// Copy the files instead of linking them.
+    pub copy: bool,
+}
+
+/// What [`import`] made: every part of the scene folder and where it points.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ImportReport {
+    pub scene: PathBuf,
+    /// `(part, source)`: `point_cloud.ply`, `sparse/0`, `images`, `citymodel/<file>`, …
+    pub parts: Vec<(String, PathBuf)>,
+    /// The parts that could not be found (the scene check names what they are for).
+    pub missing: Vec<String>,
+}
+
+/// The highest `point_cloud/iteration_N/point_cloud.ply` of a training output (or `N` itself).
+fn trained_ply(model: &Path, iteration: Option<u32>) -> Option<PathBuf> {
+    let dir = model.join("point_cloud");
+    let n = match iteration {
+        Some(n) => n,
+        None => std::fs::read_dir(&dir)
+            .ok()?
+            .filter_map(|e| e.ok())
+            .filter_map(|e| {
+                e.file_name()
+                    .to_str()?
+                    .strip_prefix("iteration_")?
+                    .parse::<u32>()
+                    .ok()
+            })
+            .filter(|n| dir.join(format!("iteration_{n}/point_cloud.ply")).is_file())
+            .max()?,
+    };
+    Some(dir.join(format!("iteration_{n}/point_cloud.ply"))).filter(|p| p.is_file())
+}
+
+/// A string field `name='…'` of the training output's `cfg_args` (a Python `Namespace`).
+fn cfg_field(model: &Path, name: &str) -> Option<String> {
+    let text = std::fs::read_to_string(model.join("cfg_args")).ok()?;
+    let at = text.find(&format!("{name}="))? + name.len() + 1;
+    let rest = &text[at..];
+    let q = rest.chars().next().filter(|c| *c == '\'' || *c == '"')?;
+    let end = rest[1..].find(q)?;
+    Some(rest[1..1 + end].to_string())
+}
+
+/// Builds the scene folder `out` (`docs/design.md`) from a 3DGS training output, the COLMAP
+/// folder it was trained from and the CityGML model, by symbolic links (or copies with
+/// [`ImportSpec::copy`]); nothing is renamed by hand. `out` must not exist or be empty. A part
+/// that cannot be found is listed in [`ImportReport::missing`], not an error: `gs4city check`
+/// then says what it is for.
+pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError> {
+    let bad = |why: String| SceneError {
+        scene: out.to_path_buf(),
+        why,
+    };
+    if out.exists()
+        && std::fs::read_dir(out)
+            .map(|mut d| d.next().is_some())
+            .unwrap_or(true)
+    {
+        return Err(bad(
+            "exists and is not empty: scene import writes a new folder".into(),
+        ));
+    }
+    let abs = |p: &Path| {
+        p.canonicalize()
+            .map_err(|e| bad(format!("{}: {e}", p.display())))
+    };
+    let mut parts: Vec<(String, PathBuf)> = Vec::new();
+    let mut missing = Vec::new();
+    // The Gaussians.
+    let ply = match (&spec.ply, &spec.model) {
+        (Some(p), _) => Some(abs(p)?),
+        (None, Some(m)) => Some(abs(&trained_ply(m, spec.iteration).ok_or_else(|| {
+            bad(format!(
+                "{}: no point_cloud/iteration_{}/point_cloud.ply (a 3DGS training output, `train.py -m`)",
+                m.display(),
+                spec.iteration.map_or("N".to_string(), |n| n.to_string())
+            ))
+        })?)?),
+        (None, None) => None,
+    };
+    match ply {
+        Some(p) => parts.push(("point_cloud.ply".into(), p)),
+        None => missing.push("point_cloud.ply".into()),
+    }
+    // The COLMAP folder.
+    let source = match (&spec.source, &spec.model) {
+        (Some(s), _) => Some(abs(s)?),
+        (None, Some(m)) => cfg_field(m, "source_path")
+            .map(PathBuf::from)
+            .filter(|p| p.is_dir())
+            .map(|p| abs(&p))
+            .transpose()?,
+        (None, None) => None,
+    };
+    if let Some(src) = &source {
+        let sparse = [src.join("sparse/0"), src.join("sparse")]
+            .into_iter()
+            .find(|p| p.join("images.bin").is_file() || p.join("images.txt").is_file());
+        match sparse {
+            Some(p) => parts.push(("sparse/0".into(), p)),
+            None => missing.push("sparse/0".into()),
+        }
+        let images = spec
+            .model
+            .as_deref()
+            .and_then(|m| cfg_field(m, "images"))
+            .unwrap_or_else(|| "images".into());
+        match Some(src.join(&images)).filter(|p| p.is_dir()) {
+            Some(p) => parts.push(("images".into(), p)),
+            None => missing.push("images".into()),
+        }
+    } else {
+        missing.extend(["sparse/0".to_string(), "images".to_string()]);
+    }
+    // The city model.
+    let mut gml = Vec::new();
+    for p in &spec.citygml {
+        let p = abs(p)?;
+        if p.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(&p)
+                .map_err(|e| bad(format!("{}: {e}", p.display())))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|q| {
+                    q.is_file()
+                        && q.extension().is_some_and(|x| {
+                            x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml")
+                        })
+                })
+                .collect();
+            found.sort();
+            gml.extend(found);
+        } else {
+            gml.push(p);
+        }
+    }
+    if gml.is_empty() {
+        missing.push("citymodel/*.gml".into());
+    }
+    let mut names = BTreeSet::new();
+    for g in &gml {
+        let name = g
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        if !names.insert(name.clone()) {
+            return Err(bad(format!(
+                "two CityGML files are called {name}: citymodel/ holds one folder level"
+            )));
+        }
+        parts.push((format!("citymodel/{name}"), g.clone()));
+    }
+    match &spec.alignment {
+        Some(a) => parts.push(("citymodel/alignment.json".into(), abs(a)?)),
+        None => missing.push("citymodel/alignment.json".into()),
+    }
+    for (name, p) in [("masks", &spec.masks), ("features", &spec.features)] {
+        if let Some(p) = p {
+            parts.push((name.into(), abs(p)?));
+        }
+    }
+    // Write: the folder, then one link (or copy) per part.
+    crate::fsutil::create_dir(&out.join("citymodel")).map_err(|e| bad(e.to_string()))?;
+    for (part, src) in &parts {
+        let dst = out.join(part);
+        if let Some(parent) = dst.parent() {
+            crate::fsutil::create_dir(parent).map_err(|e| bad(e.to_string()))?;
+        }
+        // alignment.json is always copied: it is edited and refined in place.
+        let copy = spec.copy || part == "citymodel/alignment.json";
+        let r = if copy {
+            copy_tree(src, &dst)
+        } else {
+            link(src, &dst)
+        };
+        r.map_err(|e| bad(format!("{part} ← {}: {e}", src.display())))?;
+    }
+    Ok(ImportReport {
+        scene: out.to_path_buf(),
+        parts,
+        missing,
+    })
+}
+
+#[cfg(unix)]
+fn link(src: &Path, dst: &Path) -> std::io::Result<()> {
+    std::os::unix::fs::symlink(src, dst)
+}
+
+#[cfg(not(unix))]
+fn link(src: &Path, dst: &Path) -> std::io::Result<()> {
+    copy_tree(src, dst)
+}
+
+/// Copies a file, or a folder recursively.
+fn copy_tree(src: &Path, dst: &Path) -> std::io::Result<()> {
+    if src.is_dir() {
+        std::fs::create_dir_all(dst)?;
+        for e in std::fs::read_dir(src)? {
+            let e = e?;
+            copy_tree(&e.path(), &dst.join(e.file_name()))?;
+        }
+        Ok(())
+    } else {
+        std::fs::copy(src, dst).map(|_| ())
     }
 }

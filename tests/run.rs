@@ -23,7 +23,7 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
     let dir = wall::tmp("run-metrics");
     let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
     let o = RunOptions {
-        test_every: 4,
+        test_every: Some(4),
         ..Default::default()
     };
     let s = run(&scene, &dir.join("out"), &o).unwrap();
@@ -215,7 +215,7 @@ fn city_supervision_and_learned_mode() {
     let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
     let out = dir.join("out");
     let mut o = RunOptions {
-        test_every: 4,
+        test_every: Some(4),
         supervision: Supervision::City,
         mode: Mode::Learned,
         ..Default::default()
@@ -285,7 +285,7 @@ fn another_test_split_leaves_no_stale_prediction() {
         &scene,
         &out,
         &RunOptions {
-            test_every: 3,
+            test_every: Some(3),
             ..Default::default()
         },
     )
@@ -387,7 +387,7 @@ fn refine_alignment_feeds_the_whole_run() {
         &out,
         &RunOptions {
             refine_alignment: true,
-            test_every: 3,
+            test_every: Some(3),
             ..Default::default()
         },
     )
@@ -453,7 +453,7 @@ fn the_pipeline_never_reads_the_simulation_truth() {
     std::fs::remove_file(b.join("summary.json")).unwrap();
     assert!(removed > 1, "the simulation wrote its truth files");
     let o = RunOptions {
-        test_every: 4,
+        test_every: Some(4),
         ..Default::default()
     };
     let sa = run(&a, &dir.join("ra"), &o).unwrap();

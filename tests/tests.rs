@@ -10,6 +10,7 @@ mod sim_labels;
 mod architecture;
 mod associate;
 mod cgal;
+mod check;
 mod citymodel;
 mod cli;
 mod cli_stages;

@@ -458,7 +458,7 @@ fn read_centres(
     tally: &mut Tally,
 ) -> Result<Vec<[f32; 3]>, AssociateError> {
     let t = Instant::now();
-    let centres = crate::splat::read_ply(inp.ply, &Default::default())?
+    let centres = crate::splat::read_ply(inp.ply, &crate::splat::ReadOptions::KEEP)?
         .0
         .positions;
     let n = centres.len();

@@ -679,5 +679,26 @@ pub fn write(out: &Output, out_dir: &Path) -> Result<(), CityModelError> {
         ),
         out.summary.timing.parse_s + out.summary.timing.triangulate_s,
     );
+    show_warnings(&out.summary.warnings.items);
     Ok(())
+}
+
+/// How many warnings a stage prints without `-v` (all of them are in `summary.json`).
+pub const WARNINGS_SHOWN: usize = 5;
+
+/// Prints the first [`WARNINGS_SHOWN`] warnings (file, line, gml:id, what), all with `-v`.
+fn show_warnings(items: &[String]) {
+    let all = crate::progress::verbose();
+    for w in items
+        .iter()
+        .take(if all { items.len() } else { WARNINGS_SHOWN })
+    {
+        log::warn!("citymodel: {w}");
+    }
+    if !all && items.len() > WARNINGS_SHOWN {
+        log::warn!(
+            "citymodel: {} more warnings (-v shows them all; every one is in summary.json)",
+            items.len() - WARNINGS_SHOWN
+        );
+    }
 }

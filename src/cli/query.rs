@@ -61,8 +61,8 @@ pub struct QueryArgs {
     /// Write extract.ply (selected Gaussians) and remove.ply (the rest).
     #[arg(long)]
     pub export: bool,
-    /// Pixel rule of the masks: argmax (the selection beats every other label and the
-    /// background, as in the predicted maps) or majority (more than half of the pixel).
+    /// Pixel rule of the masks: argmax (the rule of the class maps: the selection beats every
+    /// other class and the background) or majority (more than half of the pixel).
     #[arg(long, default_value = "argmax")]
     pub mask_rule: MaskRule,
     /// Text queries: a label matches when its relevancy is at least this.
@@ -120,59 +120,79 @@ fn parse_level(s: &str, flag: &str) -> anyhow::Result<Level> {
 }
 
 fn parse(what: &str, text: &str) -> anyhow::Result<Expr> {
-    selection::grammar::parse(text).map_err(|source| {
+    selection::grammar::parse(text).map_err(|error| {
         anyhow::Error::new(selection::SelectionError::Parse {
             what: what.to_string(),
             text: text.to_string(),
-            source,
+            error,
         })
     })
 }
 
-/// The request the flags describe (selection flags combined with `and`).
-fn request(a: &QueryArgs) -> anyhow::Result<Request> {
+/// One selection flag: its name, its text and its expression.
+type Part = (&'static str, String, Expr);
+
+/// The request the flags describe (selection flags combined with `and`), and each flag's part,
+/// so that an error names the flag it comes from.
+fn request(a: &QueryArgs) -> anyhow::Result<(Request, Vec<Part>)> {
     if !a.pick.is_empty() {
         let coord = |s: &str, n: &str| -> anyhow::Result<usize> {
             s.parse::<usize>()
                 .with_context(|| format!("--pick {n} `{s}`: expected a pixel index ≥ 0"))
         };
-        return Ok(Request::Pick {
-            view: a.pick[0].clone(),
-            x: coord(&a.pick[1], "X")?,
-            y: coord(&a.pick[2], "Y")?,
-            level: a
-                .pick_level
-                .as_deref()
-                .map(|l| parse_level(l, "--pick-level"))
-                .transpose()?,
-        });
+        return Ok((
+            Request::Pick {
+                view: a.pick[0].clone(),
+                x: coord(&a.pick[1], "X")?,
+                y: coord(&a.pick[2], "Y")?,
+                level: a
+                    .pick_level
+                    .as_deref()
+                    .map(|l| parse_level(l, "--pick-level"))
+                    .transpose()?,
+            },
+            Vec::new(),
+        ));
     }
     let q = |s: &str| format!("\"{}\"", s.replace('\\', "\\\\").replace('"', "\\\""));
-    let mut parts: Vec<Expr> = Vec::new();
+    let mut parts: Vec<Part> = Vec::new();
     if let Some(c) = &a.class {
-        parts.push(Expr::Term(selection::Term::Class {
-            name: c.clone(),
-            column: 1,
-        }));
+        parts.push((
+            "--class",
+            c.clone(),
+            Expr::Term(selection::Term::Class {
+                name: c.clone(),
+                column: 1,
+            }),
+        ));
     }
     if let Some(l) = &a.level {
         parse_level(l, "--level")?;
-        parts.push(parse("--level", &format!("level={}", q(l)))?);
+        let text = format!("level={}", q(l));
+        parts.push(("--level", l.clone(), parse("--level", &text)?));
     }
     for c in &a.attr {
-        parts.push(parse("--attr", c)?);
+        parts.push(("--attr", c.clone(), parse("--attr", c)?));
     }
     if let Some(id) = &a.id {
-        parts.push(Expr::Term(selection::Term::Within {
-            id: id.clone(),
-            column: 1,
-        }));
+        parts.push((
+            "--id",
+            id.clone(),
+            Expr::Term(selection::Term::Within {
+                id: id.clone(),
+                column: 1,
+            }),
+        ));
     }
     if let Some(t) = &a.text {
-        parts.push(Expr::Term(selection::Term::Text {
-            prompt: t.clone(),
-            column: 1,
-        }));
+        parts.push((
+            "--text",
+            t.clone(),
+            Expr::Term(selection::Term::Text {
+                prompt: t.clone(),
+                column: 1,
+            }),
+        ));
     }
     if let Some(f) = &a.text_feature {
         let (shape, v) = crate::npy::read::<f32>(f)?;
@@ -182,25 +202,30 @@ fn request(a: &QueryArgs) -> anyhow::Result<Request> {
                 f.display()
             );
         }
-        parts.push(Expr::TextFeature {
-            path: f.display().to_string(),
-            vector: v,
-        });
+        parts.push((
+            "--text-feature",
+            f.display().to_string(),
+            Expr::TextFeature {
+                path: f.display().to_string(),
+                vector: v,
+            },
+        ));
     }
     if let Some(w) = &a.where_ {
-        parts.push(parse("--where", w)?);
+        parts.push(("--where", w.clone(), parse("--where", w)?));
     }
-    let mut it = parts.into_iter();
+    let mut it = parts.iter().map(|p| p.2.clone());
     let Some(first) = it.next() else {
         bail!(
             "no selection: give --class, --level, --attr, --id, --text, --text-feature, --where or --pick"
         );
     };
-    Ok(Request::Select(it.fold(first, Expr::and)))
+    let expr = it.fold(first, Expr::and);
+    Ok((Request::Select(expr), parts))
 }
 
 pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
-    let req = request(a)?;
+    let (req, parts) = request(a)?;
     let text = TextOptions {
         temperature: a.temperature,
         min_relevancy: a.min_relevancy,
@@ -222,6 +247,10 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
         sqlite: !a.no_sqlite,
     };
     let sr = open_run(&a.run, a.scene.as_deref(), a.mode)?;
+    // Each flag's part on its own first: an error names the flag and its own text.
+    for (flag, text, expr) in &parts {
+        sr.select_as(flag, text, expr, opts.text)?;
+    }
     let s = query::run(&sr, &req, &opts, &a.out)?;
     for w in &s.warnings {
         eprintln!("warning: {w}");

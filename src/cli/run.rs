@@ -29,9 +29,11 @@ pub struct RunArgs {
     /// Contributions per pixel kept in the cache (top-k by α·T); 0 = all.
     #[arg(long, default_value_t = 16)]
     pub top_k: usize,
-    /// Every N-th view (by name) is a test view (3DGS --eval: 8).
-    #[arg(long, default_value_t = 8)]
-    pub test_every: usize,
+    /// Every N-th view (by name) is held back as a test view (3DGS --eval: 8); 0 = none.
+    /// Default: 8 when the scene has ground truth (gt/), else 0 — without ground truth there
+    /// is nothing to evaluate, so every view trains.
+    #[arg(long, value_name = "N")]
+    pub test_every: Option<usize>,
     /// Run a scene without citymodel/alignment.json: CityGML coordinates minus a local origin.
     #[arg(long)]
     pub local_origin: bool,
@@ -76,6 +78,10 @@ pub struct RunArgs {
     /// Training iterations of --mode learned.
     #[arg(long, default_value_t = crate::train::TrainOptions::default().iterations)]
     pub iterations: usize,
+    /// The scene check that runs first: largest plausible distance (metres, lower quartile)
+    /// between opaque Gaussian centres and the city model (`gs4city check --max-offset`).
+    #[arg(long, default_value_t = crate::inspect::CheckOptions::default().max_offset_m)]
+    pub max_offset: f64,
     /// Rerun every stage even when its output is complete.
     #[arg(long)]
     pub force: bool,
@@ -131,6 +137,12 @@ impl RunArgs {
             ..d.train
         };
         train.validate()?;
+        let check = crate::inspect::CheckOptions {
+            max_offset_m: self.max_offset,
+            local_origin: self.local_origin,
+            ..Default::default()
+        };
+        check.validate()?;
         Ok(RunOptions {
             tau_m: self.tau,
             single_pass: self.single_pass,
@@ -146,6 +158,7 @@ impl RunArgs {
             local_origin: self.local_origin,
             refine_alignment: self.refine_alignment,
             refine: Default::default(),
+            check,
             force: self.force,
         })
     }

@@ -107,7 +107,7 @@ pub fn evaluate(
         let s = sr.gaussian_selection(&sel.labels);
         gaussians.insert(name, s.iter().filter(|&&x| x).count());
         queries.insert(name, q);
-        let merged = crate::selection::masks::merged_labels(&sr.label_of, &s);
+        let merged = crate::selection::masks::merged_values(&sr.class_of, &s);
         selections.push((s, merged));
     }
     let gts = super::list_maps(gt_dir)?;
@@ -132,7 +132,7 @@ pub fn evaluate(
         }
         cache.load_into(stem, &mut c, &mut buf)?;
         let psize = [c.height, c.width];
-        let pred_map = |sel: &(Vec<bool>, Vec<i32>), class: i32| -> Vec<i32> {
+        let pred_map = |sel: &(Vec<bool>, (Vec<i32>, i32)), class: i32| -> Vec<i32> {
             let m = crate::selection::masks::view_mask(&c, &sel.1, &sel.0, rule);
             let p: Vec<i32> = m.iter().map(|&x| if x != 0 { class } else { -1 }).collect();
             if psize == gsize {

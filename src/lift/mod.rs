@@ -66,6 +66,10 @@ pub struct LiftSummary {
     pub gaussians: usize,
     /// Gaussians with a label.
     pub assigned: usize,
+    /// Invalid Gaussians of the input PLY (non-finite or out-of-range values, zero
+    /// quaternion): kept in place in `semantic.ply` and `gaussians.npy`, labelled −1.
+    #[serde(default)]
+    pub invalid: usize,
     pub gaussians_per_class: BTreeMap<String, usize>,
     pub train_views: Vec<String>,
     pub test_views: Vec<String>,
@@ -103,7 +107,7 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
         });
     }
     let t = Instant::now();
-    write_gaussians(
+    let invalid = write_gaussians(
         inp.ply,
         out,
         &GaussianLabels {
@@ -135,6 +139,7 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
     let summary = LiftSummary {
         gaussians: label.len(),
         assigned: label.iter().filter(|&&l| l >= 0).count(),
+        invalid,
         gaussians_per_class: per_class,
         train_views: inp.train.iter().map(|v| v.stem()).collect(),
         test_views: inp.test.iter().map(|v| v.stem()).collect(),

@@ -464,7 +464,7 @@ pub fn run(
     let t_ply = Instant::now();
     let positions = match (needs_depth, opts.gs_depth, inp.cache) {
         (true, GsDepth::Median, Some(cache)) => {
-            let (g, _) = crate::splat::read_ply(&inp.scene.ply, &Default::default())?;
+            let (g, _) = crate::splat::read_ply(&inp.scene.ply, &crate::splat::ReadOptions::KEEP)?;
             if g.len() != cache.summary.gaussians {
                 return Err(MasksError::Invalid {
                     path: inp.scene.ply.clone(),

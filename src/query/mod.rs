@@ -448,7 +448,7 @@ pub fn run(
                 sr.run.join(sr.mode.dir()).display()
             ));
         }
-        let merged = masks::merged_labels(&sr.label_of, &selected);
+        let merged = masks::merged_values(&sr.class_of, &selected);
         let bar = crate::progress::Bar::new("query", stems.len() as u64, "views");
         for stem in &stems {
             let v = find_view(cache, stem)?;

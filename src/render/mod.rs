@@ -106,7 +106,8 @@ pub struct PreparedScene {
     pub features: Vec<f32>,
     pub channels: usize,
     /// Gaussians that are never drawn: zero or non-finite quaternion, a non-finite
-    /// position, scale, opacity or SH value, or a covariance that overflows `f32`.
+    /// position, scale, opacity or SH value (e.g. hidden by [`crate::splat::ply::hide_invalid`]),
+    /// or a covariance that overflows `f32`.
     pub skipped: usize,
 }
 

@@ -65,6 +65,8 @@ impl std::str::FromStr for Supervision {
 pub enum RunError {
     #[error(transparent)]
     Scene(#[from] SceneError),
+    #[error(transparent)]
+    Check(#[from] crate::inspect::InspectError),
     #[error("{0}")]
     Refused(String),
     #[error(transparent)]
@@ -129,14 +131,18 @@ pub struct RunOptions {
     /// (the `train` stage, which starts from the vote).
     pub mode: Mode,
     pub train: TrainOptions,
-    /// Every `test_every`-th view (by name) is a test view; 0 = none.
-    pub test_every: usize,
+    /// Every `test_every`-th view (by name) is a test view; 0 = none. `None`: 8 when the
+    /// scene has ground truth (`gt/`), else 0 (no ground truth, so every view trains).
+    pub test_every: Option<usize>,
     /// Run without `citymodel/alignment.json` (the CityGML coordinates minus a local origin).
     pub local_origin: bool,
     /// Refine the alignment from the 3DGS scene first (`R/align/`, `align --refine`); every
     /// later stage uses the refined transform.
     pub refine_alignment: bool,
     pub refine: crate::refine::RefineOptions,
+    /// The scene check that runs first ([`crate::inspect`]; `local_origin` is this run's).
+    #[serde(default)]
+    pub check: crate::inspect::CheckOptions,
     /// Rerun every stage even when its output is complete.
     pub force: bool,
 }
@@ -154,10 +160,11 @@ impl Default for RunOptions {
             fuse: FuseOptions::default(),
             mode: Mode::Vote,
             train: TrainOptions::default(),
-            test_every: 8,
+            test_every: None,
             local_origin: false,
             refine_alignment: false,
             refine: crate::refine::RefineOptions::default(),
+            check: crate::inspect::CheckOptions::default(),
             force: false,
         }
     }
@@ -195,7 +202,13 @@ fn files_in(dir: &Path) -> Vec<PathBuf> {
 /// (the only place that knows it): align (optional) → citymodel → raycast → render → masks →
 /// associate → fuse (fused supervision) → lift → train (mode learned) → eval (with `gt/`) →
 /// report.
+///
+/// The scene folder is used by its canonical path (`S`, `./S/` and `/abs/S` are one scene
+/// to the run store, and `run.json` names it absolutely, so `query --run R` works from any
+/// working directory). The scene is checked first ([`crate::inspect`]): every problem is
+/// reported at once and nothing runs while one is an error.
 pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary, RunError> {
+    let scene_dir = &canonical(scene_dir)?;
     let mut r = open(scene_dir, out, opts)?;
     let alignment_file = align_step(&mut r, opts)?;
     let cm = citymodel_step(&mut r, alignment_file.as_deref(), opts)?;
@@ -213,18 +226,82 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     finish(r, out, opts, &pred_dir, eval, sup)
 }
 
+/// The canonical path of the scene folder (one clear line when it does not exist).
+fn canonical(scene_dir: &Path) -> Result<PathBuf, RunError> {
+    scene_dir.canonicalize().map_err(|e| {
+        RunError::Scene(SceneError {
+            scene: scene_dir.to_path_buf(),
+            why: format!("cannot open the scene folder: {e}"),
+        })
+    })
+}
+
 /// What every step of a run shares.
 struct Running {
     scene: Scene,
     views: Vec<View>,
     split: Split,
     st: Store,
+    /// The test-view split: `RunOptions::test_every`, resolved.
+    test_every: usize,
+    /// The scene check's warnings (CityGML warnings stay in `R/citymodel/summary.json`).
+    check_warnings: Vec<String>,
     sparse_files: Vec<PathBuf>,
 }
 
 /// Validates everything before anything is written, then opens the run store.
 fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunError> {
     store::check_out_dir(scene_dir, out, &Stage::ALL).map_err(RunError::Refused)?;
+    // The run's own completion markers are written last; a run that fails part-way (or at
+    // the scene check) must not leave the previous run's summary and report looking like
+    // this one's.
+    for f in ["summary.json", "report.html"] {
+        let p = out.join(f);
+        if p.exists() {
+            std::fs::remove_file(&p).map_err(|e| {
+                RunError::Refused(format!("cannot remove the old {}: {e}", p.display()))
+            })?;
+        }
+    }
+    let check = crate::inspect::check(
+        scene_dir,
+        &crate::inspect::CheckOptions {
+            local_origin: opts.local_origin,
+            ..opts.check
+        },
+    );
+    let mut shown = 0;
+    let mut check_warnings = Vec::new();
+    for f in check.of(crate::inspect::Severity::Warning) {
+        shown += 1;
+        if shown <= 5 || crate::progress::verbose() {
+            log::warn!("{f}");
+        }
+        let citygml = f
+            .file
+            .extension()
+            .is_some_and(|x| x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml"));
+        if !citygml {
+            check_warnings.push(f.to_string());
+        }
+    }
+    if shown > 5 && !crate::progress::verbose() {
+        log::warn!(
+            "{} more warnings of the scene check (-v shows them all; `gs4city check --scene {}`)",
+            shown - 5,
+            scene_dir.display()
+        );
+    }
+    let check = check.into_result()?;
+    if let Some(a) = &check.alignment {
+        log::info!(
+            "check: the city model projects into {} of {} views; opaque Gaussians lie {:.2} m from it (lower quartile; median {:.2} m)",
+            a.views_seeing_model,
+            a.views,
+            a.quartile_distance_m,
+            a.median_distance_m
+        );
+    }
     let scene = Scene::open(scene_dir)?;
     if scene.alignment.is_none() && !opts.local_origin {
         return Err(RunError::Refused(format!(
@@ -244,7 +321,10 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         )));
     }
     let views = colmap::read_model(&scene.sparse)?;
-    let split = Split::new(views.clone(), opts.test_every);
+    let test_every = opts
+        .test_every
+        .unwrap_or(if scene.gt.is_some() { 8 } else { 0 });
+    let split = Split::new(views.clone(), test_every);
     if split.train.is_empty() {
         return Err(RunError::Refused(
             "no training views: every view is a test view (--test-every 1?)".into(),
@@ -261,22 +341,14 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         serde_json::to_value(opts).unwrap_or_default(),
         opts.force,
     )?;
-    // The run's own completion markers are written last; a run that fails part-way must not
-    // leave the previous run's summary and report looking like this one's.
-    for f in ["summary.json", "report.html"] {
-        let p = out.join(f);
-        if p.exists() {
-            std::fs::remove_file(&p).map_err(|e| {
-                RunError::Refused(format!("cannot remove the old {}: {e}", p.display()))
-            })?;
-        }
-    }
     let sparse_files = files_in(&scene.sparse);
     Ok(Running {
         scene,
         views,
         split,
         st,
+        test_every,
+        check_warnings,
         sparse_files,
     })
 }
@@ -384,7 +456,8 @@ fn render_step(r: &mut Running, opts: &RunOptions) -> Result<Cache, RunError> {
     inputs.extend(r.sparse_files.iter().cloned());
     let (ply, views) = (&r.scene.ply, &r.views);
     let _cs: CacheSummary = r.st.stage(Stage::Render, &co, &inputs, &[], |dir| {
-        let (g, _) = crate::splat::read_ply(ply, &Default::default())?;
+        let (mut g, _) = crate::splat::read_ply(ply, &crate::splat::ReadOptions::KEEP)?;
+        crate::splat::ply::hide_invalid(&mut g);
         let prepared = crate::render::PreparedScene::new(&g)?;
         Ok::<_, RunError>(render::cache::build(&prepared, views, &co, dir)?)
     })?;
@@ -563,7 +636,7 @@ fn vote_steps(
         labels: &sup.labels,
         entities,
     };
-    let lift_opts = (opts.lift, opts.test_every);
+    let lift_opts = (opts.lift, r.test_every);
     let _lift: LiftSummary = r.st.stage(
         Stage::Lift,
         &lift_opts,
@@ -573,7 +646,7 @@ fn vote_steps(
     )?;
     match opts.mode {
         Mode::Learned => {
-            let train_opts = (opts.train, opts.test_every);
+            let train_opts = (opts.train, r.test_every);
             let _t: TrainSummary = r.st.stage(
                 Stage::Train,
                 &train_opts,
@@ -642,6 +715,8 @@ fn finish(
     eval: Option<EvalSummary>,
     sup: Supervised,
 ) -> Result<RunSummary, RunError> {
+    let mut warnings = r.check_warnings.clone();
+    warnings.extend(sup.warnings);
     let report = report::write(&report::ReportInputs {
         scene: &r.scene,
         out,
@@ -650,7 +725,7 @@ fn finish(
         stages: &r.st.reports,
         eval: eval.as_ref(),
         masks: sup.masks.as_ref(),
-        warnings: &sup.warnings,
+        warnings: &warnings,
         choices: &sup.choices,
     })?;
     let summary = RunSummary {
@@ -660,7 +735,7 @@ fn finish(
         test_views: r.split.test_stems(),
         eval,
         report,
-        warnings: sup.warnings,
+        warnings,
     };
     fsutil::write_json(&out.join("summary.json"), &summary)?;
     Ok(summary)

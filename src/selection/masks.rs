@@ -1,12 +1,13 @@
 //! Per-view masks of a selection, through the contributions cache.
 //!
-//! **The rule** ([`MaskRule::Argmax`], the default): the selected labels count as *one* label in
-//! the same per-pixel argmax that makes the predicted maps ([`crate::cache::predict`]): a pixel is
-//! selected when the summed weight `Σ α·T` of the selected Gaussians in its cached list exceeds
-//! the weight of every other single label and the weight of "nothing" (the transmittance
-//! `1 − α`, the truncated mass of the top-k list and the unlabelled Gaussians). A one-label
-//! selection therefore gives the pixels whose predicted label is that label (up to exact ties,
-//! which the predicted map gives to the smaller label id).
+//! **The rule** ([`MaskRule::Argmax`], the default) is the per-pixel rule of the class maps
+//! ([`crate::cache::predict_map`] over the Gaussians' classes): the selected Gaussians count as
+//! *one* class, every other Gaussian keeps its class, and a pixel is selected when the summed
+//! weight `Σ α·T` of the selected Gaussians in its cached list exceeds the weight of every other
+//! class and the weight of "nothing" (the transmittance `1 − α`, the truncated mass of the
+//! top-k list and the unclassified Gaussians). A class selection (`query --class Window`)
+//! therefore gives exactly the pixels of that class in the class maps of the same run, ties
+//! included: the selection takes the place of the smallest class among its Gaussians.
 //! [`MaskRule::Majority`] (FlashSplat's novel-view masks) instead needs the selected weight to
 //! exceed half the pixel: `Σ_sel w > 1 − Σ_sel w`.
 
@@ -19,7 +20,7 @@ use crate::cache::ViewContrib;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum MaskRule {
-    /// The selection beats every other label and "nothing" (the predicted-map rule).
+    /// The selection beats every other class and "nothing" (the class maps' rule).
     #[default]
     Argmax,
     /// The selection holds more than half of the pixel.
@@ -37,25 +38,42 @@ impl std::str::FromStr for MaskRule {
     }
 }
 
-/// The label id standing for the whole selection in the argmax (above every real id).
-const SELECTED: i32 = i32::MAX;
-
-/// The per-Gaussian labels with every selected Gaussian relabelled as one label.
-pub fn merged_labels(label_of: &[i32], selected: &[bool]) -> Vec<i32> {
-    label_of
+/// The per-Gaussian values of the argmax: class `c` of an unselected Gaussian becomes `2c + 1`
+/// (−1 stays −1, "nothing"), every selected Gaussian becomes `2m`, where `m` is the smallest
+/// class (≥ 0) among them. The order of the values is the order of the classes, so ties are
+/// decided as in the class maps (to the smaller class). Returns the values and the selection's.
+pub fn merged_values(class_of: &[i32], selected: &[bool]) -> (Vec<i32>, i32) {
+    let m = class_of
         .iter()
         .zip(selected)
-        .map(|(&l, &s)| if s { SELECTED } else { l })
-        .collect()
+        .filter(|(c, s)| **s && **c >= 0)
+        .map(|(&c, _)| c)
+        .min()
+        .unwrap_or(0);
+    let values = class_of
+        .iter()
+        .zip(selected)
+        .map(|(&c, &s)| match (s, c) {
+            (true, _) => 2 * m,
+            (false, c) if c < 0 => -1,
+            (false, c) => 2 * c + 1,
+        })
+        .collect();
+    (values, 2 * m)
 }
 
-/// The mask (1 = selected) of one cached view. `merged` comes from [`merged_labels`] (argmax),
+/// The mask (1 = selected) of one cached view. `merged` comes from [`merged_values`] (argmax),
 /// `selected` is the per-Gaussian selection (majority).
-pub fn view_mask(c: &ViewContrib, merged: &[i32], selected: &[bool], rule: MaskRule) -> Vec<u8> {
+pub fn view_mask(
+    c: &ViewContrib,
+    merged: &(Vec<i32>, i32),
+    selected: &[bool],
+    rule: MaskRule,
+) -> Vec<u8> {
     match rule {
-        MaskRule::Argmax => crate::cache::predict_map(c, merged)
+        MaskRule::Argmax => crate::cache::predict_map(c, &merged.0)
             .iter()
-            .map(|&l| u8::from(l == SELECTED))
+            .map(|&l| u8::from(l == merged.1))
             .collect(),
         MaskRule::Majority => (0..c.pixels())
             .map(|p| {
@@ -110,7 +128,7 @@ mod tests {
         let c = view();
         let label = [1, 2, 3, -1];
         let sel = |s: [bool; 4]| {
-            let m = merged_labels(&label, &s);
+            let m = merged_values(&label, &s);
             (
                 view_mask(&c, &m, &s, MaskRule::Argmax),
                 view_mask(&c, &m, &s, MaskRule::Majority),
@@ -129,12 +147,41 @@ mod tests {
         );
         // Nothing selected: empty masks.
         assert_eq!(sel([false; 4]), (vec![0, 0, 0], vec![0, 0, 0]));
-        // A one-label selection equals "predicted label == that label".
-        let (_, predicted) = crate::cache::predict(&c, &label, &label);
+        // A one-class selection equals "predicted class == that class".
+        let (predicted, _) = crate::cache::predict(&c, &label, &label);
         for l in [1, 2, 3] {
             let s = [label[0] == l, label[1] == l, label[2] == l, false];
             let want: Vec<u8> = predicted.iter().map(|&p| u8::from(p == l)).collect();
-            assert_eq!(sel(s).0, want, "label {l}");
+            assert_eq!(sel(s).0, want, "class {l}");
+        }
+    }
+
+    #[test]
+    fn a_class_selection_is_the_class_map_ties_and_several_labels_included() {
+        // Pixel 0: g0 (class 2) 0.3, g1 (class 1) 0.3 — a tie, the class map takes 1.
+        // Pixel 1: g2 and g3, two labels of class 3, 0.45 each.
+        let c = ViewContrib {
+            width: 2,
+            height: 1,
+            k: 4,
+            gaussians: 4,
+            lists: Contributions {
+                offsets: vec![0, 2, 4],
+                ids: vec![0, 1, 2, 3],
+                weights: vec![0.3, 0.3, 0.45, 0.45],
+                residual: vec![0.0, 0.0],
+            },
+            alpha: vec![0.9, 0.95],
+            depth: vec![1.0; 2],
+        };
+        let class = [2, 1, 3, 3];
+        let (map, _) = crate::cache::predict(&c, &[0, 1, 2, 3], &class);
+        assert_eq!(map, vec![1, 3]);
+        for k in [1, 2, 3] {
+            let s: Vec<bool> = class.iter().map(|&x| x == k).collect();
+            let got = view_mask(&c, &merged_values(&class, &s), &s, MaskRule::Argmax);
+            let want: Vec<u8> = map.iter().map(|&p| u8::from(p == k)).collect();
+            assert_eq!(got, want, "class {k}");
         }
     }
 }

@@ -31,14 +31,20 @@ pub use text::{Candidate, FreeText, LabelFeatures, TextMatch, TextOptions};
 /// Errors of loading a finished run and evaluating selections over it.
 #[derive(Debug, thiserror::Error)]
 pub enum SelectionError {
-    #[error("{what} `{text}`: {source}")]
+    /// `what` names where the text came from (`--where`, `--attr`, …); the error is part of
+    /// the message and not a `source`, so a printed chain says it once.
+    #[error("{what} `{text}`: {error}")]
     Parse {
         what: String,
         text: String,
-        source: ParseError,
+        error: ParseError,
     },
-    #[error("selection `{text}`: {source}")]
-    Select { text: String, source: SelectError },
+    #[error("{what} `{text}`: {error}")]
+    Select {
+        what: String,
+        text: String,
+        error: SelectError,
+    },
     #[error("{0}")]
     Inputs(String),
     #[error(transparent)]
@@ -216,12 +222,12 @@ impl SemanticRun {
         text: &str,
         opts: TextOptions,
     ) -> Result<(Expr, select::Selected), SelectionError> {
-        let expr = grammar::parse(text).map_err(|source| SelectionError::Parse {
+        let expr = grammar::parse(text).map_err(|error| SelectionError::Parse {
             what: what.to_string(),
             text: text.to_string(),
-            source,
+            error,
         })?;
-        let sel = self.select(&expr, opts)?;
+        let sel = self.select_as(what, text, &expr, opts)?;
         Ok((expr, sel))
     }
 
@@ -231,11 +237,24 @@ impl SemanticRun {
         expr: &Expr,
         opts: TextOptions,
     ) -> Result<select::Selected, SelectionError> {
+        self.select_as("selection", &expr.to_string(), expr, opts)
+    }
+
+    /// [`SemanticRun::select`] of an expression parsed from `text`, given as `what` (a flag such
+    /// as `--where`): an error names them, and its columns refer to `text`.
+    pub fn select_as(
+        &self,
+        what: &str,
+        text: &str,
+        expr: &Expr,
+        opts: TextOptions,
+    ) -> Result<select::Selected, SelectionError> {
         let index = select::Index::new(&self.entities);
-        select::evaluate(&self.context(opts), &index, expr).map_err(|source| {
+        select::evaluate(&self.context(opts), &index, expr).map_err(|error| {
             SelectionError::Select {
-                text: expr.to_string(),
-                source,
+                what: what.to_string(),
+                text: text.to_string(),
+                error,
             }
         })
     }

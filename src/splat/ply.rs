@@ -24,7 +24,10 @@
 //! Under [`InvalidPolicy::Error`] (the default) such a Gaussian is an error naming the file,
 //! the vertex (and line in ASCII) and the property. Under [`InvalidPolicy::Drop`] it is
 //! dropped and counted in [`PlyReport`]; this is safe because a Gaussian has no links to
-//! others. Extra properties are never checked (NaN there is kept as is).
+//! others. Under [`InvalidPolicy::Keep`] (the pipeline's policy) it is kept in place, as read,
+//! and counted: Gaussian `i` of the file stays Gaussian `i`, the pipeline never draws it
+//! ([`is_valid`] is false, [`hide_invalid`]) and `semantic.ply` labels it −1. Extra properties are never checked
+//! (NaN there is kept as is).
 //!
 //! Core properties are stored as `f32` (INRIA's type); extras keep their PLY type.
 //! Only the `vertex` element is written back; other elements are checked and ignored on
@@ -93,7 +96,13 @@ pub enum InvalidPolicy {
     Error,
     /// Drop the Gaussian and count it in [`PlyReport`].
     Drop,
+    /// Keep the Gaussian as read, in its place, and count it in [`PlyReport`] (the first few
+    /// with the message [`InvalidPolicy::Error`] would give).
+    Keep,
 }
+
+/// How many invalid Gaussians [`PlyReport::invalid_examples`] describes.
+pub const INVALID_EXAMPLES: usize = 5;
 
 /// Reading options.
 #[derive(Debug, Clone, Copy, Default)]
@@ -102,6 +111,14 @@ pub struct ReadOptions {
     /// Decode every property one by one even where the all-`float` little-endian fast path
     /// applies (for benchmarks and cross-checks).
     pub force_general_path: bool,
+}
+
+impl ReadOptions {
+    /// The pipeline's reading: every Gaussian kept in file order ([`InvalidPolicy::Keep`]).
+    pub const KEEP: ReadOptions = ReadOptions {
+        invalid: InvalidPolicy::Keep,
+        force_general_path: false,
+    };
 }
 
 /// What reading found besides the Gaussians.
@@ -115,6 +132,16 @@ pub struct PlyReport {
     /// Dropped for a value outside its range (position, log scale, SH; module docs).
     pub dropped_out_of_range: usize,
     pub dropped_zero_quaternion: usize,
+    /// Invalid Gaussians kept in place ([`InvalidPolicy::Keep`]).
+    #[serde(default)]
+    pub kept_invalid: usize,
+    /// Of those, the ones with a non-finite position (`x`, `y` or `z` NaN or infinite).
+    #[serde(default)]
+    pub kept_non_finite_position: usize,
+    /// The first [`INVALID_EXAMPLES`] invalid Gaussians (kept or dropped), each as the one-line
+    /// error [`InvalidPolicy::Error`] would give (file, vertex, property).
+    #[serde(default)]
+    pub invalid_examples: Vec<String>,
     /// Whether the binary little-endian all-`float` fast path decoded the payload.
     pub fast_path: bool,
 }
@@ -260,6 +287,9 @@ struct Assembler<'a> {
     dropped_non_finite: usize,
     dropped_out_of_range: usize,
     dropped_zero_quaternion: usize,
+    kept_invalid: usize,
+    kept_non_finite_position: usize,
+    examples: Vec<String>,
     // Scratch for one Gaussian.
     pos: [f32; 3],
     nrm: [f32; 3],
@@ -301,6 +331,9 @@ impl<'a> Assembler<'a> {
             dropped_non_finite: 0,
             dropped_out_of_range: 0,
             dropped_zero_quaternion: 0,
+            kept_invalid: 0,
+            kept_non_finite_position: 0,
+            examples: Vec::new(),
             pos: [0.0; 3],
             nrm: [0.0; 3],
             dc: [0.0; 3],
@@ -329,17 +362,9 @@ impl<'a> Assembler<'a> {
             }
         }
         if let Some(defect) = self.defect() {
-            if self.policy == InvalidPolicy::Drop {
-                match defect {
-                    Defect::NonFinite(..) => self.dropped_non_finite += 1,
-                    Defect::OutOfRange(..) => self.dropped_out_of_range += 1,
-                    Defect::ZeroQuaternion => self.dropped_zero_quaternion += 1,
-                }
-                return Ok(());
-            }
             let (path, vertex, line) = (self.path.into(), row.index, row.line);
             let name = |p: usize| self.layout.names[p].clone();
-            return Err(match defect {
+            let err = match defect {
                 Defect::NonFinite(p, value) => PlyError::NonFinite {
                     path,
                     vertex,
@@ -356,7 +381,27 @@ impl<'a> Assembler<'a> {
                     range,
                 },
                 Defect::ZeroQuaternion => PlyError::ZeroQuaternion { path, vertex, line },
-            });
+            };
+            match self.policy {
+                InvalidPolicy::Error => return Err(err),
+                InvalidPolicy::Drop | InvalidPolicy::Keep => {
+                    if self.examples.len() < INVALID_EXAMPLES {
+                        self.examples.push(err.to_string());
+                    }
+                }
+            }
+            if self.policy == InvalidPolicy::Drop {
+                match defect {
+                    Defect::NonFinite(..) => self.dropped_non_finite += 1,
+                    Defect::OutOfRange(..) => self.dropped_out_of_range += 1,
+                    Defect::ZeroQuaternion => self.dropped_zero_quaternion += 1,
+                }
+                return Ok(());
+            }
+            self.kept_invalid += 1;
+            if self.pos.iter().any(|v| !v.is_finite()) {
+                self.kept_non_finite_position += 1;
+            }
         }
         self.g.positions.push(self.pos);
         if self.layout.has_normals {
@@ -377,20 +422,21 @@ impl<'a> Assembler<'a> {
     /// path names the property).
     #[inline]
     fn defect(&self) -> Option<Defect> {
-        let lim = SCENE_COORD_LIMIT as f32;
-        let (lo, hi) = LOG_SCALE_RANGE;
-        let ok = self.pos.iter().all(|v| v.abs() <= lim)
-            && self.nrm.iter().all(|v| v.is_finite())
-            && self.dc.iter().all(|v| v.abs() <= MAX_ABS_SH)
-            && self.rest.iter().all(|v| v.abs() <= MAX_ABS_SH)
-            && self.opacity.is_finite()
-            && self.scale.iter().all(|v| (lo..=hi).contains(v))
-            && self.rot.iter().all(|v| v.is_finite())
-            && self.rot.iter().any(|&r| r != 0.0);
+        let ok = core_valid(
+            &self.pos,
+            &self.nrm,
+            &self.dc,
+            &self.rest,
+            self.opacity,
+            &self.scale,
+            &self.rot,
+        );
         if ok {
             return None;
         }
         // Non-finite values first (a NaN is not "out of range", it is not a number).
+        let lim = SCENE_COORD_LIMIT as f32;
+        let (lo, hi) = LOG_SCALE_RANGE;
         let mut out_of_range = None;
         for (p, slot) in self.layout.slots.iter().enumerate() {
             let (v, range_ok, range) = match *slot {
@@ -429,7 +475,7 @@ impl<'a> Assembler<'a> {
         out_of_range.or(Some(Defect::ZeroQuaternion))
     }
 
-    fn finish(mut self) -> (Gaussians, [usize; 3]) {
+    fn finish(mut self) -> (Gaussians, [usize; 5], Vec<String>) {
         if self.layout.has_normals {
             self.g.normals = Some(self.normals);
         }
@@ -439,9 +485,61 @@ impl<'a> Assembler<'a> {
                 self.dropped_non_finite,
                 self.dropped_out_of_range,
                 self.dropped_zero_quaternion,
+                self.kept_invalid,
+                self.kept_non_finite_position,
             ],
+            self.examples,
         )
     }
+}
+
+/// The per-Gaussian checks of the module docs on one Gaussian's core values.
+#[inline]
+fn core_valid(
+    pos: &[f32; 3],
+    nrm: &[f32; 3],
+    dc: &[f32; 3],
+    rest: &[f32],
+    opacity: f32,
+    scale: &[f32; 3],
+    rot: &[f32; 4],
+) -> bool {
+    let lim = SCENE_COORD_LIMIT as f32;
+    let (lo, hi) = LOG_SCALE_RANGE;
+    pos.iter().all(|v| v.abs() <= lim)
+        && nrm.iter().all(|v| v.is_finite())
+        && dc.iter().all(|v| v.abs() <= MAX_ABS_SH)
+        && rest.iter().all(|v| v.abs() <= MAX_ABS_SH)
+        && opacity.is_finite()
+        && scale.iter().all(|v| (lo..=hi).contains(v))
+        && rot.iter().all(|v| v.is_finite())
+        && rot.iter().any(|&r| r != 0.0)
+}
+
+/// Makes every invalid Gaussian ([`is_valid`] false) undrawable, in place: its opacity becomes
+/// NaN, which the renderer skips. Returns how many. The pipeline's renderer input.
+pub fn hide_invalid(g: &mut Gaussians) -> usize {
+    let bad: Vec<usize> = (0..g.len()).filter(|&i| !is_valid(g, i)).collect();
+    for &i in &bad {
+        g.opacity[i] = f32::NAN;
+    }
+    bad.len()
+}
+
+/// Whether Gaussian `i` of `g` passes the per-Gaussian checks of the module docs (false only
+/// for Gaussians kept by [`InvalidPolicy::Keep`], or built in memory).
+pub fn is_valid(g: &Gaussians, i: usize) -> bool {
+    let rest = g.rest_per_gaussian();
+    let nrm = g.normals.as_ref().map_or([0.0; 3], |n| n[i]);
+    core_valid(
+        &g.positions[i],
+        &nrm,
+        &g.f_dc[i],
+        &g.f_rest[i * rest..(i + 1) * rest],
+        g.opacity[i],
+        &g.scale[i],
+        &g.rotation[i],
+    )
 }
 
 /// Reads a 3DGS PLY file.
@@ -476,7 +574,10 @@ pub fn read_ply_bytes(
             dropped_non_finite,
             dropped_out_of_range,
             dropped_zero_quaternion,
+            kept_invalid,
+            kept_non_finite_position,
         ],
+        invalid_examples,
     ) = asm.finish();
     let report = PlyReport {
         encoding,
@@ -485,6 +586,9 @@ pub fn read_ply_bytes(
         dropped_non_finite,
         dropped_out_of_range,
         dropped_zero_quaternion,
+        kept_invalid,
+        kept_non_finite_position,
+        invalid_examples,
         fast_path: fast,
     };
     Ok((g, report))

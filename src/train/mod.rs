@@ -679,7 +679,7 @@ pub fn run(
     }
 
     let t = Instant::now();
-    let (gaussians, _) = crate::splat::read_ply(inp.ply, &Default::default())?;
+    let (gaussians, _) = crate::splat::read_ply(inp.ply, &crate::splat::ReadOptions::KEEP)?;
     if gaussians.len() != n {
         return Err(TrainError::Labels {
             path: inp.ply.to_path_buf(),
@@ -689,7 +689,19 @@ pub fn run(
             ),
         });
     }
-    let knn = knn::build(&gaussians.positions, opts.kl_k);
+    // Invalid Gaussians (kept in place, never drawn) sit far outside the scene frame, where
+    // they neighbour only each other.
+    let far = [4.0 * crate::camera::SCENE_COORD_LIMIT as f32; 3];
+    let positions: Vec<[f32; 3]> = (0..n)
+        .map(|i| {
+            if crate::splat::ply::is_valid(&gaussians, i) {
+                gaussians.positions[i]
+            } else {
+                far
+            }
+        })
+        .collect();
+    let knn = knn::build(&positions, opts.kl_k);
     drop(gaussians);
     timing.knn_s = t.elapsed().as_secs_f64();
 
@@ -724,7 +736,7 @@ pub fn run(
             )
         })
         .collect();
-    prediction::write_gaussians(
+    let _invalid = prediction::write_gaussians(
         inp.ply,
         out,
         &GaussianLabels {

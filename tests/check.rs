@@ -1,0 +1,472 @@
+//! Issue 24, end to end on SIMULATED scenes (`synth --preset small`): `gs4city check` names each
+//! defect of a scene in one line and `run` stops before any stage; a 3DGS training output
+//! becomes a scene folder by `scene import` and runs; `run` resumes however `--scene` is spelled
+//! and `query --run R` works from `/`; invalid Gaussians stay in `semantic.ply` labelled −1; a
+//! class query's view masks are the class maps' pixels of that class.
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// Runs the binary in `cwd` (default: the test's); `(success, stdout, stderr)`.
+fn cli_in(cwd: Option<&Path>, args: &[&str]) -> (bool, String, String) {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_gs4city"));
+    if let Some(d) = cwd {
+        c.current_dir(d);
+    }
+    let out = c.args(args).output().expect("run gs4city");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// A fresh folder for one test.
+fn root(name: &str) -> PathBuf {
+    let r = std::env::temp_dir().join(format!("gs4city-check-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&r);
+    std::fs::create_dir_all(&r).unwrap();
+    r
+}
+
+/// `synth --preset small` into `dir`.
+fn synth(dir: &Path) {
+    let (ok, _, err) = cli_in(None, &["-q", "synth", "--preset", "small", "--out", s(dir)]);
+    assert!(ok, "{err}");
+}
+
+fn copy_tree(src: &Path, dst: &Path) {
+    if src.is_dir() {
+        std::fs::create_dir_all(dst).unwrap();
+        for e in std::fs::read_dir(src).unwrap() {
+            let e = e.unwrap();
+            copy_tree(&e.path(), &dst.join(e.file_name()));
+        }
+    } else {
+        std::fs::copy(src, dst).unwrap();
+    }
+}
+
+/// A variant of scene `base` at `dst`: the top-level parts in `copied` are copies (to be
+/// changed), the others symbolic links.
+fn variant(base: &Path, dst: &Path, copied: &[&str]) {
+    std::fs::create_dir_all(dst).unwrap();
+    for e in std::fs::read_dir(base).unwrap() {
+        let e = e.unwrap();
+        let name = e.file_name();
+        if copied.iter().any(|c| name == *c) {
+            copy_tree(&e.path(), &dst.join(&name));
+        } else {
+            std::os::unix::fs::symlink(e.path(), dst.join(&name)).unwrap();
+        }
+    }
+}
+
+/// Offset of the payload, vertex stride and offset of property `name` in a binary
+/// little-endian all-float PLY (as `synth` writes).
+fn ply_layout(bytes: &[u8], name: &str) -> (usize, usize, usize) {
+    let end = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .unwrap()
+        + 11;
+    let header = std::str::from_utf8(&bytes[..end]).unwrap();
+    assert!(header.contains("format binary_little_endian 1.0"));
+    let props: Vec<&str> = header
+        .lines()
+        .filter_map(|l| l.strip_prefix("property "))
+        .collect();
+    assert!(props.iter().all(|p| p.starts_with("float ")), "{props:?}");
+    let at = props
+        .iter()
+        .position(|p| *p == format!("float {name}"))
+        .unwrap();
+    (end, props.len() * 4, at * 4)
+}
+
+/// Writes `value` into property `name` of vertex `vertex`.
+fn set_property(ply: &Path, vertex: usize, name: &str, value: f32) {
+    let mut b = std::fs::read(ply).unwrap();
+    let (start, stride, off) = ply_layout(&b, name);
+    let o = start + vertex * stride + off;
+    b[o..o + 4].copy_from_slice(&value.to_le_bytes());
+    std::fs::write(ply, b).unwrap();
+}
+
+/// The `error:` lines of a failed check, without the closing summary line.
+fn error_lines(stderr: &str) -> Vec<&str> {
+    stderr
+        .lines()
+        .filter(|l| l.starts_with("error: ") && !l.starts_with("error: check "))
+        .collect()
+}
+
+#[test]
+fn check_names_each_defect_in_one_line_and_run_stops_before_any_stage() {
+    let r = root("defects");
+    let base = r.join("base");
+    synth(&base);
+    let (ok, out, err) = cli_in(None, &["check", "--scene", s(&base)]);
+    assert!(ok, "the simulated scene is fine: {err}");
+    assert!(out.contains(": 0 errors, 0 warnings"), "{out}");
+    assert!(err.contains("alignment plausible"), "{err}");
+
+    let views = gs4city::colmap::read_model(&base.join("sparse/0")).unwrap();
+    let (img, img_b) = (&views[3].name, &views[5].name);
+    let align: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(base.join("citymodel/alignment.json")).unwrap(),
+    )
+    .unwrap();
+    let scale = align["scale"].as_f64().unwrap();
+    let n = gs4city::splat::read_ply(&base.join("point_cloud.ply"), &Default::default())
+        .unwrap()
+        .0
+        .len();
+
+    // (name, parts copied, the change, the one error line must contain these)
+    type Change<'a> = Box<dyn Fn(&Path) + 'a>;
+    let write_alignment = |d: &Path, f: &dyn Fn(&mut serde_json::Value)| {
+        let mut a = align.clone();
+        f(&mut a);
+        let p = d.join("citymodel/alignment.json");
+        std::fs::write(p, serde_json::to_string_pretty(&a).unwrap()).unwrap();
+    };
+    let img1 = img.clone();
+    let img2 = img_b.clone();
+    let cases: Vec<(&str, Vec<&str>, Change<'_>, Vec<String>)> = vec![
+        (
+            "missing-image",
+            vec!["images"],
+            Box::new(move |d: &Path| std::fs::remove_file(d.join("images").join(&img1)).unwrap()),
+            vec![format!("images/{img}: missing")],
+        ),
+        (
+            "image-not-in-colmap",
+            vec!["images"],
+            Box::new(move |d: &Path| {
+                std::fs::rename(d.join("images").join(&img2), d.join("images/renamed.png")).unwrap()
+            }),
+            vec![
+                "images/renamed.png: not in the COLMAP model".into(),
+                format!("images/{img_b}: missing"),
+            ],
+        ),
+        (
+            "truncated-ply",
+            vec!["point_cloud.ply"],
+            Box::new(|d: &Path| {
+                let p = d.join("point_cloud.ply");
+                let len = std::fs::metadata(&p).unwrap().len();
+                let f = std::fs::OpenOptions::new().write(true).open(&p).unwrap();
+                f.set_len(len / 2).unwrap();
+            }),
+            vec!["point_cloud.ply: ".into()],
+        ),
+        (
+            "nan-position",
+            vec!["point_cloud.ply"],
+            Box::new(move |d: &Path| {
+                set_property(&d.join("point_cloud.ply"), n / 3, "y", f32::NAN)
+            }),
+            vec![format!(
+                "point_cloud.ply: 1 of {n} Gaussians have a non-finite position"
+            )],
+        ),
+        (
+            "shifted-50m",
+            vec!["citymodel"],
+            Box::new(move |d: &Path| {
+                write_alignment(d, &|a| {
+                    let t = a["translation"][0].as_f64().unwrap();
+                    a["translation"][0] = serde_json::json!(t + 50.0 * scale);
+                })
+            }),
+            vec!["citymodel/alignment.json: alignment looks off by ~".into()],
+        ),
+        (
+            "rotated-90",
+            vec!["citymodel"],
+            Box::new(move |d: &Path| {
+                write_alignment(d, &|a| {
+                    // R' = Rz(90°)·R: the city model turned a quarter about the up axis.
+                    let r = a["rotation"].clone();
+                    let row = |i: usize| -> Vec<f64> {
+                        (0..3).map(|j| r[i][j].as_f64().unwrap()).collect()
+                    };
+                    let (r0, r1, r2) = (row(0), row(1), row(2));
+                    let neg: Vec<f64> = r1.iter().map(|x| -x).collect();
+                    a["rotation"] = serde_json::json!([neg, r0, r2]);
+                })
+            }),
+            vec!["citymodel/alignment.json: alignment looks off by ~".into()],
+        ),
+    ];
+    for (name, copied, change, want) in &cases {
+        let d = r.join(name);
+        variant(&base, &d, copied);
+        change(&d);
+        let (ok, _, err) = cli_in(None, &["check", "--scene", s(&d)]);
+        assert!(!ok, "{name}: check must fail");
+        let lines = error_lines(&err);
+        assert_eq!(lines.len(), want.len(), "{name}: {err}");
+        for w in want {
+            assert!(
+                lines.iter().any(|l| l.contains(w.as_str())),
+                "{name}: no error line with {w:?}: {err}"
+            );
+        }
+        // The run stops at the same check, before any stage folder exists.
+        let out = r.join(format!("{name}.run"));
+        let (ok, _, err) = cli_in(None, &["-q", "run", "--scene", s(&d), "--out", s(&out)]);
+        assert!(!ok, "{name}: run must fail");
+        assert!(err.contains(want[0].as_str()), "{name}: {err}");
+        assert!(
+            !out.join("citymodel").exists() && !out.join("run.json").exists(),
+            "{name}: a stage ran"
+        );
+    }
+
+    // A duplicate gml:id: a warning naming the id, exit 0.
+    let d = r.join("duplicate-id");
+    variant(&base, &d, &["citymodel"]);
+    let gml = std::fs::read_dir(d.join("citymodel"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "gml"))
+        .min()
+        .unwrap();
+    let text = std::fs::read_to_string(&gml).unwrap();
+    let ids: Vec<&str> = text
+        .match_indices("gml:id=\"")
+        .map(|(i, m)| {
+            let rest = &text[i + m.len()..];
+            &rest[..rest.find('"').unwrap()]
+        })
+        .collect();
+    let (first, second) = (ids[0], ids[ids.len() / 2]);
+    assert_ne!(first, second);
+    let changed = text.replacen(
+        &format!("gml:id=\"{second}\""),
+        &format!("gml:id=\"{first}\""),
+        1,
+    );
+    std::fs::write(&gml, changed).unwrap();
+    let (ok, out, err) = cli_in(None, &["check", "--scene", s(&d)]);
+    assert!(ok, "a duplicate gml:id is a warning: {err}");
+    assert!(
+        err.lines()
+            .any(|l| l.starts_with("warning: ") && l.contains(&format!("gml:id {first}"))),
+        "{err}"
+    );
+    assert!(out.contains(" 0 errors"), "{out}");
+    let _ = std::fs::remove_dir_all(&r);
+}
+
+#[test]
+fn a_3dgs_training_output_becomes_a_scene_that_runs_resumes_and_queries_from_anywhere() {
+    let r = root("import");
+    let sim = r.join("sim");
+    synth(&sim);
+    // The INRIA layout: the COLMAP folder 3DGS was trained from, and its training output.
+    let data = r.join("data");
+    copy_tree(&sim.join("sparse"), &data.join("sparse"));
+    copy_tree(&sim.join("images"), &data.join("images"));
+    let output = r.join("output");
+    let it = |n: u32| output.join(format!("point_cloud/iteration_{n}"));
+    std::fs::create_dir_all(it(7000)).unwrap();
+    std::fs::create_dir_all(it(30000)).unwrap();
+    std::fs::write(it(7000).join("point_cloud.ply"), b"ply\nformat ascii 1.0\n").unwrap();
+    std::fs::copy(
+        sim.join("point_cloud.ply"),
+        it(30000).join("point_cloud.ply"),
+    )
+    .unwrap();
+    std::fs::write(output.join("cameras.json"), "[]").unwrap();
+    std::fs::write(
+        output.join("cfg_args"),
+        format!(
+            "Namespace(sh_degree=3, source_path='{}', model_path='{}', images='images', resolution=-1, white_background=False, data_device='cuda', eval=False)",
+            data.display(),
+            output.display()
+        ),
+    )
+    .unwrap();
+    let gml = r.join("lod3");
+    std::fs::create_dir_all(&gml).unwrap();
+    for e in std::fs::read_dir(sim.join("citymodel")).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "gml") {
+            std::fs::copy(&p, gml.join(p.file_name().unwrap())).unwrap();
+        }
+    }
+    std::fs::copy(
+        sim.join("citymodel/alignment.json"),
+        r.join("alignment.json"),
+    )
+    .unwrap();
+    let _ = std::fs::remove_dir_all(&sim);
+
+    // The guide's commands, run from `r`.
+    let (ok, out, err) = cli_in(
+        Some(&r),
+        &[
+            "scene",
+            "import",
+            "--model",
+            "output",
+            "--citygml",
+            "lod3",
+            "--alignment",
+            "alignment.json",
+            "--out",
+            "S",
+        ],
+    );
+    assert!(ok, "{err}");
+    assert!(out.contains("ready"), "{out}\n{err}");
+    let scene = r.join("S");
+    assert_eq!(
+        std::fs::canonicalize(scene.join("point_cloud.ply")).unwrap(),
+        std::fs::canonicalize(it(30000).join("point_cloud.ply")).unwrap(),
+        "the highest iteration"
+    );
+    assert!(
+        scene.join("sparse/0/images.bin").is_file() || scene.join("sparse/0/images.txt").is_file()
+    );
+    let (ok, _, err) = cli_in(Some(&r), &["-q", "run", "--scene", "S", "--out", "R"]);
+    assert!(ok, "{err}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(r.join("R/summary.json")).unwrap()).unwrap();
+    assert_eq!(
+        summary["test_views"].as_array().unwrap().len(),
+        0,
+        "no gt/: every view trains"
+    );
+    let record: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(r.join("R/run.json")).unwrap()).unwrap();
+    let recorded = PathBuf::from(record["scene"].as_str().unwrap());
+    assert_eq!(recorded, std::fs::canonicalize(&scene).unwrap());
+
+    // Resumed, however the scene is spelled.
+    let abs = std::fs::canonicalize(&scene).unwrap();
+    for spelling in ["S", "./S/", abs.to_str().unwrap()] {
+        let (ok, out, err) = cli_in(Some(&r), &["-q", "run", "--scene", spelling, "--out", "R"]);
+        assert!(ok, "{spelling}: {err}");
+        let rows: Vec<&str> = out
+            .lines()
+            .skip(1)
+            .take_while(|l| !l.trim().is_empty() && !l.starts_with("report:"))
+            .collect();
+        assert!(rows.len() >= 7, "{out}");
+        assert!(
+            rows.iter().all(|l| l.ends_with("(resumed)")),
+            "--scene {spelling} reran a stage:\n{out}"
+        );
+    }
+
+    // A query from `/`, with the run given absolutely.
+    let run = std::fs::canonicalize(r.join("R")).unwrap();
+    let q = r.join("Q");
+    let (ok, out, err) = cli_in(
+        Some(Path::new("/")),
+        &[
+            "-q",
+            "query",
+            "--run",
+            s(&run),
+            "--class",
+            "Window",
+            "--views",
+            "all",
+            "--out",
+            s(&q),
+        ],
+    );
+    assert!(ok, "{err}");
+    assert!(out.contains("view masks"), "{out}");
+    assert!(std::fs::read_dir(&q).unwrap().any(|e| {
+        e.unwrap()
+            .file_name()
+            .to_string_lossy()
+            .ends_with(".mask.npy")
+    }));
+    let _ = std::fs::remove_dir_all(&r);
+}
+
+#[test]
+fn invalid_gaussians_stay_in_semantic_ply_and_class_query_masks_equal_the_class_maps() {
+    let r = root("semantic");
+    let base = r.join("base");
+    synth(&base);
+    let scene = r.join("S");
+    variant(&base, &scene, &["point_cloud.ply"]);
+    let ply = scene.join("point_cloud.ply");
+    let bad = 1234;
+    set_property(&ply, bad, "scale_0", 100.0); // out of the log-scale range: invalid
+    let (ok, _, err) = cli_in(None, &["check", "--scene", s(&scene)]);
+    assert!(ok, "an invalid Gaussian is a warning: {err}");
+    assert!(
+        err.lines().any(|l| l.starts_with("warning: ")
+            && l.contains("point_cloud.ply: 1 of ")
+            && l.contains(&format!("vertex {bad}"))),
+        "{err}"
+    );
+    let run = r.join("R");
+    let (ok, _, err) = cli_in(None, &["-q", "run", "--scene", s(&scene), "--out", s(&run)]);
+    assert!(ok, "{err}");
+    let input = gs4city::splat::read_ply(&ply, &gs4city::splat::ReadOptions::KEEP)
+        .unwrap()
+        .0;
+    let (out, _) = gs4city::splat::read_ply(
+        &run.join("lift/semantic.ply"),
+        &gs4city::splat::ReadOptions::KEEP,
+    )
+    .unwrap();
+    assert_eq!(out.len(), input.len(), "every input Gaussian");
+    assert_eq!(out.positions, input.positions, "in input order");
+    let label = &out.extra("label").unwrap().values;
+    assert_eq!(label[bad], -1.0);
+    assert!(label.iter().filter(|&&l| l >= 0.0).count() > input.len() / 4);
+    let lift: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("lift/summary.json")).unwrap())
+            .unwrap();
+    assert_eq!(lift["invalid"], 1);
+
+    // The class query's masks are the class maps' Window pixels (test views).
+    let q = r.join("Q");
+    let (ok, _, err) = cli_in(
+        None,
+        &[
+            "-q",
+            "query",
+            "--run",
+            s(&run),
+            "--class",
+            "Window",
+            "--out",
+            s(&q),
+        ],
+    );
+    assert!(ok, "{err}");
+    let mut compared = 0;
+    for e in std::fs::read_dir(run.join("lift")).unwrap() {
+        let name = e.unwrap().file_name().to_string_lossy().into_owned();
+        let Some(stem) = name.strip_suffix(".class.npy") else {
+            continue;
+        };
+        let (_, class) = gs4city::npy::read::<i32>(&run.join("lift").join(&name)).unwrap();
+        let (_, mask) = gs4city::npy::read::<u8>(&q.join(format!("{stem}.mask.npy"))).unwrap();
+        let want: Vec<u8> = class
+            .iter()
+            .map(|&c| u8::from(c == gs4city::classes::WINDOW))
+            .collect();
+        assert!(want.contains(&1), "{stem} shows windows");
+        assert_eq!(mask, want, "{stem}");
+        compared += 1;
+    }
+    assert!(compared >= 1);
+    let _ = std::fs::remove_dir_all(&r);
+}
