@@ -15,7 +15,9 @@
 //!
 //! A run over an oracle-perception scene (`data/synth/perception_oracle.toml`: one exact mask
 //! per instance, noise-free features) gives (b), the limit of association and fusion.
-//! Then, per run, the confusion of its test views (dataset counts, % of each truth class).
+//! "leak %" is the share of the pixels of non-fine truth classes (road, ground, water, other)
+//! given a fine class — what the fine metrics do not see. Then, per run, the confusion of its
+//! test views (dataset counts, % of each truth class).
 use std::path::{Path, PathBuf};
 
 use gs4city::cache::{Cache, predict_map};
@@ -67,8 +69,22 @@ fn gt(scene: &Path, stem: &str) -> Vec<i32> {
         .1
 }
 
-/// One row: paper fine mIoU, dataset fine mIoU, per fine class paper IoU (precision / recall).
-fn row(name: &str, counts: &[Counts]) {
+/// Pixels of a non-fine truth class (road, ground, water, other; not the unlabelled −1) that
+/// `pred` gives a fine class, and all such pixels: what the fine metrics do not see.
+fn leak(truth: &[i32], pred: &[i32]) -> (u64, u64) {
+    let mut l = (0, 0);
+    for (&t, &p) in truth.iter().zip(pred) {
+        if t >= 0 && !classes::FINE.contains(&t) {
+            l.1 += 1;
+            l.0 += u64::from(classes::FINE.contains(&p));
+        }
+    }
+    l
+}
+
+/// One row: paper fine mIoU, dataset fine mIoU, the leak, per fine class paper IoU
+/// (precision / recall).
+fn row(name: &str, counts: &[Counts], leak: (u64, u64)) {
     let p = eval::paper(counts);
     let d = eval::dataset(counts);
     let f = |x: Option<f64>| x.map_or("–".to_string(), |x| format!("{:.1}", 100.0 * x));
@@ -83,9 +99,10 @@ fn row(name: &str, counts: &[Counts]) {
         })
         .collect();
     println!(
-        "| {name} | {} | {} | {} |",
+        "| {name} | {} | {} | {:.1} | {} |",
         f(p.miou.mean),
         f(d.fine.miou),
+        100.0 * leak.0 as f64 / leak.1.max(1) as f64,
         cells.join(" | ")
     );
 }
@@ -149,14 +166,14 @@ fn main() {
         a.runs[0].1.display()
     );
     println!(
-        "| source | fine mIoU (paper) | fine mIoU (dataset) | {} |",
+        "| source | fine mIoU (paper) | fine mIoU (dataset) | leak % | {} |",
         classes::FINE
             .iter()
             .map(|&c| format!("{} IoU (P/R)", classes::name(c)))
             .collect::<Vec<_>>()
             .join(" | ")
     );
-    println!("|---|---|---|{}", "---|".repeat(classes::FINE.len()));
+    println!("|---|---|---|---|{}", "---|".repeat(classes::FINE.len()));
 
     // (a) The truth's class maps as supervision: label = class.
     let mut votes = Votes::new(n);
@@ -168,19 +185,24 @@ fn main() {
     drop(votes);
     let mut test_views = Vec::new();
     let mut counts = Vec::new();
+    let mut lk = (0, 0);
     for v in &split.test {
         let c = cache.load(&v.stem()).expect("cached test view");
         let truth = gt(&a.scene, &v.stem());
-        counts.push(eval::accumulate(&truth, &predict_map(&c, &label)));
+        let pred = predict_map(&c, &label);
+        counts.push(eval::accumulate(&truth, &pred));
+        let l = leak(&truth, &pred);
+        lk = (lk.0 + l.0, lk.1 + l.1);
         test_views.push((v.stem(), truth));
     }
-    row("(a) truth class maps → vote (test)", &counts);
+    row("(a) truth class maps → vote (test)", &counts, lk);
     let truth_counts = counts;
 
     let mut per_run = Vec::new();
     for (name, run) in &a.runs {
         let s = supervision(run);
         let mut sup = Vec::new();
+        let mut lk = (0, 0);
         for v in &split.train {
             let truth = gt(&a.scene, &v.stem());
             let c = cache.load(&v.stem()).expect("cached training view");
@@ -190,15 +212,20 @@ fn main() {
                 .expect("label map");
             let cls: Vec<i32> = l.iter().map(|&x| s.table.class_of(x)).collect();
             sup.push(eval::accumulate(&truth, &cls));
+            let l = leak(&truth, &cls);
+            lk = (lk.0 + l.0, lk.1 + l.1);
         }
-        row(&format!("{name}: supervision (training views)"), &sup);
+        row(&format!("{name}: supervision (training views)"), &sup, lk);
         let mut test = Vec::new();
+        let mut lk = (0, 0);
         for (stem, truth) in &test_views {
             let (_, pred) = gs4city::npy::read::<i32>(&run.join(format!("lift/{stem}.class.npy")))
                 .expect("the run's lift test-view class map");
             test.push(eval::accumulate(truth, &pred));
+            let l = leak(truth, &pred);
+            lk = (lk.0 + l.0, lk.1 + l.1);
         }
-        row(&format!("{name}: test (vote)"), &test);
+        row(&format!("{name}: test (vote)"), &test, lk);
         per_run.push((name.clone(), test));
     }
     confusion("(a) truth class maps → vote", &truth_counts);

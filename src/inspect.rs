@@ -149,6 +149,9 @@ pub struct CheckOptions {
     pub min_view_share: f64,
     /// At most this many Gaussian centres are measured.
     pub max_samples: usize,
+    /// The alignment is refined next (`run --refine-alignment`): an implausible alignment is a
+    /// warning, not an error (the refinement reports whether it recovers it).
+    pub refine_next: bool,
 }
 
 impl Default for CheckOptions {
@@ -158,6 +161,7 @@ impl Default for CheckOptions {
             max_offset_m: 2.0,
             min_view_share: 0.5,
             max_samples: 100_000,
+            refine_next: false,
         }
     }
 }
@@ -727,17 +731,19 @@ fn plausibility(
     if plausible {
         f.note(&file, format!("alignment plausible: {facts}"));
     } else {
-        f.error(
-            &file,
-            format!(
-                "alignment looks off by ~{:.0} m ({facts}; plausible: a lower quartile ≤ {} m \
+        let msg = format!(
+            "alignment looks off by ~{:.0} m ({facts}; plausible: a lower quartile ≤ {} m \
                  and ≥ {:.0} % of views): run `gs4city align --refine`, or check the \
                  ground-control points (README, \"alignment.json\")",
-                quartile.max(0.5),
-                opts.max_offset_m,
-                100.0 * opts.min_view_share
-            ),
+            quartile.max(0.5),
+            opts.max_offset_m,
+            100.0 * opts.min_view_share
         );
+        if opts.refine_next {
+            f.warn(&file, msg);
+        } else {
+            f.error(&file, msg);
+        }
     }
     Some(AlignmentCheck {
         views: views.len(),

@@ -229,6 +229,22 @@ fn check_names_each_defect_in_one_line_and_run_stops_before_any_stage() {
         );
     }
 
+    // Before `run --refine-alignment` the same alignment is a warning: the refinement runs next.
+    let report = gs4city::inspect::check(
+        &r.join("shifted-50m"),
+        &gs4city::inspect::CheckOptions {
+            refine_next: true,
+            ..Default::default()
+        },
+    );
+    assert_eq!(report.of(gs4city::inspect::Severity::Error).count(), 0);
+    assert!(
+        report
+            .of(gs4city::inspect::Severity::Warning)
+            .any(|f| f.to_string().contains("alignment looks off by ~")),
+        "the shifted alignment must still be reported"
+    );
+
     // A duplicate gml:id: a warning naming the id, exit 0.
     let d = r.join("duplicate-id");
     variant(&base, &d, &["citymodel"]);

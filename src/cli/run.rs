@@ -20,7 +20,7 @@ pub struct RunArgs {
     #[arg(long)]
     pub single_pass: bool,
     /// Background bias γ of the vote, in [-1, 1].
-    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    #[arg(long, default_value_t = crate::vote::GAMMA, allow_negative_numbers = true)]
     pub gamma: f32,
     /// Depth gate of city votes in metres: a Gaussian more than this in front of the city
     /// surface its pixel's ray hits takes no vote from that surface's label; 0 = off.

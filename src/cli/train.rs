@@ -70,7 +70,7 @@ pub struct TrainArgs {
     #[arg(long)]
     random_init: bool,
     /// Background bias γ of the initial vote, in [-1, 1].
-    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    #[arg(long, default_value_t = crate::vote::GAMMA, allow_negative_numbers = true)]
     gamma: f32,
     /// Depth gate of the initial vote's city votes, metres (as `lift`); 0 = off.
     #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]

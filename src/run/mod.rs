@@ -267,6 +267,7 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         scene_dir,
         &crate::inspect::CheckOptions {
             local_origin: opts.local_origin,
+            refine_next: opts.refine_alignment,
             ..opts.check
         },
     );

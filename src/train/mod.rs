@@ -162,7 +162,7 @@ impl Default for TrainOptions {
             kl_samples: 1000,
             init: Init::Vote,
             init_scale: 8.0,
-            gamma: 0.0,
+            gamma: crate::vote::GAMMA,
             city_gate_m: crate::vote::CITY_GATE_M,
             window: 200,
             tol: 0.005,
