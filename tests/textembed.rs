@@ -117,11 +117,13 @@ fn embeddings_match_the_numpy_reference() {
     assert!(cos(&alone[0], &ours[1]) > 0.99999);
 }
 
-/// `gs4city demo` into a temporary folder, once per test binary: the run folder.
+/// `gs4city demo` into one fixed folder under cargo's target tmp dir, once per test binary: the
+/// run folder (replaced by the next test run, so the half-gigabyte demo is never left behind
+/// more than once).
 fn demo_run() -> &'static Path {
     static RUN: OnceLock<PathBuf> = OnceLock::new();
     RUN.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("gs4city-textembed-{}", std::process::id()));
+        let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("textembed-demo");
         let _ = std::fs::remove_dir_all(&dir);
         let out = Command::new(env!("CARGO_BIN_EXE_gs4city"))
             .args(["-q", "demo", "--out"])

@@ -153,6 +153,8 @@ fn extract(stem: &str, c: &ViewContrib, labels: &[i32], stride: usize) -> ViewPo
 
 /// Reads the training views (in the given order; lists cut to `top_k`, 0 = as cached), votes,
 /// and keeps the training pixels.
+// The vote's inputs (cache, views, maps, table, gate) and the pool's own three knobs.
+#[allow(clippy::too_many_arguments)]
 pub fn build(
     cache: &Cache,
     views: &[View],
