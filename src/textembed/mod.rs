@@ -41,11 +41,18 @@ pub enum EmbedError {
     Missing(String),
     #[error("text model {path}: {why}")]
     Model { path: PathBuf, why: String },
+    /// Boxed: candle's error is large, and every error that wraps this one would carry its size.
     #[error("text model: {0}")]
-    Candle(#[from] candle_core::Error),
+    Candle(Box<candle_core::Error>),
     /// An earlier attempt to load the model failed (its message).
     #[error("{0}")]
     Unavailable(String),
+}
+
+impl From<candle_core::Error> for EmbedError {
+    fn from(e: candle_core::Error) -> Self {
+        EmbedError::Candle(Box::new(e))
+    }
 }
 
 /// The message of a missing model (one line).
