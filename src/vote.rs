@@ -132,7 +132,10 @@ impl CityGate {
         if gate_m <= 0.0 {
             return Ok(None);
         }
-        let (g, _) = crate::splat::read_ply(inp.ply, &Default::default())?;
+        // The pipeline's reading: every Gaussian in file order, invalid ones kept in place (their
+        // centres may be non-finite; a NaN depth never compares below the gate, and they are
+        // never drawn, so no pixel lists them).
+        let (g, _) = crate::splat::read_ply(inp.ply, &crate::splat::ReadOptions::KEEP)?;
         let cache = inp.cache.summary.gaussians;
         if g.len() != cache {
             return Err(VoteError::Gaussians {
@@ -420,6 +423,67 @@ pub fn vote(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cache::Contributions;
+
+    #[test]
+    fn the_depth_gate_drops_city_votes_of_gaussians_in_front_of_the_surface_only() {
+        // Three pixels, each listing Gaussians 0 (z 2, far in front), 1 (z 4.8, on the surface
+        // within the 0.5 tolerance) and 2 (z 7, behind it) with weights 0.5, 0.3, 0.2.
+        let lists = Contributions {
+            offsets: vec![0, 3, 6, 9],
+            ids: vec![0, 1, 2, 0, 1, 2, 0, 1, 2],
+            weights: vec![0.5, 0.3, 0.2, 0.5, 0.3, 0.2, 0.5, 0.3, 0.2],
+            residual: vec![0.0; 3],
+        };
+        let c = ViewContrib {
+            width: 3,
+            height: 1,
+            k: 0,
+            gaussians: 3,
+            lists,
+            alpha: vec![1.0; 3],
+            depth: vec![f32::NAN; 3],
+        };
+        let gate = GateView {
+            z: vec![2.0, 4.8, 7.0],
+            // Pixel 2: no city hit (NaN), so nothing to gate against.
+            depth: vec![5.0, 5.0, f32::NAN],
+            tol: 0.5,
+            city_below: 10,
+        };
+        // Pixel 0: city label 3; pixel 1: image label 12 (not gated); pixel 2: city label 3.
+        let labels = [3, 12, 3];
+        let mut v = Votes::new(3);
+        let (gated, city) = v.accumulate_gated(&c, &labels, Some(&gate));
+        // Only Gaussian 0's weight in pixel 0 is dropped; city mass = pixel 0's list (pixel 2 has
+        // no finite depth, so it is not a gated pixel).
+        assert!(
+            (gated - 0.5).abs() < 1e-9 && (city - 1.0).abs() < 1e-6,
+            "{gated} {city}"
+        );
+        assert_eq!(v.of(0), vec![(12, 0.5), (3, 0.5)]);
+        let one = v.of(1);
+        assert_eq!(one.len(), 2);
+        assert!((one[0].1 - 0.6).abs() < 1e-6 && one[0].0 == 3 && one[1].0 == 12);
+        let two = v.of(2);
+        assert!((two[0].1 - 0.4).abs() < 1e-6 && two[0].0 == 3);
+        // Without the gate Gaussian 0 takes the city label from pixels 0 and 2.
+        let mut u = Votes::new(3);
+        u.accumulate(&c, &labels);
+        assert!((u.of(0)[0].1 - 1.0).abs() < 1e-6 && u.of(0)[0].0 == 3);
+        // The M_city maps: every label ≥ 0 is a city label.
+        let all = GateView {
+            city_below: i32::MAX,
+            ..gate
+        };
+        let mut w = Votes::new(3);
+        w.accumulate_gated(&c, &labels, Some(&all));
+        assert_eq!(
+            w.of(0),
+            vec![(3, 0.5)],
+            "pixel 1's label 12 is a city label now"
+        );
+    }
 
     #[test]
     fn vote_argmax_normalisation_and_gamma() {

@@ -440,7 +440,7 @@ fn outputs_are_standard_start_from_the_vote_and_predict_the_test_views() {
         None,
         1,
         0,
-        0.0,
+        quick().gamma,
     )
     .unwrap();
     let init = fx.gaussians("init");
