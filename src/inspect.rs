@@ -110,7 +110,6 @@ pub struct CheckReport {
     pub gaussians: usize,
     pub gml_files: usize,
     pub alignment: Option<AlignmentCheck>,
-    pub has_gt: bool,
     pub seconds: f64,
 }
 
@@ -224,7 +223,6 @@ pub fn check(root: &Path, opts: &CheckOptions) -> CheckReport {
         gaussians: 0,
         gml_files: 0,
         alignment: None,
-        has_gt: false,
         seconds: 0.0,
     };
     if !root.is_dir() {
@@ -242,7 +240,6 @@ pub fn check(root: &Path, opts: &CheckOptions) -> CheckReport {
     report.gaussians = gaussians.as_ref().map_or(0, Gaussians::len);
     let models = read_citygml(&gml, &mut f);
     optional_parts(root, views.as_deref(), &mut f);
-    report.has_gt = root.join("gt").is_dir();
     if let (Some(views), Some(g), Some(models), Some(a)) = (&views, &gaussians, &models, alignment)
     {
         let a = a.unwrap_or_else(|| local_alignment(models));
@@ -579,18 +576,6 @@ fn optional_parts(root: &Path, views: Option<&[View]>, f: &mut Findings) {
         f.note(
             &features,
             "absent: masks are associated by geometry alone, and text queries are not available",
-        );
-    }
-    let gt = root.join("gt");
-    if gt.is_dir() {
-        f.note(
-            &gt,
-            "present: read only by eval; every 8th view is a test view unless --test-every",
-        );
-    } else {
-        f.note(
-            &gt,
-            "absent: no evaluation; every view is a training view unless --test-every",
         );
     }
 }

@@ -29,9 +29,9 @@ pub struct RunArgs {
     /// Contributions per pixel kept in the cache (top-k by α·T); 0 = all.
     #[arg(long, default_value_t = 16)]
     pub top_k: usize,
-    /// Every N-th view (by name) is held back as a test view (3DGS --eval: 8); 0 = none.
-    /// Default: 8 when the scene has ground truth (gt/), else 0 — without ground truth there
-    /// is nothing to evaluate, so every view trains.
+    /// Every N-th view (by name) is held back as a test view, not voted on and predicted as a
+    /// novel view (default 8, 3DGS --eval); 0 = every view trains (a capture without ground
+    /// truth loses nothing to evaluation then). The split never depends on gt/.
     #[arg(long, value_name = "N")]
     pub test_every: Option<usize>,
     /// Run a scene without citymodel/alignment.json: CityGML coordinates minus a local origin.

@@ -131,8 +131,8 @@ pub struct RunOptions {
     /// (the `train` stage, which starts from the vote).
     pub mode: Mode,
     pub train: TrainOptions,
-    /// Every `test_every`-th view (by name) is a test view; 0 = none. `None`: 8 when the
-    /// scene has ground truth (`gt/`), else 0 (no ground truth, so every view trains).
+    /// Every `test_every`-th view (by name) is a test view; 0 = none. `None`:
+    /// [`DEFAULT_TEST_EVERY`] (whether the scene has `gt/` never changes the split).
     pub test_every: Option<usize>,
     /// Run without `citymodel/alignment.json` (the CityGML coordinates minus a local origin).
     pub local_origin: bool,
@@ -236,6 +236,9 @@ fn canonical(scene_dir: &Path) -> Result<PathBuf, RunError> {
     })
 }
 
+/// The default split: every 8th view by name is a test view (3DGS's `--eval`).
+pub const DEFAULT_TEST_EVERY: usize = 8;
+
 /// What every step of a run shares.
 struct Running {
     scene: Scene,
@@ -322,9 +325,8 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         )));
     }
     let views = colmap::read_model(&scene.sparse)?;
-    let test_every = opts
-        .test_every
-        .unwrap_or(if scene.gt.is_some() { 8 } else { 0 });
+    // Never from `gt/`: a run must give the same outputs with the simulation truth deleted.
+    let test_every = opts.test_every.unwrap_or(DEFAULT_TEST_EVERY);
     let split = Split::new(views.clone(), test_every);
     if split.train.is_empty() {
         return Err(RunError::Refused(
