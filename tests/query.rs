@@ -688,21 +688,59 @@ fn masks_counts_table_and_exports() {
     };
     assert_eq!(xs(&a), vec![0, 1, 2, 11]);
     assert_eq!(xs(&b), vec![3, 4, 5, 6, 7, 8, 9, 10, 12, 13, 14, 15]);
+    // Each Gaussian carries its semantics: label, class, feature_id, surface_id, part_id.
+    let strip = |mut g: Gaussians| {
+        let cols: Vec<Vec<i32>> = g
+            .extras
+            .iter()
+            .map(|e| e.values.iter().map(|&v| v as i32).collect())
+            .collect();
+        let names: Vec<String> = g.extras.iter().map(|e| e.name.clone()).collect();
+        assert_eq!(
+            names,
+            ["label", "class", "feature_id", "surface_id", "part_id"]
+        );
+        g.extras.clear();
+        (g, cols)
+    };
+    let (a, ca) = strip(a);
+    let (b, cb) = strip(b);
     assert_eq!(a, gaussians_of(&[0, 1, 2, 11]));
     assert_eq!(b, gaussians_of(&[3, 4, 5, 6, 7, 8, 9, 10, 12, 13, 14, 15]));
-    // Byte for byte: the header differs only in the count, the records are the input's.
+    // g0 g1: Win1 (B1 → W1 → Win1), g2: Win2, g11: WS (B3 → W3 → WS); classes window.
+    assert_eq!(ca[0], vec![2, 2, 3, 12]);
+    assert_eq!(ca[1], vec![2, 2, 2, 2]);
+    assert_eq!(ca[2], vec![0, 0, 0, 10]);
+    assert_eq!(ca[3], vec![1, 1, 1, 11]);
+    assert_eq!(ca[4], vec![2, 2, 3, 12]);
+    // g3 g4: W1 (B1 → W1, no part); g12 g13: tree, g15: unlabelled (no hierarchy).
+    assert_eq!(cb[0][0], 1);
+    assert_eq!((cb[2][0], cb[3][0], cb[4][0]), (0, 1, -1));
+    assert_eq!((cb[0][8], cb[1][8], cb[2][8]), (10_000, 6, -1));
+    assert_eq!((cb[0][11], cb[1][11], cb[4][11]), (-1, -1, -1));
+    // Byte for byte: the header differs in the count and the five int columns; each record is
+    // the input's followed by its columns.
     let bytes = std::fs::read(f.scene.join("point_cloud.ply")).unwrap();
     let ea = std::fs::read(out.join("extract.ply")).unwrap();
     let er = std::fs::read(out.join("remove.ply")).unwrap();
     let hdr = |b: &[u8]| b.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
     let stride = (bytes.len() - hdr(&bytes)) / N;
     assert_eq!(stride, 4 * (3 + 3 + 9 + 1 + 3 + 4));
-    let rec = |b: &[u8], i: usize| b[hdr(b) + i * stride..hdr(b) + (i + 1) * stride].to_vec();
-    assert_eq!(rec(&ea, 3), rec(&bytes, 11));
-    assert_eq!(rec(&er, 0), rec(&bytes, 3));
+    let wide = stride + 4 * 5;
+    let rec = |b: &[u8], i: usize, w: usize| b[hdr(b) + i * w..hdr(b) + i * w + stride].to_vec();
+    let col = |b: &[u8], i: usize, c: usize| {
+        let o = hdr(b) + i * wide + stride + 4 * c;
+        i32::from_le_bytes(b[o..o + 4].try_into().unwrap())
+    };
+    assert_eq!(rec(&ea, 3, wide), rec(&bytes, 11, stride));
+    assert_eq!(
+        (0..5).map(|c| col(&ea, 3, c)).collect::<Vec<_>>(),
+        [12, 2, 10, 11, 12]
+    );
+    assert_eq!(rec(&er, 0, wide), rec(&bytes, 3, stride));
     assert_eq!(
         ea.len() - hdr(&ea) + er.len() - hdr(&er),
-        bytes.len() - hdr(&bytes)
+        (bytes.len() - hdr(&bytes)) / stride * wide
     );
 
     // selection.json.
@@ -832,8 +870,17 @@ fn ascii_input_is_exported_through_the_typed_path() {
     .unwrap();
     // B2's subtree owns g7 (W2), g8 (D1), g9 (R2).
     assert_eq!(s.gaussians, 3);
-    let (a, _) = splat::read_ply(&out.join("extract.ply"), &Default::default()).unwrap();
-    let (b, _) = splat::read_ply(&out.join("remove.ply"), &Default::default()).unwrap();
+    let (mut a, _) = splat::read_ply(&out.join("extract.ply"), &Default::default()).unwrap();
+    let (mut b, _) = splat::read_ply(&out.join("remove.ply"), &Default::default()).unwrap();
+    // The semantic columns: g7 W2 (B2 → W2), g8 D1 (B2 → W2 → D1), g9 R2 (BP → R2).
+    let class = a.extra("class").unwrap().values.clone();
+    assert_eq!(class, vec![0.0, 3.0, 1.0]);
+    let part = a.extra("part_id").unwrap().values.clone();
+    assert_eq!(part, vec![-1.0, 7.0, -1.0]);
+    let feature = a.extra("feature_id").unwrap().values.clone();
+    assert_eq!(feature, vec![5.0, 5.0, 8.0]);
+    a.extras.clear();
+    b.extras.clear();
     assert_eq!(a, gaussians_of(&[7, 8, 9]));
     assert_eq!(
         b,

@@ -76,6 +76,7 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
         .expect("a masks overlay in the report");
     assert!(dir.join("out/masks").join(overlay).is_file(), "{overlay}");
     assert!(dir.join("out/report/v00.png").is_file());
+    crate::report::check_report(&dir.join("out"), "v04");
     // run.json records the version, every option, inputs and outputs with digests.
     let rec: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("out/run.json")).unwrap()).unwrap();

@@ -58,9 +58,27 @@ pub struct QueryArgs {
     /// Views to mask: stems or image names, comma-separated, or `test` (default), `all`, `none`.
     #[arg(long, value_delimiter = ',', default_value = "test")]
     pub views: Vec<String>,
-    /// Write extract.ply (selected Gaussians) and remove.ply (the rest).
+    /// Write extract.ply (selected Gaussians) and remove.ply (the rest), each Gaussian with its
+    /// label, class, feature_id, surface_id and part_id columns.
     #[arg(long)]
     pub export: bool,
+    /// Colours of the exported Gaussians: rgb (the input's), class (the class palette) or
+    /// building (one colour per building); class and building replace the DC colour and zero
+    /// the higher SH bands, so any 3DGS viewer (SuperSplat…) shows the semantics.
+    #[arg(
+        long,
+        value_name = "rgb|class|building",
+        default_value = "rgb",
+        requires = "export"
+    )]
+    pub color_by: query::ColorBy,
+    /// Move the export into the run's georeferenced frame minus its origin (R/citymodel/alignment.json),
+    /// with this axis up: z as CityGML, y for glTF/SuperSplat/three.js.
+    #[arg(long, value_name = "y|z", requires = "export")]
+    pub up: Option<query::UpAxis>,
+    /// Also write the selected Gaussians one file per class or per building (split/, with split.json).
+    #[arg(long, value_name = "class|building", requires = "export")]
+    pub split_by: Option<query::SplitBy>,
     /// Pixel rule of the masks: argmax (the rule of the class maps: the selection beats every
     /// other class and the background) or majority (more than half of the pixel).
     #[arg(long, default_value = "argmax")]
@@ -242,6 +260,11 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
     let opts = QueryOptions {
         views,
         export: a.export,
+        export_options: query::ExportOptions {
+            color_by: a.color_by,
+            up: a.up,
+            split_by: a.split_by,
+        },
         rule: a.mask_rule,
         text,
         sqlite: !a.no_sqlite,
@@ -327,7 +350,16 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
             .unwrap_or_default(),
         s.views.len(),
         s.export
-            .map(|e| format!(", extract.ply {} + remove.ply {}", e.extracted, e.removed))
+            .map(|e| format!(
+                ", extract.ply {} + remove.ply {}{}",
+                e.extracted,
+                e.removed,
+                if s.split.is_empty() {
+                    String::new()
+                } else {
+                    format!(" + {} files in split/", s.split.len())
+                }
+            ))
             .unwrap_or_default(),
         a.out.display(),
         s.timing.total_s,

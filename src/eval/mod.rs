@@ -622,11 +622,23 @@ pub struct EvalSummary {
     /// printed the same way, where it was computed (`gs4city run`: `metrics_by_query.json`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub by_query_tables: Option<String>,
+    /// The dataset-level confusion of the fine classes (the `dataset.fine.confusion` of
+    /// `metrics.json`), for the report; absent in summaries written before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub confusion: Option<Confusion>,
     pub seconds: f64,
     pub warnings: Vec<String>,
 }
 
 impl crate::layout::Summary for EvalSummary {}
+
+/// A confusion matrix of pixel counts: rows the ground-truth classes, columns the predicted ones.
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
+pub struct Confusion {
+    pub rows: Vec<String>,
+    pub columns: Vec<String>,
+    pub counts: Vec<Vec<u64>>,
+}
 
 /// Evaluates `pred` against `gt`, writes `<out>/metrics.json` and `<out>/summary.json`;
 /// returns the summary and the full metrics.
@@ -694,6 +706,11 @@ pub fn run_for(
             .collect(),
         tables: tables(&m),
         by_query_tables: None,
+        confusion: Some(Confusion {
+            rows: m.fine_classes.iter().map(|c| c.to_string()).collect(),
+            columns: m.confusion_columns.iter().map(|c| c.to_string()).collect(),
+            counts: m.dataset.fine.confusion.clone(),
+        }),
         seconds: t0.elapsed().as_secs_f64(),
         warnings: ev.warnings.clone(),
     };

@@ -27,7 +27,7 @@ use crate::selection::{
 };
 use crate::semantics;
 use crate::{classes, fsutil, npy};
-pub use export::ExportCounts;
+pub use export::{ColorBy, ExportCounts, ExportOptions, SplitBy, SplitFile, UpAxis};
 
 /// Errors of the query stage.
 #[derive(Debug, thiserror::Error)]
@@ -106,6 +106,9 @@ pub struct QueryOptions {
     pub views: Views,
     /// Write `extract.ply` and `remove.ply`.
     pub export: bool,
+    /// Colour, frame and per-group files of the export.
+    #[serde(default)]
+    pub export_options: ExportOptions,
     pub rule: MaskRule,
     pub text: TextOptions,
     /// Write `semantic.sqlite`.
@@ -117,6 +120,7 @@ impl Default for QueryOptions {
         QueryOptions {
             views: Views::Test,
             export: false,
+            export_options: ExportOptions::default(),
             rule: MaskRule::Argmax,
             text: TextOptions::default(),
             sqlite: true,
@@ -224,6 +228,9 @@ pub struct QuerySummary {
     pub score: Option<f64>,
     pub views: Vec<ViewCount>,
     pub export: Option<ExportCounts>,
+    /// The per-group files of `export_options.split_by` (`split/`).
+    #[serde(default)]
+    pub split: Vec<SplitFile>,
     pub options: QueryOptions,
     pub labels_source: String,
     pub timing: QueryTiming,
@@ -348,6 +355,38 @@ fn pick_expr(p: &Pick, level: Option<Level>) -> Option<Expr> {
     }))
 }
 
+/// The run's semantics per Gaussian for the exports: label, class, the city hierarchy of city
+/// labels (`semantics::chains`, as `semantic.ply`), and the building (the hierarchy's root).
+pub fn columns(sr: &SemanticRun) -> export::Columns {
+    let chain = semantics::chains(&sr.entities);
+    let entity = |l: i32| sr.labels.get(l).and_then(|x| x.entity);
+    let hier = |l: i32| {
+        entity(l)
+            .and_then(|e| chain.get(e as usize).copied())
+            .unwrap_or(crate::mesh::FaceLabel::NONE)
+    };
+    let h: Vec<_> = sr.label_of.iter().map(|&l| hier(l)).collect();
+    export::Columns {
+        values: [
+            sr.label_of.clone(),
+            sr.class_of.clone(),
+            h.iter().map(|c| c.feature).collect(),
+            h.iter().map(|c| c.surface).collect(),
+            h.iter().map(|c| c.part).collect(),
+        ],
+        building: sr
+            .label_of
+            .iter()
+            .map(|&l| {
+                entity(l)
+                    .and_then(|e| sr.entities.get(e as usize))
+                    .map_or(-1, |e| e.building)
+            })
+            .collect(),
+        gml_ids: sr.entities.iter().map(|e| e.object_id.clone()).collect(),
+    }
+}
+
 /// Runs a query: selection, `selection.json`, masks of the chosen views, exports, the SQLite
 /// table, and `summary.json` (last).
 pub fn run(
@@ -421,10 +460,34 @@ pub fn run(
 
     // 2. Exports.
     let t = Instant::now();
-    let export = if opts.export {
-        Some(export::export(&sr.scene.ply, &selected, out)?)
+    let _ = std::fs::remove_dir_all(out.join("split"));
+    let (export, split) = if opts.export {
+        let eo = &opts.export_options;
+        let frame = match eo.up {
+            Some(up) => {
+                let p = crate::layout::Stage::Citymodel
+                    .path(&sr.run)
+                    .join("alignment.json");
+                let a = crate::alignment::Alignment::read(&p).map_err(|e| {
+                    QueryError::Inputs(format!(
+                        "an export with an up axis reads the run's alignment: {e}"
+                    ))
+                })?;
+                Some(export::frame_motion(&a, up))
+            }
+            None => None,
+        };
+        let (c, f) = export::export(
+            &sr.scene.ply,
+            &columns(sr),
+            &selected,
+            eo,
+            frame.as_ref(),
+            out,
+        )?;
+        (Some(c), f)
     } else {
-        None
+        (None, Vec::new())
     };
     timing.export_s = t.elapsed().as_secs_f64();
 
@@ -583,6 +646,7 @@ pub fn run(
         score,
         views,
         export,
+        split,
         options: opts.clone(),
         labels_source: sr.labels_source.clone(),
         timing,

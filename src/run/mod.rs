@@ -226,6 +226,14 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     finish(r, out, opts, &pred_dir, eval, sup)
 }
 
+/// The command line of this process, each word quoted for a POSIX shell where needed.
+fn command_line() -> String {
+    std::env::args_os()
+        .map(|a| report::shell_word(&a.to_string_lossy()))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
 /// The canonical path of the scene folder (one clear line when it does not exist).
 fn canonical(scene_dir: &Path) -> Result<PathBuf, RunError> {
     scene_dir.canonicalize().map_err(|e| {
@@ -720,6 +728,9 @@ fn finish(
 ) -> Result<RunSummary, RunError> {
     let mut warnings = r.check_warnings.clone();
     warnings.extend(sup.warnings);
+    let semantics = crate::selection::SemanticRun::open(out, &r.scene.root, Some(opts.mode))?;
+    let ply = pred_dir.join("semantic.ply");
+    let command = command_line();
     let report = report::write(&report::ReportInputs {
         scene: &r.scene,
         out,
@@ -727,6 +738,9 @@ fn finish(
         predictions: pred_dir,
         stages: &r.st.reports,
         eval: eval.as_ref(),
+        command: &command,
+        semantic_ply: ply.is_file().then_some(ply.as_path()),
+        semantics: Some(&semantics),
         masks: sup.masks.as_ref(),
         warnings: &warnings,
         choices: &sup.choices,

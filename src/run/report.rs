@@ -1,5 +1,8 @@
-//! `report.html` of a run: per test view the image, the ground-truth class overlay and the
-//! predicted class overlay side by side, the metrics table and the time per stage.
+//! `report.html` of a run: the exact command line, a link to `semantic.ply`, the metrics tables
+//! and the confusion matrix, a per-building table (Gaussians per class, the building's CityGML
+//! attributes), the time per stage, and per test view the image, a render of the semantic
+//! Gaussians painted in their class colours, the ground-truth class overlay and the predicted
+//! class overlay side by side, under a legend whose swatches are outlined (visible on white).
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -26,6 +29,10 @@ pub enum ReportError {
     IdMap(#[from] crate::idmap::IdMapError),
     #[error("{path}: {why}")]
     Data { path: PathBuf, why: String },
+    #[error(transparent)]
+    Ply(#[from] crate::splat::PlyError),
+    #[error(transparent)]
+    Render(#[from] crate::render::RenderError),
 }
 
 /// Blends class colours over an image (α = 0.55 where a class is set).
@@ -74,6 +81,138 @@ pub struct ReportInputs<'a> {
     pub warnings: &'a [String],
     /// Thresholds a stage chose from the scene, and why (e.g. the association's τ_sim).
     pub choices: &'a [String],
+    /// The command line that made the run (shown as is).
+    pub command: &'a str,
+    /// The run's semantic PLY, when written (linked relative to `out`).
+    pub semantic_ply: Option<&'a Path>,
+    /// The run's per-Gaussian semantics (the class-coloured renders and the per-building table).
+    pub semantics: Option<&'a crate::selection::SemanticRun>,
+}
+
+/// Quotes a command-line word for a POSIX shell when it needs it.
+pub fn shell_word(w: &str) -> String {
+    let plain = !w.is_empty()
+        && w.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "_-./=:,+@%".contains(c));
+    if plain {
+        w.to_string()
+    } else {
+        format!("'{}'", w.replace('\'', "'\\''"))
+    }
+}
+
+/// The per-building table: per root building its gml:id, Gaussians per building class and its
+/// own attributes.
+fn building_table(sr: &crate::selection::SemanticRun) -> String {
+    let cols = crate::query::columns(sr);
+    let shown: Vec<i32> = (classes::WALL..=classes::INSTALLATION).collect();
+    let mut counts: std::collections::BTreeMap<i32, Vec<u64>> = Default::default();
+    for (i, &b) in cols.building.iter().enumerate() {
+        if b < 0 {
+            continue;
+        }
+        let row = counts.entry(b).or_insert_with(|| vec![0; shown.len() + 2]);
+        row[0] += 1;
+        let c = sr.class_of[i];
+        let k = shown
+            .iter()
+            .position(|&x| x == c)
+            .map_or(shown.len() + 1, |k| k + 1);
+        row[k] += 1;
+    }
+    let mut html = String::from(
+        "<h2>Buildings</h2><p>Gaussians per building (the root of their label's hierarchy) and class; the building's own CityGML attributes.</p><table><tr><th>building (gml:id)</th><th>Gaussians</th>",
+    );
+    for &c in &shown {
+        let _ = write!(html, "<th>{}</th>", classes::name(c));
+    }
+    html.push_str("<th>other</th><th>attributes</th></tr>");
+    for e in sr.entities.iter().filter(|e| e.parent.is_none()) {
+        let row = counts
+            .get(&e.id)
+            .cloned()
+            .unwrap_or_else(|| vec![0; shown.len() + 2]);
+        let _ = write!(
+            html,
+            "<tr><td style=\"text-align:left\">{}</td>",
+            esc(&e.object_id)
+        );
+        for n in &row {
+            let _ = write!(html, "<td>{n}</td>");
+        }
+        let attrs: Vec<String> = e
+            .attributes
+            .iter()
+            .filter(|(k, _)| !k.ends_with(".uom"))
+            .map(|(k, v)| {
+                let unit = e
+                    .attributes
+                    .get(&format!("{k}.uom"))
+                    .and_then(|u| u.as_str())
+                    .map(|u| format!(" {u}"))
+                    .unwrap_or_default();
+                let v = v.as_str().map_or_else(|| v.to_string(), String::from);
+                format!("{k}={v}{unit}")
+            })
+            .collect();
+        let _ = write!(
+            html,
+            "<td style=\"text-align:left\">{}</td></tr>",
+            esc(&attrs.join(", "))
+        );
+    }
+    html.push_str("</table>");
+    html
+}
+
+/// The confusion matrix of the evaluation (pixel counts; row share in brackets).
+fn confusion_table(c: &crate::eval::Confusion) -> String {
+    let mut html = String::from(
+        "<h3>Confusion matrix (dataset level, pixels; rows ground truth, columns prediction)</h3><table><tr><th></th>",
+    );
+    for col in &c.columns {
+        let _ = write!(html, "<th>{}</th>", esc(col));
+    }
+    html.push_str("</tr>");
+    for (name, row) in c.rows.iter().zip(&c.counts) {
+        let total: u64 = row.iter().sum();
+        let _ = write!(html, "<tr><th>{}</th>", esc(name));
+        for &n in row {
+            let share = if total > 0 {
+                format!(" ({:.0} %)", 100.0 * n as f64 / total as f64)
+            } else {
+                String::new()
+            };
+            let _ = write!(html, "<td>{n}{share}</td>");
+        }
+        html.push_str("</tr>");
+    }
+    html.push_str("</table>");
+    html
+}
+
+/// The scene's Gaussians painted in their class colours (the renderer's input for the
+/// class-coloured panels).
+fn class_scene(
+    scene: &Scene,
+    sr: &crate::selection::SemanticRun,
+) -> Result<crate::render::PreparedScene, ReportError> {
+    let (mut g, _) = crate::splat::read_ply(&scene.ply, &crate::splat::ReadOptions::KEEP)?;
+    if g.len() != sr.class_of.len() {
+        return Err(ReportError::Data {
+            path: scene.ply.clone(),
+            why: format!(
+                "{} Gaussians, the run labels {}",
+                g.len(),
+                sr.class_of.len()
+            ),
+        });
+    }
+    crate::splat::ply::hide_invalid(&mut g);
+    for (i, &c) in sr.class_of.iter().enumerate() {
+        crate::splat::transform::paint(&mut g, i, classes::color(c));
+    }
+    Ok(crate::render::PreparedScene::new(&g)?)
 }
 
 /// Writes `out/report.html` and `out/report/<stem>.png`; returns the report path.
@@ -88,11 +227,20 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
         "<!doctype html><html><head><meta charset=\"utf-8\"><title>gs4city report</title><style>\
          body{{font-family:sans-serif;margin:2em;max-width:1400px}} table{{border-collapse:collapse;margin:1em 0}}\
          td,th{{border:1px solid #bbb;padding:3px 8px;text-align:right}} th{{background:#eee}} img{{max-width:100%}}\
-         .sw{{display:inline-block;width:1em;height:1em;vertical-align:middle;margin:0 4px 0 12px}}</style></head><body>\
+         .sw{{display:inline-block;width:1em;height:1em;vertical-align:middle;margin:0 4px 0 12px;border:1px solid #333}}</style></head><body>\
          <h1>gs4city report</h1><p>Scene <code>{}</code>, run output <code>{}</code>.</p>",
         esc(&scene.root.display().to_string()),
         esc(&out.display().to_string())
     );
+    let _ = write!(html, "<p>Command: <code>{}</code></p>", esc(r.command));
+    if let Some(p) = r.semantic_ply {
+        let rel = p.strip_prefix(out).unwrap_or(p);
+        let _ = write!(
+            html,
+            "<p>Semantic Gaussians: <a href=\"{0}\">{0}</a> (the input PLY with label, class, feature_id, surface_id, part_id per Gaussian).</p>",
+            esc(&rel.display().to_string())
+        );
+    }
     for w in r.warnings {
         let _ = write!(
             html,
@@ -124,6 +272,12 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
                 esc(t)
             );
         }
+        if let Some(c) = &e.confusion {
+            html.push_str(&confusion_table(c));
+        }
+    }
+    if let Some(sr) = r.semantics {
+        html.push_str(&building_table(sr));
     }
     html.push_str(
         "<h2>Time per stage</h2><table><tr><th>stage</th><th>seconds now</th><th>resumed</th><th>seconds when computed</th></tr>",
@@ -153,7 +307,11 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             let _ = write!(html, "<h3>{}</h3><img src=\"masks/{}\">", esc(o), esc(o));
         }
     }
-    html.push_str("<h2>Test views: image | ground truth | prediction</h2><p>");
+    html.push_str(if r.semantics.is_some() {
+        "<h2>Test views: image | semantic Gaussians rendered in class colours | ground truth | prediction</h2><p>"
+    } else {
+        "<h2>Test views: image | ground truth | prediction</h2><p>"
+    });
     for (k, name) in classes::NAMES.iter().enumerate() {
         let [r, g, b] = classes::PALETTE[k];
         let _ = write!(
@@ -162,6 +320,15 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
         );
     }
     html.push_str("</p>");
+    let painted = match r.semantics {
+        Some(sr) if !r.views.is_empty() => Some(class_scene(scene, sr)?),
+        _ => None,
+    };
+    let white = crate::render::RenderOptions {
+        background: [1.0; 3],
+        features: false,
+        ..Default::default()
+    };
     for v in r.views {
         let stem = &v.stem();
         let (w, h) = (
@@ -183,7 +350,12 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             Some(p) if p.is_file() => read_map(&p, h, w)?,
             _ => vec![-1; w * h],
         };
-        let panel = hstack(&[img.clone(), overlay(&img, &gt), overlay(&img, &pred)]);
+        let mut panels = vec![img.clone()];
+        if let Some(p) = &painted {
+            panels.push(crate::render::render_view(p, &v.camera, &white)?.rgb8());
+        }
+        panels.extend([overlay(&img, &gt), overlay(&img, &pred)]);
+        let panel = hstack(&panels);
         crate::imageio::write_png(&dir.join(format!("{stem}.png")), &panel)?;
         let _ = write!(
             html,
