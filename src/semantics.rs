@@ -133,6 +133,25 @@ pub fn write(path: &Path, entities: &[Entity]) -> Result<(), SemanticsError> {
     Ok(())
 }
 
+/// CityGML attributes as `name=value unit` texts (the unit from `name.uom`, which is not listed
+/// on its own), in name order.
+pub fn attribute_texts(
+    attrs: &std::collections::BTreeMap<String, serde_json::Value>,
+) -> Vec<String> {
+    attrs
+        .iter()
+        .filter(|(k, _)| !k.ends_with(".uom"))
+        .map(|(k, v)| {
+            let unit = attrs
+                .get(&format!("{k}.uom"))
+                .and_then(|u| u.as_str())
+                .map(|u| format!(" {u}"))
+                .unwrap_or_default();
+            format!("{k}={v}{unit}")
+        })
+        .collect()
+}
+
 /// The ancestor chain of every entity of a semantic table: its `(feature, surface, part)` ids,
 /// i.e. the nearest ancestor-or-self of each level (−1 where a level is missing). A surface
 /// resets the part, a feature resets both. The table lists parents before children

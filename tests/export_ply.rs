@@ -338,11 +338,8 @@ fn building_colours_and_rgb_byte_export_read_by_splat_transform() {
     let shown = |g: &Gaussians, k: usize| g.f_dc[k].map(|v| (C0 * f64::from(v) + 0.5) * 255.0);
     let (b1, b2) = (shown(&g, 0), shown(&g, 3));
     for k in [1, 2, 4] {
-        for c in 0..3 {
-            assert!(
-                (shown(&g, k)[c] - b1[c]).abs() < 1e-3,
-                "same building, same colour"
-            );
+        for (got, want) in shown(&g, k).iter().zip(&b1) {
+            assert!((got - want).abs() < 1e-3, "same building, same colour");
         }
     }
     assert!(

@@ -307,20 +307,7 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
             p.alpha
         );
         for c in &p.chain {
-            let attrs: Vec<String> = c
-                .attributes
-                .iter()
-                .filter(|(k, _)| !k.ends_with(".uom"))
-                .map(|(k, v)| {
-                    let unit = c
-                        .attributes
-                        .get(&format!("{k}.uom"))
-                        .and_then(|u| u.as_str())
-                        .map(|u| format!(" {u}"))
-                        .unwrap_or_default();
-                    format!("{k}={v}{unit}")
-                })
-                .collect();
+            let attrs = crate::semantics::attribute_texts(&c.attributes);
             println!(
                 "  {} {} {} {}",
                 format!("{:?}", c.level).to_lowercase(),

@@ -8,25 +8,8 @@ use glam::{DMat3, DVec3};
 use super::PreparedScene;
 use crate::camera::Camera;
 
-/// INRIA's SH constants (`auxiliary.h`).
-pub const SH_C0: f64 = 0.282_094_791_773_878_14;
-pub const SH_C1: f64 = 0.488_602_511_902_919_9;
-pub const SH_C2: [f64; 5] = [
-    1.092_548_430_592_079_2,
-    -1.092_548_430_592_079_2,
-    0.315_391_565_252_520_05,
-    -1.092_548_430_592_079_2,
-    0.546_274_215_296_039_6,
-];
-pub const SH_C3: [f64; 7] = [
-    -0.590_043_589_926_643_5,
-    2.890_611_442_640_554,
-    -0.457_045_799_464_465_8,
-    0.373_176_332_590_115_4,
-    -0.457_045_799_464_465_8,
-    1.445_305_721_320_277,
-    -0.590_043_589_926_643_5,
-];
+/// INRIA's SH constants (`auxiliary.h`), owned by the splat format.
+pub use crate::splat::transform::{SH_C0, SH_C1, SH_C2, SH_C3};
 
 /// Near-plane cull distance along the camera axis.
 pub const NEAR: f64 = 0.2;

@@ -140,21 +140,7 @@ fn building_table(sr: &crate::selection::SemanticRun) -> String {
         for n in &row {
             let _ = write!(html, "<td>{n}</td>");
         }
-        let attrs: Vec<String> = e
-            .attributes
-            .iter()
-            .filter(|(k, _)| !k.ends_with(".uom"))
-            .map(|(k, v)| {
-                let unit = e
-                    .attributes
-                    .get(&format!("{k}.uom"))
-                    .and_then(|u| u.as_str())
-                    .map(|u| format!(" {u}"))
-                    .unwrap_or_default();
-                let v = v.as_str().map_or_else(|| v.to_string(), String::from);
-                format!("{k}={v}{unit}")
-            })
-            .collect();
+        let attrs = crate::semantics::attribute_texts(&e.attributes);
         let _ = write!(
             html,
             "<td style=\"text-align:left\">{}</td></tr>",
