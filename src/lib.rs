@@ -45,6 +45,7 @@ pub mod run;
 pub mod sam;
 pub mod scene;
 pub mod selection;
+pub mod segment;
 pub mod semantics;
 pub mod splat;
 pub mod synth;
