@@ -29,6 +29,7 @@ mod refine;
 mod render;
 mod run;
 mod sam;
+mod segment;
 mod synth;
 mod synth_masks;
 mod textembed;
