@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Writes a SAM-family model folder with RANDOM weights for tests and benchmarks (no published
+"""Writes a SAM-family model folder (ONNX opset 17) with RANDOM weights for tests and benchmarks (no published
 weights can be downloaded here). The graphs have the real architectures' input/output signatures
 and, for the `mobilesam` and `vit_b` sizes, their layer counts, widths, token counts and window
 sizes, so their compute matches the real networks (compute does not depend on weight values):
@@ -85,10 +85,9 @@ class G:
 
     def layernorm(self, x, dim, axis=-1):
         """LayerNorm over `axis` written out (ReduceMean, Sub, Mul, Sqrt, Div)."""
-        ax = self.i64([axis])
-        mu = self.op("ReduceMean", [x, ax], keepdims=1)
+        mu = self.op("ReduceMean", [x], axes=[axis], keepdims=1)
         d = self.op("Sub", [x, mu])
-        var = self.op("ReduceMean", [self.op("Mul", [d, d]), ax], keepdims=1)
+        var = self.op("ReduceMean", [self.op("Mul", [d, d])], axes=[axis], keepdims=1)
         y = self.op("Div", [d, self.op("Sqrt", [self.op("Add", [var, self.f32(1e-6)])])])
         shape = [dim] if axis == -1 else [dim, 1, 1]
         g = self.const((1.0 + 0.1 * self.rng.normal(size=shape)).astype(np.float32), "ln_g")
@@ -321,7 +320,7 @@ def decoder(size, seed):
 
 
 def save(graph, path):
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)],
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)],
                               producer_name="gs4city make_test_models.py (random weights)")
     model.ir_version = 8
     onnx.checker.check_model(model)

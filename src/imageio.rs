@@ -309,7 +309,12 @@ pub enum Resample {
 }
 
 /// Resizes an 8-bit RGB `H×W×3` image to `w × h` by OpenCV.
-pub fn resize(rgb: &Array3<u8>, w: usize, h: usize, how: Resample) -> Result<Array3<u8>, ImageError> {
+pub fn resize(
+    rgb: &Array3<u8>,
+    w: usize,
+    h: usize,
+    how: Resample,
+) -> Result<Array3<u8>, ImageError> {
     let err = |why: String| ImageError::Cv { op: "resize", why };
     let (ih, iw, c) = rgb.dim();
     if c != 3 || ih == 0 || iw == 0 || w == 0 || h == 0 {

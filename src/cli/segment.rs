@@ -66,7 +66,12 @@ pub fn run(args: &SegmentArgs) -> anyhow::Result<()> {
         "segment",
         &format!(
             "{} images segmented ({} masks), {} skipped (masks exist); encoder {:.1} s, decoder {:.1} s, post-processing {:.1} s",
-            s.segmented, s.masks, s.skipped, s.timings.encoder_s, s.timings.decoder_s, s.timings.post_s
+            s.segmented,
+            s.masks,
+            s.skipped,
+            s.timings.encoder_s,
+            s.timings.decoder_s,
+            s.timings.post_s
         ),
         t.elapsed().as_secs_f64(),
     );

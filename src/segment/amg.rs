@@ -141,7 +141,13 @@ pub fn remove_small_regions(
 
 /// Nearest-neighbour upscaling of a row-major `h × w` mask to `big_h × big_w`: output pixel
 /// `(y, x)` takes source pixel `(⌊y·h / big_h⌋, ⌊x·w / big_w⌋)`.
-pub fn upscale_nearest(mask: &[bool], h: usize, w: usize, big_h: usize, big_w: usize) -> Array2<bool> {
+pub fn upscale_nearest(
+    mask: &[bool],
+    h: usize,
+    w: usize,
+    big_h: usize,
+    big_w: usize,
+) -> Array2<bool> {
     let xs: Vec<usize> = (0..big_w).map(|x| x * w / big_w).collect();
     Array2::from_shape_fn((big_h, big_w), |(y, x)| mask[(y * h / big_h) * w + xs[x]])
 }
@@ -153,7 +159,10 @@ mod tests {
     #[test]
     fn grid_is_cell_centres_x_fastest() {
         let g = point_grid(2);
-        assert_eq!(g, vec![[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]]);
+        assert_eq!(
+            g,
+            vec![[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]]
+        );
         assert_eq!(point_grid(1), vec![[0.5, 0.5]]);
     }
 
@@ -203,6 +212,9 @@ mod tests {
         assert_eq!(big.row(0).to_vec(), vec![true, true, false, false]);
         assert_eq!(big.row(1).to_vec(), vec![true, true, false, false]);
         assert_eq!(big.row(2).to_vec(), vec![false, false, true, true]);
-        assert_eq!(mask_box(&[false, true, false, true], 2, 2), [1.0, 0.0, 1.0, 1.0]);
+        assert_eq!(
+            mask_box(&[false, true, false, true], 2, 2),
+            [1.0, 0.0, 1.0, 1.0]
+        );
     }
 }

@@ -96,11 +96,26 @@ impl SegmentOptions {
     pub fn validate(&self) -> Result<(), SegmentError> {
         use check::End::{Closed, Open};
         let r = || -> Result<(), String> {
-            check::range("points-per-side", self.points_per_side as f64, Closed(1.0), Closed(256.0))?;
-            check::range("points-per-batch", self.points_per_batch as f64, Closed(1.0), Closed(4096.0))?;
+            check::range(
+                "points-per-side",
+                self.points_per_side as f64,
+                Closed(1.0),
+                Closed(256.0),
+            )?;
+            check::range(
+                "points-per-batch",
+                self.points_per_batch as f64,
+                Closed(1.0),
+                Closed(4096.0),
+            )?;
             check::unit("pred-iou-thresh", self.pred_iou_thresh)?;
             check::unit("stability-score-thresh", self.stability_score_thresh)?;
-            check::range("stability-score-offset", self.stability_score_offset, Closed(0.0), Open(1e6))?;
+            check::range(
+                "stability-score-offset",
+                self.stability_score_offset,
+                Closed(0.0),
+                Open(1e6),
+            )?;
             check::unit("box-nms-thresh", self.box_nms_thresh)?;
             check::range("scale", self.scale, Open(0.0), Closed(1.0))?;
             Ok(())
@@ -136,7 +151,11 @@ impl Segmenter {
     /// named with the layout; a corrupt or mismatched file is named with what is wrong.
     pub fn open(dir: &Path, threads: usize) -> Result<Segmenter, SegmentError> {
         let names = ["encoder.onnx", "decoder.onnx", "model.json"];
-        let missing: Vec<&str> = names.iter().copied().filter(|n| !dir.join(n).is_file()).collect();
+        let missing: Vec<&str> = names
+            .iter()
+            .copied()
+            .filter(|n| !dir.join(n).is_file())
+            .collect();
         if !missing.is_empty() {
             return Err(SegmentError::NoModel {
                 dir: dir.to_path_buf(),
@@ -152,18 +171,22 @@ impl Segmenter {
         let decoder_path = dir.join("decoder.onnx");
         let encoder = model::open_session(&encoder_path, threads)?;
         let decoder = model::open_session(&decoder_path, threads)?;
-        let enc_in = encoder.inputs().first().map(|o| o.name().to_string()).ok_or_else(|| {
-            SegmentError::Model {
+        let enc_in = encoder
+            .inputs()
+            .first()
+            .map(|o| o.name().to_string())
+            .ok_or_else(|| SegmentError::Model {
                 path: encoder_path.clone(),
                 why: "has no input".into(),
-            }
-        })?;
+            })?;
         let shape = model::input_shape(&encoder, &encoder_path, &enc_in)?;
         let want = [1, 3, IMAGE_SIDE as i64, IMAGE_SIDE as i64];
         if shape.len() != 4 || shape.iter().zip(want).any(|(&d, w)| d >= 0 && d != w) {
             return Err(SegmentError::Model {
                 path: encoder_path,
-                why: format!("input `{enc_in}` has shape {shape:?}, expected [1, 3, 1024, 1024] (a SAM image encoder)"),
+                why: format!(
+                    "input `{enc_in}` has shape {shape:?}, expected [1, 3, 1024, 1024] (a SAM image encoder)"
+                ),
             });
         }
         for name in [
@@ -393,7 +416,9 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>, SegmentError> {
         .filter(|p| {
             p.is_file()
                 && p.extension().and_then(|x| x.to_str()).is_some_and(|x| {
-                    ["png", "jpg", "jpeg"].iter().any(|e| x.eq_ignore_ascii_case(e))
+                    ["png", "jpg", "jpeg"]
+                        .iter()
+                        .any(|e| x.eq_ignore_ascii_case(e))
                 })
         })
         .collect();
@@ -430,7 +455,10 @@ pub fn run(
     crate::fsutil::create_dir(&masks_dir)?;
     let bar = crate::progress::Bar::new("segment", todo.len() as u64, "images");
     for path in todo {
-        let name = path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().to_string())
+            .unwrap_or_default();
         bar.message(name);
         let rgb = imageio::read_rgb(path)?;
         let (masks, t) = seg.segment(&rgb, o).map_err(|e| match e {
@@ -454,6 +482,9 @@ pub fn run(
 
 /// `masks/<stem>.json` of an image.
 pub fn mask_path(masks_dir: &Path, image: &Path) -> PathBuf {
-    let stem = image.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
+    let stem = image
+        .file_stem()
+        .map(|s| s.to_string_lossy().to_string())
+        .unwrap_or_default();
     masks_dir.join(format!("{stem}.json"))
 }

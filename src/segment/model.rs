@@ -97,6 +97,9 @@ pub fn open_session(path: &Path, threads: usize) -> Result<Session, SegmentError
         .with_optimization_level(GraphOptimizationLevel::Level3)
         .map_err(|e| bad(e.into()))?
         .with_intra_threads(threads)
+        .map_err(|e| bad(e.into()))?
+        // no busy-waiting between operators: the CPU goes to whoever else runs
+        .with_intra_op_spinning(false)
         .map_err(|e| bad(e.into()))?;
     let mut builder = builder;
     builder.commit_from_file(path).map_err(bad)
