@@ -128,8 +128,11 @@ class G:
             ph, pw = -h % window, -w % window
             hp, wp = h + ph, w + pw
             y = self.reshape(y, [1, h, w, dim])
-            if ph or pw:
-                y = self.op("Pad", [y, self.i64([0, 0, 0, 0, 0, ph, pw, 0])])
+            # zero padding as Concat with zeros (= Pad mode constant, which candle-onnx lacks)
+            if ph:
+                y = self.op("Concat", [y, self.const(np.zeros((1, ph, w, dim), np.float32), "pad")], axis=1)
+            if pw:
+                y = self.op("Concat", [y, self.const(np.zeros((1, hp, pw, dim), np.float32), "pad")], axis=2)
             nh, nw = hp // window, wp // window
             y = self.reshape(y, [1, nh, window, nw, window, dim])
             y = self.op("Transpose", [y], perm=[0, 1, 3, 2, 4, 5])

@@ -326,12 +326,13 @@ impl Segmenter {
             for (i, p) in chunk.iter().enumerate() {
                 for k in first..k_all {
                     let iou = ious[i * k_all + k];
-                    if !(iou > o.pred_iou_thresh) {
+                    // NaN scores fail too
+                    if iou.partial_cmp(&o.pred_iou_thresh) != Some(std::cmp::Ordering::Greater) {
                         continue;
                     }
                     let lg = &masks[(i * k_all + k) * plane..(i * k_all + k + 1) * plane];
                     let stability = amg::stability_score(lg, o.stability_score_offset);
-                    if !(stability >= o.stability_score_thresh) {
+                    if stability < o.stability_score_thresh {
                         continue;
                     }
                     cands.push(Cand {
