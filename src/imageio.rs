@@ -297,3 +297,53 @@ mod tests {
         assert_eq!(dilate(&m, 0).unwrap(), m);
     }
 }
+
+/// How [`resize`] resamples.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Resample {
+    /// `INTER_AREA` on the 8-bit image: each output pixel is the overlap-weighted mean of the
+    /// input pixels its box covers (downscaling).
+    Area,
+    /// `INTER_LINEAR` in `f32` (half-pixel centres, edge pixels repeated), rounded to 8 bits.
+    Linear,
+}
+
+/// Resizes an 8-bit RGB `H×W×3` image to `w × h` by OpenCV.
+pub fn resize(
+    rgb: &Array3<u8>,
+    w: usize,
+    h: usize,
+    how: Resample,
+) -> Result<Array3<u8>, ImageError> {
+    let err = |why: String| ImageError::Cv { op: "resize", why };
+    let (ih, iw, c) = rgb.dim();
+    if c != 3 || ih == 0 || iw == 0 || w == 0 || h == 0 {
+        return Err(err(format!("cannot resize {iw}×{ih}×{c} to {w}×{h}")));
+    }
+    let data: Vec<u8> = rgb.iter().copied().collect();
+    let flat = Mat::from_slice(&data).map_err(|e| err(e.to_string()))?;
+    let img = flat.reshape(3, ih as i32).map_err(|e| err(e.to_string()))?;
+    let size = opencv::core::Size::new(w as i32, h as i32);
+    let mut out = Mat::default();
+    let bytes: Vec<u8> = match how {
+        Resample::Area => {
+            imgproc::resize(&img, &mut out, size, 0.0, 0.0, imgproc::INTER_AREA)
+                .map_err(|e| err(e.to_string()))?;
+            out.data_bytes().map_err(|e| err(e.to_string()))?.to_vec()
+        }
+        Resample::Linear => {
+            let mut f = Mat::default();
+            img.convert_to(&mut f, opencv::core::CV_32FC3, 1.0, 0.0)
+                .map_err(|e| err(e.to_string()))?;
+            imgproc::resize(&f, &mut out, size, 0.0, 0.0, imgproc::INTER_LINEAR)
+                .map_err(|e| err(e.to_string()))?;
+            out.data_typed::<opencv::core::Vec3f>()
+                .map_err(|e| err(e.to_string()))?
+                .iter()
+                .flat_map(|p| p.0)
+                .map(|v| v.round_ties_even().clamp(0.0, 255.0) as u8)
+                .collect()
+        }
+    };
+    Array3::from_shape_vec((h, w, 3), bytes).map_err(|e| err(e.to_string()))
+}

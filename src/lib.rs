@@ -44,6 +44,7 @@ pub mod render;
 pub mod run;
 pub mod sam;
 pub mod scene;
+pub mod segment;
 pub mod selection;
 pub mod semantics;
 pub mod splat;

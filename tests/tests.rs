@@ -31,6 +31,7 @@ mod render;
 mod report;
 mod run;
 mod sam;
+mod segment;
 mod synth;
 mod synth_masks;
 mod textembed;

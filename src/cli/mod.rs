@@ -14,6 +14,7 @@ mod raycast;
 mod render;
 mod run;
 mod scene;
+mod segment;
 mod synth;
 mod train;
 
@@ -112,6 +113,11 @@ enum Command {
     /// Evaluate predicted class maps against ground truth → metrics.json, paper-shaped tables.
     #[command(after_help = "Example:\n  gs4city eval --pred R/lift --gt S/gt --out R/eval")]
     Eval(eval::EvalArgs),
+    /// SAM-family automatic masks of the scene's images on the CPU (ONNX models) → S/masks/<stem>.json.
+    #[command(
+        after_help = "Example:\n  gs4city segment --scene S --model models/mobile_sam --points-per-side 32"
+    )]
+    Segment(segment::SegmentArgs),
     /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
     #[command(after_help = "Example:\n  gs4city synth --preset small --out /tmp/small")]
     Synth(synth::SynthArgs),
@@ -142,6 +148,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Scene(args) => scene::run(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),
+        Command::Segment(args) => segment::run(&args),
     }
 }
 

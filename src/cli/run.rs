@@ -13,6 +13,13 @@ pub struct RunArgs {
     /// alignment.json, optional masks/, features/, gt/.
     #[arg(long)]
     pub scene: PathBuf,
+    /// A SAM-family model folder (docs/segment.md): when the scene has no masks/<stem>.json,
+    /// `gs4city segment` writes them (into the scene's masks/, default options) before the run.
+    #[arg(long, value_name = "DIR")]
+    pub model_dir: Option<PathBuf>,
+    /// Points per side of the prompt grid of that segmentation (`gs4city segment --points-per-side`).
+    #[arg(long, default_value_t = crate::segment::SegmentOptions::default().points_per_side)]
+    pub segment_points_per_side: usize,
     /// Part-pass depth tolerance τ in metres.
     #[arg(long, default_value_t = 0.5)]
     pub tau: f64,
@@ -192,6 +199,34 @@ pub fn print_run(s: &RunSummary) {
 
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let opts = args.options()?;
+    if let Some(dir) = &args.model_dir {
+        let masks = args.scene.join("masks");
+        let has_masks = std::fs::read_dir(&masks).is_ok_and(|rd| {
+            rd.filter_map(|e| e.ok())
+                .any(|e| e.path().extension().is_some_and(|x| x == "json"))
+        });
+        if !has_masks {
+            let t = std::time::Instant::now();
+            let seg = crate::segment::run(
+                &args.scene,
+                dir,
+                &crate::segment::SegmentOptions {
+                    points_per_side: args.segment_points_per_side,
+                    ..Default::default()
+                },
+            )?;
+            crate::progress::done(
+                "segment",
+                &format!(
+                    "{} images segmented ({} masks) into {}",
+                    seg.segmented,
+                    seg.masks,
+                    masks.display()
+                ),
+                t.elapsed().as_secs_f64(),
+            );
+        }
+    }
     let s = run::run(&args.scene, &args.out, &opts)?;
     print_run(&s);
     Ok(())

@@ -1,0 +1,79 @@
+//! `gs4city segment`: SAM-family automatic masks of a scene's images on the CPU → `S/masks/`.
+use std::path::PathBuf;
+
+use clap::Args;
+
+use crate::segment::{self, SegmentOptions};
+
+#[derive(Debug, Args)]
+pub struct SegmentArgs {
+    /// Scene folder: reads images/, writes masks/<stem>.json (an image whose file exists is skipped).
+    #[arg(long)]
+    scene: PathBuf,
+    /// Model folder: encoder.onnx, decoder.onnx, model.json (docs/segment.md).
+    #[arg(long)]
+    model: PathBuf,
+    /// Points per side of the prompt grid.
+    #[arg(long, default_value_t = SegmentOptions::default().points_per_side)]
+    points_per_side: usize,
+    /// Prompts per decoder call.
+    #[arg(long, default_value_t = SegmentOptions::default().points_per_batch)]
+    points_per_batch: usize,
+    /// Masks whose predicted IoU is not above this are dropped.
+    #[arg(long, default_value_t = SegmentOptions::default().pred_iou_thresh)]
+    pred_iou_thresh: f32,
+    /// Masks whose stability score is below this are dropped.
+    #[arg(long, default_value_t = SegmentOptions::default().stability_score_thresh)]
+    stability_score_thresh: f64,
+    /// Box IoU above which NMS drops the lower-scored mask.
+    #[arg(long, default_value_t = SegmentOptions::default().box_nms_thresh)]
+    box_nms_thresh: f64,
+    /// Holes and islands smaller than this many pixels (at the segmentation scale) are removed; 0 = off.
+    #[arg(long, default_value_t = SegmentOptions::default().min_mask_region_area)]
+    min_mask_region_area: usize,
+    /// Downscale factor of the images before segmentation (the reference pipeline's default_scale).
+    #[arg(long, default_value_t = SegmentOptions::default().scale)]
+    scale: f64,
+    /// ONNX Runtime threads (0 = its default).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+}
+
+impl SegmentArgs {
+    /// Validated options.
+    pub fn options(&self) -> anyhow::Result<SegmentOptions> {
+        let o = SegmentOptions {
+            points_per_side: self.points_per_side,
+            points_per_batch: self.points_per_batch,
+            pred_iou_thresh: self.pred_iou_thresh,
+            stability_score_thresh: self.stability_score_thresh,
+            box_nms_thresh: self.box_nms_thresh,
+            min_mask_region_area: self.min_mask_region_area,
+            scale: self.scale,
+            threads: self.threads,
+            ..SegmentOptions::default()
+        };
+        o.validate()?;
+        Ok(o)
+    }
+}
+
+pub fn run(args: &SegmentArgs) -> anyhow::Result<()> {
+    let o = args.options()?;
+    let t = std::time::Instant::now();
+    let s = segment::run(&args.scene, &args.model, &o)?;
+    crate::progress::done(
+        "segment",
+        &format!(
+            "{} images segmented ({} masks), {} skipped (masks exist); encoder {:.1} s, decoder {:.1} s, post-processing {:.1} s",
+            s.segmented,
+            s.masks,
+            s.skipped,
+            s.timings.encoder_s,
+            s.timings.decoder_s,
+            s.timings.post_s
+        ),
+        t.elapsed().as_secs_f64(),
+    );
+    Ok(())
+}

@@ -1,0 +1,491 @@
+//! Stage `segment`: SAM-family automatic mask generation on the CPU (`gs4city segment`).
+//!
+//! Per image of `S/images/` (sorted by name; an image whose `S/masks/<stem>.json` exists is
+//! skipped, so a stopped run resumes): area-downscale by `scale` (the reference pipeline's
+//! `default_scale` 0.25) → longest side to 1024 (bilinear) → SAM's normalisation, zero padding
+//! → `encoder.onnx` → an `n × n` point grid decoded in batches by `decoder.onnx` (SAM's ONNX
+//! export) → `amg`: predicted-IoU and stability filters, box NMS, optional small-region removal →
+//! masks upscaled to the image size (nearest) → `S/masks/<stem>.json` (SAM format, `sam`).
+//! ONNX Runtime is loaded at run time (`model`); docs/segment.md has the model folder layout.
+pub mod amg;
+pub mod model;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use ndarray::{Array2, Array3};
+use ort::session::Session;
+
+use crate::check;
+use crate::fsutil::FsError;
+use crate::imageio::{self, ImageError, Resample};
+use crate::sam::{self, SamError, SamMask};
+
+pub use model::{LAYOUT_HELP, ModelInfo};
+
+/// Errors of the segment stage; each names the file (model, image or mask file) at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum SegmentError {
+    #[error("{0}")]
+    Runtime(String),
+    #[error("no SAM-family model in {dir}: {missing} missing; {LAYOUT_HELP}")]
+    NoModel { dir: PathBuf, missing: String },
+    #[error("model file {path}: {why}")]
+    Model { path: PathBuf, why: String },
+    #[error("{path}: {why}")]
+    Image { path: PathBuf, why: String },
+    #[error("{dir}: no images (png, jpg, jpeg)")]
+    NoImages { dir: PathBuf },
+    #[error("invalid option: {0}")]
+    Options(String),
+    #[error(transparent)]
+    Cv(#[from] ImageError),
+    #[error(transparent)]
+    Sam(#[from] SamError),
+    #[error(transparent)]
+    Fs(#[from] FsError),
+}
+
+/// SAM's pixel mean and standard deviation (RGB, 0..255).
+const PIXEL_MEAN: [f64; 3] = [123.675, 116.28, 103.53];
+const PIXEL_STD: [f64; 3] = [58.395, 57.12, 57.375];
+/// The encoder's input side.
+pub const IMAGE_SIDE: usize = 1024;
+
+/// The options of automatic mask generation (SAM's `SamAutomaticMaskGenerator` names).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SegmentOptions {
+    /// Points per side of the prompt grid (SAM: 32).
+    pub points_per_side: usize,
+    /// Prompts decoded per decoder call (a decoder with a fixed batch of 1 is called per point).
+    pub points_per_batch: usize,
+    /// Masks whose predicted IoU is not above this are dropped.
+    pub pred_iou_thresh: f32,
+    /// Masks whose stability score is below this are dropped.
+    pub stability_score_thresh: f64,
+    /// The logit offset of the stability score (SAM: 1.0).
+    pub stability_score_offset: f32,
+    /// Box IoU above which NMS drops the lower-scored mask.
+    pub box_nms_thresh: f64,
+    /// Holes and islands smaller than this (pixels, at the segmentation scale) are removed; 0 = off.
+    pub min_mask_region_area: usize,
+    /// The image is downscaled by this factor before segmentation (reference: 0.25).
+    pub scale: f64,
+    /// ONNX Runtime intra-op threads (0 = its default).
+    pub threads: usize,
+}
+
+impl Default for SegmentOptions {
+    fn default() -> Self {
+        SegmentOptions {
+            points_per_side: 32,
+            points_per_batch: 64,
+            pred_iou_thresh: 0.88,
+            stability_score_thresh: 0.95,
+            stability_score_offset: 1.0,
+            box_nms_thresh: 0.7,
+            min_mask_region_area: 0,
+            scale: 0.25,
+            threads: 0,
+        }
+    }
+}
+
+impl SegmentOptions {
+    /// Checks every option's range.
+    pub fn validate(&self) -> Result<(), SegmentError> {
+        use check::End::{Closed, Open};
+        let r = || -> Result<(), String> {
+            check::range(
+                "points-per-side",
+                self.points_per_side as f64,
+                Closed(1.0),
+                Closed(256.0),
+            )?;
+            check::range(
+                "points-per-batch",
+                self.points_per_batch as f64,
+                Closed(1.0),
+                Closed(4096.0),
+            )?;
+            check::unit("pred-iou-thresh", self.pred_iou_thresh)?;
+            check::unit("stability-score-thresh", self.stability_score_thresh)?;
+            check::range(
+                "stability-score-offset",
+                self.stability_score_offset,
+                Closed(0.0),
+                Open(1e6),
+            )?;
+            check::unit("box-nms-thresh", self.box_nms_thresh)?;
+            check::range("scale", self.scale, Open(0.0), Closed(1.0))?;
+            Ok(())
+        };
+        r().map_err(SegmentError::Options)
+    }
+}
+
+/// Seconds spent per part of one image.
+#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
+pub struct Timings {
+    /// Resizing, normalisation and the encoder.
+    pub encoder_s: f64,
+    /// The decoder calls.
+    pub decoder_s: f64,
+    /// Filters, NMS, small regions, upscaling and RLE.
+    pub post_s: f64,
+}
+
+/// A loaded model: encoder and decoder sessions.
+pub struct Segmenter {
+    pub info: ModelInfo,
+    encoder: Session,
+    decoder: Session,
+    encoder_path: PathBuf,
+    decoder_path: PathBuf,
+    /// The decoder's fixed batch size, if it has one.
+    fixed_batch: Option<usize>,
+}
+
+impl Segmenter {
+    /// Opens `dir/encoder.onnx`, `dir/decoder.onnx` and `dir/model.json`: every missing file is
+    /// named with the layout; a corrupt or mismatched file is named with what is wrong.
+    pub fn open(dir: &Path, threads: usize) -> Result<Segmenter, SegmentError> {
+        let names = ["encoder.onnx", "decoder.onnx", "model.json"];
+        let missing: Vec<&str> = names
+            .iter()
+            .copied()
+            .filter(|n| !dir.join(n).is_file())
+            .collect();
+        if !missing.is_empty() {
+            return Err(SegmentError::NoModel {
+                dir: dir.to_path_buf(),
+                missing: missing.join(", "),
+            });
+        }
+        let json = dir.join("model.json");
+        let info: ModelInfo = crate::fsutil::read_json(&json).map_err(|e| SegmentError::Model {
+            path: json.clone(),
+            why: e.to_string(),
+        })?;
+        let encoder_path = dir.join("encoder.onnx");
+        let decoder_path = dir.join("decoder.onnx");
+        let encoder = model::open_session(&encoder_path, threads)?;
+        let decoder = model::open_session(&decoder_path, threads)?;
+        let enc_in = encoder
+            .inputs()
+            .first()
+            .map(|o| o.name().to_string())
+            .ok_or_else(|| SegmentError::Model {
+                path: encoder_path.clone(),
+                why: "has no input".into(),
+            })?;
+        let shape = model::input_shape(&encoder, &encoder_path, &enc_in)?;
+        let want = [1, 3, IMAGE_SIDE as i64, IMAGE_SIDE as i64];
+        if shape.len() != 4 || shape.iter().zip(want).any(|(&d, w)| d >= 0 && d != w) {
+            return Err(SegmentError::Model {
+                path: encoder_path,
+                why: format!(
+                    "input `{enc_in}` has shape {shape:?}, expected [1, 3, 1024, 1024] (a SAM image encoder)"
+                ),
+            });
+        }
+        for name in [
+            "image_embeddings",
+            "point_coords",
+            "point_labels",
+            "mask_input",
+            "has_mask_input",
+            "orig_im_size",
+        ] {
+            model::input_shape(&decoder, &decoder_path, name)?;
+        }
+        model::require_outputs(&decoder, &decoder_path, &["masks", "iou_predictions"])?;
+        let pc = model::input_shape(&decoder, &decoder_path, "point_coords")?;
+        let fixed_batch = pc.first().copied().filter(|&b| b > 0).map(|b| b as usize);
+        Ok(Segmenter {
+            info,
+            encoder,
+            decoder,
+            encoder_path,
+            decoder_path,
+            fixed_batch,
+        })
+    }
+
+    /// Automatic masks of one RGB image (`H×W×3`), at the image's full size.
+    pub fn segment(
+        &mut self,
+        rgb: &Array3<u8>,
+        o: &SegmentOptions,
+    ) -> Result<(Vec<SamMask>, Timings), SegmentError> {
+        let mut t = Timings::default();
+        let t0 = Instant::now();
+        let (big_h, big_w, _) = rgb.dim();
+        let w = ((big_w as f64) * o.scale).round_ties_even().max(1.0) as usize;
+        let h = ((big_h as f64) * o.scale).round_ties_even().max(1.0) as usize;
+        let small = if (w, h) == (big_w, big_h) {
+            rgb.clone()
+        } else {
+            imageio::resize(rgb, w, h, Resample::Area)?
+        };
+        let s = IMAGE_SIDE as f64 / h.max(w) as f64;
+        let nh = (h as f64 * s + 0.5) as usize;
+        let nw = (w as f64 * s + 0.5) as usize;
+        let resized = imageio::resize(&small, nw, nh, Resample::Linear)?;
+        let side = IMAGE_SIDE;
+        let mut input = vec![0f32; 3 * side * side];
+        for ((y, x, c), &v) in resized.indexed_iter() {
+            input[c * side * side + y * side + x] =
+                ((f64::from(v) - PIXEL_MEAN[c]) / PIXEL_STD[c]) as f32;
+        }
+        let enc_in = self.encoder.inputs()[0].name().to_string();
+        let image = model::tensor(&[1, 3, side, side], input, &self.encoder_path)?;
+        let embeddings: Vec<f32> = {
+            let out = self
+                .encoder
+                .run(ort::inputs![enc_in.as_str() => image])
+                .map_err(|e| run_err(&self.encoder_path, e))?;
+            let (shape, data) = out[0]
+                .try_extract_tensor::<f32>()
+                .map_err(|e| run_err(&self.encoder_path, e))?;
+            if shape.iter().copied().collect::<Vec<i64>>() != [1, 256, 64, 64] {
+                return Err(SegmentError::Model {
+                    path: self.encoder_path.clone(),
+                    why: format!("output has shape {shape:?}, expected [1, 256, 64, 64]"),
+                });
+            }
+            data.to_vec()
+        };
+        t.encoder_s = t0.elapsed().as_secs_f64();
+
+        let points: Vec<[f64; 2]> = amg::point_grid(o.points_per_side)
+            .into_iter()
+            .map(|[x, y]| [x * w as f64, y * h as f64])
+            .collect();
+        let batch = self.fixed_batch.unwrap_or(o.points_per_batch);
+        let (sx, sy) = (nw as f64 / w as f64, nh as f64 / h as f64);
+        struct Cand {
+            mask: Vec<bool>,
+            iou: f32,
+            stability: f64,
+            point: [f64; 2],
+        }
+        let mut cands: Vec<Cand> = Vec::new();
+        for chunk in points.chunks(batch) {
+            let t1 = Instant::now();
+            let b = chunk.len();
+            let mut coords = vec![0f32; b * 4];
+            let mut labels = vec![0f32; b * 2];
+            for (i, p) in chunk.iter().enumerate() {
+                coords[i * 4] = (p[0] * sx) as f32;
+                coords[i * 4 + 1] = (p[1] * sy) as f32;
+                labels[i * 2] = 1.0;
+                labels[i * 2 + 1] = -1.0;
+            }
+            let dp = &self.decoder_path;
+            let emb = model::tensor(&[1, 256, 64, 64], embeddings.clone(), dp)?;
+            let inputs = ort::inputs![
+                "image_embeddings" => emb,
+                "point_coords" => model::tensor(&[b, 2, 2], coords, dp)?,
+                "point_labels" => model::tensor(&[b, 2], labels, dp)?,
+                "mask_input" => model::tensor(&[1, 1, 256, 256], vec![0.0; 256 * 256], dp)?,
+                "has_mask_input" => model::tensor(&[1], vec![0.0], dp)?,
+                "orig_im_size" => model::tensor(&[2], vec![h as f32, w as f32], dp)?,
+            ];
+            let out = self.decoder.run(inputs).map_err(|e| run_err(dp, e))?;
+            let (mshape, masks) = out["masks"]
+                .try_extract_tensor::<f32>()
+                .map_err(|e| run_err(dp, e))?;
+            let (ishape, ious) = out["iou_predictions"]
+                .try_extract_tensor::<f32>()
+                .map_err(|e| run_err(dp, e))?;
+            let ms: Vec<i64> = mshape.iter().copied().collect();
+            let is: Vec<i64> = ishape.iter().copied().collect();
+            if ms.len() != 4
+                || ms[0] != b as i64
+                || ms[2] != h as i64
+                || ms[3] != w as i64
+                || is.len() != 2
+                || is[0] != b as i64
+                || is[1] != ms[1]
+                || !matches!(ms[1], 1 | 3 | 4)
+            {
+                return Err(SegmentError::Model {
+                    path: dp.clone(),
+                    why: format!(
+                        "outputs masks {ms:?} and iou_predictions {is:?} for {b} prompts on a {w}×{h} image; expected [{b}, 4, {h}, {w}] and [{b}, 4]"
+                    ),
+                });
+            }
+            let k_all = ms[1] as usize;
+            // SAM's multimask outputs: tokens 1..4 of 4 (token 0 is the single-mask output)
+            let first = usize::from(k_all == 4);
+            t.decoder_s += t1.elapsed().as_secs_f64();
+            let t2 = Instant::now();
+            let plane = h * w;
+            for (i, p) in chunk.iter().enumerate() {
+                for k in first..k_all {
+                    let iou = ious[i * k_all + k];
+                    // NaN scores fail too
+                    if iou.partial_cmp(&o.pred_iou_thresh) != Some(std::cmp::Ordering::Greater) {
+                        continue;
+                    }
+                    let lg = &masks[(i * k_all + k) * plane..(i * k_all + k + 1) * plane];
+                    let stability = amg::stability_score(lg, o.stability_score_offset);
+                    if stability < o.stability_score_thresh {
+                        continue;
+                    }
+                    cands.push(Cand {
+                        mask: lg.iter().map(|&v| v > 0.0).collect(),
+                        iou,
+                        stability,
+                        point: *p,
+                    });
+                }
+            }
+            t.post_s += t2.elapsed().as_secs_f64();
+        }
+        let t3 = Instant::now();
+        let boxes: Vec<[f64; 4]> = cands.iter().map(|c| amg::mask_box(&c.mask, h, w)).collect();
+        let scores: Vec<f64> = cands.iter().map(|c| f64::from(c.iou)).collect();
+        let keep = amg::nms(&boxes, &scores, o.box_nms_thresh);
+        let mut cands: Vec<Option<Cand>> = cands.into_iter().map(Some).collect();
+        let mut kept: Vec<Cand> = keep.iter().filter_map(|&i| cands[i].take()).collect();
+        if o.min_mask_region_area > 0 && !kept.is_empty() {
+            let mut scores = Vec::with_capacity(kept.len());
+            for c in kept.iter_mut() {
+                let m = Array2::from_shape_vec((h, w), std::mem::take(&mut c.mask))
+                    .expect("h·w values");
+                let (m, c1) = amg::remove_small_regions(&m, o.min_mask_region_area, true)?;
+                let (m, c2) = amg::remove_small_regions(&m, o.min_mask_region_area, false)?;
+                scores.push(if c1 || c2 { 0.0 } else { 1.0 });
+                c.mask = m.iter().copied().collect();
+            }
+            let boxes: Vec<[f64; 4]> = kept.iter().map(|c| amg::mask_box(&c.mask, h, w)).collect();
+            let keep = amg::nms(&boxes, &scores, o.box_nms_thresh);
+            let mut all: Vec<Option<Cand>> = kept.into_iter().map(Some).collect();
+            kept = keep.iter().filter_map(|&i| all[i].take()).collect();
+        }
+        let out = kept
+            .iter()
+            .map(|c| {
+                let big = amg::upscale_nearest(&c.mask, h, w, big_h, big_w);
+                SamMask::from_mask(
+                    &big,
+                    f64::from(c.iou),
+                    c.stability,
+                    vec![[
+                        c.point[0] * big_w as f64 / w as f64,
+                        c.point[1] * big_h as f64 / h as f64,
+                    ]],
+                )
+            })
+            .collect();
+        t.post_s += t3.elapsed().as_secs_f64();
+        Ok((out, t))
+    }
+}
+
+fn run_err(path: &Path, e: ort::Error) -> SegmentError {
+    SegmentError::Model {
+        path: path.to_path_buf(),
+        why: format!("inference failed: {}", e.to_string().replace('\n', " ")),
+    }
+}
+
+/// What `segment` did.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct SegmentSummary {
+    /// Images segmented now.
+    pub segmented: usize,
+    /// Images skipped because their mask file existed.
+    pub skipped: usize,
+    /// Masks written now.
+    pub masks: usize,
+    /// Seconds per part, summed over the images segmented now.
+    pub timings: Timings,
+}
+
+/// The images of `dir` (png, jpg, jpeg; sorted by name).
+pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>, SegmentError> {
+    let rd = std::fs::read_dir(dir).map_err(|e| SegmentError::Image {
+        path: dir.to_path_buf(),
+        why: e.to_string(),
+    })?;
+    let mut out: Vec<PathBuf> = rd
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.is_file()
+                && p.extension().and_then(|x| x.to_str()).is_some_and(|x| {
+                    ["png", "jpg", "jpeg"]
+                        .iter()
+                        .any(|e| x.eq_ignore_ascii_case(e))
+                })
+        })
+        .collect();
+    out.sort();
+    if out.is_empty() {
+        return Err(SegmentError::NoImages {
+            dir: dir.to_path_buf(),
+        });
+    }
+    Ok(out)
+}
+
+/// Segments every image of `scene/images/` that has no `scene/masks/<stem>.json` yet.
+pub fn run(
+    scene: &Path,
+    model_dir: &Path,
+    o: &SegmentOptions,
+) -> Result<SegmentSummary, SegmentError> {
+    o.validate()?;
+    let images = list_images(&scene.join("images"))?;
+    let masks_dir = scene.join("masks");
+    let todo: Vec<&PathBuf> = images
+        .iter()
+        .filter(|p| !mask_path(&masks_dir, p).is_file())
+        .collect();
+    let mut summary = SegmentSummary {
+        skipped: images.len() - todo.len(),
+        ..Default::default()
+    };
+    if todo.is_empty() {
+        return Ok(summary);
+    }
+    let mut seg = Segmenter::open(model_dir, o.threads)?;
+    crate::fsutil::create_dir(&masks_dir)?;
+    let bar = crate::progress::Bar::new("segment", todo.len() as u64, "images");
+    for path in todo {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().to_string())
+            .unwrap_or_default();
+        bar.message(name);
+        let rgb = imageio::read_rgb(path)?;
+        let (masks, t) = seg.segment(&rgb, o).map_err(|e| match e {
+            SegmentError::Cv(err) => SegmentError::Image {
+                path: path.clone(),
+                why: err.to_string(),
+            },
+            e => e,
+        })?;
+        sam::write_sam_json(&mask_path(&masks_dir, path), &masks)?;
+        summary.segmented += 1;
+        summary.masks += masks.len();
+        summary.timings.encoder_s += t.encoder_s;
+        summary.timings.decoder_s += t.decoder_s;
+        summary.timings.post_s += t.post_s;
+        bar.inc(1);
+    }
+    bar.finish();
+    Ok(summary)
+}
+
+/// `masks/<stem>.json` of an image.
+pub fn mask_path(masks_dir: &Path, image: &Path) -> PathBuf {
+    let stem = image
+        .file_stem()
+        .map(|s| s.to_string_lossy().to_string())
+        .unwrap_or_default();
+    masks_dir.join(format!("{stem}.json"))
+}

@@ -1,0 +1,365 @@
+//! `gs4city segment` (SAM-family automatic masks through ONNX Runtime) against an independent
+//! NumPy implementation of automatic mask generation (`scripts/sam_amg_reference.py`, networks
+//! run by the pip package onnxruntime), on a small random-weight model with SAM's signatures
+//! (`scripts/make_test_models.py --size tiny`); and the errors: no model, a corrupt or wrong
+//! model file, no ONNX Runtime. The Python cross-checks are skipped like every other one
+//! (`common::skip`) where onnx/onnxruntime are not installed.
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::OnceLock;
+
+use gs4city::sam;
+
+use crate::common::python_can_import;
+
+const PY: &[&str] = &["numpy", "onnx", "onnxruntime", "scipy", "pycocotools"];
+
+fn root() -> PathBuf {
+    let d = std::env::temp_dir().join(format!("gs4city-segment-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The tiny random-weight model, generated once per test binary.
+fn tiny_model() -> PathBuf {
+    static M: OnceLock<PathBuf> = OnceLock::new();
+    M.get_or_init(|| {
+        let dir = root().join("tiny");
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/make_test_models.py");
+        let out = Command::new("python3")
+            .arg(&script)
+            .args(["--size", "tiny", "--seed", "3", "--out"])
+            .arg(&dir)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        dir
+    })
+    .clone()
+}
+
+/// A 330×247 test image (gradient, rectangles, a disc) as PNG in `scene/images/` and as .npy.
+fn scene(name: &str) -> (PathBuf, PathBuf) {
+    let (h, w) = (247usize, 330usize);
+    let mut rgb = ndarray::Array3::<u8>::zeros((h, w, 3));
+    for y in 0..h {
+        for x in 0..w {
+            let mut p = [(x * 255 / w) as u8, (y * 255 / h) as u8, 90];
+            if (30..100).contains(&y) && (40..150).contains(&x) {
+                p = [200, 40, 40];
+            }
+            if (125..225).contains(&y) && (175..300).contains(&x) {
+                p = [30, 160, 220];
+            }
+            let (dx, dy) = (x as f64 - 240.0, y as f64 - 60.0);
+            if dx * dx + dy * dy < 900.0 {
+                p = [250, 250, 250];
+            }
+            rgb[[y, x, 0]] = p[0];
+            rgb[[y, x, 1]] = p[1];
+            rgb[[y, x, 2]] = p[2];
+        }
+    }
+    let s = root().join(name);
+    let _ = std::fs::remove_dir_all(&s);
+    std::fs::create_dir_all(s.join("images")).unwrap();
+    gs4city::imageio::write_png(&s.join("images/v000.png"), &rgb).unwrap();
+    let npy = s.join("v000.npy");
+    gs4city::npy::write(&npy, &[h, w, 3], rgb.as_slice().unwrap()).unwrap();
+    (s, npy)
+}
+
+fn gs4city(args: &[&str], env: &[(&str, &str)]) -> std::process::Output {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_gs4city"));
+    c.args(args);
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.output().unwrap()
+}
+
+/// Same masks as the NumPy reference: the same count, in the same order, each with IoU ≥ 0.99
+/// (RLE decoded) and the same predicted IoU; with NMS off (every candidate that passes the
+/// filters) and with NMS and small-region removal on.
+#[test]
+fn masks_match_the_numpy_reference() {
+    const TEST: &str = "segment::masks_match_the_numpy_reference";
+    if !python_can_import(TEST, PY) {
+        return;
+    }
+    let model = tiny_model();
+    for (i, opts) in [
+        &[
+            "--points-per-side",
+            "4",
+            "--pred-iou-thresh",
+            "0.86",
+            "--stability-score-thresh",
+            "0.8",
+            "--box-nms-thresh",
+            "1.0",
+        ][..],
+        &[
+            "--points-per-side",
+            "3",
+            "--pred-iou-thresh",
+            "0.8",
+            "--stability-score-thresh",
+            "0.6",
+            "--box-nms-thresh",
+            "0.7",
+            "--min-mask-region-area",
+            "40",
+            "--scale",
+            "0.5",
+        ][..],
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let (s, npy) = scene(&format!("ref{i}"));
+        let mut args = vec![
+            "segment",
+            "--scene",
+            s.to_str().unwrap(),
+            "--model",
+            model.to_str().unwrap(),
+        ];
+        args.extend_from_slice(opts);
+        let out = gs4city(&args, &[]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let reference = s.join("reference.json");
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/sam_amg_reference.py");
+        let r = Command::new("python3")
+            .arg(&script)
+            .arg("--model")
+            .arg(&model)
+            .arg("--image")
+            .arg(&npy)
+            .arg("--out")
+            .arg(&reference)
+            .args(opts)
+            .output()
+            .unwrap();
+        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+        let ours = sam::read_sam_json_sized(&s.join("masks/v000.json"), Some([247, 330])).unwrap();
+        let theirs = sam::read_sam_json_sized(&reference, Some([247, 330])).unwrap();
+        assert!(
+            !ours.is_empty(),
+            "config {i}: no masks: the test would prove nothing"
+        );
+        assert_eq!(ours.len(), theirs.len(), "config {i}: mask counts differ");
+        for (k, (a, b)) in ours.iter().zip(&theirs).enumerate() {
+            let (ma, mb) = (
+                a.segmentation.decode().unwrap(),
+                b.segmentation.decode().unwrap(),
+            );
+            let inter = ma.iter().zip(mb.iter()).filter(|(x, y)| **x && **y).count();
+            let union = ma.iter().zip(mb.iter()).filter(|(x, y)| **x || **y).count();
+            let iou = inter as f64 / union.max(1) as f64;
+            assert!(iou >= 0.99, "config {i} mask {k}: IoU {iou}");
+            assert!(
+                (a.predicted_iou - b.predicted_iou).abs() < 1e-3,
+                "config {i} mask {k}"
+            );
+            assert!(
+                (a.stability_score - b.stability_score).abs() < 0.01,
+                "config {i} mask {k}"
+            );
+            assert_eq!(a.point_coords, b.point_coords, "config {i} mask {k}");
+        }
+        // resumable: a second run skips the image and leaves its file alone
+        let before = std::fs::read(s.join("masks/v000.json")).unwrap();
+        let again = gs4city(&args, &[]);
+        assert!(again.status.success());
+        assert!(
+            String::from_utf8_lossy(&again.stderr).contains("1 skipped"),
+            "{}",
+            String::from_utf8_lossy(&again.stderr)
+        );
+        assert_eq!(std::fs::read(s.join("masks/v000.json")).unwrap(), before);
+    }
+}
+
+/// No model folder content: one line naming the expected files and where the weights are.
+#[test]
+fn no_model_names_the_expected_files() {
+    let (s, _) = scene("nomodel");
+    let empty = root().join("empty-model");
+    std::fs::create_dir_all(&empty).unwrap();
+    let out = gs4city(
+        &[
+            "segment",
+            "--scene",
+            s.to_str().unwrap(),
+            "--model",
+            empty.to_str().unwrap(),
+        ],
+        &[],
+    );
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    for want in [
+        "encoder.onnx, decoder.onnx, model.json missing",
+        "segment-anything",
+        "MobileSAM",
+        "docs/segment.md",
+    ] {
+        assert!(err.contains(want), "{want} not in: {err}");
+    }
+    assert!(!s.join("masks/v000.json").exists());
+}
+
+/// No ONNX Runtime (ORT_DYLIB_PATH to a missing file, or to a file that is no library): one
+/// clear line, no panic.
+#[test]
+fn missing_runtime_is_one_clear_line() {
+    let (s, _) = scene("noruntime");
+    let m = root().join("garbage-model");
+    std::fs::create_dir_all(&m).unwrap();
+    for f in ["encoder.onnx", "decoder.onnx", "model.json"] {
+        std::fs::write(m.join(f), b"{\"family\": \"sam\"}").unwrap();
+    }
+    let args = [
+        "segment",
+        "--scene",
+        s.to_str().unwrap(),
+        "--model",
+        m.to_str().unwrap(),
+    ];
+    let out = gs4city(
+        &args,
+        &[("ORT_DYLIB_PATH", "/nonexistent/libonnxruntime.so")],
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("ORT_DYLIB_PATH=/nonexistent/libonnxruntime.so is not a file"),
+        "{err}"
+    );
+    let not_lib = m.join("model.json");
+    let out = gs4city(&args, &[("ORT_DYLIB_PATH", not_lib.to_str().unwrap())]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("cannot load ONNX Runtime from") && !err.contains("panicked"),
+        "{err}"
+    );
+}
+
+/// A corrupt encoder and a decoder that is no SAM decoder: each error names its file.
+#[test]
+fn corrupt_or_wrong_model_file_is_named() {
+    const TEST: &str = "segment::corrupt_or_wrong_model_file_is_named";
+    if !python_can_import(TEST, PY) {
+        return;
+    }
+    let model = tiny_model();
+    let (s, _) = scene("corrupt");
+    let bad = root().join("corrupt-model");
+    std::fs::create_dir_all(&bad).unwrap();
+    for f in ["encoder.onnx", "decoder.onnx", "model.json"] {
+        std::fs::copy(model.join(f), bad.join(f)).unwrap();
+    }
+    let enc = std::fs::read(model.join("encoder.onnx")).unwrap();
+    std::fs::write(bad.join("encoder.onnx"), &enc[..enc.len() / 3]).unwrap();
+    let args = [
+        "segment",
+        "--scene",
+        s.to_str().unwrap(),
+        "--model",
+        bad.to_str().unwrap(),
+    ];
+    let out = gs4city(&args, &[]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(&format!(
+            "model file {}",
+            bad.join("encoder.onnx").display()
+        )),
+        "{err}"
+    );
+    // the encoder where the decoder belongs
+    std::fs::copy(model.join("encoder.onnx"), bad.join("encoder.onnx")).unwrap();
+    std::fs::copy(model.join("encoder.onnx"), bad.join("decoder.onnx")).unwrap();
+    let out = gs4city(&args, &[]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(&format!(
+            "model file {}",
+            bad.join("decoder.onnx").display()
+        )) && err.contains("has no input `image_embeddings`"),
+        "{err}"
+    );
+    // a model.json that is no JSON object
+    std::fs::copy(model.join("decoder.onnx"), bad.join("decoder.onnx")).unwrap();
+    std::fs::write(bad.join("model.json"), b"[1, 2").unwrap();
+    let out = gs4city(&args, &[]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("model.json"), "{err}");
+    assert!(!s.join("masks/v000.json").exists());
+}
+
+/// `gs4city run --model-dir`: a scene without masks (SIMULATED synth small preset, its masks/
+/// and features/ removed) is segmented first — every image gets masks/<stem>.json in the SAM
+/// format the masks stage reads — and the whole pipeline runs on those masks.
+#[test]
+fn run_with_a_model_segments_a_scene_without_masks() {
+    const TEST: &str = "segment::run_with_a_model_segments_a_scene_without_masks";
+    if !python_can_import(TEST, PY) {
+        return;
+    }
+    let model = tiny_model();
+    let dir = root().join("run");
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut cfg = gs4city::synth::SynthConfig::preset(gs4city::synth::Preset::Small);
+    cfg.cameras.orbit_views = 3;
+    cfg.cameras.street_views = 0;
+    cfg.cameras.width = 330;
+    cfg.cameras.height = 247;
+    let s = dir.join("scene");
+    gs4city::synth::run(&cfg, &s).unwrap();
+    std::fs::remove_dir_all(s.join("masks")).unwrap();
+    let _ = std::fs::remove_dir_all(s.join("features"));
+    let r = dir.join("out");
+    let out = gs4city(
+        &[
+            "run",
+            "--scene",
+            s.to_str().unwrap(),
+            "--out",
+            r.to_str().unwrap(),
+            "--model-dir",
+            model.to_str().unwrap(),
+            "--segment-points-per-side",
+            "4",
+            "--test-every",
+            "3",
+        ],
+        &[],
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let images = gs4city::segment::list_images(&s.join("images")).unwrap();
+    assert_eq!(images.len(), 3);
+    for img in &images {
+        let f = gs4city::segment::mask_path(&s.join("masks"), img);
+        sam::read_sam_json_sized(&f, Some([247, 330])).unwrap();
+    }
+    assert!(r.join("masks").is_dir() && r.join("lift/gaussians.npy").is_file());
+    let _ = std::fs::remove_dir_all(&dir);
+}
