@@ -908,12 +908,11 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
-    #[test]
-    fn version_1_files_with_f32_weights_are_still_read() {
-        let v = sample();
+    /// The header and counts of `sample()` in the layout of versions 1 and 2 (before the ids).
+    fn old_header(version: u32) -> Vec<u8> {
         let mut b = Vec::new();
         b.extend_from_slice(b"GS4CCONT");
-        for x in [1u32, 3, 2, 2] {
+        for x in [version, 3, 2, 2] {
             b.extend_from_slice(&x.to_le_bytes());
         }
         b.extend_from_slice(&10u64.to_le_bytes());
@@ -922,6 +921,13 @@ mod tests {
         for n in [2u16, 0, 1, 2, 0, 1] {
             b.extend_from_slice(&n.to_le_bytes());
         }
+        b
+    }
+
+    #[test]
+    fn version_1_files_with_f32_weights_are_still_read() {
+        let v = sample();
+        let mut b = old_header(1);
         for id in [1u32, 4, 9, 0, 2, 7] {
             b.extend_from_slice(&id.to_le_bytes());
         }
@@ -943,17 +949,7 @@ mod tests {
     #[test]
     fn version_2_files_with_u32_ids_are_still_read() {
         let v = sample();
-        let mut b = Vec::new();
-        b.extend_from_slice(b"GS4CCONT");
-        for x in [2u32, 3, 2, 2] {
-            b.extend_from_slice(&x.to_le_bytes());
-        }
-        b.extend_from_slice(&10u64.to_le_bytes());
-        b.extend_from_slice(&6u64.to_le_bytes());
-        b.resize(64, 0);
-        for n in [2u16, 0, 1, 2, 0, 1] {
-            b.extend_from_slice(&n.to_le_bytes());
-        }
+        let mut b = old_header(2);
         for id in &v.lists.ids {
             b.extend_from_slice(&id.to_le_bytes());
         }
