@@ -1,11 +1,14 @@
-//! The contributions cache: speed, size and error of top-k lists against complete lists.
+//! The contributions cache: speed, size and error of the list rules (top-k, mass rule)
+//! against complete lists.
 //!
 //! Run: `GS4CITY_RUN=R cargo bench --bench cache`, where `R` is a finished `gs4city run` folder
 //! (its `run.json` names the scene; its `raycast/` holds `M_city`). Optional `GS4CITY_VIEWS=N`
 //! (default 24): the first N training views by name.
 //!
-//! For each k (4, 8, 16, 32, all), every chosen view is rendered with lists of at most k entries
-//! (nothing written: the bytes are counted), and the city-model vote of `lift` runs over them.
+//! For each rule (top-k for k = 4, 8, 16, 32, all; the mass rule for ε = 0.02, 0.05, 0.1 with no
+//! bound and with at most 32 entries), every chosen view is rendered with its lists (nothing
+//! written: the bytes of the version 3 file are counted, ids coded), and the city-model vote of
+//! `lift` runs over them. `GS4CITY_RULES=a,b` keeps the rows whose label is listed.
 //! Errors are measured against the complete lists with unrounded f32 weights ("all, f32": what
 //! the rasterizer computes; the cache stores weights as IEEE half): the share of Gaussians whose
 //! voted label differs, and the share of pixels whose predicted label differs when the same
@@ -13,7 +16,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use gs4city::cache::ViewContrib;
+use gs4city::cache::{CacheOptions, ViewContrib};
 use gs4city::idmap::LabelMaps;
 use gs4city::render::PreparedScene;
 use gs4city::scene::{Scene, Split};
@@ -46,21 +49,36 @@ fn main() {
         chosen[0].camera.intrinsics.height,
         rayon::current_num_threads()
     );
-    // (k, weights rounded to half as stored); the first row is the reference.
-    let ks = [
-        (0usize, false),
-        (0, true),
-        (32, true),
-        (16, true),
-        (8, true),
-        (4, true),
-    ];
+    // (options, weights rounded to half as stored); the first row is the reference.
+    let opt = |top_k, epsilon| CacheOptions { top_k, epsilon };
+    let only: Option<Vec<String>> = std::env::var("GS4CITY_RULES")
+        .ok()
+        .map(|v| v.split(',').map(str::to_string).collect());
+    let ks: Vec<(CacheOptions, bool)> = [
+        (opt(0, 0.0), false),
+        (opt(0, 0.0), true),
+        (opt(32, 0.0), true),
+        (opt(16, 0.0), true),
+        (opt(8, 0.0), true),
+        (opt(4, 0.0), true),
+        (opt(0, 0.02), true),
+        (opt(0, 0.05), true),
+        (opt(0, 0.1), true),
+        (opt(32, 0.02), true),
+        (opt(32, 0.05), true),
+        (opt(32, 0.1), true),
+    ]
+    .into_iter()
+    .enumerate()
+    .filter(|(i, (o, r))| *i == 0 || only.as_ref().is_none_or(|l| l.contains(&label(o, *r))))
+    .map(|(_, x)| x)
+    .collect();
     let mut reference: Option<(Vec<i32>, Vec<ViewContrib>)> = None;
     println!(
-        "\n| k | s/view (render + lists) | MB/view | entries/px | dropped α·T share | Gaussians voted otherwise than with all lists | pixels read otherwise |"
+        "\n| rule | s/view (render + lists) | MB/view | entries/px | dropped α·T share | Gaussians voted otherwise than with all lists | pixels read otherwise |"
     );
     println!("|---|---|---|---|---|---|---|");
-    for &(k, rounded) in &ks {
+    for &(o, rounded) in &ks {
         let mut votes = Votes::new(n);
         let (mut secs, mut bytes, mut entries, mut dropped, mut covered) =
             (0.0, 0usize, 0usize, 0.0, 0usize);
@@ -68,13 +86,17 @@ fn main() {
         for v in &chosen {
             let t = Instant::now();
             let c = if rounded {
-                gs4city::render::cache::contrib(&prepared, v, k).unwrap()
+                gs4city::render::cache::contrib(&prepared, v, &o).unwrap()
             } else {
-                gs4city::render::cache::contrib_unrounded(&prepared, v, k).unwrap()
+                gs4city::render::cache::contrib_unrounded(&prepared, v, &o).unwrap()
             };
             secs += t.elapsed().as_secs_f64();
-            // Unrounded weights would take 4 bytes each instead of 2 (cache version 1).
-            bytes += c.file_bytes() + if rounded { 0 } else { 2 * c.entries() };
+            // The reference is costed as version 1 (u32 ids, f32 weights), 8 bytes per entry.
+            bytes += if rounded {
+                c.file_bytes()
+            } else {
+                64 + 14 * c.pixels() + 8 * c.entries()
+            };
             entries += c.entries();
             for p in 0..c.pixels() {
                 if c.alpha[p] >= 1e-3 {
@@ -119,13 +141,7 @@ fn main() {
         };
         println!(
             "| {} | {:.3} | {:.1} | {:.2} | {:.4} | {} | {} |",
-            if !rounded {
-                "all, f32".to_string()
-            } else if k == 0 {
-                "all".to_string()
-            } else {
-                k.to_string()
-            },
+            label(&o, rounded),
             secs / chosen.len() as f64,
             bytes as f64 / chosen.len() as f64 / 1e6,
             entries as f64 / (chosen.len() * npx) as f64,
@@ -136,5 +152,16 @@ fn main() {
         if !rounded {
             reference = Some((assigned, kept));
         }
+    }
+}
+
+/// A rule's row label: `all, f32`, `all`, `16`, `ε 0.05`, `ε 0.05 ≤ 32`.
+fn label(o: &CacheOptions, rounded: bool) -> String {
+    match (rounded, o.epsilon > 0.0, o.top_k) {
+        (false, ..) => "all, f32".into(),
+        (true, false, 0) => "all".into(),
+        (true, false, k) => k.to_string(),
+        (true, true, 0) => format!("ε {}", o.epsilon),
+        (true, true, k) => format!("ε {} ≤ {k}", o.epsilon),
     }
 }

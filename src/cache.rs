@@ -6,21 +6,30 @@
 //! `Σ_{i ∈ list(p)} w_i·x_i` (+ the truncated rest): forward passes are sparse products with
 //! these lists and backward passes their transposes.
 //!
-//! File `<stem>.contrib` (little endian):
+//! File `<stem>.contrib` (little endian), version 3:
 //! ```text
-//! magic "GS4CCONT", u32 version = 2, u32 width, u32 height, u32 k (0 = all lists kept),
-//! u64 gaussians (ids are < this), u64 entries, 24 reserved bytes         → 64-byte header
+//! magic "GS4CCONT", u32 version = 3, u32 width, u32 height, u32 k (longest list; 0 = no bound),
+//! u64 gaussians (ids are < this), u64 entries, u64 code bytes, 16 reserved → 64-byte header
 //! u16 count[H·W]                           list length per pixel (row-major; ≤ 2344 by T_min)
-//! u32 id[entries], f16 weight[entries]     the lists, pixel after pixel, each in depth order
-//! f32 residual[H·W]                        α·T mass not kept (top-k), 0 otherwise
+//! u64 row_end[H]                           end of each image row's id code in the code bytes
+//! u8 code[code bytes]                      the ids, pixel after pixel, each list in depth order
+//! f16 weight[entries]                      the weights α·T, in the same order
+//! f32 residual[H·W]                        α·T mass not kept (top-k or mass rule), 0 otherwise
 //! f32 alpha[H·W]                           1 − T
 //! f32 depth[H·W]                           expected depth Σw·z/(1−T); NaN where 1−T < 1e-3
 //! ```
+//! The id code is per image row (rows decode independently, in parallel): each id is one
+//! LEB128 varint `v`; `v < n` (n = the length of the previous pixel's list in the row) means
+//! "the previous pixel's `v`-th id" (neighbouring pixels share most of their Gaussians, so
+//! most ids take one byte), otherwise `v − n` is the zigzag-coded difference to the last id
+//! coded this way in the row (0 at the row's start). Versions 1 (u32 ids, f32 weights) and 2
+//! (u32 ids, f16 weights; both with the 24 reserved bytes and no row ends) are still read.
+//!
 //! Weights are IEEE half floats (round to nearest even; relative error ≤ 2⁻¹¹, absolute
-//! ≤ 3·10⁻⁸ below 2⁻¹⁴): 6 instead of 8 bytes per entry, 22 % of the street cache, with the
-//! error measured in BENCHMARKS.md. The top-k choice is made on the f32 weights before
-//! rounding, and the renderer (`render::cache::contrib`) rounds them at once, so a view in memory equals the
-//! view read back. Version 1 files (f32 weights) are still read.
+//! ≤ 3·10⁻⁸ below 2⁻¹⁴), with the error measured in BENCHMARKS.md. The list rule (top-k or
+//! mass, `render::blend::ContributionMode`) is applied to the f32 weights before rounding,
+//! and the renderer (`render::cache::contrib`) rounds them at once, so a view in memory
+//! equals the view read back.
 //!
 //! A format: it imports no stage; the render stage builds the files (`render::cache`).
 //!
@@ -34,12 +43,12 @@ use serde::{Deserialize, Serialize};
 use crate::fsutil;
 
 const MAGIC: &[u8; 8] = b"GS4CCONT";
-const VERSION: u32 = 2;
+const VERSION: u32 = 3;
 /// Bytes per stored weight of each readable version.
 fn weight_bytes(version: u32) -> Option<usize> {
     match version {
         1 => Some(4),
-        2 => Some(2),
+        2 | 3 => Some(2),
         _ => None,
     }
 }
@@ -79,6 +88,11 @@ impl ToLe for u16 {
 impl ToLe for u32 {
     fn to_le(self) -> Self {
         u32::to_le(self)
+    }
+}
+impl ToLe for u64 {
+    fn to_le(self) -> Self {
+        u64::to_le(self)
     }
 }
 impl ToLe for half::f16 {
@@ -169,9 +183,10 @@ impl ViewContrib {
         self.lists.ids.len()
     }
 
-    /// Bytes of the file this view is stored in.
+    /// Bytes of the file this view is stored in (codes the ids to count them).
     pub fn file_bytes(&self) -> usize {
-        HEADER + self.pixels() * (2 + 12) + self.entries() * 6
+        let (code, ends) = encode_ids(self);
+        HEADER + self.pixels() * (2 + 12) + ends.len() * 8 + code.len() + self.entries() * 2
     }
 
     /// The file's bytes.
@@ -181,8 +196,10 @@ impl ViewContrib {
         b
     }
 
-    /// Streams the file's bytes into `w` (no copy of the whole file in memory).
-    pub fn write_to<W: std::io::Write>(&self, w: &mut W) -> std::io::Result<()> {
+    /// Streams the file's bytes into `w` (no copy of the whole file in memory); returns
+    /// their number.
+    pub fn write_to<W: std::io::Write>(&self, w: &mut W) -> std::io::Result<u64> {
+        let (code, ends) = encode_ids(self);
         let mut head = Vec::with_capacity(HEADER);
         head.extend_from_slice(MAGIC);
         for v in [
@@ -195,6 +212,7 @@ impl ViewContrib {
         }
         head.extend_from_slice(&(self.gaussians as u64).to_le_bytes());
         head.extend_from_slice(&(self.entries() as u64).to_le_bytes());
+        head.extend_from_slice(&(code.len() as u64).to_le_bytes());
         head.resize(HEADER, 0);
         w.write_all(&head)?;
         let counts: Vec<u16> = self
@@ -205,26 +223,33 @@ impl ViewContrib {
             .collect();
         debug_assert_eq!(counts.len(), self.pixels());
         put(w, &counts)?;
-        put(w, &self.lists.ids)?;
+        put(w, &ends)?;
+        w.write_all(&code)?;
         let halves: Vec<half::f16> =
             half::vec::HalfFloatVecExt::from_f32_slice(&self.lists.weights);
         put(w, &halves)?;
         for arr in [&self.lists.residual, &self.alpha, &self.depth] {
             put(w, arr)?;
         }
-        Ok(())
+        Ok(
+            (HEADER + 2 * counts.len() + 8 * ends.len() + code.len() + 2 * halves.len()) as u64
+                + 12 * self.pixels() as u64,
+        )
     }
 
-    /// Writes the view atomically.
-    pub fn write(&self, path: &Path) -> Result<(), CacheError> {
+    /// Writes the view atomically; returns the file's size in bytes.
+    pub fn write(&self, path: &Path) -> Result<u64, CacheError> {
+        let mut bytes = 0;
         fsutil::atomic_write(path, |w| {
-            self.write_to(w).map_err(|err| {
+            bytes = self.write_to(w).map_err(|err| {
                 CacheError::Fs(fsutil::FsError::Write {
                     path: path.to_path_buf(),
                     err,
                 })
-            })
-        })
+            })?;
+            Ok::<(), CacheError>(())
+        })?;
+        Ok(bytes)
     }
 
     /// An empty view (0×0), to be filled by [`ViewContrib::read_into`].
@@ -298,7 +323,7 @@ impl ViewContrib {
         let u64_at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().expect("8 bytes"));
         let version = u32_at(8);
         let wb = weight_bytes(version)
-            .ok_or_else(|| bad(format!("version {version}, this program reads 1 and 2")))?
+            .ok_or_else(|| bad(format!("version {version}, this program reads 1 to 3")))?
             as u64;
         let (width, height, k) = (
             u32_at(12) as usize,
@@ -306,13 +331,22 @@ impl ViewContrib {
             u32_at(20) as usize,
         );
         let (gaussians, entries) = (u64_at(24), u64_at(32));
+        // Version 3 codes the ids (row ends + code bytes); 1 and 2 store them as u32.
+        let coded = version >= 3;
+        let code_bytes = if coded { u64_at(40) } else { 0 };
         let npx = (width as u64)
             .checked_mul(height as u64)
             .filter(|&n| n > 0 && n <= 1 << 31)
             .ok_or_else(|| bad(format!("image size {width}×{height} is empty or too large")))?;
+        let id_part = if coded {
+            (height as u64 * 8).checked_add(code_bytes)
+        } else {
+            entries.checked_mul(4)
+        };
         let expected = (HEADER as u64)
             .checked_add(npx * 14)
-            .and_then(|x| entries.checked_mul(4 + wb).and_then(|e| x.checked_add(e)));
+            .and_then(|x| id_part.and_then(|i| x.checked_add(i)))
+            .and_then(|x| entries.checked_mul(wb).and_then(|e| x.checked_add(e)));
         if expected != Some(b.len() as u64) {
             return Err(bad(format!(
                 "{} bytes, the header ({width}×{height}, {entries} entries) needs {}",
@@ -347,13 +381,22 @@ impl ViewContrib {
             )));
         }
         let ids = &mut self.lists.ids;
-        take_into(&b[o..o + 4 * entries], ids);
-        if let Some(id) = ids.iter().find(|&&id| u64::from(id) >= gaussians) {
-            return Err(bad(format!(
-                "Gaussian id {id} is not below the Gaussian count {gaussians}"
-            )));
+        if coded {
+            let ends = &b[o..o + 8 * height];
+            o += 8 * height;
+            let code = &b[o..o + code_bytes as usize];
+            o += code_bytes as usize;
+            ids.resize(entries, 0);
+            decode_ids(code, ends, offsets, width, gaussians, ids).map_err(bad)?;
+        } else {
+            take_into(&b[o..o + 4 * entries], ids);
+            if let Some(id) = ids.iter().find(|&&id| u64::from(id) >= gaussians) {
+                return Err(bad(format!(
+                    "Gaussian id {id} is not below the Gaussian count {gaussians}"
+                )));
+            }
+            o += 4 * entries;
         }
-        o += 4 * entries;
         let weights = &mut self.lists.weights;
         if wb == 4 {
             take_into(&b[o..o + 4 * entries], weights);
@@ -399,22 +442,177 @@ impl ViewContrib {
     }
 }
 
+/// Appends `v` as an LEB128 varint.
+fn put_varint(out: &mut Vec<u8>, mut v: u64) {
+    while v >= 0x80 {
+        out.push((v as u8) | 0x80);
+        v >>= 7;
+    }
+    out.push(v as u8);
+}
+
+/// Reads an LEB128 varint of at most 64 bits at `*pos`.
+fn get_varint(b: &[u8], pos: &mut usize) -> Option<u64> {
+    let mut v = 0u64;
+    for shift in (0..64).step_by(7) {
+        let byte = *b.get(*pos)?;
+        *pos += 1;
+        v |= u64::from(byte & 0x7f) << shift;
+        if byte < 0x80 {
+            return Some(v);
+        }
+    }
+    None
+}
+
+/// The version 3 id code of `v` (see the module docs): the code bytes and, per image row,
+/// the end of its code.
+fn encode_ids(v: &ViewContrib) -> (Vec<u8>, Vec<u64>) {
+    let ids = &v.lists.ids;
+    let off = &v.lists.offsets;
+    let mut code = Vec::with_capacity(ids.len() * 2);
+    let mut ends = Vec::with_capacity(v.height);
+    for y in 0..v.height {
+        let mut prev: &[u32] = &[];
+        let mut base = 0i64;
+        for p in y * v.width..(y + 1) * v.width {
+            let list = &ids[off[p] as usize..off[p + 1] as usize];
+            for &id in list {
+                match prev.iter().position(|&q| q == id) {
+                    Some(j) => put_varint(&mut code, j as u64),
+                    None => {
+                        let d = i64::from(id) - base;
+                        let zz = ((d << 1) ^ (d >> 63)) as u64;
+                        put_varint(&mut code, prev.len() as u64 + zz);
+                        base = i64::from(id);
+                    }
+                }
+            }
+            prev = list;
+        }
+        ends.push(code.len() as u64);
+    }
+    (code, ends)
+}
+
+/// Decodes the version 3 id code into `ids` (sized to the entries), one image row per task;
+/// an error names the first bad row or pixel.
+fn decode_ids(
+    code: &[u8],
+    ends: &[u8],
+    offsets: &[u64],
+    width: usize,
+    gaussians: u64,
+    ids: &mut [u32],
+) -> Result<(), String> {
+    let height = ends.len() / 8;
+    let end_at = |y: usize| u64::from_le_bytes(ends[8 * y..8 * y + 8].try_into().expect("8 bytes"));
+    let mut rows = Vec::with_capacity(height);
+    let (mut rest, mut start) = (ids, 0u64);
+    for y in 0..height {
+        let end = end_at(y);
+        if end < start || end > code.len() as u64 {
+            return Err(format!(
+                "row {y}: its id code ends at byte {end}, outside [{start}, {}]",
+                code.len()
+            ));
+        }
+        let n = (offsets[(y + 1) * width] - offsets[y * width]) as usize;
+        let (mine, more) = rest.split_at_mut(n);
+        rows.push((y, &code[start as usize..end as usize], mine));
+        rest = more;
+        start = end;
+    }
+    if start != code.len() as u64 {
+        return Err(format!(
+            "the rows' id code ends at byte {start} of {}",
+            code.len()
+        ));
+    }
+    let results: Vec<Result<(), String>> = rows
+        .into_par_iter()
+        .with_min_len(8)
+        .map(|(y, row, out)| {
+            let (mut pos, mut e, mut base) = (0usize, 0usize, 0i64);
+            let (mut prev_start, mut prev_len) = (0usize, 0usize);
+            for x in 0..width {
+                let p = y * width + x;
+                let n = (offsets[p + 1] - offsets[p]) as usize;
+                for _ in 0..n {
+                    let v = get_varint(row, &mut pos)
+                        .ok_or_else(|| format!("pixel {p}: the id code ends early or overflows"))?;
+                    out[e] = if v < prev_len as u64 {
+                        out[prev_start + v as usize]
+                    } else {
+                        let zz = v - prev_len as u64;
+                        let d = (zz >> 1) as i64 ^ -((zz & 1) as i64);
+                        let id = base
+                            .checked_add(d)
+                            .filter(|&id| id >= 0 && (id as u64) < gaussians);
+                        let id = id.ok_or_else(|| {
+                            format!(
+                                "pixel {p}: a Gaussian id not below the Gaussian count {gaussians}"
+                            )
+                        })?;
+                        base = id;
+                        id as u32
+                    };
+                    e += 1;
+                }
+                (prev_start, prev_len) = (e - n, n);
+            }
+            if pos != row.len() {
+                return Err(format!(
+                    "row {y}: {} bytes of id code left over",
+                    row.len() - pos
+                ));
+            }
+            Ok(())
+        })
+        .collect();
+    results.into_iter().collect()
+}
+
 /// Rounds weights to the stored precision (IEEE half, nearest even).
 pub fn round_weights(w: &mut [f32]) {
     let h: Vec<half::f16> = half::vec::HalfFloatVecExt::from_f32_slice(w);
     half::slice::HalfFloatSliceExt::convert_to_f32_slice(&h[..], w);
 }
 
-/// Options of the cache.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+/// Options of the cache: which contributions a pixel's list keeps.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct CacheOptions {
-    /// List length per pixel (0 = all contributions).
+    /// Longest list per pixel (0 = no bound). With `epsilon = 0` the `top_k` largest weights.
     pub top_k: usize,
+    /// The mass rule: a pixel keeps its largest weights until they reach `1 − epsilon` of its
+    /// α·T mass (at most `top_k`); 0 = off (top-k lists). Absent in caches before version 3.
+    #[serde(default)]
+    pub epsilon: f32,
 }
+
+/// The cache's default mass share ε (BENCHMARKS.md, "Adaptive contribution lists").
+pub const EPSILON: f32 = 0.05;
+/// The cache's default bound on a list's length.
+pub const TOP_K: usize = 32;
 
 impl Default for CacheOptions {
     fn default() -> Self {
-        CacheOptions { top_k: 16 }
+        CacheOptions {
+            top_k: TOP_K,
+            epsilon: EPSILON,
+        }
+    }
+}
+
+impl CacheOptions {
+    /// Today's lists in words, e.g. "top-16 lists" or "lists to 1 − 0.05 of the mass (≤ 32)".
+    pub fn describe(&self) -> String {
+        match (self.epsilon > 0.0, self.top_k) {
+            (false, 0) => "complete lists".into(),
+            (false, k) => format!("top-{k} lists"),
+            (true, 0) => format!("lists to 1 − {} of the mass", self.epsilon),
+            (true, k) => format!("lists to 1 − {} of the mass (≤ {k})", self.epsilon),
+        }
     }
 }
 
@@ -710,12 +908,11 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
-    #[test]
-    fn version_1_files_with_f32_weights_are_still_read() {
-        let v = sample();
+    /// The header and counts of `sample()` in the layout of versions 1 and 2 (before the ids).
+    fn old_header(version: u32) -> Vec<u8> {
         let mut b = Vec::new();
         b.extend_from_slice(b"GS4CCONT");
-        for x in [1u32, 3, 2, 2] {
+        for x in [version, 3, 2, 2] {
             b.extend_from_slice(&x.to_le_bytes());
         }
         b.extend_from_slice(&10u64.to_le_bytes());
@@ -724,6 +921,13 @@ mod tests {
         for n in [2u16, 0, 1, 2, 0, 1] {
             b.extend_from_slice(&n.to_le_bytes());
         }
+        b
+    }
+
+    #[test]
+    fn version_1_files_with_f32_weights_are_still_read() {
+        let v = sample();
+        let mut b = old_header(1);
         for id in [1u32, 4, 9, 0, 2, 7] {
             b.extend_from_slice(&id.to_le_bytes());
         }
@@ -743,6 +947,111 @@ mod tests {
     }
 
     #[test]
+    fn version_2_files_with_u32_ids_are_still_read() {
+        let v = sample();
+        let mut b = old_header(2);
+        for id in &v.lists.ids {
+            b.extend_from_slice(&id.to_le_bytes());
+        }
+        for w in &v.lists.weights {
+            b.extend_from_slice(&half::f16::from_f32(*w).to_bits().to_le_bytes());
+        }
+        for arr in [&v.lists.residual, &v.alpha, &v.depth] {
+            for x in arr {
+                b.extend_from_slice(&x.to_le_bytes());
+            }
+        }
+        let r = ViewContrib::from_bytes(Path::new("v2.contrib"), &b).unwrap();
+        assert_eq!(r.lists, v.lists);
+        assert_eq!(r.alpha, v.alpha);
+        // A version this program does not know is refused, naming it.
+        b[8..12].copy_from_slice(&4u32.to_le_bytes());
+        let e = ViewContrib::from_bytes(Path::new("v4.contrib"), &b)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("v4.contrib") && e.contains("version 4"), "{e}");
+    }
+
+    /// The id code by hand for `sample()`: row 0 = pixels [1, 4], [], [9]; row 1 = [0, 2],
+    /// [], [7]. Every id is new (the previous pixel's list never holds it).
+    #[test]
+    fn the_id_code_is_the_documented_one() {
+        let (code, ends) = encode_ids(&sample());
+        // Row 0: 1 − 0 → zz 2 (n = 0); 4 − 1 → 6; pixel 2: n = 0, 9 − 4 → 10.
+        // Row 1: 0 − 0 → 0; 2 − 0 → 4; pixel 2 (after an empty pixel): 7 − 2 → 10.
+        assert_eq!(code, vec![2, 6, 10, 0, 4, 10]);
+        assert_eq!(ends, vec![3, 6]);
+        // A repeated id refers to the previous pixel's list: [5, 6] then [6, 300, 5].
+        let v = ViewContrib {
+            width: 2,
+            height: 1,
+            k: 0,
+            gaussians: 400,
+            lists: Contributions {
+                offsets: vec![0, 2, 5],
+                ids: vec![5, 6, 6, 300, 5],
+                weights: vec![0.5; 5],
+                residual: vec![0.0; 2],
+            },
+            alpha: vec![1.0; 2],
+            depth: vec![1.0; 2],
+        };
+        let (code, _) = encode_ids(&v);
+        // 5 → zz 10; 6 − 5 → 2; then n = 2: 6 is entry 1 → 1; 300 − 6 = 294 → zz 588, + 2 =
+        // 590 = 0b100_1001110 → [0xce, 0x04]; 5 is entry 0 → 0.
+        assert_eq!(code, vec![10, 2, 1, 0xce, 0x04, 0]);
+        let r = ViewContrib::from_bytes(Path::new("x"), &v.to_bytes()).unwrap();
+        assert_eq!(r.lists, v.lists);
+    }
+
+    #[test]
+    fn random_lists_round_trip_exactly() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for case in 0..20 {
+            let (w, h) = (rng.random_range(1..40), rng.random_range(1..30));
+            let gaussians: u32 = if case % 2 == 0 { 50 } else { u32::MAX };
+            let mut offsets = vec![0u64];
+            let mut ids = Vec::new();
+            for _ in 0..w * h {
+                let n = rng.random_range(0..12);
+                // Few distinct ids per pixel, often shared with the neighbour.
+                let mut l: Vec<u32> = Vec::new();
+                while l.len() < n.min(gaussians as usize) {
+                    let id = if rng.random_bool(0.5) && !ids.is_empty() {
+                        ids[ids.len() - 1 - rng.random_range(0..ids.len().min(8))]
+                    } else {
+                        rng.random_range(0..gaussians)
+                    };
+                    if !l.contains(&id) {
+                        l.push(id);
+                    }
+                }
+                ids.extend(&l);
+                offsets.push(ids.len() as u64);
+            }
+            let weights: Vec<f32> = ids.iter().map(|_| 0.25).collect();
+            let v = ViewContrib {
+                width: w,
+                height: h,
+                k: 0,
+                gaussians: gaussians as usize + 1,
+                lists: Contributions {
+                    offsets,
+                    weights,
+                    ids,
+                    residual: vec![0.0; w * h],
+                },
+                alpha: vec![0.5; w * h],
+                depth: vec![1.0; w * h],
+            };
+            let b = v.to_bytes();
+            assert_eq!(b.len(), v.file_bytes());
+            let r = ViewContrib::from_bytes(Path::new("x"), &b).unwrap();
+            assert_eq!(r.lists, v.lists, "case {case}");
+        }
+    }
+
+    #[test]
     fn damaged_files_are_refused_with_a_reason() {
         let b = sample().to_bytes();
         let e = |b: &[u8]| {
@@ -757,15 +1066,30 @@ mod tests {
         let mut x = b.clone();
         x[HEADER] = 3; // pixel 0 claims 3 entries > k = 2
         assert!(e(&x).contains("more than 2"));
+        // Layout: counts 12 bytes, row ends 16, code 6 ([2, 6, 10, 0, 4, 10]), weights 12.
+        let code0 = HEADER + 12 + 16;
         let mut x = b.clone();
-        let id0 = HEADER + 12;
-        x[id0..id0 + 4].copy_from_slice(&10u32.to_le_bytes());
-        assert!(e(&x).contains("not below"));
+        x[code0 + 2] = 2 * 41; // pixel 2: 4 + 41 = 45 is not below 10 Gaussians
+        assert!(
+            e(&x).contains("pixel 2") && e(&x).contains("not below"),
+            "{}",
+            e(&x)
+        );
+        let mut x = b.clone();
+        x[code0 + 1] = 0x86; // a continuation byte: the row's code runs out
+        assert!(e(&x).contains("pixel"), "{}", e(&x));
+        let mut x = b.clone();
+        x[HEADER + 12..HEADER + 20].copy_from_slice(&5u64.to_le_bytes()); // row 0's end moved
+        assert!(
+            e(&x).contains("row 0") && e(&x).contains("left over"),
+            "{}",
+            e(&x)
+        );
         let mut x = b.clone();
         x[12..16].copy_from_slice(&u32::MAX.to_le_bytes()); // width: size check before allocating
         assert!(e(&x).contains("bytes") || e(&x).contains("too large"));
         let mut x = b;
-        let w0 = HEADER + 12 + 24;
+        let w0 = code0 + 6;
         x[w0..w0 + 2].copy_from_slice(&0x7e00u16.to_le_bytes()); // a half NaN
         assert!(e(&x).contains("weight 0"));
     }

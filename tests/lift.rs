@@ -39,7 +39,10 @@ fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
     gs4city::render::cache::build(
         &prepared,
         &views,
-        &CacheOptions { top_k },
+        &CacheOptions {
+            top_k,
+            epsilon: 0.0,
+        },
         &dir.join("cache"),
     )
     .unwrap();

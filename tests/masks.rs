@@ -280,7 +280,10 @@ fn fixture(name: &str, with_features: bool) -> Fixture {
     let summary = CacheSummary {
         gaussians: n,
         skipped_gaussians: 0,
-        options: CacheOptions { top_k: 16 },
+        options: CacheOptions {
+            top_k: 16,
+            epsilon: 0.0,
+        },
         views: vec![CachedView {
             name: format!("{STEM}.png"),
             stem: STEM.into(),

@@ -337,7 +337,10 @@ fn fixture(name: &str, fused: bool, ply: PlyEncoding) -> Fixture {
         &CacheSummary {
             gaussians: N,
             skipped_gaussians: 0,
-            options: CacheOptions { top_k: 16 },
+            options: CacheOptions {
+                top_k: 16,
+                epsilon: 0.0,
+            },
             views: cached,
             bytes: 0,
             render_s: 0.0,

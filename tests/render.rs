@@ -12,7 +12,7 @@ fn data() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/render")
 }
 
-fn load_scene(name: &str) -> (Gaussians, PreparedScene) {
+pub(crate) fn load_scene(name: &str) -> (Gaussians, PreparedScene) {
     let (g, _) = read_ply(&data().join(format!("{name}.ply")), &ReadOptions::default()).unwrap();
     let mut feats = vec![0.0f32; g.len() * 3];
     for c in 0..3 {
@@ -121,7 +121,7 @@ fn front_camera() -> Camera {
     camera_from_json(&cases["cases"][0]["camera"])
 }
 
-fn render_mode(scene: &PreparedScene, mode: ContributionMode) -> RenderOutput {
+pub(crate) fn render_mode(scene: &PreparedScene, mode: ContributionMode) -> RenderOutput {
     let opts = RenderOptions {
         contributions: mode,
         ..Default::default()

@@ -81,7 +81,11 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
     let rec: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("out/run.json")).unwrap()).unwrap();
     assert_eq!(rec["version"], env!("CARGO_PKG_VERSION"));
-    assert_eq!(rec["options"]["top_k"], 16);
+    assert_eq!(rec["options"]["top_k"], gs4city::cache::TOP_K);
+    assert_eq!(
+        rec["options"]["epsilon"].as_f64().unwrap() as f32,
+        gs4city::cache::EPSILON
+    );
     let lift_outputs = rec["stages"]["lift"]["outputs"].as_array().unwrap();
     assert!(
         lift_outputs

@@ -9,6 +9,7 @@ mod sim_labels;
 
 mod architecture;
 mod associate;
+mod cache_lists;
 mod cgal;
 mod check;
 mod citymodel;

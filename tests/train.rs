@@ -66,7 +66,10 @@ impl Fixture {
         gs4city::render::cache::build(
             &prepared,
             &views,
-            &CacheOptions { top_k: 16 },
+            &CacheOptions {
+                top_k: 16,
+                epsilon: 0.0,
+            },
             &dir.join("cache"),
         )
         .unwrap();

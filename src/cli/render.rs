@@ -36,9 +36,13 @@ pub struct RenderArgs {
     /// per-pixel top-k (Gaussian id, α·T) lists, alpha and expected depth.
     #[arg(long)]
     cache: bool,
-    /// List length of the cache (0 = complete lists).
-    #[arg(long, default_value_t = 16, requires = "cache")]
+    /// Longest list of the cache (0 = no bound); with `--epsilon 0` the top-k by α·T.
+    #[arg(long, default_value_t = crate::cache::TOP_K, requires = "cache")]
     top_k: usize,
+    /// Mass rule of the cache: a pixel keeps its largest α·T until they reach 1 − ε of its
+    /// mass (at most --top-k); 0 = plain top-k lists.
+    #[arg(long, default_value_t = crate::cache::EPSILON, requires = "cache")]
+    epsilon: f32,
     /// Output folder.
     #[arg(long)]
     out: PathBuf,
@@ -98,13 +102,16 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         let s = render::cache::build(
             &scene,
             &views,
-            &crate::cache::CacheOptions { top_k: args.top_k },
+            &crate::cache::CacheOptions {
+                top_k: args.top_k,
+                epsilon: args.epsilon,
+            },
             &args.out,
         )?;
         println!(
-            "cached the top-{} contributions of {} views ({:.0} MB) in {:.2} s → {}",
-            args.top_k,
+            "cached the contributions of {} views ({}, {:.0} MB) in {:.2} s → {}",
             s.views.len(),
+            s.options.describe(),
             s.bytes as f64 / 1e6,
             s.total_s,
             args.out.display()

@@ -33,9 +33,14 @@ pub struct RunArgs {
     /// surface its pixel's ray hits takes no vote from that surface's label; 0 = off.
     #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]
     pub city_gate_m: f32,
-    /// Contributions per pixel kept in the cache (top-k by α·T); 0 = all.
-    #[arg(long, default_value_t = 16)]
+    /// Longest contribution list per pixel in the cache (0 = no bound); with `--epsilon 0`
+    /// the top-k by α·T.
+    #[arg(long, default_value_t = crate::cache::TOP_K)]
     pub top_k: usize,
+    /// Mass rule of the cache: a pixel keeps its largest α·T until they reach 1 − ε of its
+    /// mass (at most --top-k); 0 = plain top-k lists.
+    #[arg(long, default_value_t = crate::cache::EPSILON)]
+    pub epsilon: f32,
     /// Every N-th view (by name) is held back as a test view, not voted on and predicted as a
     /// novel view (default 8, 3DGS --eval); 0 = every view trains (a capture without ground
     /// truth loses nothing to evaluation then). The split never depends on gt/.
@@ -118,6 +123,9 @@ impl RunArgs {
                 crate::cache::MAX_LIST
             );
         }
+        if !(0.0..1.0).contains(&self.epsilon) {
+            anyhow::bail!("--epsilon must lie in [0, 1), got {}", self.epsilon);
+        }
         let d = RunOptions::default();
         let masks = crate::masks::MasksOptions {
             source: self.masks_source,
@@ -154,6 +162,7 @@ impl RunArgs {
             tau_m: self.tau,
             single_pass: self.single_pass,
             top_k: self.top_k,
+            epsilon: self.epsilon,
             lift,
             supervision: self.supervision,
             masks,

@@ -2,9 +2,12 @@
 //! `power = −½(a·dx² + c·dy²) − b·dx·dy` (skip if > 0), `α = min(0.99, o·e^power)` (skip if
 //! < 1/255), stop before adding when `T·(1−α) < 1e-4`. The loop runs Gaussian-outer,
 //! pixel-inner, restricted to the box where `α ≥ 1/255` is possible; each pixel still sees
-//! its Gaussians in the same order, so the result is the same as the per-pixel loop.
+//! its Gaussians in the same order, so the result is the per-pixel loop's, up to the last bit
+//! of `e^power` ([`exp_neg`], inlined, within 2 ulp of `expf`). [`blend_tile`] runs under the
+//! widest instruction set the CPU has (`pulp`'s runtime dispatch: AVX2 + FMA where present).
 //! Also accumulates depth (`Σ w·z`), the median depth, feature channels (no background)
-//! and the per-pixel contribution lists (all, or the top-k by weight plus the residual).
+//! and the per-pixel contribution lists (all, the top-k by weight, or the largest weights
+//! up to a share `1 − ε` of the pixel's mass; plus the residual).
 use super::project::{ALPHA_MIN, Projected, TILE};
 
 const PIX: usize = TILE * TILE;
@@ -16,7 +19,7 @@ pub const T_MIN: f32 = 1e-4;
 pub const ALPHA_MAX: f32 = 0.99;
 
 /// Which per-pixel contribution lists to keep.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub enum ContributionMode {
     /// None (fastest).
     #[default]
@@ -26,6 +29,10 @@ pub enum ContributionMode {
     /// The `k` largest weights per pixel (ties: the earlier in depth order), plus the
     /// dropped weight mass in `residual`.
     TopK(usize),
+    /// The largest weights per pixel (ties: the earlier in depth order) until the kept mass
+    /// reaches `1 − epsilon` of the pixel's total `Σ α·T`, at most `cap` of them (0 = no
+    /// cap), plus the dropped mass in `residual` (see [`keep_mass`]).
+    Mass { epsilon: f32, cap: usize },
 }
 
 /// One contribution: Gaussian index and weight `α·T`.
@@ -41,15 +48,27 @@ pub struct TileOut {
     pub y0: usize,
     pub w: usize,
     pub h: usize,
-    pub rgb: Vec<f32>,
+    /// Colour planes (R, G, B), `PIX` each.
+    pub rgb: [Vec<f32>; 3],
     pub trans: Vec<f32>,
     pub depth_acc: Vec<f32>,
     pub median: Vec<f32>,
     /// `PIX × channels`.
     pub features: Vec<f32>,
-    /// Per pixel, in depth order.
-    pub lists: Vec<Vec<Contribution>>,
+    /// Per pixel `k`, `items[offsets[k]..offsets[k + 1]]` in depth order (empty without lists).
+    pub offsets: Vec<u32>,
+    pub items: Vec<Contribution>,
     pub residual: Vec<f32>,
+}
+
+impl TileOut {
+    /// Pixel `k`'s list.
+    pub fn list(&self, k: usize) -> &[Contribution] {
+        if self.offsets.is_empty() {
+            return &[];
+        }
+        &self.items[self.offsets[k] as usize..self.offsets[k + 1] as usize]
+    }
 }
 
 /// Inputs shared by all tiles of a view.
@@ -71,8 +90,49 @@ struct Slot {
     c: Contribution,
 }
 
-/// Blends tile `t` given its depth-sorted list of indices into `input.projected`.
+/// `e^x` for `x ≤ 0` in `f32` without a library call, so that a row of pixels vectorises:
+/// Cody–Waite reduction `x = n·ln 2 + r` and Cephes' degree-6 polynomial for `e^r` (within
+/// 2 ulp of the correctly rounded value for `x ∈ [−87, 0]`; below, 0 is returned).
+#[inline(always)]
+pub fn exp_neg(x: f32) -> f32 {
+    let xc = x.clamp(-87.0, 0.0);
+    let n = (xc * std::f32::consts::LOG2_E + 0.5).floor();
+    let r = xc - n * 0.693_359_4 + n * 2.121_944_4e-4;
+    let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
+        + 1.666_666_5e-1)
+        * r
+        + 0.5;
+    let e = p * r * r + r + 1.0;
+    // n ∈ [−126, 0]: 2^n is a normal f32 built from its exponent bits.
+    let scale = f32::from_bits(((n as i32 + 127) as u32) << 23);
+    if x < -87.0 { 0.0 } else { e * scale }
+}
+
+/// Blends tile `t` given its depth-sorted list of indices into `input.projected`, with the
+/// widest vector instructions the CPU offers (runtime dispatch; same results on every path
+/// but for the vector width).
 pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
+    pulp::Arch::new().dispatch(BlendOp { input, t, list })
+}
+
+/// [`blend_tile`]'s arguments as a `pulp` operation: `with_simd` is inlined into a function
+/// compiled for the detected instruction set, and [`blend_tile_impl`] into it.
+struct BlendOp<'a, 'b> {
+    input: &'a BlendInput<'b>,
+    t: usize,
+    list: &'a [u32],
+}
+
+impl pulp::WithSimd for BlendOp<'_, '_> {
+    type Output = TileOut;
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) -> TileOut {
+        blend_tile_impl(self.input, self.t, self.list)
+    }
+}
+
+#[inline(always)]
+fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
     let tx = t % input.grid_x;
     let ty = t / input.grid_x;
     let x0 = tx * TILE;
@@ -81,7 +141,7 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
     let h = TILE.min(input.height - y0);
     let ch = input.channels;
     let mut trans = vec![1.0f32; PIX];
-    let mut rgb = vec![0.0f32; PIX * 3];
+    let mut rgb = [vec![0.0f32; PIX], vec![0.0f32; PIX], vec![0.0f32; PIX]];
     let mut depth_acc = vec![0.0f32; PIX];
     let mut median = vec![f32::NAN; PIX];
     let mut features = vec![0.0f32; PIX * ch];
@@ -97,16 +157,13 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
         ContributionMode::TopK(k) => Some(k),
         _ => None,
     };
-    let mut lists: Vec<Vec<Contribution>> = if keep_lists && topk.is_none() {
-        vec![Vec::new(); PIX]
-    } else {
-        Vec::new()
-    };
+    // All and Mass: every contribution, tagged with its pixel, in blending order.
+    let mut flat: Vec<(u16, Contribution)> = Vec::new();
     let mut slots: Vec<Vec<Slot>> = match topk {
         Some(k) => (0..PIX).map(|_| Vec::with_capacity(k.min(64))).collect(),
         None => Vec::new(),
     };
-    let mut residual = vec![0.0f32; if topk.is_some() { PIX } else { 0 }];
+    let mut residual = vec![0.0f32; if keep_lists { PIX } else { 0 }];
     let mut mins = vec![0usize; if topk.is_some() { PIX } else { 0 }];
     let mut seq = 0u32;
 
@@ -135,9 +192,12 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
             if !(xa <= xb && ya <= yb) {
                 continue;
             }
-            let (xa, xb, ya, yb) = (xa as usize, xb as usize, ya as usize, yb as usize);
+            let (ya, yb) = (ya as usize, yb as usize);
             let [ca, cb, cc] = p.conic;
+            let (o, pmin, z) = (p.opacity, p.power_min, p.depth);
+            let [cr, cg, cbl] = p.color;
             let feat = &input.features[if ch > 0 { p.id as usize * ch } else { 0 }..][..ch];
+            let (xa, xb) = (xa as usize, xb as usize);
             for y in ya..=yb {
                 let dy = my - y as f32;
                 for x in xa..=xb {
@@ -147,10 +207,10 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                     }
                     let dx = mx - x as f32;
                     let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
-                    if power > 0.0 || power < p.power_min {
+                    if power > 0.0 || power < pmin {
                         continue;
                     }
-                    let alpha = ALPHA_MAX.min(p.opacity * power.exp());
+                    let alpha = ALPHA_MAX.min(o * exp_neg(power));
                     if alpha < ALPHA_MIN {
                         continue;
                     }
@@ -162,13 +222,14 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                         continue;
                     }
                     let wgt = alpha * t_old;
-                    rgb[k * 3] += p.color[0] * wgt;
-                    rgb[k * 3 + 1] += p.color[1] * wgt;
-                    rgb[k * 3 + 2] += p.color[2] * wgt;
-                    depth_acc[k] += p.depth * wgt;
+                    rgb[0][k] += cr * wgt;
+                    rgb[1][k] += cg * wgt;
+                    rgb[2][k] += cbl * wgt;
+                    depth_acc[k] += z * wgt;
                     if t_old >= 0.5 && t_new < 0.5 {
-                        median[k] = p.depth;
+                        median[k] = z;
                     }
+                    trans[k] = t_new;
                     for (o, f) in features[k * ch..(k + 1) * ch].iter_mut().zip(feat) {
                         *o += f * wgt;
                     }
@@ -178,7 +239,7 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                             weight: wgt,
                         };
                         match topk {
-                            None => lists[k].push(c),
+                            None => flat.push((k as u16, c)),
                             Some(kk) => {
                                 push_topk(
                                     &mut slots[k],
@@ -191,25 +252,56 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                             }
                         }
                     }
-                    trans[k] = t_new;
                 }
             }
         }
     }
     for k in 0..PIX {
         let tk = trans[k];
-        for c in 0..3 {
-            rgb[k * 3 + c] += tk * input.background[c];
+        for (plane, bg) in rgb.iter_mut().zip(input.background) {
+            plane[k] += tk * bg;
         }
     }
-    if topk.is_some() {
-        lists = slots
-            .into_iter()
-            .map(|mut s| {
+    let (mut offsets, mut items) = (Vec::new(), Vec::new());
+    if keep_lists {
+        offsets = vec![0u32; PIX + 1];
+        if topk.is_some() {
+            for (k, s) in slots.iter_mut().enumerate() {
                 s.sort_by_key(|s| s.seq);
-                s.into_iter().map(|s| s.c).collect()
-            })
-            .collect();
+                items.extend(s.iter().map(|s| s.c));
+                offsets[k + 1] = items.len() as u32;
+            }
+        } else {
+            // A stable counting sort by pixel keeps each pixel's blending (= depth) order.
+            let mut counts = [0u32; PIX + 1];
+            for &(k, _) in &flat {
+                counts[k as usize + 1] += 1;
+            }
+            for k in 0..PIX {
+                counts[k + 1] += counts[k];
+            }
+            let mut all = vec![Contribution { id: 0, weight: 0.0 }; flat.len()];
+            let mut cursor = counts;
+            for &(k, c) in &flat {
+                all[cursor[k as usize] as usize] = c;
+                cursor[k as usize] += 1;
+            }
+            match input.mode {
+                ContributionMode::Mass { epsilon, cap } => {
+                    let mut keys = Vec::new();
+                    items.reserve(flat.len() / 2);
+                    for k in 0..PIX {
+                        let l = &all[counts[k] as usize..counts[k + 1] as usize];
+                        residual[k] = keep_mass(l, epsilon, cap, &mut keys, &mut items);
+                        offsets[k + 1] = items.len() as u32;
+                    }
+                }
+                _ => {
+                    offsets.copy_from_slice(&counts);
+                    items = all;
+                }
+            }
+        }
     }
     TileOut {
         x0,
@@ -221,9 +313,64 @@ pub fn blend_tile(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
         depth_acc,
         median,
         features,
-        lists,
+        offsets,
+        items,
         residual,
     }
+}
+
+/// Appends to `out` the entries of one pixel's depth-ordered `list` that the mass rule keeps
+/// (in depth order) and returns the mass it drops. Largest weights first (ties: the earlier
+/// in depth order) until the kept sum reaches `(1 − ε)·Σ list` or `cap` entries are kept
+/// (0 = no cap). `keys` is scratch.
+pub fn keep_mass(
+    list: &[Contribution],
+    epsilon: f32,
+    cap: usize,
+    keys: &mut Vec<u64>,
+    out: &mut Vec<Contribution>,
+) -> f32 {
+    let cap = if cap == 0 { usize::MAX } else { cap };
+    if list.len() <= 1 && cap >= 1 {
+        out.extend_from_slice(list);
+        return 0.0;
+    }
+    let total: f32 = list.iter().map(|c| c.weight).sum();
+    let target = (1.0 - epsilon) * total;
+    // Weights are positive: their bit patterns order like the values. Descending keys put
+    // the larger weight first and, among equal weights, the smaller list index.
+    keys.clear();
+    keys.extend(
+        list.iter()
+            .enumerate()
+            .map(|(j, c)| (u64::from(c.weight.to_bits()) << 32) | u64::from(!(j as u32))),
+    );
+    keys.sort_unstable_by(|a, b| b.cmp(a));
+    let (mut kept, mut m) = (0.0f32, 0usize);
+    while m < keys.len() && m < cap && kept < target {
+        kept += f32::from_bits((keys[m] >> 32) as u32);
+        m += 1;
+    }
+    if m == list.len() {
+        out.extend_from_slice(list);
+        return 0.0;
+    }
+    let chosen = &mut keys[..m];
+    for key in chosen.iter_mut() {
+        *key = u64::from(!(*key as u32));
+    }
+    chosen.sort_unstable();
+    let mut dropped = 0.0f32;
+    let mut next = chosen.iter().peekable();
+    for (j, c) in list.iter().enumerate() {
+        if next.peek().is_some_and(|&&i| i == j as u64) {
+            next.next();
+            out.push(*c);
+        } else {
+            dropped += c.weight;
+        }
+    }
+    dropped
 }
 
 /// Index of the slot to evict next: the smallest weight, among equals the latest, so that
@@ -265,6 +412,20 @@ fn push_topk(slots: &mut Vec<Slot>, min: &mut usize, residual: &mut f32, k: usiz
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn exp_neg_is_within_2_ulp_of_the_f64_exponential() {
+        let mut x = -87.0f32;
+        while x <= 0.0 {
+            let want = f64::from(x).exp();
+            let got = f64::from(exp_neg(x));
+            let ulp = f64::from(f32::from_bits((want as f32).to_bits() + 1) - want as f32);
+            assert!((got - want).abs() <= 2.0 * ulp, "e^{x}: {got} vs {want}");
+            x += 0.000_37;
+        }
+        assert_eq!(exp_neg(0.0), 1.0);
+        assert_eq!(exp_neg(-100.0), 0.0);
+    }
 
     #[test]
     fn topk_keeps_largest_earliest_on_ties_and_counts_the_rest() {

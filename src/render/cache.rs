@@ -1,5 +1,6 @@
 //! Building the contributions cache (format and readers: [`crate::cache`]): every view
-//! rendered once with top-k lists, weights rounded as stored, files written on a second thread.
+//! rendered once with the lists of [`list_mode`] (top-k or the mass rule), weights rounded as
+//! stored, files coded and written on a second thread.
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -12,9 +13,27 @@ use crate::camera::View;
 use crate::fsutil;
 use crate::progress::Bar;
 
-/// Renders `view` with lists of at most `k` entries (0 = all), weights rounded as stored.
-pub fn contrib(scene: &PreparedScene, view: &View, k: usize) -> Result<ViewContrib, RenderError> {
-    let mut v = contrib_unrounded(scene, view, k)?;
+/// The rasterizer's list rule of a cache: `epsilon > 0` keeps the largest weights until
+/// `1 − ε` of the pixel's α·T mass, at most `top_k` of them (0 = no bound); `epsilon = 0`
+/// keeps the `top_k` largest (0 = all).
+pub fn list_mode(opts: &CacheOptions) -> ContributionMode {
+    match (opts.epsilon > 0.0, opts.top_k) {
+        (true, cap) => ContributionMode::Mass {
+            epsilon: opts.epsilon,
+            cap,
+        },
+        (false, 0) => ContributionMode::All,
+        (false, k) => ContributionMode::TopK(k),
+    }
+}
+
+/// Renders `view` with the lists of `opts` ([`list_mode`]), weights rounded as stored.
+pub fn contrib(
+    scene: &PreparedScene,
+    view: &View,
+    opts: &CacheOptions,
+) -> Result<ViewContrib, RenderError> {
+    let mut v = contrib_unrounded(scene, view, opts)?;
     round_weights(&mut v.lists.weights);
     Ok(v)
 }
@@ -24,13 +43,10 @@ pub fn contrib(scene: &PreparedScene, view: &View, k: usize) -> Result<ViewContr
 pub fn contrib_unrounded(
     scene: &PreparedScene,
     view: &View,
-    k: usize,
+    opts: &CacheOptions,
 ) -> Result<ViewContrib, RenderError> {
-    let mode = if k == 0 {
-        ContributionMode::All
-    } else {
-        ContributionMode::TopK(k)
-    };
+    let mode = list_mode(opts);
+    let k = opts.top_k;
     // The cache keeps no colour: degree 0 skips the view-dependent SH evaluation.
     let opts = RenderOptions {
         features: false,
@@ -56,7 +72,7 @@ pub fn contrib_unrounded(
     })
 }
 
-/// Renders every view once with lists of at most `opts.top_k` entries and writes
+/// Renders every view once with the lists of `opts` ([`list_mode`]) and writes
 /// `<stem>.contrib` per view and `summary.json` (last) into `out_dir`.
 pub fn build(
     scene: &PreparedScene,
@@ -68,6 +84,12 @@ pub fn build(
         return Err(RenderError::Scene(format!(
             "top-k {} exceeds the longest possible list ({MAX_LIST}); use 0 for complete lists",
             opts.top_k
+        )));
+    }
+    if !(0.0..1.0).contains(&opts.epsilon) {
+        return Err(RenderError::Scene(format!(
+            "epsilon must lie in [0, 1), got {}",
+            opts.epsilon
         )));
     }
     let t0 = Instant::now();
@@ -96,20 +118,20 @@ pub fn build(
     // Rendering (parallel over tiles) overlaps with writing the previous view's file on a
     // second thread; at most one finished view waits, so memory stays at two views.
     let (tx, rx) = std::sync::mpsc::sync_channel::<(PathBuf, ViewContrib)>(1);
-    let written = std::thread::scope(|sc| -> Result<f64, RenderError> {
-        let writer = sc.spawn(move || -> Result<f64, CacheError> {
-            let mut secs = 0.0;
+    let (written, sizes) = std::thread::scope(|sc| -> Result<(f64, Vec<u64>), RenderError> {
+        let writer = sc.spawn(move || -> Result<(f64, Vec<u64>), CacheError> {
+            let (mut secs, mut sizes) = (0.0, Vec::new());
             for (path, view) in rx {
                 let t = Instant::now();
-                view.write(&path)?;
+                sizes.push(view.write(&path)?);
                 secs += t.elapsed().as_secs_f64();
             }
-            Ok(secs)
+            Ok((secs, sizes))
         });
         let rendered = (|| -> Result<(), RenderError> {
             for v in views {
                 let t = Instant::now();
-                let c = contrib(scene, v, opts.top_k)?;
+                let c = contrib(scene, v, opts)?;
                 let render_s = t.elapsed().as_secs_f64();
                 summary.render_s += render_s;
                 let npx = c.pixels();
@@ -120,7 +142,6 @@ pub fn build(
                         share += f64::from(c.lists.residual[p]) / f64::from(c.alpha[p]);
                     }
                 }
-                summary.bytes += c.file_bytes() as u64;
                 summary.views.push(CachedView {
                     name: v.name.clone(),
                     stem: v.stem(),
@@ -134,7 +155,7 @@ pub fn build(
                         0.0
                     },
                     coverage: covered as f64 / npx as f64,
-                    bytes: c.file_bytes() as u64,
+                    bytes: 0, // the writer's count, below
                     render_s,
                 });
                 if tx.send((cache_file(out_dir, &v.stem()), c)).is_err() {
@@ -158,15 +179,19 @@ pub fn build(
         w
     })?;
     summary.write_s = written;
+    for (v, b) in summary.views.iter_mut().zip(sizes) {
+        v.bytes = b;
+        summary.bytes += b;
+    }
     bar.finish();
     summary.total_s = t0.elapsed().as_secs_f64();
     crate::layout::Summary::write(&summary, out_dir)?;
     crate::progress::done(
         "render",
         &format!(
-            "{} views cached, top-{} lists, {:.0} MB",
+            "{} views cached, {}, {:.0} MB",
             views.len(),
-            opts.top_k,
+            opts.describe(),
             summary.bytes as f64 / 1e6
         ),
         summary.total_s,

@@ -358,7 +358,9 @@ fn assemble(
             for x in 0..t.w {
                 let k = y * blend_tile_width() + x;
                 let p = (t.y0 + y) * width + t.x0 + x;
-                rgb[p * 3..p * 3 + 3].copy_from_slice(&t.rgb[k * 3..k * 3 + 3]);
+                for c in 0..3 {
+                    rgb[p * 3 + c] = t.rgb[c][k];
+                }
                 let a = 1.0 - t.trans[k];
                 alpha[p] = a;
                 depth_acc[p] = t.depth_acc[k];
@@ -370,7 +372,7 @@ fn assemble(
                     features[c * npx + p] = t.features[k * channels + c];
                 }
                 if keep {
-                    counts[p] = t.lists[k].len() as u64;
+                    counts[p] = t.list(k).len() as u64;
                     if let Some(r) = t.residual.get(k) {
                         residual[p] = *r;
                     }
@@ -392,7 +394,7 @@ fn assemble(
                     let k = y * blend_tile_width() + x;
                     let p = (t.y0 + y) * width + t.x0 + x;
                     let o = offsets[p] as usize;
-                    for (j, c) in t.lists[k].iter().enumerate() {
+                    for (j, c) in t.list(k).iter().enumerate() {
                         ids[o + j] = c.id;
                         weights[o + j] = c.weight;
                     }

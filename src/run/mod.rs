@@ -119,8 +119,12 @@ pub struct RunOptions {
     /// Part-pass depth tolerance τ in metres (× the alignment scale in the scene frame).
     pub tau_m: f64,
     pub single_pass: bool,
-    /// Contribution-list length of the cache (0 = complete lists).
+    /// Longest contribution list of the cache (0 = no bound; with `epsilon` 0 the top-k).
     pub top_k: usize,
+    /// The cache's mass rule (`cache::CacheOptions::epsilon`); 0 (and in run.json files
+    /// before it existed) = plain top-k lists.
+    #[serde(default)]
+    pub epsilon: f32,
     pub lift: LiftOptions,
     /// Where the labels come from (city model alone, or fused with the masks).
     pub supervision: Supervision,
@@ -152,7 +156,8 @@ impl Default for RunOptions {
         RunOptions {
             tau_m: 0.5,
             single_pass: false,
-            top_k: 16,
+            top_k: cache::TOP_K,
+            epsilon: cache::EPSILON,
             lift: LiftOptions::default(),
             supervision: Supervision::Fused,
             masks: MasksOptions::default(),
@@ -462,7 +467,10 @@ fn raycast_step(r: &mut Running, scale: f64, opts: &RunOptions) -> Result<(), Ru
 
 /// Step 3: render: the contributions cache of every view.
 fn render_step(r: &mut Running, opts: &RunOptions) -> Result<Cache, RunError> {
-    let co = CacheOptions { top_k: opts.top_k };
+    let co = CacheOptions {
+        top_k: opts.top_k,
+        epsilon: opts.epsilon,
+    };
     let mut inputs = vec![r.scene.ply.clone()];
     inputs.extend(r.sparse_files.iter().cloned());
     let (ply, views) = (&r.scene.ply, &r.views);

@@ -221,7 +221,10 @@ pub fn build(name: &str, skip: impl Fn(usize, usize) -> bool) -> Built {
     gs4city::render::cache::build(
         &prepared,
         &views,
-        &CacheOptions { top_k: 16 },
+        &CacheOptions {
+            top_k: 16,
+            epsilon: 0.0,
+        },
         &dir.join("cache"),
     )
     .unwrap();
