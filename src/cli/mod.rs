@@ -15,6 +15,7 @@ mod render;
 mod run;
 mod scene;
 mod synth;
+mod tile;
 mod train;
 
 use clap::{Parser, Subcommand};
@@ -115,6 +116,8 @@ enum Command {
     /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
     #[command(after_help = "Example:\n  gs4city synth --preset small --out /tmp/small")]
     Synth(synth::SynthArgs),
+    #[command(flatten)]
+    City(tile::CityCommand),
 }
 
 /// Parses the process arguments and runs the chosen subcommand.
@@ -142,6 +145,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Scene(args) => scene::run(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),
+        Command::City(cmd) => tile::run(&cmd),
     }
 }
 
