@@ -32,4 +32,5 @@ mod sam;
 mod synth;
 mod synth_masks;
 mod textembed;
+mod tile;
 mod train;

@@ -24,7 +24,9 @@ pub enum CityCommand {
     RunPlan(RunPlanArgs),
     /// Merge a plan's tiles into one run folder (global label ids, one semantic.ply, labels
     /// for query --run M); a failed or missing tile is refused unless --allow-missing.
-    #[command(after_help = "Example:\n  gs4city merge P --out M\n  gs4city query --run M --class Window --out Q")]
+    #[command(
+        after_help = "Example:\n  gs4city merge P --out M\n  gs4city query --run M --class Window --out Q"
+    )]
     Merge(MergeArgs),
 }
 
@@ -256,11 +258,10 @@ fn run_one(a: &RunPlanArgs, i: usize) -> anyhow::Result<()> {
     }
     let scene = dir.join("scene");
     let out = exec::run_dir(&dir);
-    let result = tile_run_options(&plan.options.run_args, &scene, &out)
-        .and_then(|mut o| {
-            o.force = o.force || a.force;
-            Ok(crate::run::run(&scene, &out, &o)?)
-        });
+    let result = tile_run_options(&plan.options.run_args, &scene, &out).and_then(|mut o| {
+        o.force = o.force || a.force;
+        Ok(crate::run::run(&scene, &out, &o)?)
+    });
     let error = result.as_ref().err().map(|e| format!("{e:#}"));
     let st = exec::finish(&dir, t, t0.elapsed().as_secs_f64(), error, a.keep_cache)?;
     let _summary = result.with_context(|| format!("tile {} ({i})", t.name))?;
@@ -325,5 +326,9 @@ fn print_merge(s: &merge::MergeSummary, out: &std::path::Path) {
             100.0 * d
         );
     }
-    println!("merged run: {} (gs4city query --run {} …)", out.display(), out.display());
+    println!(
+        "merged run: {} (gs4city query --run {} …)",
+        out.display(),
+        out.display()
+    );
 }

@@ -180,7 +180,9 @@ pub fn cut(
                 c.gaussians += 1;
                 plys[t].buf.extend_from_slice(row);
                 idx[t].buf.extend_from_slice(&(i as i64).to_le_bytes());
-                idx[t].buf.extend_from_slice(&i64::from(in_core).to_le_bytes());
+                idx[t]
+                    .buf
+                    .extend_from_slice(&i64::from(in_core).to_le_bytes());
                 if plys[t].buf.len() >= flush_at {
                     plys[t].flush()?;
                     idx[t].flush()?;

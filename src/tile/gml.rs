@@ -124,7 +124,10 @@ pub fn write_subset(
     })?;
     let drop = member_ranges(src, text)?
         .into_iter()
-        .filter(|(_, id)| id.as_deref().is_some_and(|id| all.contains(id) && !keep.contains(id)))
+        .filter(|(_, id)| {
+            id.as_deref()
+                .is_some_and(|id| all.contains(id) && !keep.contains(id))
+        })
         .map(|(r, _)| r)
         .collect::<Vec<_>>();
     let mut out = String::with_capacity(text.len());

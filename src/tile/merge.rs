@@ -220,8 +220,7 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
         } else {
             None
         };
-        let owned: std::collections::HashSet<&str> =
-            tp.owned.iter().map(String::as_str).collect();
+        let owned: std::collections::HashSet<&str> = tp.owned.iter().map(String::as_str).collect();
         let mut map: HashMap<i32, i32> = HashMap::new();
         let ri = runs.len();
         for e in &entities {
@@ -319,13 +318,16 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
             if s[1] == 0 {
                 continue;
             }
-            let i = usize::try_from(s[0]).ok().filter(|&i| i < n).ok_or_else(|| {
-                TileError::Invalid(format!(
-                    "{}: index {} is outside the scene's {n} Gaussians",
-                    spath.display(),
-                    s[0]
-                ))
-            })?;
+            let i = usize::try_from(s[0])
+                .ok()
+                .filter(|&i| i < n)
+                .ok_or_else(|| {
+                    TileError::Invalid(format!(
+                        "{}: index {} is outside the scene's {n} Gaussians",
+                        spath.display(),
+                        s[0]
+                    ))
+                })?;
             if owner[i] {
                 return Err(TileError::Invalid(format!(
                     "{}: Gaussian {i} lies in two tiles' cores; the plan is damaged",
@@ -382,7 +384,11 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
                 .collect();
             for (gid, &(ri, te)) in owner_row.iter().enumerate() {
                 let (_, data) = runs[ri].features.as_ref().expect("all tiles have features");
-                let trow = runs[ri].labels.labels.iter().position(|l| l.id == te as i32);
+                let trow = runs[ri]
+                    .labels
+                    .labels
+                    .iter()
+                    .position(|l| l.id == te as i32);
                 if let Some(trow) = trow {
                     feats[gid * d..(gid + 1) * d].copy_from_slice(&data[trow * d..(trow + 1) * d]);
                 }

@@ -309,6 +309,14 @@ pub fn resources(gaussians: usize, views: usize) -> Resources {
 fn sees(v: &View, points: &[DVec3], occluders: &[(DVec3, DVec3)], need: usize) -> bool {
     let k = &v.camera.intrinsics;
     let eye = v.camera.pose.center();
+    // A box that holds the camera (a street between the wings of one building's box) hides
+    // nothing: the test is too coarse to tell inside from outside there.
+    let pad = DVec3::splat(0.25);
+    let occluders: Vec<(DVec3, DVec3)> = occluders
+        .iter()
+        .copied()
+        .filter(|&(lo, hi)| !(eye.cmpge(lo - pad).all() && eye.cmple(hi + pad).all()))
+        .collect();
     let mut seen = 0;
     for &p in points {
         let Some(px) = v.camera.project(v.camera.pose.world_to_camera(p)) else {
@@ -319,7 +327,6 @@ fn sees(v: &View, points: &[DVec3], occluders: &[(DVec3, DVec3)], need: usize) -
             continue;
         }
         let hidden = occluders.iter().any(|&(lo, hi)| {
-            let pad = DVec3::splat(0.25);
             let inside = p.cmpge(lo - pad).all() && p.cmple(hi + pad).all();
             !inside && segment_hits_box(eye, p, lo, hi)
         });
@@ -469,14 +476,19 @@ pub fn plan(
             .collect();
         let neighbours: Vec<&gml::Footprint> = feet
             .iter()
-            .filter(|f| grid.core_of(f.centre[0], f.centre[1]) != t && grid.box_reaches(t, f.ground))
+            .filter(|f| {
+                grid.core_of(f.centre[0], f.centre[1]) != t && grid.box_reaches(t, f.ground)
+            })
             .collect();
         let occluders: Vec<(DVec3, DVec3)> = owned
             .iter()
             .chain(&neighbours)
             .map(|f| (f.scene_min, f.scene_max))
             .collect();
-        let mut points: Vec<DVec3> = owned.iter().flat_map(|f| f.samples.iter().copied()).collect();
+        let mut points: Vec<DVec3> = owned
+            .iter()
+            .flat_map(|f| f.samples.iter().copied())
+            .collect();
         points.extend(cuts[t].sample.iter().copied());
         let tile_views: Vec<View> = if owned.is_empty() && neighbours.is_empty() {
             Vec::new()
