@@ -141,12 +141,12 @@ pub fn write_subset(
     Ok(true)
 }
 
+/// A `cityObjectMember`: its byte range and the gml:id of the object it holds.
+type Member = (std::ops::Range<usize>, Option<String>);
+
 /// The byte ranges of the `cityObjectMember` children of the root element, each with the gml:id
 /// of the object it holds (its first child element's `gml:id`, `None` without one).
-fn member_ranges(
-    path: &Path,
-    text: &str,
-) -> Result<Vec<(std::ops::Range<usize>, Option<String>)>, TileError> {
+fn member_ranges(path: &Path, text: &str) -> Result<Vec<Member>, TileError> {
     let mut r = quick_xml::Reader::from_str(text);
     let mut depth = 0usize;
     let mut out = Vec::new();
@@ -169,16 +169,13 @@ fn member_ranges(
                     first_child(&mut open, &e);
                 }
             }
-            Event::Empty(e) => {
-                if depth == 2 {
-                    first_child(&mut open, &e);
-                }
-            }
+            Event::Empty(e) if depth == 2 => first_child(&mut open, &e),
             Event::End(e) => {
-                if depth == 2 && is_member(&e.local_name()) {
-                    if let Some((start, id, _)) = open.take() {
-                        out.push((start..r.buffer_position() as usize, id));
-                    }
+                if depth == 2
+                    && is_member(&e.local_name())
+                    && let Some((start, id, _)) = open.take()
+                {
+                    out.push((start..r.buffer_position() as usize, id));
                 }
                 depth = depth.saturating_sub(1);
             }
@@ -194,11 +191,11 @@ fn first_child(
     open: &mut Option<(usize, Option<String>, bool)>,
     e: &quick_xml::events::BytesStart<'_>,
 ) {
-    if let Some((_, id, seen)) = open.as_mut() {
-        if !*seen {
-            *seen = true;
-            *id = gml_id(e);
-        }
+    if let Some((_, id, seen)) = open.as_mut()
+        && !*seen
+    {
+        *seen = true;
+        *id = gml_id(e);
     }
 }
 

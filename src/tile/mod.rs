@@ -290,12 +290,14 @@ impl Plan {
     }
 }
 
-/// The resources of a tile job: memory from the measured cost of a run (≈ 1 GB plus 1.3 kB per
-/// Gaussian and 12 MB per view on the street scene, `BENCHMARKS.md`), doubled for safety.
+/// The resources of a tile job, from the street's 60 m tiles (BENCHMARKS.md, "City scale": peak
+/// 334 MB at 107 k Gaussians / 48 views to 505 MB at 535 k / 83 views, 13–52 CPU s): memory
+/// 512 MB + 0.6 kB per Gaussian + 2 MB per view, doubled for safety and rounded up to 512 MB;
+/// time 10 min + 2 min per 10⁵ Gaussians × 100 views.
 pub fn resources(gaussians: usize, views: usize) -> Resources {
-    let mb = 1024.0 + 1.3e-3 * gaussians as f64 + 12.0 * views as f64;
+    let mb = 512.0 + 0.6e-3 * gaussians as f64 + 2.0 * views as f64;
     let mem_mb = ((2.0 * mb / 512.0).ceil() * 512.0) as u64;
-    let minutes = 10.0 + 4.0 * (gaussians as f64 / 1e6) * (views as f64 / 100.0).max(0.2);
+    let minutes = 10.0 + 2.0 * (gaussians as f64 / 1e5) * (views as f64 / 100.0);
     Resources {
         cpus: 2,
         mem_mb,
