@@ -376,20 +376,9 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
     if let Some(Some(d)) = dims.first().copied() {
         if !runs.is_empty() && dims.iter().all(|x| *x == Some(d)) {
             let mut feats = vec![0f32; labels.labels.len() * d];
-            let row_of: HashMap<i32, usize> = labels
-                .labels
-                .iter()
-                .enumerate()
-                .map(|(i, l)| (l.id, i))
-                .collect();
             for (gid, &(ri, te)) in owner_row.iter().enumerate() {
                 let (_, data) = runs[ri].features.as_ref().expect("all tiles have features");
-                let trow = runs[ri]
-                    .labels
-                    .labels
-                    .iter()
-                    .position(|l| l.id == te as i32);
-                if let Some(trow) = trow {
+                if let Some(trow) = runs[ri].labels.row(te as i32) {
                     feats[gid * d..(gid + 1) * d].copy_from_slice(&data[trow * d..(trow + 1) * d]);
                 }
             }
@@ -397,7 +386,7 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
                 let (_, data) = r.features.as_ref().expect("all tiles have features");
                 for (trow, l) in r.labels.labels.iter().enumerate() {
                     if l.source == Source::Image {
-                        let g = row_of[&maps[ri][&l.id]];
+                        let g = labels.row(maps[ri][&l.id]).expect("merged image label");
                         feats[g * d..(g + 1) * d].copy_from_slice(&data[trow * d..(trow + 1) * d]);
                     }
                 }
