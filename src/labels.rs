@@ -168,6 +168,11 @@ impl LabelTable {
         self.index.get(&id).map(|&i| &self.labels[i])
     }
 
+    /// The row of label `id` in [`LabelTable::labels`] (the row of its features).
+    pub fn row(&self, id: i32) -> Option<usize> {
+        self.index.get(&id).copied()
+    }
+
     /// The class of label `id` (−1 for −1 and unknown ids).
     pub fn class_of(&self, id: i32) -> i32 {
         self.get(id).map_or(-1, |l| l.class)

@@ -50,5 +50,6 @@ pub mod semantics;
 pub mod splat;
 pub mod synth;
 pub mod textembed;
+pub mod tile;
 pub mod train;
 pub mod vote;

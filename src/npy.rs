@@ -86,6 +86,30 @@ pub fn shape_text(shape: &[usize]) -> String {
     }
 }
 
+/// The `.npy` header (magic, version, length, dictionary) of an array of `T` with `shape`,
+/// padded with spaces to at least `min_len` bytes (a multiple of 64 either way): a writer that
+/// learns the shape only at the end reserves a header of fixed size and rewrites it in place.
+pub fn header<T: NpyElement>(shape: &[usize], min_len: usize) -> Vec<u8> {
+    let mut header = format!(
+        "{{'descr': '{}', 'fortran_order': False, 'shape': {}, }}",
+        T::DESCR,
+        shape_text(shape)
+    );
+    // magic(6) + version(2) + len(2) + header + '\n' must be a multiple of 64.
+    let mut total = 10 + header.len() + 1;
+    if total < min_len {
+        header.push_str(&" ".repeat(min_len - total));
+        total = min_len;
+    }
+    header.push_str(&" ".repeat((64 - total % 64) % 64));
+    header.push('\n');
+    let mut out = Vec::with_capacity(10 + header.len());
+    out.extend_from_slice(b"\x93NUMPY\x01\x00");
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    out
+}
+
 /// Encodes `data` with `shape` (C order) as `.npy` bytes.
 pub fn encode<T: NpyElement>(shape: &[usize], data: &[T]) -> Vec<u8> {
     assert_eq!(
@@ -93,20 +117,8 @@ pub fn encode<T: NpyElement>(shape: &[usize], data: &[T]) -> Vec<u8> {
         data.len(),
         "npy::encode: shape does not match data"
     );
-    let shape_txt = shape_text(shape);
-    let mut header = format!(
-        "{{'descr': '{}', 'fortran_order': False, 'shape': {}, }}",
-        T::DESCR,
-        shape_txt
-    );
-    // magic(6) + version(2) + len(2) + header + '\n' must be a multiple of 64.
-    let total = 10 + header.len() + 1;
-    header.push_str(&" ".repeat((64 - total % 64) % 64));
-    header.push('\n');
-    let mut out = Vec::with_capacity(10 + header.len() + data.len() * T::SIZE);
-    out.extend_from_slice(b"\x93NUMPY\x01\x00");
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
+    let mut out = header::<T>(shape, 0);
+    out.reserve(data.len() * T::SIZE);
     for &v in data {
         v.put(&mut out);
     }

@@ -342,6 +342,13 @@ impl Header {
     /// Parses the header at the start of `bytes` and checks the declared sizes against the
     /// payload that follows (module docs).
     pub fn parse(path: &Path, bytes: &[u8]) -> Result<Header, PlyError> {
+        Header::parse_sized(path, bytes, bytes.len() as u64)
+    }
+
+    /// [`Header::parse`] of the first bytes `head` of a file of `file_len` bytes (the whole
+    /// file need not be in memory: `head` must hold the header, e.g. its first
+    /// [`MAX_HEADER_BYTES`]); the declared sizes are checked against `file_len`.
+    pub fn parse_sized(path: &Path, bytes: &[u8], file_len: u64) -> Result<Header, PlyError> {
         let err = |line: usize, why: String| PlyError::Header {
             path: path.to_path_buf(),
             line,
@@ -508,7 +515,7 @@ impl Header {
         let Some(encoding) = encoding else {
             return Err(err(line_no, "no `format` line before end_header".into()));
         };
-        let payload = (bytes.len() - pos) as u128;
+        let payload = u128::from(file_len).saturating_sub(pos as u128);
         let mut need: u128 = 0;
         for e in &elements {
             if e.count > 0 && e.properties.is_empty() {
@@ -1061,6 +1068,143 @@ impl RowWriter {
     /// The buffered bytes (for in-memory encoding).
     pub fn into_bytes(self) -> Vec<u8> {
         self.buf
+    }
+}
+
+/// The rows of one element of a binary PLY whose elements all have fixed-size rows, read from
+/// the file in chunks: memory independent of the file size (`gs4city tile` cuts a city's PLY
+/// this way). The header is checked against the file's size first, and the file must hold
+/// exactly the bytes the header declares.
+#[derive(Debug, Clone)]
+pub struct FixedRows {
+    pub path: PathBuf,
+    pub header: Header,
+    /// Index of the streamed element in [`Header::elements`].
+    pub element: usize,
+    /// Byte offset of the element's first row in the file.
+    pub start: u64,
+    /// Bytes per row.
+    pub stride: usize,
+    /// Byte offset of each property within a row (header order).
+    pub offsets: Vec<usize>,
+}
+
+impl FixedRows {
+    /// Opens `path` and finds element `name` (errors name the file).
+    pub fn open(path: &Path, name: &str) -> Result<FixedRows, PlyError> {
+        let io = |err| PlyError::Io {
+            path: path.to_path_buf(),
+            err,
+        };
+        let layout = |why: String| PlyError::Layout {
+            path: path.to_path_buf(),
+            why,
+        };
+        let mut f = std::fs::File::open(path).map_err(io)?;
+        let file_len = f.metadata().map_err(io)?.len();
+        let mut head = vec![0u8; (file_len.min(MAX_HEADER_BYTES as u64)) as usize];
+        std::io::Read::read_exact(&mut f, &mut head).map_err(io)?;
+        let header = Header::parse_sized(path, &head, file_len)?;
+        if header.encoding == Encoding::Ascii {
+            return Err(layout(
+                "an ASCII PLY cannot be read in chunks; convert it to binary (e.g. `gs4city render` \
+                 reads it, any PLY tool writes binary_little_endian)"
+                    .into(),
+            ));
+        }
+        let element = header
+            .element(name)
+            .ok_or_else(|| layout(format!("no `{name}` element")))?;
+        let mut start = header.len as u128;
+        let mut end = header.len as u128;
+        for (i, e) in header.elements.iter().enumerate() {
+            let stride = e.fixed_stride().ok_or_else(|| {
+                layout(format!(
+                    "element `{}` has list properties, so its rows have no fixed size",
+                    e.name
+                ))
+            })?;
+            if i < element {
+                start += e.count as u128 * stride as u128;
+            }
+            end += e.count as u128 * stride as u128;
+        }
+        if end != u128::from(file_len) {
+            return Err(PlyError::Trailing {
+                path: path.to_path_buf(),
+                why: format!(
+                    "more data than the header declares ({} bytes after the last element)",
+                    u128::from(file_len) - end
+                ),
+            });
+        }
+        let e = &header.elements[element];
+        let mut offsets = Vec::with_capacity(e.properties.len());
+        let mut at = 0;
+        for p in &e.properties {
+            offsets.push(at);
+            if let PropertyKind::Scalar(k) = p.kind {
+                at += k.size();
+            }
+        }
+        Ok(FixedRows {
+            path: path.to_path_buf(),
+            stride: at,
+            start: start as u64,
+            element,
+            offsets,
+            header,
+        })
+    }
+
+    /// The streamed element's definition.
+    pub fn def(&self) -> &ElementDef {
+        &self.header.elements[self.element]
+    }
+
+    /// Rows of the streamed element.
+    pub fn count(&self) -> usize {
+        self.def().count
+    }
+
+    /// The value of property `p` in the raw bytes of one row.
+    #[inline]
+    pub fn value(&self, row: &[u8], p: usize) -> f64 {
+        let PropertyKind::Scalar(k) = self.def().properties[p].kind else {
+            unreachable!("FixedRows::open refuses list properties")
+        };
+        let o = self.offsets[p];
+        k.decode(
+            &row[o..o + k.size()],
+            self.header.encoding == Encoding::BinaryBigEndian,
+        )
+    }
+
+    /// Calls `f(first_row, bytes)` for consecutive chunks of at most `rows_per_chunk` rows, in
+    /// file order; `bytes` holds whole rows of [`FixedRows::stride`] bytes.
+    pub fn for_each_chunk<E: From<PlyError>>(
+        &self,
+        rows_per_chunk: usize,
+        mut f: impl FnMut(usize, &[u8]) -> Result<(), E>,
+    ) -> Result<(), E> {
+        use std::io::{Read, Seek, SeekFrom};
+        let io = |err| PlyError::Io {
+            path: self.path.clone(),
+            err,
+        };
+        let mut file = std::fs::File::open(&self.path).map_err(io)?;
+        file.seek(SeekFrom::Start(self.start)).map_err(io)?;
+        let per = rows_per_chunk.max(1);
+        let mut buf = vec![0u8; per * self.stride];
+        let mut row = 0;
+        while row < self.count() {
+            let n = per.min(self.count() - row);
+            let chunk = &mut buf[..n * self.stride];
+            file.read_exact(chunk).map_err(io)?;
+            f(row, chunk)?;
+            row += n;
+        }
+        Ok(())
     }
 }
 

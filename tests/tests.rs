@@ -36,4 +36,5 @@ mod segment;
 mod synth;
 mod synth_masks;
 mod textembed;
+mod tile;
 mod train;

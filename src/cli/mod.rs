@@ -16,6 +16,7 @@ mod run;
 mod scene;
 mod segment;
 mod synth;
+mod tile;
 mod train;
 
 use clap::{Parser, Subcommand};
@@ -121,6 +122,8 @@ enum Command {
     /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
     #[command(after_help = "Example:\n  gs4city synth --preset small --out /tmp/small")]
     Synth(synth::SynthArgs),
+    #[command(flatten)]
+    City(tile::CityCommand),
 }
 
 /// Parses the process arguments and runs the chosen subcommand.
@@ -149,6 +152,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),
         Command::Segment(args) => segment::run(&args),
+        Command::City(cmd) => tile::run(&cmd),
     }
 }
 

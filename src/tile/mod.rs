@@ -1,0 +1,659 @@
+//! City scale (an orchestrator): a scene folder as a plan of tiles that run anywhere and merge
+//! into one semantic scene — `gs4city tile`, `gs4city run-plan`, `gs4city merge`; docs/tile.md.
+//!
+//! The plan lives in the georeferenced ground plane of the city model (its CRS's x, y): a grid of
+//! `size` × `size` m cores over the footprint centres of the buildings (the outer tiles' cores
+//! reach to infinity outward, so every Gaussian has one core). A tile owns the buildings whose
+//! footprint centre lies in its core; it gets
+//! * the Gaussians within `margin` of its core (one streaming pass, [`cut`]) and their original
+//!   indices (`source.npy`);
+//! * the CityGML objects it owns plus the neighbours whose footprint box reaches into core +
+//!   margin (so occlusion stays right; [`gml`]);
+//! * the views (minus the plan's test views) in which its owned buildings or its core Gaussians
+//!   project into the image, in front of the camera and not hidden behind the box of a building
+//!   near the tile (a coarse visibility test);
+//! * links to their images, SAM lists and features (never copies).
+//!
+//! Each tile is a scene folder `P/tiles/<name>/scene`, run with `gs4city run --test-every 0`
+//! (the plan's test views are held back from every tile). [`exec`] runs one tile and records
+//! its cost; [`merge`] joins the tiles' labels into one run folder; [`slurm`] writes the batch
+//! scripts.
+pub mod cut;
+pub mod exec;
+pub mod gml;
+pub mod merge;
+pub mod slurm;
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+use crate::alignment::Alignment;
+use crate::camera::View;
+use crate::scene::{Scene, Split};
+
+/// Errors of tiling, running and merging a plan; each names the file or tile at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum TileError {
+    #[error("{0}")]
+    Invalid(String),
+    #[error("{path}: {err}")]
+    Io { path: PathBuf, err: std::io::Error },
+    #[error(transparent)]
+    Fs(#[from] crate::fsutil::FsError),
+    #[error(transparent)]
+    Ply(#[from] crate::ply::PlyError),
+    #[error(transparent)]
+    Splat(#[from] crate::splat::PlyError),
+    #[error(transparent)]
+    Colmap(#[from] crate::colmap::ColmapError),
+    #[error(transparent)]
+    CityGml(#[from] crate::citygml::CityGmlError),
+    #[error(transparent)]
+    Alignment(#[from] crate::alignment::AlignError),
+    #[error(transparent)]
+    Scene(#[from] crate::scene::SceneError),
+    #[error(transparent)]
+    Npy(#[from] crate::npy::NpyError),
+    #[error(transparent)]
+    Labels(#[from] crate::labels::LabelsError),
+    #[error(transparent)]
+    Semantics(#[from] crate::semantics::SemanticsError),
+    #[error(transparent)]
+    Render(#[from] crate::render::RenderError),
+    #[error(transparent)]
+    Cache(#[from] crate::cache::CacheError),
+    #[error(transparent)]
+    Prediction(#[from] crate::prediction::PredictionError),
+    #[error(transparent)]
+    Eval(#[from] crate::eval::EvalError),
+}
+
+/// The file that describes a plan.
+pub const PLAN: &str = "plan.json";
+
+/// Options of `gs4city tile`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TileOptions {
+    /// Side of a tile's core in metres (the city model's ground plane).
+    pub size_m: f64,
+    /// Margin around the core in metres: Gaussians and neighbouring buildings within it join
+    /// the tile.
+    pub margin_m: f64,
+    /// Every `test_every`-th view by name is a test view of the whole plan, held back from every
+    /// tile (as `gs4city run`; 0 = none).
+    pub test_every: usize,
+    /// Opaque core Gaussians per tile sampled for the view test.
+    pub sample: usize,
+    /// Sample points that must be visible for a view to join a tile.
+    pub min_visible: usize,
+    /// Options of each tile's `gs4city run` (its command-line words; `--test-every 0` is added).
+    #[serde(default)]
+    pub run_args: Vec<String>,
+}
+
+impl Default for TileOptions {
+    fn default() -> Self {
+        TileOptions {
+            size_m: 150.0,
+            margin_m: 25.0,
+            test_every: 8,
+            sample: 2048,
+            min_visible: 3,
+            run_args: Vec::new(),
+        }
+    }
+}
+
+impl TileOptions {
+    /// Checks the ranges (one line naming the option).
+    pub fn validate(&self) -> Result<(), TileError> {
+        use crate::check::{End, range};
+        range("size", self.size_m, End::Closed(1.0), End::Closed(1e6))
+            .map_err(TileError::Invalid)?;
+        range("margin", self.margin_m, End::Closed(0.0), End::Closed(1e6))
+            .map_err(TileError::Invalid)?;
+        range(
+            "sample",
+            self.sample as f64,
+            End::Closed(16.0),
+            End::Closed(1e7),
+        )
+        .map_err(TileError::Invalid)?;
+        Ok(())
+    }
+}
+
+/// The tile grid in the ground plane: cores `[ox + i·size, ox + (i+1)·size)` in x (and y), the
+/// outer ones open outward.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Grid {
+    pub origin: [f64; 2],
+    pub size: f64,
+    pub margin: f64,
+    pub nx: usize,
+    pub ny: usize,
+}
+
+impl Grid {
+    fn cell(v: f64, o: f64, size: f64, n: usize) -> usize {
+        let c = ((v - o) / size).floor();
+        if c.is_nan() || c < 0.0 {
+            0
+        } else {
+            (c as usize).min(n - 1)
+        }
+    }
+
+    /// The tile (row-major, `iy · nx + ix`) whose core holds ground point `(x, y)`; a point with
+    /// a non-finite coordinate belongs to tile 0.
+    pub fn core_of(&self, x: f64, y: f64) -> usize {
+        let ix = Grid::cell(x, self.origin[0], self.size, self.nx);
+        let iy = Grid::cell(y, self.origin[1], self.size, self.ny);
+        iy * self.nx + ix
+    }
+
+    /// The core `[x0, y0, x1, y1]` of tile `t`, infinite where it is open.
+    pub fn core(&self, t: usize) -> [f64; 4] {
+        let (ix, iy) = (t % self.nx, t / self.nx);
+        let lo = |i: usize, o: f64| {
+            if i == 0 {
+                f64::NEG_INFINITY
+            } else {
+                o + i as f64 * self.size
+            }
+        };
+        let hi = |i: usize, o: f64, n: usize| {
+            if i + 1 == n {
+                f64::INFINITY
+            } else {
+                o + (i + 1) as f64 * self.size
+            }
+        };
+        [
+            lo(ix, self.origin[0]),
+            lo(iy, self.origin[1]),
+            hi(ix, self.origin[0], self.nx),
+            hi(iy, self.origin[1], self.ny),
+        ]
+    }
+
+    /// Every tile whose core + margin holds `(x, y)` (its core tile among them), ascending.
+    pub fn tiles_within(&self, x: f64, y: f64, out: &mut Vec<usize>) {
+        let core = self.core_of(x, y);
+        if !(x.is_finite() && y.is_finite()) {
+            out.push(core);
+            return;
+        }
+        let (cx, cy) = (core % self.nx, core / self.nx);
+        let reach = (self.margin / self.size).ceil() as usize + 1;
+        for iy in cy.saturating_sub(reach)..(cy + reach + 1).min(self.ny) {
+            for ix in cx.saturating_sub(reach)..(cx + reach + 1).min(self.nx) {
+                let t = iy * self.nx + ix;
+                let c = self.core(t);
+                let dx = (c[0] - x).max(x - c[2]).max(0.0);
+                let dy = (c[1] - y).max(y - c[3]).max(0.0);
+                if t == core || (dx <= self.margin && dy <= self.margin) {
+                    out.push(t);
+                }
+            }
+        }
+    }
+
+    /// Whether a ground box `[x0, y0, x1, y1]` reaches into tile `t`'s core + margin.
+    pub fn box_reaches(&self, t: usize, b: [f64; 4]) -> bool {
+        let c = self.core(t);
+        b[2] >= c[0] - self.margin
+            && b[0] <= c[2] + self.margin
+            && b[3] >= c[1] - self.margin
+            && b[1] <= c[3] + self.margin
+    }
+}
+
+/// What a tile's job asks a scheduler for.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Resources {
+    pub cpus: usize,
+    pub mem_mb: u64,
+    pub time_min: u64,
+}
+
+/// One tile of a plan.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TilePlan {
+    pub index: usize,
+    /// `t<iy>_<ix>`: its folder under `P/tiles/`.
+    pub name: String,
+    pub ix: usize,
+    pub iy: usize,
+    /// The core `[x0, y0, x1, y1]` in the ground plane (`null` = open).
+    pub core: [Option<f64>; 4],
+    /// Object ids of the buildings it owns.
+    pub owned: Vec<String>,
+    /// Object ids of the neighbours inside its margin.
+    pub neighbours: Vec<String>,
+    pub gaussians: usize,
+    pub core_gaussians: usize,
+    pub views: usize,
+    /// Whether the tile has a scene to run (buildings and views); the core Gaussians of a tile
+    /// that has none are labelled −1 by the merge.
+    pub runnable: bool,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub why_not: Option<String>,
+    pub resources: Resources,
+}
+
+/// `plan.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Plan {
+    pub program: String,
+    pub version: String,
+    /// The scene folder (canonical).
+    pub scene: PathBuf,
+    pub options: TileOptions,
+    pub grid: Grid,
+    /// Gaussians of the scene's PLY (one row per Gaussian in the merged `semantic.ply`).
+    pub gaussians: usize,
+    /// Size of the scene's PLY in bytes (the merge checks it is the same file).
+    pub ply_bytes: u64,
+    /// The plan's test views (image names), held back from every tile.
+    pub test_views: Vec<String>,
+    /// The `gs4city` binary that wrote the plan (the batch scripts run it unless `GS4CITY` is set).
+    pub exe: Option<PathBuf>,
+    pub tiles: Vec<TilePlan>,
+    /// Seconds and peak memory (MB) of the planning and the cut.
+    pub seconds: f64,
+    pub peak_rss_mb: Option<f64>,
+}
+
+impl Plan {
+    /// Reads `P/plan.json` (one clear line when `P` is no plan).
+    pub fn read(plan_dir: &Path) -> Result<Plan, TileError> {
+        let p = plan_dir.join(PLAN);
+        if !p.is_file() {
+            return Err(TileError::Invalid(format!(
+                "{}: missing; {} is not a tile plan (make one with `gs4city tile --scene S --out {}`)",
+                p.display(),
+                plan_dir.display(),
+                plan_dir.display()
+            )));
+        }
+        Ok(crate::fsutil::read_json(&p)?)
+    }
+
+    /// The folder of tile `t`.
+    pub fn tile_dir(plan_dir: &Path, t: &TilePlan) -> PathBuf {
+        plan_dir.join("tiles").join(&t.name)
+    }
+}
+
+/// The resources of a tile job, from the street's 60 m tiles (BENCHMARKS.md, "City scale": peak
+/// 334 MB at 107 k Gaussians / 48 views to 505 MB at 535 k / 83 views, 13–52 CPU s): memory
+/// 512 MB + 0.6 kB per Gaussian + 2 MB per view, doubled for safety and rounded up to 512 MB;
+/// time 10 min + 2 min per 10⁵ Gaussians × 100 views.
+pub fn resources(gaussians: usize, views: usize) -> Resources {
+    let mb = 512.0 + 0.6e-3 * gaussians as f64 + 2.0 * views as f64;
+    let mem_mb = ((2.0 * mb / 512.0).ceil() * 512.0) as u64;
+    let minutes = 10.0 + 2.0 * (gaussians as f64 / 1e5) * (views as f64 / 100.0);
+    Resources {
+        cpus: 2,
+        mem_mb,
+        time_min: minutes.ceil() as u64,
+    }
+}
+
+/// Whether view `v` sees enough of `points`: projected inside the image, in front of the
+/// camera, and with no occluder box (scene frame, other than one containing the point) on the
+/// segment from the camera.
+fn sees(v: &View, points: &[DVec3], occluders: &[(DVec3, DVec3)], need: usize) -> bool {
+    let k = &v.camera.intrinsics;
+    let eye = v.camera.pose.center();
+    // A box that holds the camera (a street between the wings of one building's box) hides
+    // nothing: the test is too coarse to tell inside from outside there.
+    let pad = DVec3::splat(0.25);
+    let occluders: Vec<(DVec3, DVec3)> = occluders
+        .iter()
+        .copied()
+        .filter(|&(lo, hi)| !(eye.cmpge(lo - pad).all() && eye.cmple(hi + pad).all()))
+        .collect();
+    let mut seen = 0;
+    for &p in points {
+        let Some(px) = v.camera.project(v.camera.pose.world_to_camera(p)) else {
+            continue;
+        };
+        if !(px.x >= 0.0 && px.y >= 0.0 && px.x < f64::from(k.width) && px.y < f64::from(k.height))
+        {
+            continue;
+        }
+        let hidden = occluders.iter().any(|&(lo, hi)| {
+            let inside = p.cmpge(lo - pad).all() && p.cmple(hi + pad).all();
+            !inside && segment_hits_box(eye, p, lo, hi)
+        });
+        if !hidden {
+            seen += 1;
+            if seen >= need {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+/// Slab test of segment `a → b` against box `[lo, hi]`.
+fn segment_hits_box(a: DVec3, b: DVec3, lo: DVec3, hi: DVec3) -> bool {
+    let d = b - a;
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for k in 0..3 {
+        if d[k].abs() < 1e-12 {
+            if a[k] < lo[k] || a[k] > hi[k] {
+                return false;
+            }
+            continue;
+        }
+        let (mut u, mut w) = ((lo[k] - a[k]) / d[k], (hi[k] - a[k]) / d[k]);
+        if u > w {
+            std::mem::swap(&mut u, &mut w);
+        }
+        t0 = t0.max(u);
+        t1 = t1.min(w);
+        if t0 > t1 {
+            return false;
+        }
+    }
+    true
+}
+
+/// Writes the tile plan of scene `scene_dir` into `out` (which must not exist): one scene folder
+/// per tile, `plan.json`, and the Slurm batch scripts. Built in `out.partial` and renamed, so a
+/// failed plan leaves nothing that looks done. `exe` is the `gs4city` binary the batch
+/// scripts run.
+pub fn plan(
+    scene_dir: &Path,
+    out: &Path,
+    opts: &TileOptions,
+    exe: Option<&Path>,
+) -> Result<Plan, TileError> {
+    let t0 = Instant::now();
+    opts.validate()?;
+    let scene_dir = scene_dir.canonicalize().map_err(|err| TileError::Io {
+        path: scene_dir.to_path_buf(),
+        err,
+    })?;
+    if out.exists() {
+        return Err(TileError::Invalid(format!(
+            "{}: exists; a plan is written into a new folder (remove it or choose another --out)",
+            out.display()
+        )));
+    }
+    let scene = Scene::open(&scene_dir)?;
+    let Some(al_path) = &scene.alignment else {
+        return Err(TileError::Invalid(format!(
+            "{}: no citymodel/alignment.json; tiles are laid out in the city model's ground plane, so the scene needs its alignment (`gs4city align`)",
+            scene_dir.display()
+        )));
+    };
+    let al = Alignment::read(al_path)?;
+    let feet = gml::footprints(&scene.gml, &al)?;
+    if feet.is_empty() {
+        return Err(TileError::Invalid(format!(
+            "{}: the city model holds no object with geometry to tile",
+            scene_dir.join("citymodel").display()
+        )));
+    }
+    let views = crate::colmap::read_model(&scene.sparse)?;
+    let split = Split::new(views, opts.test_every);
+    let test_views: Vec<String> = split.test.iter().map(|v| v.name.clone()).collect();
+
+    // The grid over the footprint centres, centred on them.
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for f in &feet {
+        for k in 0..2 {
+            lo[k] = lo[k].min(f.centre[k]);
+            hi[k] = hi[k].max(f.centre[k]);
+        }
+    }
+    let n = |k: usize| (((hi[k] - lo[k]) / opts.size_m).ceil() as usize).max(1);
+    let (nx, ny) = (n(0), n(1));
+    let grid = Grid {
+        origin: [
+            lo[0] - (nx as f64 * opts.size_m - (hi[0] - lo[0])) / 2.0,
+            lo[1] - (ny as f64 * opts.size_m - (hi[1] - lo[1])) / 2.0,
+        ],
+        size: opts.size_m,
+        margin: opts.margin_m,
+        nx,
+        ny,
+    };
+    let n_tiles = nx * ny;
+    let names: Vec<String> = (0..n_tiles)
+        .map(|t| format!("t{:03}_{:03}", t / nx, t % nx))
+        .collect();
+
+    let partial = out.with_file_name(format!(
+        "{}.partial",
+        out.file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "plan".into())
+    ));
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial).map_err(|err| TileError::Io {
+            path: partial.clone(),
+            err,
+        })?;
+    }
+    let dirs: Vec<PathBuf> = names
+        .iter()
+        .map(|n| partial.join("tiles").join(n))
+        .collect();
+    for d in &dirs {
+        crate::fsutil::create_dir(&d.join("scene"))?;
+    }
+    let (cuts, gaussians) = cut::cut(&scene.ply, &al, &grid, &dirs, &names, opts.sample)?;
+    let ply_bytes = std::fs::metadata(&scene.ply)
+        .map_err(|err| TileError::Io {
+            path: scene.ply.clone(),
+            err,
+        })?
+        .len();
+
+    let all_ids: Vec<BTreeSet<&str>> = (0..scene.gml.len())
+        .map(|fi| {
+            feet.iter()
+                .filter(|f| f.file == fi)
+                .map(|f| f.id.as_str())
+                .collect()
+        })
+        .collect();
+    let bar = crate::progress::Bar::new("tile: scenes", n_tiles as u64, "tiles");
+    let mut tiles = Vec::with_capacity(n_tiles);
+    for t in 0..n_tiles {
+        let dir = &dirs[t];
+        let sdir = dir.join("scene");
+        let owned: Vec<&gml::Footprint> = feet
+            .iter()
+            .filter(|f| grid.core_of(f.centre[0], f.centre[1]) == t)
+            .collect();
+        let neighbours: Vec<&gml::Footprint> = feet
+            .iter()
+            .filter(|f| {
+                grid.core_of(f.centre[0], f.centre[1]) != t && grid.box_reaches(t, f.ground)
+            })
+            .collect();
+        let occluders: Vec<(DVec3, DVec3)> = owned
+            .iter()
+            .chain(&neighbours)
+            .map(|f| (f.scene_min, f.scene_max))
+            .collect();
+        let mut points: Vec<DVec3> = owned
+            .iter()
+            .flat_map(|f| f.samples.iter().copied())
+            .collect();
+        points.extend(cuts[t].sample.iter().copied());
+        let tile_views: Vec<View> = if owned.is_empty() && neighbours.is_empty() {
+            Vec::new()
+        } else {
+            split
+                .train
+                .iter()
+                .filter(|v| sees(v, &points, &occluders, opts.min_visible))
+                .cloned()
+                .collect()
+        };
+        let why_not = if owned.is_empty() && neighbours.is_empty() {
+            Some("no building in its core or margin".to_string())
+        } else if tile_views.is_empty() {
+            Some("no training view sees it".to_string())
+        } else {
+            None
+        };
+        if why_not.is_none() {
+            write_tile_scene(&scene, &sdir, &tile_views, &owned, &neighbours, &all_ids)?;
+        }
+        let c = grid.core(t);
+        let fin = |v: f64| v.is_finite().then_some(v);
+        tiles.push(TilePlan {
+            index: t,
+            name: names[t].clone(),
+            ix: t % nx,
+            iy: t / nx,
+            core: [fin(c[0]), fin(c[1]), fin(c[2]), fin(c[3])],
+            owned: owned.iter().map(|f| f.id.clone()).collect(),
+            neighbours: neighbours.iter().map(|f| f.id.clone()).collect(),
+            gaussians: cuts[t].gaussians,
+            core_gaussians: cuts[t].core,
+            views: tile_views.len(),
+            runnable: why_not.is_none(),
+            why_not,
+            resources: resources(cuts[t].gaussians, tile_views.len()),
+        });
+        bar.inc(1);
+    }
+    bar.finish();
+    let mut plan = Plan {
+        program: "gs4city".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        scene: scene_dir.clone(),
+        options: opts.clone(),
+        grid,
+        gaussians,
+        ply_bytes,
+        test_views,
+        exe: exe.map(Path::to_path_buf),
+        tiles,
+        seconds: 0.0,
+        peak_rss_mb: None,
+    };
+    slurm::write(&partial, out, &plan)?;
+    plan.seconds = t0.elapsed().as_secs_f64();
+    plan.peak_rss_mb = crate::progress::peak_rss_mb();
+    crate::fsutil::write_json(&partial.join(PLAN), &plan)?;
+    std::fs::rename(&partial, out).map_err(|err| TileError::Io {
+        path: out.to_path_buf(),
+        err,
+    })?;
+    crate::progress::done(
+        "tile",
+        &format!(
+            "{} tiles ({} runnable) of {} Gaussians",
+            plan.tiles.len(),
+            plan.tiles.iter().filter(|t| t.runnable).count(),
+            gaussians
+        ),
+        plan.seconds,
+    );
+    Ok(plan)
+}
+
+/// The scene folder of one tile: the CityGML subset and alignment, the COLMAP subset, links to
+/// the images, SAM lists and features of its views (the PLY is already cut).
+fn write_tile_scene(
+    scene: &Scene,
+    sdir: &Path,
+    views: &[View],
+    owned: &[&gml::Footprint],
+    neighbours: &[&gml::Footprint],
+    all_ids: &[BTreeSet<&str>],
+) -> Result<(), TileError> {
+    let cm = sdir.join("citymodel");
+    crate::fsutil::create_dir(&cm)?;
+    for (fi, src) in scene.gml.iter().enumerate() {
+        let keep: BTreeSet<&str> = owned
+            .iter()
+            .chain(neighbours)
+            .filter(|f| f.file == fi)
+            .map(|f| f.id.as_str())
+            .collect();
+        let name = src.file_name().unwrap_or_default();
+        gml::write_subset(src, &all_ids[fi], &keep, &cm.join(name))?;
+    }
+    if let Some(a) = &scene.alignment {
+        let to = cm.join("alignment.json");
+        std::fs::copy(a, &to).map_err(|err| TileError::Io { path: to, err })?;
+    }
+    crate::colmap::write_model(&sdir.join("sparse/0"), views, true)?;
+    for v in views {
+        if let Some(images) = &scene.images {
+            let src = images.join(&v.name);
+            if src.is_file() {
+                gml::link(&src, &sdir.join("images").join(&v.name))?;
+            }
+        }
+        let stem = v.stem();
+        if let Some(f) = scene.sam_file(&stem) {
+            gml::link(&f, &sdir.join("masks").join(format!("{stem}.json")))?;
+        }
+        if let Some(f) = scene.feature_file(&stem) {
+            gml::link(&f, &sdir.join("features").join(format!("{stem}.npy")))?;
+        }
+    }
+    if let Some(p) = scene.prompts_file() {
+        gml::link(&p, &sdir.join("features/prompts.json"))?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_point_has_one_core_and_the_margin_is_a_square_ring() {
+        let g = Grid {
+            origin: [0.0, 0.0],
+            size: 10.0,
+            margin: 2.0,
+            nx: 3,
+            ny: 2,
+        };
+        assert_eq!(g.core_of(-100.0, -5.0), 0);
+        assert_eq!(g.core_of(15.0, 5.0), 1);
+        assert_eq!(g.core_of(29.99, 19.99), 5);
+        assert_eq!(g.core_of(1e9, 1e9), 5);
+        assert_eq!(g.core_of(f64::NAN, 3.0), 0);
+        let mut v = Vec::new();
+        g.tiles_within(11.0, 9.0, &mut v);
+        // Core tile 1; within 2 m of tile 0 (x < 10) and of tiles 3, 4 (y ≥ 10).
+        assert_eq!(v, vec![0, 1, 3, 4]);
+        v.clear();
+        g.tiles_within(15.0, 5.0, &mut v);
+        assert_eq!(v, vec![1]);
+        v.clear();
+        g.tiles_within(12.5, 5.0, &mut v);
+        assert_eq!(v, vec![1]);
+        assert!(segment_hits_box(
+            DVec3::ZERO,
+            DVec3::new(10.0, 0.0, 0.0),
+            DVec3::new(4.0, -1.0, -1.0),
+            DVec3::new(5.0, 1.0, 1.0)
+        ));
+        assert!(!segment_hits_box(
+            DVec3::ZERO,
+            DVec3::new(3.0, 0.0, 0.0),
+            DVec3::new(4.0, -1.0, -1.0),
+            DVec3::new(5.0, 1.0, 1.0)
+        ));
+    }
+}

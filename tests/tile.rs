@@ -1,0 +1,592 @@
+//! `gs4city tile`, `run-plan`, `merge` on a SIMULATED scene (`synth --preset small`: two real
+//! buildings ~20 m apart, so 10 m tiles make two tiles). Expectations are computed here from the
+//! plan's own numbers and the input files, by formulas that share no code with the cut or the
+//! merge: membership of each Gaussian by its distance to each tile's core box, rows compared
+//! byte for byte, the merged labels re-derived from the tiles' outputs by object id and offset;
+//! the padded PLY headers are read back by plyfile; the Slurm job array runs on a real
+//! single-node Slurm (`scripts/slurm_test.sh`).
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::OnceLock;
+
+use serde_json::Value;
+
+use crate::common;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_gs4city"))
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("gs4city-tile-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Runs `gs4city ARGS`; returns (success, stdout + stderr).
+fn gs(args: &[&str]) -> (bool, String) {
+    let o = bin().arg("-q").args(args).output().unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    (o.status.success(), text)
+}
+
+/// The SIMULATED small scene, made once for every test here.
+fn scene() -> &'static Path {
+    static S: OnceLock<PathBuf> = OnceLock::new();
+    S.get_or_init(|| {
+        let d = tmp("scene");
+        let s = d.join("small");
+        let (ok, out) = gs(&["synth", "--preset", "small", "--out", s.to_str().unwrap()]);
+        assert!(ok, "{out}");
+        s
+    })
+}
+
+fn plan_of(dir: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join("plan.json")).unwrap()).unwrap()
+}
+
+fn tile(scene: &Path, out: &Path, size: &str, margin: &str) {
+    let (ok, text) = gs(&[
+        "tile",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--size",
+        size,
+        "--margin",
+        margin,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+}
+
+/// A binary little-endian all-float PLY: (header length, rows, stride, property names).
+fn ply_rows(bytes: &[u8]) -> (usize, usize, usize, Vec<String>) {
+    let end = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .unwrap()
+        + 11;
+    let head = std::str::from_utf8(&bytes[..end]).unwrap();
+    assert!(head.contains("format binary_little_endian 1.0"));
+    let mut n = 0;
+    let mut props = Vec::new();
+    for l in head.lines() {
+        let w: Vec<&str> = l.split_whitespace().collect();
+        match w.as_slice() {
+            ["element", "vertex", c] => n = c.parse().unwrap(),
+            ["property", "float", name] => props.push(name.to_string()),
+            ["property", ..] => panic!("not an all-float PLY: {l}"),
+            _ => {}
+        }
+    }
+    (end, n, 4 * props.len(), props)
+}
+
+fn f32_at(row: &[u8], k: usize) -> f64 {
+    f64::from(f32::from_le_bytes(
+        row[4 * k..4 * k + 4].try_into().unwrap(),
+    ))
+}
+
+/// The scene → ground transform of `alignment.json`, written out here: geo = Rᵀ(p − t)/s + origin.
+fn to_ground(al: &Value, p: [f64; 3]) -> [f64; 2] {
+    let r = &al["rotation"];
+    let s = al["scale"].as_f64().unwrap();
+    let d: Vec<f64> = (0..3)
+        .map(|k| (p[k] - al["translation"][k].as_f64().unwrap()) / s)
+        .collect();
+    let g = |c: usize| -> f64 {
+        (0..3)
+            .map(|k| r[k][c].as_f64().unwrap() * d[k])
+            .sum::<f64>()
+            + al["origin"][c].as_f64().unwrap()
+    };
+    [g(0), g(1)]
+}
+
+fn npy_i64(path: &Path) -> Vec<i64> {
+    gs4city::npy::read::<i64>(path).unwrap().1
+}
+
+#[test]
+fn the_cut_puts_every_gaussian_byte_for_byte_into_the_tiles_within_the_margin_of_it() {
+    let s = scene();
+    let p = tmp("cut").join("P");
+    tile(s, &p, "10", "4");
+    let plan = plan_of(&p);
+    let tiles = plan["tiles"].as_array().unwrap();
+    assert_eq!(tiles.len(), 2, "two buildings ~20 m apart, 10 m tiles");
+    let margin = 4.0;
+    let al: Value =
+        serde_json::from_str(&std::fs::read_to_string(s.join("citymodel/alignment.json")).unwrap())
+            .unwrap();
+    let src = std::fs::read(s.join("point_cloud.ply")).unwrap();
+    let (h0, n, stride, props) = ply_rows(&src);
+    assert_eq!(plan["gaussians"].as_u64().unwrap() as usize, n);
+    let (ix, iy, iz) = (
+        props.iter().position(|p| p == "x").unwrap(),
+        props.iter().position(|p| p == "y").unwrap(),
+        props.iter().position(|p| p == "z").unwrap(),
+    );
+    let row = |i: usize| &src[h0 + i * stride..h0 + (i + 1) * stride];
+    let mut cores = vec![0usize; n];
+    for t in tiles {
+        let name = t["name"].as_str().unwrap();
+        let c: Vec<f64> = (0..4)
+            .map(|k| {
+                t["core"][k].as_f64().unwrap_or(if k < 2 {
+                    f64::NEG_INFINITY
+                } else {
+                    f64::INFINITY
+                })
+            })
+            .collect();
+        // Expected: every Gaussian whose ground point lies within `margin` of the core box (a
+        // square ring); in the core where inside the half-open box.
+        let mut expect = Vec::new();
+        for i in 0..n {
+            let r = row(i);
+            let g = to_ground(&al, [f32_at(r, ix), f32_at(r, iy), f32_at(r, iz)]);
+            let dx = (c[0] - g[0]).max(g[0] - c[2]).max(0.0);
+            let dy = (c[1] - g[1]).max(g[1] - c[3]).max(0.0);
+            let core = g[0] >= c[0] && g[0] < c[2] && g[1] >= c[1] && g[1] < c[3];
+            if dx <= margin && dy <= margin || core {
+                expect.push((i as i64, i64::from(core)));
+            }
+        }
+        let dir = p.join("tiles").join(name);
+        let got = npy_i64(&dir.join("source.npy"));
+        let got: Vec<(i64, i64)> = got.chunks(2).map(|r| (r[0], r[1])).collect();
+        assert_eq!(
+            got.len(),
+            expect.len(),
+            "{name}: Gaussians in core + margin"
+        );
+        assert_eq!(got, expect, "{name}: source indices and core flags");
+        assert_eq!(
+            t["core_gaussians"].as_u64().unwrap() as usize,
+            expect.iter().filter(|e| e.1 == 1).count()
+        );
+        let out = std::fs::read(dir.join("scene/point_cloud.ply")).unwrap();
+        let (h1, m, stride1, props1) = ply_rows(&out);
+        assert_eq!((m, stride1, &props1), (expect.len(), stride, &props));
+        assert_eq!(out.len(), h1 + m * stride, "{name}: no trailing bytes");
+        for (k, (i, core)) in expect.iter().enumerate() {
+            assert_eq!(
+                &out[h1 + k * stride..h1 + (k + 1) * stride],
+                row(*i as usize),
+                "{name}: row {k}"
+            );
+            cores[*i as usize] += *core as usize;
+        }
+        // Images, SAM lists and the city model are links, never copies.
+        for sub in ["images", "masks"] {
+            for e in std::fs::read_dir(dir.join("scene").join(sub)).unwrap() {
+                let e = e.unwrap();
+                assert!(
+                    e.path()
+                        .symlink_metadata()
+                        .unwrap()
+                        .file_type()
+                        .is_symlink()
+                );
+            }
+        }
+        assert!(!dir.join("scene/gt").exists() && !dir.join("scene/masks/README.json").exists());
+    }
+    assert!(
+        cores.iter().all(|&c| c == 1),
+        "every Gaussian in exactly one core"
+    );
+    // The padded headers read in an independent PLY reader.
+    if common::python_can_import("tile_plyfile", &["plyfile"]) {
+        let py = "import sys, plyfile\nfor f in sys.argv[1:]:\n    print(len(plyfile.PlyData.read(f)['vertex'].data))";
+        let files: Vec<String> = tiles
+            .iter()
+            .map(|t| {
+                p.join("tiles")
+                    .join(t["name"].as_str().unwrap())
+                    .join("scene/point_cloud.ply")
+                    .display()
+                    .to_string()
+            })
+            .collect();
+        let o = Command::new("python3")
+            .arg("-c")
+            .arg(py)
+            .args(&files)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let counts: Vec<u64> = String::from_utf8_lossy(&o.stdout)
+            .lines()
+            .map(|l| l.parse().unwrap())
+            .collect();
+        let want: Vec<u64> = tiles
+            .iter()
+            .map(|t| t["gaussians"].as_u64().unwrap())
+            .collect();
+        assert_eq!(counts, want);
+    }
+    let (ok, text) = gs(&[
+        "tile",
+        "--scene",
+        s.to_str().unwrap(),
+        "--out",
+        p.to_str().unwrap(),
+    ]);
+    assert!(!ok && text.contains("exists"), "{text}");
+}
+
+#[test]
+fn a_file_holding_buildings_of_two_tiles_is_cut_and_each_keeps_its_ids_and_attributes() {
+    let s = scene();
+    let d = tmp("gml");
+    let s2 = d.join("scene");
+    std::fs::create_dir_all(s2.join("citymodel")).unwrap();
+    for part in ["images", "sparse", "point_cloud.ply", "masks", "features"] {
+        std::os::unix::fs::symlink(s.join(part), s2.join(part)).unwrap();
+    }
+    std::fs::copy(
+        s.join("citymodel/alignment.json"),
+        s2.join("citymodel/alignment.json"),
+    )
+    .unwrap();
+    let mut gml: Vec<PathBuf> = std::fs::read_dir(s.join("citymodel"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "gml"))
+        .collect();
+    gml.sort();
+    let a = std::fs::read_to_string(&gml[0]).unwrap();
+    let b = std::fs::read_to_string(&gml[1]).unwrap();
+    let (open, close) = ("<core:cityObjectMember>", "</core:cityObjectMember>");
+    let members = &b[b.find(open).unwrap()..b.rfind(close).unwrap() + close.len()];
+    let end = a.rfind("</core:CityModel>").unwrap();
+    let both = format!("{}{}\n{}", &a[..end], members, &a[end..]);
+    std::fs::write(s2.join("citymodel/both.gml"), &both).unwrap();
+    let whole = gs4city::citygml::read(&s2.join("citymodel/both.gml")).unwrap();
+    let roots: Vec<&gs4city::citygml::CityObject> = whole
+        .objects
+        .iter()
+        .filter(|o| o.parent.is_none())
+        .collect();
+    assert_eq!(roots.len(), 2);
+
+    let p = d.join("P");
+    tile(&s2, &p, "10", "1");
+    let plan = plan_of(&p);
+    let mut seen = Vec::new();
+    for t in plan["tiles"].as_array().unwrap() {
+        let owned: Vec<&str> = t["owned"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap())
+            .collect();
+        assert_eq!(owned.len(), 1, "one building per tile");
+        assert!(
+            t["neighbours"].as_array().unwrap().is_empty(),
+            "1 m margin: no neighbour"
+        );
+        let f = p
+            .join("tiles")
+            .join(t["name"].as_str().unwrap())
+            .join("scene/citymodel/both.gml");
+        assert!(
+            !f.symlink_metadata().unwrap().file_type().is_symlink(),
+            "a cut, not a link"
+        );
+        let sub = gs4city::citygml::read(&f).unwrap();
+        let sub_roots: Vec<&gs4city::citygml::CityObject> =
+            sub.objects.iter().filter(|o| o.parent.is_none()).collect();
+        assert_eq!(sub_roots.len(), 1);
+        assert_eq!(sub_roots[0].object_id, owned[0]);
+        let orig = roots.iter().find(|o| o.object_id == owned[0]).unwrap();
+        assert_eq!(sub_roots[0].attributes, orig.attributes);
+        // Every object of that building, with its id and attributes, and all its polygons.
+        let of_root = |m: &gs4city::citygml::CityModel, id: &str| {
+            let mut v: Vec<(String, String)> = m
+                .objects
+                .iter()
+                .filter(|o| {
+                    let mut r = *o;
+                    while let Some(p) = r.parent {
+                        r = &m.objects[p];
+                    }
+                    r.object_id == id
+                })
+                .map(|o| (o.object_id.clone(), format!("{:?}", o.attributes)))
+                .collect();
+            v.sort();
+            v
+        };
+        assert_eq!(of_root(&sub, owned[0]), of_root(&whole, owned[0]));
+        seen.push(owned[0].to_string());
+    }
+    seen.sort();
+    let mut want: Vec<String> = roots.iter().map(|o| o.object_id.clone()).collect();
+    want.sort();
+    assert_eq!(seen, want);
+}
+
+/// Labels of a merged run re-derived from the tiles: for a Gaussian in tile t's core, a city
+/// label is the merged entity with the tile entity's object id, an image label is
+/// `Δ + offset_t + (tile label − tile Δ)`, and the class is the tile's.
+fn check_merged_against_tiles(p: &Path, m: &Path, holes: &[&str]) {
+    let plan = plan_of(p);
+    let summary: Value =
+        serde_json::from_str(&std::fs::read_to_string(m.join("summary.json")).unwrap()).unwrap();
+    let merged = gs4city::npy::read::<i32>(&m.join("lift/gaussians.npy"))
+        .unwrap()
+        .1;
+    let ments = gs4city::semantics::read(&m.join("citymodel/semantics.json")).unwrap();
+    let delta = summary["delta"].as_i64().unwrap();
+    let n = plan["gaussians"].as_u64().unwrap() as usize;
+    assert_eq!(merged.len(), 2 * n);
+    let mut covered = 0;
+    for (t, row) in plan["tiles"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(summary["tiles"].as_array().unwrap())
+    {
+        let name = t["name"].as_str().unwrap();
+        assert_eq!(row["tile"].as_str().unwrap(), name);
+        let dir = p.join("tiles").join(name);
+        let src = npy_i64(&dir.join("source.npy"));
+        if holes.contains(&name) {
+            assert_eq!(row["state"], "failed");
+            for r in src.chunks(2).filter(|r| r[1] == 1) {
+                assert_eq!(&merged[2 * r[0] as usize..2 * r[0] as usize + 2], &[-1, -1]);
+                covered += 1;
+            }
+            continue;
+        }
+        let offset = row["image_offset"].as_i64().unwrap();
+        let run = dir.join("run");
+        let tl = gs4city::npy::read::<i32>(&run.join("lift/gaussians.npy"))
+            .unwrap()
+            .1;
+        let tents = gs4city::semantics::read(&run.join("citymodel/semantics.json")).unwrap();
+        let tdelta: Value =
+            serde_json::from_str(&std::fs::read_to_string(run.join("fuse/labels.json")).unwrap())
+                .unwrap();
+        let tdelta = tdelta["delta"].as_i64().unwrap();
+        for (r, g) in src.chunks(2).zip(tl.chunks(2)) {
+            if r[1] == 0 {
+                continue;
+            }
+            covered += 1;
+            let i = r[0] as usize;
+            let (ml, mc) = (merged[2 * i], merged[2 * i + 1]);
+            assert_eq!(mc, g[1], "{name}: class of Gaussian {i}");
+            let l = i64::from(g[0]);
+            if l < 0 {
+                assert_eq!(ml, -1);
+            } else if l < tdelta {
+                let oid = &tents[l as usize].object_id;
+                match ments.iter().find(|e| &e.object_id == oid) {
+                    Some(e) => assert_eq!(ml, e.id, "{name}: Gaussian {i} ({oid})"),
+                    None => assert_eq!(ml, -1),
+                }
+            } else {
+                assert_eq!(
+                    i64::from(ml),
+                    delta + offset + (l - tdelta),
+                    "{name}: Gaussian {i}"
+                );
+            }
+        }
+    }
+    assert_eq!(covered, n, "every Gaussian is in one core");
+}
+
+#[test]
+fn run_plan_merges_into_one_queryable_run_that_agrees_with_the_untiled_run() {
+    let s = scene();
+    let d = tmp("merge");
+    let p = d.join("P");
+    tile(s, &p, "10", "4");
+    let (ok, text) = gs(&["run-plan", p.to_str().unwrap(), "--jobs", "2"]);
+    assert!(ok, "{text}");
+    let m = p.join("merged");
+    check_merged_against_tiles(&p, &m, &[]);
+    let summary: Value =
+        serde_json::from_str(&std::fs::read_to_string(m.join("summary.json")).unwrap()).unwrap();
+    for t in summary["tiles"].as_array().unwrap() {
+        assert_eq!(t["state"], "merged");
+        assert!(t["peak_rss_mb"].as_f64().unwrap() > 10.0);
+        assert!(t["disk_bytes"].as_u64().unwrap() > 1_000_000);
+        let st: Value = serde_json::from_str(
+            &std::fs::read_to_string(
+                p.join("tiles")
+                    .join(t["tile"].as_str().unwrap())
+                    .join("status.json"),
+            )
+            .unwrap(),
+        )
+        .unwrap();
+        assert_eq!(st["cache_removed"], true);
+        assert!(
+            !p.join("tiles")
+                .join(t["tile"].as_str().unwrap())
+                .join("run/render")
+                .exists()
+        );
+    }
+    // The untiled run of the same scene: same test views, nearly the same classes.
+    let r = d.join("R");
+    let (ok, text) = gs(&[
+        "run",
+        "--scene",
+        s.to_str().unwrap(),
+        "--out",
+        r.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let a = gs4city::npy::read::<i32>(&r.join("lift/gaussians.npy"))
+        .unwrap()
+        .1;
+    let b = gs4city::npy::read::<i32>(&m.join("lift/gaussians.npy"))
+        .unwrap()
+        .1;
+    let same = a
+        .chunks(2)
+        .zip(b.chunks(2))
+        .filter(|(x, y)| x[1] == y[1])
+        .count();
+    let share = same as f64 / (a.len() / 2) as f64;
+    assert!(
+        share >= 0.95,
+        "{share:.4} of the Gaussians keep their class"
+    );
+    let untiled: Value =
+        serde_json::from_str(&std::fs::read_to_string(r.join("eval/metrics.json")).unwrap())
+            .unwrap();
+    let u = untiled["paper"]["miou"]["mean"].as_f64().unwrap();
+    let t = summary["paper_fine_miou"].as_f64().unwrap();
+    assert!(
+        (u - t).abs() < 0.02,
+        "fine mIoU untiled {u:.4}, tiled {t:.4}"
+    );
+    // query --run M: the selection's Gaussians are those whose merged label it lists.
+    let q = d.join("Q");
+    let (ok, text) = gs(&[
+        "query",
+        "--run",
+        m.to_str().unwrap(),
+        "--class",
+        "Window",
+        "--out",
+        q.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let sel: Value =
+        serde_json::from_str(&std::fs::read_to_string(q.join("selection.json")).unwrap()).unwrap();
+    let labels: std::collections::HashSet<i64> = sel["labels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_i64().unwrap())
+        .collect();
+    let want = b
+        .chunks(2)
+        .filter(|g| labels.contains(&i64::from(g[0])))
+        .count();
+    assert!(want > 0);
+    assert_eq!(sel["gaussians"].as_u64().unwrap() as usize, want);
+    assert!(q.join("semantic.sqlite").is_file());
+}
+
+#[test]
+fn a_missing_or_failed_tile_is_named_and_a_partial_city_needs_allow_missing() {
+    let s = scene();
+    let d = tmp("bad");
+    let p = d.join("P");
+    tile(s, &p, "10", "4");
+    let ps = p.to_str().unwrap();
+    // A missing tile folder.
+    let gone = p.join("tiles/t000_001");
+    std::fs::rename(&gone, d.join("aside")).unwrap();
+    let (ok, text) = gs(&["run-plan", ps, "--tile", "1"]);
+    assert!(
+        !ok && text.contains("t000_001") && text.contains("missing"),
+        "{text}"
+    );
+    let (ok, text) = gs(&["merge", ps, "--out", d.join("M").to_str().unwrap()]);
+    assert!(
+        !ok && text.contains("t000_001") && text.contains("missing"),
+        "{text}"
+    );
+    assert!(!d.join("M").exists());
+    std::fs::rename(d.join("aside"), &gone).unwrap();
+    // A tile whose run fails: its PLY truncated.
+    let ply = p.join("tiles/t000_000/scene/point_cloud.ply");
+    let bytes = std::fs::read(&ply).unwrap();
+    std::fs::write(&ply, &bytes[..bytes.len() / 2]).unwrap();
+    let (ok, text) = gs(&["run-plan", ps, "--jobs", "2"]);
+    assert!(
+        !ok && text.contains("t000_000") && text.contains("failed"),
+        "{text}"
+    );
+    let st: Value = serde_json::from_str(
+        &std::fs::read_to_string(p.join("tiles/t000_000/status.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(st["ok"], false);
+    assert!(
+        st["error"].as_str().unwrap().contains("point_cloud.ply"),
+        "{st}"
+    );
+    let m = d.join("M");
+    let (ok, text) = gs(&["merge", ps, "--out", m.to_str().unwrap()]);
+    assert!(
+        !ok && text.contains("t000_000 failed") && text.contains("--allow-missing"),
+        "{text}"
+    );
+    let (ok, text) = gs(&[
+        "merge",
+        ps,
+        "--out",
+        m.to_str().unwrap(),
+        "--allow-missing",
+        "--no-test-views",
+    ]);
+    assert!(ok, "{text}");
+    assert!(text.contains("HOLE: tile t000_000 failed"), "{text}");
+    let summary: Value =
+        serde_json::from_str(&std::fs::read_to_string(m.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["holes"].as_array().unwrap().len(), 1);
+    let core0 = plan_of(&p)["tiles"][0]["core_gaussians"].as_u64().unwrap();
+    assert_eq!(summary["in_holes"].as_u64().unwrap(), core0);
+    check_merged_against_tiles(&p, &m, &["t000_000"]);
+}
+
+#[test]
+fn the_plans_job_arrays_run_on_a_real_slurm_and_match_run_plan() {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/slurm_test.sh");
+    let o = Command::new("bash")
+        .arg(&script)
+        .arg(env!("CARGO_BIN_EXE_gs4city"))
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    if o.status.code() == Some(77) {
+        common::skip("tile_slurm", text.trim());
+        return;
+    }
+    assert!(o.status.success(), "{text}");
+    assert!(text.contains("slurm_test: passed"), "{text}");
+}
