@@ -420,7 +420,7 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
         crate::render::cache::build(
             &prepared,
             &views,
-            &crate::cache::CacheOptions { top_k: 16 },
+            &crate::cache::CacheOptions::default(),
             &render,
         )?;
         drop(prepared);
