@@ -11,6 +11,7 @@ mod architecture;
 mod associate;
 mod cgal;
 mod check;
+mod cityjson;
 mod citymodel;
 mod cli;
 mod cli_stages;
