@@ -211,7 +211,7 @@ fn header(at: At, root: &Map<String, Value>) -> Result<Header, CityJsonError> {
                     ),
                 )
             })?;
-            if scale.iter().any(|s| *s == 0.0) {
+            if scale.contains(&0.0) {
                 return Err(at.err(
                     None,
                     format!(
@@ -352,6 +352,11 @@ impl<'a> Builder<'a> {
             taken: HashSet::new(),
             siblings: HashMap::new(),
         }
+    }
+
+    /// Counts something skipped (a CityObject or semantic surface type not used).
+    fn skipped(&mut self, what: String) {
+        *self.stats.unknown_elements.entry(what).or_default() += 1;
     }
 
     fn warn(&mut self, line: Option<u64>, id: Option<String>, message: String) {
@@ -533,11 +538,7 @@ impl<'a> Builder<'a> {
                 let co = cos[id].as_object().expect("checked above");
                 let t = co["type"].as_str().expect("checked above");
                 let Some(class) = object_class(t) else {
-                    *self
-                        .stats
-                        .unknown_elements
-                        .entry(format!("CityObject {t}"))
-                        .or_default() += 1;
+                    self.skipped(format!("CityObject {t}"));
                     continue;
                 };
                 let me = plan.len();
@@ -805,11 +806,7 @@ impl<'a> Builder<'a> {
                 let o = list[i].as_object().expect("checked above");
                 let t = o["type"].as_str().expect("checked above");
                 let Some(class) = surface_class(t) else {
-                    *self
-                        .stats
-                        .unknown_elements
-                        .entry(format!("semantic surface {t}"))
-                        .or_default() += 1;
+                    self.skipped(format!("semantic surface {t}"));
                     continue;
                 };
                 let parent = parent_of[i].and_then(|p| out[p]).unwrap_or(owner);
@@ -900,7 +897,8 @@ fn collect_surfaces<'v>(
 fn shorten(v: &Value) -> String {
     let s = v.to_string();
     if s.len() > 60 {
-        format!("{}…", &s[..s.floor_char_boundary(60)])
+        let cut = (0..=60).rev().find(|&i| s.is_char_boundary(i)).unwrap_or(0);
+        format!("{}…", &s[..cut])
     } else {
         s
     }
@@ -978,7 +976,7 @@ fn non_planar(exterior: &Ring, interiors: &[Ring]) -> Option<f64> {
         hi = hi.max(*p - o);
     }
     let diag = (hi - lo).length();
-    if !(len > 1e-12 * diag * diag) {
+    if len <= 1e-12 * diag * diag || len.is_nan() {
         return None;
     }
     let n = n / len;
