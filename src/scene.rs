@@ -5,7 +5,7 @@
 //!   images/                  RGB images, names as in COLMAP
 //!   sparse/0/                COLMAP model (.bin or .txt)
 //!   point_cloud.ply          pre-trained 3DGS (INRIA layout)
-//!   citymodel/*.gml          LoD3 CityGML (+ alignment.json)
+//!   citymodel/*.gml          LoD3 CityGML or CityJSON (*.city.json, *.city.jsonl) (+ alignment.json)
 //!   masks/<stem>.json        optional: SAM automatic masks per view
 //!   features/<stem>.npy      optional: one feature row per SAM mask; features/prompts.json
 //!   gt/                      optional: ground truth, read only by evaluation
@@ -30,7 +30,8 @@ pub struct SceneError {
 #[derive(Debug, Clone)]
 pub struct Scene {
     pub root: PathBuf,
-    /// `citymodel/*.gml` (and `*.xml`), sorted by name: the order fixes the entity ids.
+    /// `citymodel/*.gml` (and `*.xml`, CityJSON: `crate::cityjson::is_model_file`), sorted by
+    /// name: the order fixes the entity ids.
     pub gml: Vec<PathBuf>,
     /// `citymodel/alignment.json` where it exists.
     pub alignment: Option<PathBuf>,
@@ -60,16 +61,13 @@ impl Scene {
         let mut gml: Vec<PathBuf> = std::fs::read_dir(&cm)
             .map_err(|e| bad(format!("citymodel/: {e}")))?
             .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| {
-                p.is_file()
-                    && p.extension().is_some_and(|x| {
-                        x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml")
-                    })
-            })
+            .filter(|p| p.is_file() && crate::cityjson::is_model_file(p))
             .collect();
         gml.sort();
         if gml.is_empty() {
-            return Err(bad("citymodel/ holds no .gml files".into()));
+            return Err(bad(
+                "citymodel/ holds no city model (.gml, .xml, .city.json, .city.jsonl)".into(),
+            ));
         }
         let alignment = Some(cm.join("alignment.json")).filter(|p| p.is_file());
         let sparse = [root.join("sparse/0"), root.join("sparse")]
@@ -298,12 +296,7 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
             let mut found: Vec<PathBuf> = std::fs::read_dir(&p)
                 .map_err(|e| bad(format!("{}: {e}", p.display())))?
                 .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|q| {
-                    q.is_file()
-                        && q.extension().is_some_and(|x| {
-                            x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml")
-                        })
-                })
+                .filter(|q| q.is_file() && crate::cityjson::is_model_file(q))
                 .collect();
             found.sort();
             gml.extend(found);

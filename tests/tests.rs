@@ -12,6 +12,7 @@ mod associate;
 mod cache_lists;
 mod cgal;
 mod check;
+mod cityjson;
 mod citymodel;
 mod cli;
 mod cli_stages;

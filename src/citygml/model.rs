@@ -6,7 +6,8 @@ use std::path::PathBuf;
 use glam::DVec3;
 use serde::Serialize;
 
-/// CityGML version of a file, from its namespaces.
+/// Encoding and version of a city-model file: CityGML from its namespaces, CityJSON from
+/// its `version`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub enum Version {
     #[serde(rename = "1.0")]
@@ -15,6 +16,13 @@ pub enum Version {
     V2,
     #[serde(rename = "3.0")]
     V3,
+    /// Read by `crate::cityjson` (the same typed model from CityJSON).
+    #[serde(rename = "CityJSON 1.0")]
+    CityJson10,
+    #[serde(rename = "CityJSON 1.1")]
+    CityJson11,
+    #[serde(rename = "CityJSON 2.0")]
+    CityJson20,
 }
 
 /// The level of the GS4City hierarchy an object belongs to.

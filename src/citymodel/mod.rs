@@ -13,6 +13,7 @@ use serde::{Deserialize, Serialize};
 use crate::alignment::{AlignError, Alignment};
 use crate::camera::SCENE_COORD_LIMIT;
 use crate::citygml::{self, CityGmlError, CityModel, Class};
+use crate::cityjson::{self, CityJsonError};
 use crate::fsutil::{self, FsError};
 use crate::mesh::{MeshError, TriMesh};
 use crate::semantics::{self, Entity, SemanticsError};
@@ -24,6 +25,8 @@ pub enum CityModelError {
     #[error(transparent)]
     CityGml(#[from] CityGmlError),
     #[error(transparent)]
+    CityJson(#[from] CityJsonError),
+    #[error(transparent)]
     Align(#[from] AlignError),
     #[error(transparent)]
     Mesh(#[from] MeshError),
@@ -31,7 +34,7 @@ pub enum CityModelError {
     Fs(#[from] FsError),
     #[error(transparent)]
     Semantics(#[from] SemanticsError),
-    #[error("no CityGML input files")]
+    #[error("no city-model input files (CityGML or CityJSON)")]
     NoInput,
     #[error("{path}: {why}")]
     Input { path: PathBuf, why: String },
@@ -80,8 +83,9 @@ pub struct InputFiles {
     pub warnings: Vec<String>,
 }
 
-/// Expands `inputs` into CityGML files: files as given, folders searched recursively for
-/// `*.gml` / `*.xml` (case-insensitive). Symbolic links are followed, but a folder is
+/// Expands `inputs` into city-model files: files as given, folders searched recursively for
+/// CityGML (`*.gml` / `*.xml`) and CityJSON (`*.city.json`, `*.jsonl`, other `*.json` that
+/// declare `"type": "CityJSON"`; see [`cityjson::is_model_file`]), case-insensitive. Symbolic links are followed, but a folder is
 /// searched once (by canonical path), so link loops and links to `.` cannot recurse; a
 /// file reached twice (named twice, or through a link) is read once, with a warning.
 /// Missing inputs and folders without CityGML files are errors.
@@ -102,7 +106,8 @@ pub fn collect_files(inputs: &[PathBuf]) -> Result<InputFiles, CityModelError> {
             if searched && found.is_empty() {
                 return Err(input_err(
                     input,
-                    "no .gml or .xml files below this folder".into(),
+                    "no city-model files (.gml, .xml, .city.json, .city.jsonl) below this folder"
+                        .into(),
                 ));
             }
             found.sort();
@@ -163,10 +168,7 @@ fn walk_dir(
                 walk_dir(&path, seen_dirs, out, warnings)?;
             }
             Ok(_) => {
-                if path
-                    .extension()
-                    .is_some_and(|e| e.eq_ignore_ascii_case("gml") || e.eq_ignore_ascii_case("xml"))
-                {
+                if cityjson::is_model_file(&path) {
                     out.push(path);
                 }
             }
@@ -319,7 +321,7 @@ pub fn triangulate_all(model: &CityModel) -> Vec<PolygonResult> {
         .collect()
 }
 
-/// Reads, flattens, triangulates and aligns the given CityGML files.
+/// Reads, flattens, triangulates and aligns the given CityGML / CityJSON files.
 pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> {
     if files.is_empty() {
         return Err(CityModelError::NoInput);
@@ -327,7 +329,7 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
     let t0 = Instant::now();
     let models: Vec<CityModel> = files
         .par_iter()
-        .map(|f| citygml::read(f))
+        .map(|f| cityjson::read_any(f))
         .collect::<Result<_, _>>()?;
     let t_parse = t0.elapsed().as_secs_f64();
 

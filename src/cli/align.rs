@@ -109,11 +109,7 @@ fn load_city(dir: &Path, initial: Option<&Path>) -> anyhow::Result<City> {
     let has_gml = std::fs::read_dir(dir)
         .with_context(|| format!("cannot list {}", dir.display()))?
         .filter_map(|e| e.ok())
-        .any(|e| {
-            e.path()
-                .extension()
-                .is_some_and(|x| x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml"))
-        });
+        .any(|e| crate::cityjson::is_model_file(&e.path()));
     if has_gml {
         let found = citymodel::collect_files(&[dir.to_path_buf()])?;
         for w in &found.warnings {

@@ -38,6 +38,11 @@ pub struct SynthArgs {
     /// CityGML files or folders (override the preset's / config's `citygml`).
     #[arg(long, num_args = 1..)]
     citygml: Vec<PathBuf>,
+    /// Share of windows and doors removed from the city model handed to the pipeline (0–1;
+    /// 1 = an LoD2 model), drawn with the seed; the ground truth keeps them (config key
+    /// `model.drop_openings`; the dropped ids go to the SIMULATED `gt/model_edit.json`).
+    #[arg(long)]
+    drop_openings: Option<f64>,
     /// Output scene folder.
     #[arg(long)]
     out: PathBuf,
@@ -54,6 +59,9 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     };
     if let Some(s) = args.seed {
         cfg.seed = s;
+    }
+    if let Some(d) = args.drop_openings {
+        cfg.model.drop_openings = d;
     }
     if !args.citygml.is_empty() {
         cfg.citygml = args.citygml.clone();

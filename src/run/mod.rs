@@ -294,10 +294,7 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         if shown <= 5 || crate::progress::verbose() {
             log::warn!("{f}");
         }
-        let citygml = f
-            .file
-            .extension()
-            .is_some_and(|x| x.eq_ignore_ascii_case("gml") || x.eq_ignore_ascii_case("xml"));
+        let citygml = crate::cityjson::is_model_file(&f.file);
         if !citygml {
             check_warnings.push(f.to_string());
         }

@@ -214,6 +214,17 @@ pub struct SynthConfig {
     pub masks: super::masks::MaskNoise,
     /// SIMULATED CLIP features (docs/sam.md).
     pub features: super::masks::FeatureNoise,
+    /// The city model handed to the pipeline (docs/synth.md `[model]`).
+    pub model: ModelEdit,
+}
+
+/// What the pipeline's city model lacks that the truth has.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelEdit {
+    /// Share of windows and doors removed from the pipeline's model (0 none, 1 all: an LoD2
+    /// model), drawn with the seed; the model is then written as CityJSON, the truth keeps them.
+    pub drop_openings: f64,
 }
 
 /// A named preset.
@@ -318,6 +329,9 @@ impl SynthConfig {
                 why: format!("key `{key}`: {why}"),
             })
         };
+        if !(0.0..=1.0).contains(&self.model.drop_openings) {
+            return bad("model.drop_openings", "must be in [0, 1]");
+        }
         let s = &self.splats;
         if !(s.density > 0.0 && s.density <= 10_000.0) {
             return bad("splats.density", "must be in (0, 10000] per m²");

@@ -15,6 +15,7 @@ pub mod features;
 pub mod gaussians;
 pub mod gt;
 pub mod masks;
+pub mod model_edit;
 pub mod world;
 
 use std::collections::BTreeMap;
@@ -47,6 +48,8 @@ pub enum SynthError {
     Input(String),
     #[error(transparent)]
     CityGml(#[from] citygml::CityGmlError),
+    #[error(transparent)]
+    CityJson(#[from] crate::cityjson::CityJsonError),
     #[error(transparent)]
     Sam(#[from] crate::sam::SamError),
     #[error(transparent)]
@@ -119,7 +122,7 @@ pub fn build_scene(cfg: &SynthConfig) -> Result<SimScene, SynthError> {
     let files = config::collect_files(&cfg.citygml)?;
     let models: Vec<CityModel> = files
         .par_iter()
-        .map(|f| citygml::read(f))
+        .map(|f| crate::cityjson::read_any(f))
         .collect::<Result<_, _>>()?;
     let truth_alignment = true_alignment(&models, cfg);
     let cm = citymodel::run(
@@ -399,7 +402,25 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
     // the entity ids) and the perturbed alignment.
     let t_c = Instant::now();
     let mut copied = Vec::new();
+    let mut dropped = Vec::new();
     for (i, f) in sim.files.iter().enumerate() {
+        if cfg.model.drop_openings > 0.0 {
+            // The edited model, as CityJSON (the truth was built from the full one).
+            let full = crate::cityjson::read_any(f)?;
+            let (edited, gone) =
+                model_edit::drop_openings(&full, cfg.model.drop_openings, cfg.seed);
+            dropped.extend(gone);
+            let stem = f
+                .file_stem()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_else(|| format!("{i}"));
+            let dst = out
+                .join("citymodel")
+                .join(format!("{i:02}_{stem}.city.json"));
+            crate::cityjson::write(&dst, &edited)?;
+            copied.push(dst.file_name().map(|n| n.to_string_lossy().into_owned()));
+            continue;
+        }
         let name = f
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
@@ -432,6 +453,18 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
         &mut rng(cfg.seed, 6),
     );
     crate::fsutil::write_json(&out.join("citymodel/alignment.json"), &given.to_json())?;
+    if cfg.model.drop_openings > 0.0 {
+        crate::fsutil::write_json(
+            &out.join("gt/model_edit.json"),
+            &json!({
+                "SIMULATED": true,
+                "note": "simulation truth, for scoring only: the openings removed from the pipeline's city model (citymodel/*.city.json); gt/ keeps them",
+                "drop_openings": cfg.model.drop_openings,
+                "seed": cfg.seed,
+                "dropped": dropped,
+            }),
+        )?;
+    }
     sim.timings
         .insert("citymodel_copy_s", t_c.elapsed().as_secs_f64());
 
