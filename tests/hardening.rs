@@ -851,7 +851,7 @@ fn symlink_loops_links_to_dot_and_repeated_files_are_read_once() {
     check_message(&e, "nope");
     std::fs::create_dir_all(dir.join("empty")).unwrap();
     let e = citymodel::collect_files(&[dir.join("empty")]).unwrap_err();
-    assert!(e.to_string().contains("no .gml or .xml files"), "{e}");
+    assert!(e.to_string().contains("no city-model files"), "{e}");
 }
 
 /// semantics.json whose parents form a cycle would hang an ancestor walk: refused.
