@@ -590,3 +590,68 @@ fn the_plans_job_arrays_run_on_a_real_slurm_and_match_run_plan() {
     assert!(o.status.success(), "{text}");
     assert!(text.contains("slurm_test: passed"), "{text}");
 }
+
+/// A PLY with bytes after its last row, or an ASCII PLY (the cut copies fixed-size binary rows):
+/// `tile` refuses each with a line naming the PLY, and leaves no plan behind.
+#[test]
+fn a_ply_with_trailing_bytes_or_in_ascii_is_refused_naming_it() {
+    let src = scene();
+    let ply = std::fs::read(src.join("point_cloud.ply")).unwrap();
+    let end = ply.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+    let header = String::from_utf8(ply[..end].to_vec()).unwrap();
+    // An ASCII PLY of the same element (the first row only, the count set to 1).
+    let names: Vec<&str> = header
+        .lines()
+        .filter_map(|l| l.strip_prefix("property float "))
+        .collect();
+    let count_line = header
+        .lines()
+        .find(|l| l.starts_with("element vertex"))
+        .unwrap();
+    let mut ascii = header
+        .replace("binary_little_endian", "ascii")
+        .replace(count_line, "element vertex 1");
+    let row: Vec<String> = (0..names.len())
+        .map(|k| {
+            let b = &ply[end + 4 * k..end + 4 * k + 4];
+            f32::from_le_bytes([b[0], b[1], b[2], b[3]]).to_string()
+        })
+        .collect();
+    ascii.push_str(&row.join(" "));
+    ascii.push('\n');
+    let mut trailing = ply.clone();
+    trailing.extend_from_slice(b"\x00\x01\x02");
+    for (name, bytes, why) in [
+        ("trailing", trailing, "more data than the header declares"),
+        ("ascii", ascii.into_bytes(), "ASCII PLY"),
+    ] {
+        let d = tmp(&format!("bad-ply-{name}"));
+        let s = d.join("scene");
+        std::fs::create_dir_all(&s).unwrap();
+        for e in std::fs::read_dir(src).unwrap() {
+            let e = e.unwrap();
+            if e.file_name() != "point_cloud.ply" {
+                std::os::unix::fs::symlink(e.path(), s.join(e.file_name())).unwrap();
+            }
+        }
+        std::fs::write(s.join("point_cloud.ply"), bytes).unwrap();
+        let p = d.join("plan");
+        let (ok, text) = gs(&[
+            "tile",
+            "--scene",
+            s.to_str().unwrap(),
+            "--size",
+            "60",
+            "--margin",
+            "10",
+            "--out",
+            p.to_str().unwrap(),
+        ]);
+        assert!(!ok, "{name}: {text}");
+        assert!(
+            text.contains("point_cloud.ply") && text.contains(why),
+            "{name}: {text}"
+        );
+        assert!(!p.join("plan.json").exists(), "{name}: a plan was left");
+    }
+}
