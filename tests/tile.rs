@@ -655,3 +655,156 @@ fn a_ply_with_trailing_bytes_or_in_ascii_is_refused_naming_it() {
         assert!(!p.join("plan.json").exists(), "{name}: a plan was left");
     }
 }
+
+/// The training views in tile `name` of plan `p` (its scene's linked images).
+fn tile_views(p: &Path, name: &str) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(p.join("tiles").join(name).join("scene/images"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+/// The view rule on the SIMULATED small scene replicated 2×2 (`scripts/replicate_scene.py`:
+/// copies 72.3 m apart, views renamed `r<k>_…`, ids suffixed `_r<k>`), 72 m tiles so that each
+/// tile owns one copy. The expectations come from the names alone: a copy's own views look at
+/// it from its orbit and streets, so they join its tile under every rule; the orbit cameras
+/// also see the neighbouring copies, so with `--min-share 0` views join several tiles and the
+/// share rule must drop some of those; with `--min-share 1 --min-views 3` each tile keeps
+/// exactly its 3 best views, which are its own copy's.
+#[test]
+fn a_view_joins_the_tiles_that_take_a_share_of_its_screen_and_each_tile_keeps_its_best() {
+    let test = "tile view share rule";
+    if !common::python_can_import(test, &["numpy"]) {
+        return;
+    }
+    let d = tmp("share");
+    let x4 = d.join("x4");
+    let o = Command::new("python3")
+        .arg(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/scripts/replicate_scene.py"
+        ))
+        .args([scene().to_str().unwrap(), x4.to_str().unwrap(), "4"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let plan = |share: &str, min_views: &str| -> (PathBuf, Value) {
+        let p = d.join(format!("p{share}_{min_views}"));
+        let (ok, text) = gs(&[
+            "tile",
+            "--scene",
+            x4.to_str().unwrap(),
+            "--size",
+            "72",
+            "--margin",
+            "10",
+            "--min-share",
+            share,
+            "--min-views",
+            min_views,
+            "--out",
+            p.to_str().unwrap(),
+        ]);
+        assert!(ok, "{text}");
+        let v = plan_of(&p);
+        (p, v)
+    };
+    // Per tile: its copy's prefix (from the ids it owns) and its views.
+    let views_of = |p: &Path, v: &Value| -> Vec<(String, Vec<String>)> {
+        let tiles = v["tiles"].as_array().unwrap();
+        assert_eq!(tiles.len(), 4, "72 m tiles over 4 copies");
+        tiles
+            .iter()
+            .map(|t| {
+                let owned: Vec<&str> = t["owned"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|o| o.as_str().unwrap())
+                    .collect();
+                let k = owned[0].rsplit_once("_r").unwrap().1;
+                assert!(
+                    owned.iter().all(|o| o.ends_with(&format!("_r{k}"))),
+                    "{owned:?}"
+                );
+                let name = t["name"].as_str().unwrap();
+                let views = tile_views(p, name);
+                assert_eq!(views.len() as u64, t["views"].as_u64().unwrap(), "{name}");
+                (format!("r{k}_"), views)
+            })
+            .collect()
+    };
+    let (p0, v0) = plan("0", "0");
+    let test_views: Vec<&str> = v0["test_views"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t.as_str().unwrap())
+        .collect();
+    let all_train: Vec<String> = std::fs::read_dir(x4.join("images"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| !test_views.contains(&n.as_str()))
+        .collect();
+    let own = |prefix: &str| -> Vec<String> {
+        let mut v: Vec<String> = all_train
+            .iter()
+            .filter(|n| n.starts_with(prefix))
+            .cloned()
+            .collect();
+        v.sort();
+        v
+    };
+    let every = views_of(&p0, &v0);
+    let (p1, v1) = plan("0.1", "8");
+    let shared = views_of(&p1, &v1);
+    let total = |t: &[(String, Vec<String>)]| t.iter().map(|(_, v)| v.len()).sum::<usize>();
+    for ((prefix, all), (_, kept)) in every.iter().zip(&shared) {
+        let mine = own(prefix);
+        assert!(!mine.is_empty());
+        for m in &mine {
+            assert!(
+                all.contains(m),
+                "{m} missing from its copy's tile (share 0)"
+            );
+            assert!(
+                kept.contains(m),
+                "{m} missing from its copy's tile (share 0.1)"
+            );
+        }
+        assert!(
+            kept.iter().all(|k| all.contains(k)),
+            "the rule only removes"
+        );
+    }
+    assert!(
+        total(&every) > all_train.len(),
+        "with share 0 the orbit views join neighbouring copies' tiles too ({} of {})",
+        total(&every),
+        all_train.len()
+    );
+    assert!(
+        total(&shared) < total(&every),
+        "share 0.1 drops glimpses: {} vs {}",
+        total(&shared),
+        total(&every)
+    );
+    let glimpsing: u64 = v1["tiles"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t["views_glimpsing"].as_u64().unwrap())
+        .sum();
+    assert_eq!(glimpsing as usize, total(&every) - total(&shared));
+    let (p3, v3) = plan("1", "3");
+    for (prefix, kept) in views_of(&p3, &v3) {
+        assert_eq!(kept.len(), 3, "{prefix}: min-views 3 with share 1");
+        assert!(
+            kept.iter().all(|k| k.starts_with(&prefix)),
+            "{prefix}: the best views are the copy's own: {kept:?}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&d);
+}

@@ -45,6 +45,13 @@ pub struct TileArgs {
     /// (as `gs4city run`); 0 = none.
     #[arg(long, default_value_t = TileOptions::default().test_every)]
     pub test_every: usize,
+    /// Share of a view's screen a tile must take for the view to join it (a coarse screen grid,
+    /// each cell won by the nearest visible sample point); 0 = every view that sees the tile.
+    #[arg(long, default_value_t = TileOptions::default().min_share)]
+    pub min_share: f64,
+    /// Views each tile keeps whatever their share (its best), when that many see it.
+    #[arg(long, default_value_t = TileOptions::default().min_views)]
+    pub min_views: usize,
     /// Options of each tile's `gs4city run`, as one string (e.g. "--supervision city").
     #[arg(long, default_value = "", allow_hyphen_values = true)]
     pub run_args: String,
@@ -135,6 +142,8 @@ fn tile_cmd(a: &TileArgs) -> anyhow::Result<()> {
         size_m: a.size,
         margin_m: a.margin,
         test_every: a.test_every,
+        min_share: a.min_share,
+        min_views: a.min_views,
         run_args,
         ..TileOptions::default()
     };

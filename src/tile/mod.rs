@@ -11,7 +11,9 @@
 //!   margin (so occlusion stays right; [`gml`]);
 //! * the views (minus the plan's test views) in which its owned buildings or its core Gaussians
 //!   project into the image, in front of the camera and not hidden behind the box of a building
-//!   near the tile (a coarse visibility test);
+//!   near the tile (a coarse visibility test), and of which the tile takes a share of the screen
+//!   ([`TileOptions::min_share`]: a view that only glimpses a tile far behind another does not
+//!   join it; each tile keeps its [`TileOptions::min_views`] best views);
 //! * links to their images, SAM lists and features (never copies).
 //!
 //! Each tile is a scene folder `P/tiles/<name>/scene`, run with `gs4city run --test-every 0`
@@ -90,6 +92,15 @@ pub struct TileOptions {
     pub sample: usize,
     /// Sample points that must be visible for a view to join a tile.
     pub min_visible: usize,
+    /// Share of a view's screen (cells of a coarse grid won by the nearest visible sample point)
+    /// a tile must take for the view to join it; 0 = every view that sees `min_visible` points
+    /// (the default: on the street every smaller view set cost accuracy, BENCHMARKS.md).
+    #[serde(default)]
+    pub min_share: f64,
+    /// Views a tile keeps whatever their share (its best by screen cells won), when that many
+    /// see it.
+    #[serde(default)]
+    pub min_views: usize,
     /// Options of each tile's `gs4city run` (its command-line words; `--test-every 0` is added).
     #[serde(default)]
     pub run_args: Vec<String>,
@@ -103,6 +114,8 @@ impl Default for TileOptions {
             test_every: 8,
             sample: 2048,
             min_visible: 3,
+            min_share: 0.0,
+            min_views: 8,
             run_args: Vec::new(),
         }
     }
@@ -121,6 +134,13 @@ impl TileOptions {
             self.sample as f64,
             End::Closed(16.0),
             End::Closed(1e7),
+        )
+        .map_err(TileError::Invalid)?;
+        range(
+            "min-share",
+            self.min_share,
+            End::Closed(0.0),
+            End::Closed(1.0),
         )
         .map_err(TileError::Invalid)?;
         Ok(())
@@ -238,6 +258,9 @@ pub struct TilePlan {
     pub gaussians: usize,
     pub core_gaussians: usize,
     pub views: usize,
+    /// Views that see the tile but take less than `min_share` of their screen there (left out).
+    #[serde(default)]
+    pub views_glimpsing: usize,
     /// Whether the tile has a scene to run (buildings and views); the core Gaussians of a tile
     /// that has none are labelled −1 by the merge.
     pub runnable: bool,
@@ -305,10 +328,15 @@ pub fn resources(gaussians: usize, views: usize) -> Resources {
     }
 }
 
-/// Whether view `v` sees enough of `points`: projected inside the image, in front of the
+/// The points of `points` that view `v` sees: projected inside the image, in front of the
 /// camera, and with no occluder box (scene frame, other than one containing the point) on the
-/// segment from the camera.
-fn sees(v: &View, points: &[DVec3], occluders: &[(DVec3, DVec3)], need: usize) -> bool {
+/// segment from the camera. `f` gets each one's pixel and depth and returns whether to go on.
+fn visible(
+    v: &View,
+    points: &[DVec3],
+    occluders: &[(DVec3, DVec3)],
+    mut f: impl FnMut([f64; 2], f64) -> bool,
+) {
     let k = &v.camera.intrinsics;
     let eye = v.camera.pose.center();
     // A box that holds the camera (a street between the wings of one building's box) hides
@@ -319,9 +347,9 @@ fn sees(v: &View, points: &[DVec3], occluders: &[(DVec3, DVec3)], need: usize) -
         .copied()
         .filter(|&(lo, hi)| !(eye.cmpge(lo - pad).all() && eye.cmple(hi + pad).all()))
         .collect();
-    let mut seen = 0;
     for &p in points {
-        let Some(px) = v.camera.project(v.camera.pose.world_to_camera(p)) else {
+        let pc = v.camera.pose.world_to_camera(p);
+        let Some(px) = v.camera.project(pc) else {
             continue;
         };
         if !(px.x >= 0.0 && px.y >= 0.0 && px.x < f64::from(k.width) && px.y < f64::from(k.height))
@@ -332,14 +360,114 @@ fn sees(v: &View, points: &[DVec3], occluders: &[(DVec3, DVec3)], need: usize) -
             let inside = p.cmpge(lo - pad).all() && p.cmple(hi + pad).all();
             !inside && segment_hits_box(eye, p, lo, hi)
         });
-        if !hidden {
-            seen += 1;
-            if seen >= need {
-                return true;
+        if !hidden && !f([px.x, px.y], pc.z) {
+            return;
+        }
+    }
+}
+
+/// Whether view `v` sees at least `need` of `points` ([`visible`]).
+fn sees(v: &View, points: &[DVec3], occluders: &[(DVec3, DVec3)], need: usize) -> bool {
+    let mut seen = 0;
+    visible(v, points, occluders, |_, _| {
+        seen += 1;
+        seen < need
+    });
+    seen >= need
+}
+
+/// Cells per image row of the coarse screen grid of the share test.
+const SHARE_CELLS_X: usize = 32;
+
+/// What a tile needs for the view test: its sample points and the boxes that may hide them.
+struct TileSight {
+    points: Vec<DVec3>,
+    occluders: Vec<(DVec3, DVec3)>,
+}
+
+/// Per tile of `cands` (indices into `sights`), the cells of a coarse screen grid of view `v`
+/// (32 across, square) whose nearest visible sample point belongs to that tile: the tile's
+/// share of what the view shows. Ties go to the first tile of `cands`.
+fn screen_cells(v: &View, cands: &[usize], sights: &[TileSight]) -> Vec<usize> {
+    let k = &v.camera.intrinsics;
+    let cell = f64::from(k.width) / SHARE_CELLS_X as f64;
+    let rows = ((f64::from(k.height) / cell).ceil() as usize).max(1);
+    let mut nearest = vec![(f64::INFINITY, usize::MAX); SHARE_CELLS_X * rows];
+    for (ci, &t) in cands.iter().enumerate() {
+        visible(v, &sights[t].points, &sights[t].occluders, |px, depth| {
+            let cx = ((px[0] / cell) as usize).min(SHARE_CELLS_X - 1);
+            let cy = ((px[1] / cell) as usize).min(rows - 1);
+            let c = &mut nearest[cy * SHARE_CELLS_X + cx];
+            if depth < c.0 {
+                *c = (depth, ci);
+            }
+            true
+        });
+    }
+    let mut won = vec![0; cands.len()];
+    for &(_, ci) in &nearest {
+        if ci != usize::MAX {
+            won[ci] += 1;
+        }
+    }
+    won
+}
+
+/// The training views of each tile, as indices into `views` (ascending), and per tile the
+/// number of views left out as glimpsing. A view joins each tile of which it sees
+/// `min_visible` sample points and that takes at least `min_share` of its screen cells
+/// ([`screen_cells`]); a tile that gets fewer than `min_views` so takes its best remaining views
+/// (most cells won).
+fn assign_views(
+    views: &[View],
+    sights: &[TileSight],
+    opts: &TileOptions,
+) -> (Vec<Vec<usize>>, Vec<usize>) {
+    use rayon::prelude::*;
+    let n_tiles = sights.len();
+    let bar = crate::progress::Bar::new("tile: views", views.len() as u64, "views");
+    let per_view: Vec<Vec<(usize, usize)>> = views
+        .par_iter()
+        .map(|v| {
+            let cands: Vec<usize> = (0..n_tiles)
+                .filter(|&t| {
+                    !sights[t].points.is_empty()
+                        && sees(v, &sights[t].points, &sights[t].occluders, opts.min_visible)
+                })
+                .collect();
+            let won = screen_cells(v, &cands, sights);
+            bar.inc(1);
+            cands.into_iter().zip(won).collect()
+        })
+        .collect();
+    bar.finish();
+    let mut chosen = vec![Vec::new(); n_tiles];
+    let mut glimpsing = vec![0; n_tiles];
+    let mut rest: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n_tiles];
+    for (vi, seen) in per_view.iter().enumerate() {
+        let total: usize = seen.iter().map(|&(_, w)| w).sum();
+        for &(t, w) in seen {
+            let share = if total == 0 {
+                0.0
+            } else {
+                w as f64 / total as f64
+            };
+            if share >= opts.min_share {
+                chosen[t].push(vi);
+            } else {
+                rest[t].push((w, vi));
             }
         }
     }
-    false
+    for t in 0..n_tiles {
+        rest[t].sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+        let need = opts.min_views.saturating_sub(chosen[t].len());
+        let extra: Vec<usize> = rest[t].iter().take(need).map(|&(_, vi)| vi).collect();
+        glimpsing[t] = rest[t].len() - extra.len();
+        chosen[t].extend(extra);
+        chosen[t].sort_unstable();
+    }
+    (chosen, glimpsing)
 }
 
 /// Slab test of segment `a → b` against box `[lo, hi]`.
@@ -467,41 +595,55 @@ pub fn plan(
                 .collect()
         })
         .collect();
+    let owners: Vec<Vec<&gml::Footprint>> = (0..n_tiles)
+        .map(|t| {
+            feet.iter()
+                .filter(|f| grid.core_of(f.centre[0], f.centre[1]) == t)
+                .collect()
+        })
+        .collect();
+    let near: Vec<Vec<&gml::Footprint>> = (0..n_tiles)
+        .map(|t| {
+            feet.iter()
+                .filter(|f| {
+                    grid.core_of(f.centre[0], f.centre[1]) != t && grid.box_reaches(t, f.ground)
+                })
+                .collect()
+        })
+        .collect();
+    let sights: Vec<TileSight> = (0..n_tiles)
+        .map(|t| {
+            if owners[t].is_empty() && near[t].is_empty() {
+                return TileSight {
+                    points: Vec::new(),
+                    occluders: Vec::new(),
+                };
+            }
+            let occluders = owners[t]
+                .iter()
+                .chain(&near[t])
+                .map(|f| (f.scene_min, f.scene_max))
+                .collect();
+            let mut points: Vec<DVec3> = owners[t]
+                .iter()
+                .flat_map(|f| f.samples.iter().copied())
+                .collect();
+            points.extend(cuts[t].sample.iter().copied());
+            TileSight { points, occluders }
+        })
+        .collect();
+    let (view_sets, glimpsing) = assign_views(&split.train, &sights, opts);
     let bar = crate::progress::Bar::new("tile: scenes", n_tiles as u64, "tiles");
     let mut tiles = Vec::with_capacity(n_tiles);
     for t in 0..n_tiles {
         let dir = &dirs[t];
         let sdir = dir.join("scene");
-        let owned: Vec<&gml::Footprint> = feet
+        let owned = &owners[t];
+        let neighbours = &near[t];
+        let tile_views: Vec<View> = view_sets[t]
             .iter()
-            .filter(|f| grid.core_of(f.centre[0], f.centre[1]) == t)
+            .map(|&vi| split.train[vi].clone())
             .collect();
-        let neighbours: Vec<&gml::Footprint> = feet
-            .iter()
-            .filter(|f| {
-                grid.core_of(f.centre[0], f.centre[1]) != t && grid.box_reaches(t, f.ground)
-            })
-            .collect();
-        let occluders: Vec<(DVec3, DVec3)> = owned
-            .iter()
-            .chain(&neighbours)
-            .map(|f| (f.scene_min, f.scene_max))
-            .collect();
-        let mut points: Vec<DVec3> = owned
-            .iter()
-            .flat_map(|f| f.samples.iter().copied())
-            .collect();
-        points.extend(cuts[t].sample.iter().copied());
-        let tile_views: Vec<View> = if owned.is_empty() && neighbours.is_empty() {
-            Vec::new()
-        } else {
-            split
-                .train
-                .iter()
-                .filter(|v| sees(v, &points, &occluders, opts.min_visible))
-                .cloned()
-                .collect()
-        };
         let why_not = if owned.is_empty() && neighbours.is_empty() {
             Some("no building in its core or margin".to_string())
         } else if tile_views.is_empty() {
@@ -510,7 +652,7 @@ pub fn plan(
             None
         };
         if why_not.is_none() {
-            write_tile_scene(&scene, &sdir, &tile_views, &owned, &neighbours, &all_ids)?;
+            write_tile_scene(&scene, &sdir, &tile_views, owned, neighbours, &all_ids)?;
         }
         let c = grid.core(t);
         let fin = |v: f64| v.is_finite().then_some(v);
@@ -525,6 +667,7 @@ pub fn plan(
             gaussians: cuts[t].gaussians,
             core_gaussians: cuts[t].core,
             views: tile_views.len(),
+            views_glimpsing: glimpsing[t],
             runnable: why_not.is_none(),
             why_not,
             resources: resources(cuts[t].gaussians, tile_views.len()),
