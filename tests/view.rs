@@ -127,9 +127,8 @@ impl Server {
         let (s, b) = self.get(target);
         (
             s,
-            serde_json::from_slice(&b).unwrap_or_else(|e| {
-                panic!("{target}: {e}: {}", String::from_utf8_lossy(&b))
-            }),
+            serde_json::from_slice(&b)
+                .unwrap_or_else(|e| panic!("{target}: {e}: {}", String::from_utf8_lossy(&b))),
         )
     }
 }
@@ -223,7 +222,11 @@ fn truth(run: &Path) -> Truth {
         })
         .collect();
     Truth {
-        pos: g.positions.iter().map(|p| DVec3::from(p.map(f64::from))).collect(),
+        pos: g
+            .positions
+            .iter()
+            .map(|p| DVec3::from(p.map(f64::from)))
+            .collect(),
         sigma: g
             .scale
             .iter()
@@ -298,7 +301,10 @@ fn listens_on_loopback_only() {
 fn refuses_paths_outside_the_run_folder() {
     let run = run_dir();
     let scene = run.parent().unwrap().join("scene");
-    for (link, to) in [("view-link-out", scene.clone()), ("view-link-in", run.join("lift"))] {
+    for (link, to) in [
+        ("view-link-out", scene.clone()),
+        ("view-link-in", run.join("lift")),
+    ] {
         match std::os::unix::fs::symlink(&to, run.join(link)) {
             Ok(()) => {}
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
@@ -323,7 +329,12 @@ fn refuses_paths_outside_the_run_folder() {
         let (s, b) = srv.get(target);
         assert_eq!(s, 403, "{target}: {}", String::from_utf8_lossy(&b));
     }
-    for target in ["/../run.json", "/../../etc/passwd", "/files/lift", "/files/nothing"] {
+    for target in [
+        "/../run.json",
+        "/../../etc/passwd",
+        "/files/lift",
+        "/files/nothing",
+    ] {
         let (s, _) = srv.get(target);
         assert_eq!(s, 404, "{target}");
     }
@@ -331,7 +342,10 @@ fn refuses_paths_outside_the_run_folder() {
     for (target, file) in [
         ("/files/run.json", run.join("run.json")),
         ("/files/lift/summary.json", run.join("lift/summary.json")),
-        ("/files/view-link-in/summary.json", run.join("lift/summary.json")),
+        (
+            "/files/view-link-in/summary.json",
+            run.join("lift/summary.json"),
+        ),
         ("/files/report.html", run.join("report.html")),
     ] {
         let (s, b) = srv.get(target);
@@ -369,12 +383,15 @@ fn survives_malformed_requests() {
         s.write_all(b"GET /api/me").unwrap();
     }
     assert_eq!(
-        srv.raw(format!("POST /api/meta HTTP/1.1\r\n{host}Content-Length: 5\r\n\r\nhello").as_bytes())
-            .0,
+        srv.raw(
+            format!("POST /api/meta HTTP/1.1\r\n{host}Content-Length: 5\r\n\r\nhello").as_bytes()
+        )
+        .0,
         405
     );
     assert_eq!(
-        srv.raw(b"GET /api/meta HTTP/1.1\r\nHost: evil.example\r\n\r\n").0,
+        srv.raw(b"GET /api/meta HTTP/1.1\r\nHost: evil.example\r\n\r\n")
+            .0,
         421
     );
     assert_eq!(srv.get("/api/query?where=%zz").0, 400);
@@ -428,7 +445,10 @@ fn query_api_selects_what_gs4city_query_selects() {
         if q == "class=Window" {
             let windows: Vec<bool> = t.class.iter().map(|&c| c == 2).collect();
             let differ = (0..bits.len()).filter(|&i| bits[i] != windows[i]).count();
-            assert_eq!(differ, 0, "class=Window: the Gaussians of class window in semantic.ply");
+            assert_eq!(
+                differ, 0,
+                "class=Window: the Gaussians of class window in semantic.ply"
+            );
             assert!(count > 100);
         }
     }
@@ -465,11 +485,18 @@ fn pick_api_reports_the_hierarchy_of_semantic_ply() {
     let srv = Server::start(run);
     let n = t.class.len();
     let mut checked_parts = 0;
-    for i in (0..n).step_by(617).chain((0..n).filter(|&i| t.part[i] >= 0).step_by(97)) {
+    for i in (0..n)
+        .step_by(617)
+        .chain((0..n).filter(|&i| t.part[i] >= 0).step_by(97))
+    {
         let (s, j) = srv.get_json(&format!("/api/pick?i={i}"));
         assert_eq!(s, 200);
         assert_eq!(j["gaussian"].as_u64(), Some(i as u64));
-        assert_eq!(j["class"].as_i64(), Some(i64::from(t.class[i])), "Gaussian {i}");
+        assert_eq!(
+            j["class"].as_i64(),
+            Some(i64::from(t.class[i])),
+            "Gaussian {i}"
+        );
         let got: Vec<(String, String, String)> = j["chain"]
             .as_array()
             .unwrap()
@@ -566,7 +593,10 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
         return;
     }
     if !Path::new("/usr/bin/chromium").is_file() {
-        crate::common::skip(test, "/usr/bin/chromium is missing (scripts/setup.sh installs Debian's chromium)");
+        crate::common::skip(
+            test,
+            "/usr/bin/chromium is missing (scripts/setup.sh installs Debian's chromium)",
+        );
         return;
     }
     let run = run_dir();
@@ -594,6 +624,7 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
         "queries": queries,
         "screenshot": shot,
         "screenshot_query": "class=Window",
+        "screenshot_overview": true,
         "width": 960,
         "height": 640,
     });
@@ -617,7 +648,10 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
     // The click: a Gaussian of the window, and the panel shows the window, its wall, its building.
     let picked = r["picked_gaussian"].as_i64().unwrap();
     assert!(picked >= 0, "the click hit nothing: {r}");
-    assert_eq!(t.part[picked as usize], part, "picked Gaussian {picked}: {r}");
+    assert_eq!(
+        t.part[picked as usize], part,
+        "picked Gaussian {picked}: {r}"
+    );
     let panel: Vec<(String, String, String)> = r["panel"]
         .as_array()
         .unwrap()
@@ -644,10 +678,17 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
             Err(e) => {
                 assert!(shown["count"].is_null(), "{q}: {shown}");
                 let msg = shown["error"].as_str().unwrap();
-                assert!(!msg.is_empty() && e.contains(msg.split_once("`: ").unwrap().1.trim()), "{q}: page `{msg}`, CLI `{e}`");
+                assert!(
+                    !msg.is_empty() && e.contains(msg.split_once("`: ").unwrap().1.trim()),
+                    "{q}: page `{msg}`, CLI `{e}`"
+                );
             }
         }
     }
     let png = std::fs::read(&shot).unwrap();
     assert!(png.starts_with(b"\x89PNG") && png.len() > 10_000);
+    // GS4CITY_VIEW_PNG=docs/img/view.png keeps the screenshot (docs/view.md).
+    if let Some(keep) = std::env::var_os("GS4CITY_VIEW_PNG") {
+        std::fs::write(keep, &png).unwrap();
+    }
 }

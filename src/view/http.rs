@@ -113,7 +113,12 @@ pub fn read_head(stream: &mut impl Read) -> Result<Request, HeadError> {
                 });
             }
             Ok(n) => n,
-            Err(e) if matches!(e.kind(), io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut) => {
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                ) =>
+            {
                 return Err(HeadError::Timeout);
             }
             Err(_) => return Err(HeadError::Closed),

@@ -413,7 +413,9 @@ mod tests {
 
     #[test]
     fn bitmask_is_lsb_first() {
-        let s = [true, false, false, true, false, false, false, false, false, true];
+        let s = [
+            true, false, false, true, false, false, false, false, false, true,
+        ];
         assert_eq!(bitmask(&s), vec![0b0000_1001, 0b0000_0010]);
     }
 

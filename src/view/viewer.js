@@ -62,7 +62,7 @@
     gl_Position = c;
     gl_PointSize = clamp(4.0 * aSize * uFocal / c.w, 1.0, uMaxPoint);
     vec3 col = uMode == 1 ? aClass.rgb : (uMode == 2 ? aBuilding.rgb : aRgb.rgb);
-    if (uQuery == 1) col = aSel > 0.5 ? mix(col, vec3(1.0, 0.85, 0.1), 0.45) : col * 0.22 + 0.04;
+    if (uQuery == 1) col = aSel > 0.5 ? min(col * 1.15 + 0.05, 1.0) : col * 0.18 + 0.03;
     vColor = vec4(col, 1.0);
   }`;
   const FS = `#version 300 es
@@ -125,7 +125,11 @@
   const up = v3.norm(meta.up);
   const e1 = v3.norm(Math.abs(up[0]) < 0.9 ? v3.cross(up, [1, 0, 0]) : v3.cross(up, [0, 1, 0]));
   const e2 = v3.cross(up, e1);
-  const cam = { target: meta.center.slice(), dist: meta.extent * 2.2, yaw: 0.6, pitch: 0.6 };
+  const cam = {};
+  const resetCamera = () => {
+    Object.assign(cam, { target: meta.center.slice(), dist: meta.extent * 1.6, yaw: 0.6, pitch: 0.6 });
+    redraw();
+  };
   const eye = () => {
     const h = Math.cos(cam.pitch);
     const dir = v3.add(v3.add(v3.mul(e1, h * Math.cos(cam.yaw)), v3.mul(e2, h * Math.sin(cam.yaw))), v3.mul(up, Math.sin(cam.pitch)));
@@ -354,12 +358,14 @@
     if (v.length === 6 && v.every(Number.isFinite)) setCamera(v.slice(0, 3), v.slice(3));
   };
   window.addEventListener('hashchange', fromHash);
+  resetCamera();
   fromHash();
 
   Object.assign(api, {
     n,
     viewProj: () => viewProj(),
     setCamera,
+    resetCamera,
     pickAt,
     runQuery,
     setMode,

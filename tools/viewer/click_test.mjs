@@ -6,7 +6,7 @@
 //   node click_test.mjs SPEC.json
 //
 // SPEC: { url, eye: [x,y,z], target: [x,y,z], click: [x,y,z], queries: [..], screenshot: PATH,
-//         screenshot_query, width, height }
+//         screenshot_query, screenshot_overview (the page's first view), width, height }
 import { readFileSync } from 'node:fs';
 import { chromium } from 'playwright-core';
 
@@ -76,6 +76,7 @@ try {
       await page.keyboard.press('Enter');
       await page.waitForFunction(() => window.gs4city.lastQuery, null, { timeout: 30000 });
     }
+    if (spec.screenshot_overview) await page.evaluate(() => window.gs4city.resetCamera());
     await page.waitForTimeout(300);
     await page.screenshot({ path: spec.screenshot });
   }
