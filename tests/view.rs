@@ -478,6 +478,20 @@ fn base64_decode(s: &str) -> Vec<u8> {
     out
 }
 
+/// The string fields `keys` of each object of JSON array `a`.
+fn triples(a: &Value, keys: [&str; 3]) -> Vec<(String, String, String)> {
+    let f = |e: &Value, k: &str| {
+        e[k].as_str()
+            .unwrap_or_else(|| panic!("no {k} in {e}"))
+            .to_string()
+    };
+    a.as_array()
+        .unwrap_or_else(|| panic!("not an array: {a}"))
+        .iter()
+        .map(|e| (f(e, keys[0]), f(e, keys[1]), f(e, keys[2])))
+        .collect()
+}
+
 #[test]
 fn pick_api_reports_the_hierarchy_of_semantic_ply() {
     let run = run_dir();
@@ -497,18 +511,7 @@ fn pick_api_reports_the_hierarchy_of_semantic_ply() {
             Some(i64::from(t.class[i])),
             "Gaussian {i}"
         );
-        let got: Vec<(String, String, String)> = j["chain"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|c| {
-                (
-                    c["level"].as_str().unwrap().to_string(),
-                    c["class"].as_str().unwrap().to_string(),
-                    c["object_id"].as_str().unwrap().to_string(),
-                )
-            })
-            .collect();
+        let got = triples(&j["chain"], ["level", "class", "object_id"]);
         assert_eq!(got, t.chain(i), "Gaussian {i}");
         checked_parts += usize::from(t.part[i] >= 0);
     }
@@ -652,18 +655,7 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
         t.part[picked as usize], part,
         "picked Gaussian {picked}: {r}"
     );
-    let panel: Vec<(String, String, String)> = r["panel"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| {
-            (
-                e["level"].as_str().unwrap().to_string(),
-                e["class"].as_str().unwrap().to_string(),
-                e["gml_id"].as_str().unwrap().to_string(),
-            )
-        })
-        .collect();
+    let panel = triples(&r["panel"], ["level", "class", "gml_id"]);
     assert_eq!(panel, expected, "{r}");
     assert_eq!(panel[0].1, "Building");
     assert_eq!(panel[1].1, "WallSurface");
