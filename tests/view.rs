@@ -431,6 +431,7 @@ fn query_api_selects_what_gs4city_query_selects() {
         "class=WallSurface or class=RoofSurface",
         "not class=Building",
         "id=\"4018106\"",
+        "text(\"a tree\")",
     ] {
         let (s, j) = srv.get_json(&format!("/api/query?where={}", enc(q)));
         assert_eq!(s, 200, "{q}: {j}");
