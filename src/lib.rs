@@ -53,4 +53,5 @@ pub mod synth;
 pub mod textembed;
 pub mod tile;
 pub mod train;
+pub mod view;
 pub mod vote;

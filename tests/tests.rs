@@ -39,3 +39,4 @@ mod synth_masks;
 mod textembed;
 mod tile;
 mod train;
+mod view;

@@ -18,6 +18,7 @@ mod segment;
 mod synth;
 mod tile;
 mod train;
+mod view;
 
 use clap::{Parser, Subcommand};
 
@@ -122,6 +123,9 @@ enum Command {
     /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
     #[command(after_help = "Example:\n  gs4city synth --preset small --out /tmp/small")]
     Synth(synth::SynthArgs),
+    /// Serve a finished run to the browser on 127.0.0.1: colour by RGB/class/building, queries, click → building → surface → part.
+    #[command(after_help = "Example:\n  gs4city view R --port 0\n  gs4city view R --open")]
+    View(view::ViewArgs),
     #[command(flatten)]
     City(tile::CityCommand),
 }
@@ -141,6 +145,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Render(args) => render::run(&args),
         Command::Eval(args) => eval::run(&args),
         Command::Query(args) => query::run(&args),
+        Command::View(args) => view::run(&args),
         Command::Lift(args) => lift::run(&args),
         Command::Associate(args) => associate::run(&args),
         Command::Fuse(args) => fuse::run(&args),

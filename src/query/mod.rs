@@ -267,6 +267,32 @@ fn find_view<'c>(cache: &'c Cache, name: &str) -> Result<&'c crate::cache::Cache
         })
 }
 
+/// The city hierarchy of label `label` (feature → surface → part, each with its attributes;
+/// empty for image labels and −1), given the run's `semantics::chains`.
+pub fn chain(sr: &SemanticRun, chains: &[crate::mesh::FaceLabel], label: i32) -> Vec<ChainEntry> {
+    sr.labels
+        .get(label)
+        .and_then(|l| l.entity)
+        .and_then(|e| chains.get(e as usize).copied())
+        .map(|fl| {
+            [fl.feature, fl.surface, fl.part]
+                .into_iter()
+                .filter(|&i| i >= 0)
+                .map(|i| {
+                    let e = &sr.entities[i as usize];
+                    ChainEntry {
+                        level: e.level,
+                        id: e.id,
+                        object_id: e.object_id.clone(),
+                        class: e.class,
+                        attributes: e.attributes.clone(),
+                    }
+                })
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
 /// Picks pixel (x, y) of `view`: the predicted label there and its chain.
 pub fn pick(
     sr: &SemanticRun,
@@ -288,26 +314,7 @@ pub fn pick(
     let label = label_map[p];
     let (ids, ws) = c.pixel(p);
     let l = sr.labels.get(label);
-    let chain = l
-        .and_then(|l| l.entity)
-        .and_then(|e| semantics::chains(&sr.entities).get(e as usize).copied())
-        .map(|fl| {
-            [fl.feature, fl.surface, fl.part]
-                .into_iter()
-                .filter(|&i| i >= 0)
-                .map(|i| {
-                    let e = &sr.entities[i as usize];
-                    ChainEntry {
-                        level: e.level,
-                        id: e.id,
-                        object_id: e.object_id.clone(),
-                        class: e.class,
-                        attributes: e.attributes.clone(),
-                    }
-                })
-                .collect()
-        })
-        .unwrap_or_default();
+    let chain = chain(sr, &semantics::chains(&sr.entities), label);
     Ok(Pick {
         view: v.stem.clone(),
         x,

@@ -1,0 +1,701 @@
+//! `gs4city view` on a finished run of a SIMULATED scene (`synth --preset small`: two real
+//! buildings, simulated Gaussians): the server listens on 127.0.0.1 only (read from
+//! /proc/net/tcp), refuses paths outside the run folder and survives malformed requests (raw TCP
+//! sockets), its query API counts what `gs4city query` selects, its pick API reports the
+//! hierarchy `semantic.ply` stores, and in headless Chromium (Debian's, driven by playwright-core
+//! from tools/viewer) a real mouse click on a window shows that window, its wall and its
+//! building, and a query typed in the box highlights as many Gaussians as `gs4city query` selects.
+//! The truth is read here from `R/lift/semantic.ply` and `R/citymodel/semantics.json`.
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{Ipv4Addr, SocketAddr, TcpStream, UdpSocket};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use glam::DVec3;
+use gs4city::splat::{self, ReadOptions};
+use serde_json::Value;
+
+fn gs(args: &[&str]) -> (bool, String, String) {
+    let o = Command::new(env!("CARGO_BIN_EXE_gs4city"))
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        o.status.success(),
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+/// A finished run of the SIMULATED small preset (synth + run, ~10 s), shared by the tests.
+fn run_dir() -> &'static Path {
+    static RUN: OnceLock<PathBuf> = OnceLock::new();
+    RUN.get_or_init(|| {
+        // The fixture of an earlier test process (~380 MB) goes once that process has ended.
+        for e in std::fs::read_dir(std::env::temp_dir())
+            .into_iter()
+            .flatten()
+            .flatten()
+        {
+            let name = e.file_name().to_string_lossy().into_owned();
+            if let Some(pid) = name.strip_prefix("gs4city-view-")
+                && pid.parse::<u32>().is_ok()
+                && !Path::new("/proc").join(pid).exists()
+            {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+        let root = std::env::temp_dir().join(format!("gs4city-view-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        std::fs::create_dir_all(&root).unwrap();
+        let (scene, run) = (root.join("scene"), root.join("run"));
+        let (ok, _, err) = gs(&[
+            "-q",
+            "synth",
+            "--preset",
+            "small",
+            "--out",
+            scene.to_str().unwrap(),
+        ]);
+        assert!(ok, "synth: {err}");
+        let (ok, _, err) = gs(&[
+            "-q",
+            "run",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--out",
+            run.to_str().unwrap(),
+        ]);
+        assert!(ok, "run: {err}");
+        run
+    })
+}
+
+/// A running `gs4city view R --port 0`, stopped on drop.
+struct Server {
+    child: Child,
+    port: u16,
+    url: String,
+}
+
+impl Server {
+    fn start(run: &Path) -> Server {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_gs4city"))
+            .args(["view", run.to_str().unwrap(), "--port", "0"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let mut line = String::new();
+        BufReader::new(child.stdout.take().unwrap())
+            .read_line(&mut line)
+            .unwrap();
+        let url = line
+            .split_whitespace()
+            .find(|w| w.starts_with("http://"))
+            .unwrap_or_else(|| panic!("no URL in `{line}`"))
+            .to_string();
+        let port = url
+            .trim_start_matches("http://127.0.0.1:")
+            .trim_end_matches('/')
+            .parse()
+            .unwrap_or_else(|_| panic!("`{url}` is not http://127.0.0.1:PORT/"));
+        Server { child, port, url }
+    }
+
+    /// Sends `bytes` on a fresh connection; the status code, the whole response and its body.
+    fn raw(&self, bytes: &[u8]) -> (u16, String, Vec<u8>) {
+        let mut s = TcpStream::connect(("127.0.0.1", self.port)).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+        s.set_write_timeout(Some(Duration::from_secs(30))).unwrap();
+        let _ = s.write_all(bytes);
+        let mut resp = Vec::new();
+        let _ = s.read_to_end(&mut resp);
+        let text = String::from_utf8_lossy(&resp).into_owned();
+        let status = text
+            .strip_prefix("HTTP/1.1 ")
+            .and_then(|t| t.get(..3))
+            .and_then(|c| c.parse().ok())
+            .unwrap_or_else(|| panic!("no HTTP status in {:?}", &text[..text.len().min(200)]));
+        let body = match resp.windows(4).position(|w| w == b"\r\n\r\n") {
+            Some(p) => resp[p + 4..].to_vec(),
+            None => Vec::new(),
+        };
+        (status, text, body)
+    }
+
+    fn get(&self, target: &str) -> (u16, Vec<u8>) {
+        let (s, _, b) = self.raw(
+            format!(
+                "GET {target} HTTP/1.1\r\nHost: 127.0.0.1:{}\r\nConnection: close\r\n\r\n",
+                self.port
+            )
+            .as_bytes(),
+        );
+        (s, b)
+    }
+
+    fn get_json(&self, target: &str) -> (u16, Value) {
+        let (s, b) = self.get(target);
+        (
+            s,
+            serde_json::from_slice(&b)
+                .unwrap_or_else(|e| panic!("{target}: {e}: {}", String::from_utf8_lossy(&b))),
+        )
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn enc(s: &str) -> String {
+    s.bytes()
+        .map(|b| {
+            if b.is_ascii_alphanumeric() || b"-_.~".contains(&b) {
+                (b as char).to_string()
+            } else {
+                format!("%{b:02X}")
+            }
+        })
+        .collect()
+}
+
+/// `gs4city query --where q`'s Gaussian count (its summary.json), or its error line.
+fn cli_count(run: &Path, q: &str) -> Result<usize, String> {
+    let out = run
+        .parent()
+        .unwrap()
+        .join(format!("q-{}", enc(q).replace('%', "_")));
+    let (ok, _, err) = gs(&[
+        "-q",
+        "query",
+        "--run",
+        run.to_str().unwrap(),
+        "--where",
+        q,
+        "--views",
+        "none",
+        "--no-sqlite",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    if !ok {
+        return Err(err);
+    }
+    let s: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    Ok(s["gaussians"].as_u64().unwrap() as usize)
+}
+
+/// The run's truth per Gaussian from `R/lift/semantic.ply` (class, feature, surface, part
+/// columns; positions, largest σ, opacity) and the entity table of `R/citymodel/semantics.json`.
+struct Truth {
+    pos: Vec<DVec3>,
+    sigma: Vec<f64>,
+    opacity: Vec<f64>,
+    class: Vec<i32>,
+    feature: Vec<i32>,
+    surface: Vec<i32>,
+    part: Vec<i32>,
+    /// (gml:id, CityGML class, level) per entity id.
+    entities: Vec<(String, String, String)>,
+}
+
+fn truth(run: &Path) -> Truth {
+    let (g, _) = splat::read_ply(&run.join("lift/semantic.ply"), &ReadOptions::KEEP).unwrap();
+    let col = |n: &str| -> Vec<i32> {
+        g.extra(n)
+            .unwrap_or_else(|| panic!("semantic.ply has no `{n}`"))
+            .values
+            .iter()
+            .map(|v| *v as i32)
+            .collect()
+    };
+    let sem: Value = serde_json::from_str(
+        &std::fs::read_to_string(run.join("citymodel/semantics.json")).unwrap(),
+    )
+    .unwrap();
+    let entities = sem["entities"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .enumerate()
+        .map(|(i, e)| {
+            assert_eq!(e["id"].as_u64(), Some(i as u64));
+            (
+                e["object_id"].as_str().unwrap().to_string(),
+                e["class"].as_str().unwrap().to_string(),
+                e["level"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect();
+    Truth {
+        pos: g
+            .positions
+            .iter()
+            .map(|p| DVec3::from(p.map(f64::from)))
+            .collect(),
+        sigma: g
+            .scale
+            .iter()
+            .map(|s| f64::from(s[0].max(s[1]).max(s[2])).exp())
+            .collect(),
+        opacity: g
+            .opacity
+            .iter()
+            .map(|o| 1.0 / (1.0 + (-f64::from(*o)).exp()))
+            .collect(),
+        class: col("class"),
+        feature: col("feature_id"),
+        surface: col("surface_id"),
+        part: col("part_id"),
+        entities,
+    }
+}
+
+impl Truth {
+    /// The (level, class, gml:id) chain of Gaussian `i`: building → surface → part.
+    fn chain(&self, i: usize) -> Vec<(String, String, String)> {
+        [self.feature[i], self.surface[i], self.part[i]]
+            .into_iter()
+            .filter(|&e| e >= 0)
+            .map(|e| {
+                let (id, class, level) = &self.entities[e as usize];
+                (level.clone(), class.clone(), id.clone())
+            })
+            .collect()
+    }
+}
+
+#[test]
+fn listens_on_loopback_only() {
+    let srv = Server::start(run_dir());
+    assert!(srv.url.starts_with("http://127.0.0.1:"), "{}", srv.url);
+    // The kernel's table of listening sockets: every listener on the port is 127.0.0.1.
+    let hex_port = format!(":{:04X}", srv.port);
+    let tcp = std::fs::read_to_string("/proc/net/tcp").unwrap();
+    let listeners: Vec<&str> = tcp
+        .lines()
+        .skip(1)
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            (f[1].ends_with(&hex_port) && f[3] == "0A").then_some(f[1])
+        })
+        .collect();
+    assert_eq!(listeners, vec![format!("0100007F{hex_port}")], "{tcp}");
+    let tcp6 = std::fs::read_to_string("/proc/net/tcp6").unwrap_or_default();
+    assert!(
+        !tcp6.lines().skip(1).any(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            f[1].ends_with(&hex_port) && f[3] == "0A"
+        }),
+        "no IPv6 listener on the port"
+    );
+    // From another local address of the machine the port is closed.
+    let other = UdpSocket::bind((Ipv4Addr::UNSPECIFIED, 0))
+        .and_then(|u| u.connect(("10.255.255.255", 9)).map(|_| u))
+        .and_then(|u| u.local_addr())
+        .ok()
+        .map(|a| a.ip())
+        .filter(|ip| !ip.is_loopback() && !ip.is_unspecified());
+    if let Some(ip) = other {
+        let r = TcpStream::connect_timeout(&SocketAddr::new(ip, srv.port), Duration::from_secs(3));
+        assert!(r.is_err(), "{ip}:{} accepted a connection", srv.port);
+    }
+    assert_eq!(srv.get("/api/meta").0, 200);
+}
+
+#[test]
+fn refuses_paths_outside_the_run_folder() {
+    let run = run_dir();
+    let scene = run.parent().unwrap().join("scene");
+    for (link, to) in [
+        ("view-link-out", scene.clone()),
+        ("view-link-in", run.join("lift")),
+    ] {
+        match std::os::unix::fs::symlink(&to, run.join(link)) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+            Err(e) => panic!("{link}: {e}"),
+        }
+    }
+    let srv = Server::start(run);
+    for target in [
+        "/files/../run.json",
+        "/files/../scene/summary.json",
+        "/files/%2e%2e/scene/summary.json",
+        "/files/%2E%2E%2Fscene%2Fsummary.json",
+        "/files/lift/%2e%2e/%2e%2e/scene/summary.json",
+        "/files/lift/..%2f..%2fscene%2fsummary.json",
+        "/files//etc/passwd",
+        "/files/%2Fetc%2Fpasswd",
+        "/files/./run.json",
+        "/files/lift%5c..%5c..%5cscene%5csummary.json",
+        "/files/view-link-out/summary.json",
+        "/files/view-link-out/point_cloud.ply",
+    ] {
+        let (s, b) = srv.get(target);
+        assert_eq!(s, 403, "{target}: {}", String::from_utf8_lossy(&b));
+    }
+    for target in [
+        "/../run.json",
+        "/../../etc/passwd",
+        "/files/lift",
+        "/files/nothing",
+    ] {
+        let (s, _) = srv.get(target);
+        assert_eq!(s, 404, "{target}");
+    }
+    // Inside the run folder, through a link that stays inside too: the file's bytes.
+    for (target, file) in [
+        ("/files/run.json", run.join("run.json")),
+        ("/files/lift/summary.json", run.join("lift/summary.json")),
+        (
+            "/files/view-link-in/summary.json",
+            run.join("lift/summary.json"),
+        ),
+        ("/files/report.html", run.join("report.html")),
+    ] {
+        let (s, b) = srv.get(target);
+        assert_eq!(s, 200, "{target}");
+        assert_eq!(b, std::fs::read(&file).unwrap(), "{target}");
+    }
+}
+
+#[test]
+fn survives_malformed_requests() {
+    let run = run_dir();
+    let srv = Server::start(run);
+    let host = format!("Host: 127.0.0.1:{}\r\n", srv.port);
+    // Garbage bytes.
+    let garbage: Vec<u8> = (0..4096u32)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
+        .collect();
+    assert_eq!(srv.raw(&garbage).0, 400);
+    assert_eq!(srv.raw(b"\x00\x01\x02\r\n\r\n").0, 400);
+    // A 200 KB header, and 100 headers.
+    let mut big = format!("GET /api/meta HTTP/1.1\r\n{host}X-Big: ").into_bytes();
+    big.extend(std::iter::repeat_n(b'a', 200_000));
+    big.extend_from_slice(b"\r\n\r\n");
+    assert_eq!(srv.raw(&big).0, 431);
+    let many: String = (0..100).map(|i| format!("X-H{i}: {i}\r\n")).collect();
+    assert_eq!(
+        srv.raw(format!("GET /api/meta HTTP/1.1\r\n{host}{many}\r\n").as_bytes())
+            .0,
+        431
+    );
+    // Connections that end early or say nothing useful.
+    drop(TcpStream::connect(("127.0.0.1", srv.port)).unwrap());
+    {
+        let mut s = TcpStream::connect(("127.0.0.1", srv.port)).unwrap();
+        s.write_all(b"GET /api/me").unwrap();
+    }
+    assert_eq!(
+        srv.raw(
+            format!("POST /api/meta HTTP/1.1\r\n{host}Content-Length: 5\r\n\r\nhello").as_bytes()
+        )
+        .0,
+        405
+    );
+    assert_eq!(
+        srv.raw(b"GET /api/meta HTTP/1.1\r\nHost: evil.example\r\n\r\n")
+            .0,
+        421
+    );
+    assert_eq!(srv.get("/api/query?where=%zz").0, 400);
+    assert_eq!(srv.get("/api/query").0, 400);
+    assert_eq!(srv.get("/api/pick?i=abc").0, 400);
+    assert_eq!(srv.get("/api/pick?i=-1").0, 400);
+    assert_eq!(srv.get("/api/pick?i=99999999999").0, 404);
+    // Bad query syntax: 400 with the parser's message, the one `gs4city query` prints.
+    for q in ["class=", "class=Window and (", "measuredHeight >> 3", "not"] {
+        let (s, j) = srv.get_json(&format!("/api/query?where={}", enc(q)));
+        assert_eq!(s, 400, "{q}: {j}");
+        let server = j["error"].as_str().unwrap();
+        let cli = cli_count(run, q).expect_err(q);
+        let tail = |m: &str| {
+            m.split_once(&format!("`{q}`: "))
+                .map(|(_, t)| t.trim().to_string())
+                .unwrap_or_else(|| panic!("{q}: no parser message in `{m}`"))
+        };
+        assert_eq!(tail(server), tail(&cli), "{q}");
+        assert!(server.contains("column"), "{server}");
+    }
+    // Still serving.
+    let (s, meta) = srv.get_json("/api/meta");
+    assert_eq!(s, 200);
+    assert!(meta["gaussians"].as_u64().unwrap() > 1000);
+}
+
+#[test]
+fn query_api_selects_what_gs4city_query_selects() {
+    let run = run_dir();
+    let t = truth(run);
+    let srv = Server::start(run);
+    for q in [
+        "class=Window",
+        "level=part",
+        "class=Building and measuredHeight > 15",
+        "class=WallSurface or class=RoofSurface",
+        "not class=Building",
+        "id=\"4018106\"",
+        "text(\"a tree\")",
+    ] {
+        let (s, j) = srv.get_json(&format!("/api/query?where={}", enc(q)));
+        assert_eq!(s, 200, "{q}: {j}");
+        let count = j["count"].as_u64().unwrap() as usize;
+        assert_eq!(Ok(count), cli_count(run, q), "{q}");
+        let mask = base64_decode(j["mask"].as_str().unwrap());
+        assert_eq!(mask.len(), t.class.len().div_ceil(8), "{q}");
+        let bits: Vec<bool> = (0..t.class.len())
+            .map(|i| mask[i / 8] >> (i % 8) & 1 == 1)
+            .collect();
+        assert_eq!(bits.iter().filter(|b| **b).count(), count, "{q}");
+        if q == "class=Window" {
+            let windows: Vec<bool> = t.class.iter().map(|&c| c == 2).collect();
+            let differ = (0..bits.len()).filter(|&i| bits[i] != windows[i]).count();
+            assert_eq!(
+                differ, 0,
+                "class=Window: the Gaussians of class window in semantic.ply"
+            );
+            assert!(count > 100);
+        }
+    }
+}
+
+/// Standard base64 (with padding), written here from RFC 4648.
+fn base64_decode(s: &str) -> Vec<u8> {
+    let val = |c: u8| -> u32 {
+        match c {
+            b'A'..=b'Z' => u32::from(c - b'A'),
+            b'a'..=b'z' => u32::from(c - b'a') + 26,
+            b'0'..=b'9' => u32::from(c - b'0') + 52,
+            b'+' => 62,
+            b'/' => 63,
+            _ => panic!("not base64: {c}"),
+        }
+    };
+    let mut out = Vec::new();
+    for q in s.as_bytes().chunks(4) {
+        let pad = q.iter().filter(|&&c| c == b'=').count();
+        let v = q
+            .iter()
+            .map(|&c| if c == b'=' { 0 } else { val(c) })
+            .fold(0u32, |a, x| a << 6 | x);
+        out.extend_from_slice(&[(v >> 16) as u8, (v >> 8) as u8, v as u8][..3 - pad]);
+    }
+    out
+}
+
+/// The string fields `keys` of each object of JSON array `a`.
+fn triples(a: &Value, keys: [&str; 3]) -> Vec<(String, String, String)> {
+    let f = |e: &Value, k: &str| {
+        e[k].as_str()
+            .unwrap_or_else(|| panic!("no {k} in {e}"))
+            .to_string()
+    };
+    a.as_array()
+        .unwrap_or_else(|| panic!("not an array: {a}"))
+        .iter()
+        .map(|e| (f(e, keys[0]), f(e, keys[1]), f(e, keys[2])))
+        .collect()
+}
+
+#[test]
+fn pick_api_reports_the_hierarchy_of_semantic_ply() {
+    let run = run_dir();
+    let t = truth(run);
+    let srv = Server::start(run);
+    let n = t.class.len();
+    let mut checked_parts = 0;
+    for i in (0..n)
+        .step_by(617)
+        .chain((0..n).filter(|&i| t.part[i] >= 0).step_by(97))
+    {
+        let (s, j) = srv.get_json(&format!("/api/pick?i={i}"));
+        assert_eq!(s, 200);
+        assert_eq!(j["gaussian"].as_u64(), Some(i as u64));
+        assert_eq!(
+            j["class"].as_i64(),
+            Some(i64::from(t.class[i])),
+            "Gaussian {i}"
+        );
+        let got = triples(&j["chain"], ["level", "class", "object_id"]);
+        assert_eq!(got, t.chain(i), "Gaussian {i}");
+        checked_parts += usize::from(t.part[i] >= 0);
+    }
+    assert!(checked_parts > 20, "{checked_parts}");
+}
+
+/// The largest eigenvector of a symmetric 3×3 matrix (power iteration).
+fn principal(m: glam::DMat3, avoid: Option<DVec3>) -> DVec3 {
+    let mut v = DVec3::new(0.577, 0.577, 0.577);
+    for _ in 0..200 {
+        let mut w = m * v;
+        if let Some(a) = avoid {
+            w -= a * w.dot(a);
+        }
+        v = w.normalize_or(DVec3::X);
+    }
+    v
+}
+
+/// A window to click on: its part entity, the Gaussian to click, the camera eye and target.
+/// The camera looks at the window's centre along its normal (from outside its building); the
+/// window is taken only when every drawn Gaussian that could cover the clicked pixel in front
+/// of the clicked Gaussian belongs to the window too.
+fn window_shot(t: &Truth) -> (i32, usize, DVec3, DVec3) {
+    let mut parts: std::collections::BTreeMap<i32, Vec<usize>> = Default::default();
+    for (i, &p) in t.part.iter().enumerate() {
+        if p >= 0 && t.entities[p as usize].1 == "Window" {
+            parts.entry(p).or_default().push(i);
+        }
+    }
+    let mut order: Vec<(i32, Vec<usize>)> = parts.into_iter().collect();
+    order.sort_by_key(|(p, g)| (std::cmp::Reverse(g.len()), *p));
+    for (p, gs) in order {
+        let c = gs.iter().map(|&i| t.pos[i]).sum::<DVec3>() / gs.len() as f64;
+        let cov = gs.iter().fold(glam::DMat3::ZERO, |m, &i| {
+            let d = t.pos[i] - c;
+            m + glam::DMat3::from_cols(d * d.x, d * d.y, d * d.z)
+        }) * (1.0 / gs.len() as f64);
+        let a1 = principal(cov, None);
+        let a2 = principal(cov, Some(a1));
+        let mut normal = a1.cross(a2).normalize();
+        let b = t.feature[gs[0]];
+        let bg: Vec<usize> = (0..t.pos.len()).filter(|&i| t.feature[i] == b).collect();
+        let bc = bg.iter().map(|&i| t.pos[i]).sum::<DVec3>() / bg.len() as f64;
+        if normal.dot(c - bc) < 0.0 {
+            normal = -normal;
+        }
+        let extent = (cov * a1).length().sqrt() * 2.0;
+        let g = *gs
+            .iter()
+            .min_by(|&&i, &&j| (t.pos[i] - c).length().total_cmp(&(t.pos[j] - c).length()))
+            .unwrap();
+        let eye = c + normal * (3.0 * extent).max(2.0);
+        let ray = (t.pos[g] - eye).normalize();
+        let tg = (t.pos[g] - eye).dot(ray);
+        let clear = (0..t.pos.len()).all(|i| {
+            let d = t.pos[i] - eye;
+            let along = d.dot(ray);
+            let off = (d - ray * along).length();
+            t.opacity[i] < 0.05
+                || along <= 0.0
+                || along > tg + 0.05
+                || off > 2.0 * t.sigma[i] + 0.02
+                || t.part[i] == p
+        });
+        if clear {
+            return (p, g, eye, c);
+        }
+    }
+    panic!("no window of the run is clear to click on");
+}
+
+#[test]
+fn click_on_a_window_and_type_queries_in_headless_chromium() {
+    let test = "view::click_on_a_window_and_type_queries_in_headless_chromium";
+    let tools = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/viewer");
+    if !tools.join("node_modules/playwright-core").is_dir() {
+        crate::common::skip(
+            test,
+            "tools/viewer/node_modules/playwright-core is missing (scripts/setup.sh runs npm ci in tools/viewer)",
+        );
+        return;
+    }
+    if !Path::new("/usr/bin/chromium").is_file() {
+        crate::common::skip(
+            test,
+            "/usr/bin/chromium is missing (scripts/setup.sh installs Debian's chromium)",
+        );
+        return;
+    }
+    let run = run_dir();
+    let t = truth(run);
+    let (part, g, eye, target) = window_shot(&t);
+    let expected = t.chain(g);
+    assert_eq!(
+        expected.iter().map(|e| e.0.as_str()).collect::<Vec<_>>(),
+        ["feature", "surface", "part"]
+    );
+    let queries = [
+        "class=Window",
+        "class=WallSurface or class=RoofSurface",
+        "class=Building and measuredHeight > 15",
+        "class=",
+    ];
+    let srv = Server::start(run);
+    let dir = run.parent().unwrap();
+    let shot = dir.join("view.png");
+    let spec = serde_json::json!({
+        "url": srv.url,
+        "eye": eye.to_array(),
+        "target": target.to_array(),
+        "click": t.pos[g].to_array(),
+        "queries": queries,
+        "screenshot": shot,
+        "screenshot_query": "class=Window",
+        "screenshot_overview": true,
+        "width": 960,
+        "height": 640,
+    });
+    let spec_path = dir.join("click-spec.json");
+    std::fs::write(&spec_path, spec.to_string()).unwrap();
+    let o = Command::new("node")
+        .arg(tools.join("click_test.mjs"))
+        .arg(&spec_path)
+        .current_dir(&tools)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "node: {stdout}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let r: Value = serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"));
+    assert!(r["error"].is_null(), "{r}");
+    assert_eq!(r["gaussians"].as_u64(), Some(t.pos.len() as u64));
+    // The click: a Gaussian of the window, and the panel shows the window, its wall, its building.
+    let picked = r["picked_gaussian"].as_i64().unwrap();
+    assert!(picked >= 0, "the click hit nothing: {r}");
+    assert_eq!(
+        t.part[picked as usize], part,
+        "picked Gaussian {picked}: {r}"
+    );
+    let panel = triples(&r["panel"], ["level", "class", "gml_id"]);
+    assert_eq!(panel, expected, "{r}");
+    assert_eq!(panel[0].1, "Building");
+    assert_eq!(panel[1].1, "WallSurface");
+    assert_eq!(panel[2].1, "Window");
+    // The queries typed in the box: the highlighted count is `gs4city query`'s.
+    for (q, shown) in queries.iter().zip(r["queries"].as_array().unwrap()) {
+        match cli_count(run, q) {
+            Ok(n) => {
+                assert_eq!(shown["count"].as_u64(), Some(n as u64), "{q}: {shown}");
+                assert_eq!(shown["error"].as_str(), Some(""), "{q}");
+            }
+            Err(e) => {
+                assert!(shown["count"].is_null(), "{q}: {shown}");
+                let msg = shown["error"].as_str().unwrap();
+                assert!(
+                    !msg.is_empty() && e.contains(msg.split_once("`: ").unwrap().1.trim()),
+                    "{q}: page `{msg}`, CLI `{e}`"
+                );
+            }
+        }
+    }
+    let png = std::fs::read(&shot).unwrap();
+    assert!(png.starts_with(b"\x89PNG") && png.len() > 10_000);
+    // GS4CITY_VIEW_PNG=docs/img/view.png keeps the screenshot (docs/view.md).
+    if let Some(keep) = std::env::var_os("GS4CITY_VIEW_PNG") {
+        std::fs::write(keep, &png).unwrap();
+    }
+}
