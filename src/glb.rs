@@ -53,11 +53,13 @@ impl Builder {
         Builder::default()
     }
 
-    /// Appends `bytes` as a buffer view (8-byte aligned) and returns its index.
+    /// Appends `bytes` as a buffer view (8-byte aligned) and returns its index. Empty `bytes`
+    /// (a string column of empty strings) become one zero byte: glTF forbids empty views.
     pub fn view(&mut self, bytes: &[u8], target: Option<u32>) -> usize {
         while !self.bin.len().is_multiple_of(8) {
             self.bin.push(0);
         }
+        let bytes = if bytes.is_empty() { &[0u8][..] } else { bytes };
         let mut v = json!({"buffer": 0, "byteOffset": self.bin.len(), "byteLength": bytes.len()});
         if let Some(t) = target {
             v["target"] = json!(t);

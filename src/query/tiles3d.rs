@@ -397,10 +397,10 @@ fn tile_glb(g: &Gaussians, idx: &[u32], sem: &Semantics<'_>) -> Result<Vec<u8>, 
         if rows.is_empty() {
             continue;
         }
-        let null = rows.len();
+        let none_row = rows.len();
         let fid: Vec<f32> = ids
             .iter()
-            .map(|&e| rows.binary_search(&e).unwrap_or(null) as f32)
+            .map(|&e| rows.binary_search(&e).unwrap_or(none_row) as f32)
             .collect();
         let slot = feature_ids.len();
         attrs.insert(
@@ -411,7 +411,7 @@ fn tile_glb(g: &Gaussians, idx: &[u32], sem: &Semantics<'_>) -> Result<Vec<u8>, 
             "featureCount": rows.len(),
             "attribute": slot,
             "propertyTable": tables.len(),
-            "nullFeatureId": null,
+            "nullFeatureId": none_row,
             "label": name,
         }));
         tables.push(entity_table(&mut b, name, &rows, sem.entities));
