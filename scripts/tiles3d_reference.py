@@ -13,7 +13,8 @@ without the code under test:
 - its building / surface / part gml:ids (semantic.ply's feature_id / surface_id / part_id
   columns → semantics.json) and its class name (class column → the class names of
   docs/design.md);
-- with --class-colors, COLOR_0 = the class palette of docs/design.md (by hand below).
+- with --class-colors, COLOR_0 = the class palette of docs/design.md (by hand below), made
+  linear (glTF vertex colours are linear; the palette is sRGB).
 
 Each decoded splat is matched to the nearest expected Gaussian (scipy cKDTree). Prints one JSON
 object: counts, the largest match distance, the mismatches (first few), per-class counts.
@@ -177,7 +178,9 @@ def main():
             want_cat = NAMES[cls] if cls >= 0 else "none"
             color_ok = True
             if class_colors:
-                rgb = np.array(PALETTE[cls] if cls >= 0 else [0, 0, 0]) / 255.0
+                srgb = np.array(PALETTE[cls] if cls >= 0 else [0, 0, 0]) / 255.0
+                # glTF vertex colours are linear: the sRGB transfer function undone.
+                rgb = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
                 color_ok = bool(np.all(np.abs(colors[s] - rgb) < 1e-3))
             if ids[s] == want and cats[s] == want_cat and color_ok:
                 ok = True

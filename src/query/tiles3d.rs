@@ -4,8 +4,8 @@
 //! - **Content**: one glTF 2.0 binary per leaf tile, the Gaussians as a `POINTS` primitive with
 //!   `KHR_gaussian_splatting` (`POSITION`, `KHR_gaussian_splatting:ROTATION` (x, y, z, w),
 //!   `:SCALE` (log), `:OPACITY` (after the sigmoid), `:SH_DEGREE_ℓ_COEF_n` (the 3DGS SH,
-//!   turned with the Gaussians) and `COLOR_0` (the diffuse colour and the opacity: what a
-//!   renderer without splats shows).
+//!   turned with the Gaussians) and `COLOR_0` (the diffuse colour, made linear as glTF's
+//!   vertex colours are, and the opacity: what a renderer without splats shows).
 //! - **Semantics**: `EXT_mesh_features` feature ids per splat — `_FEATURE_ID_0` building,
 //!   `_FEATURE_ID_1` surface, `_FEATURE_ID_2` part (rows of the tile's property tables of the
 //!   same names, absent levels `nullFeatureId`), `_FEATURE_ID_3` the evaluation class (rows of
@@ -334,10 +334,18 @@ fn tile_glb(g: &Gaussians, idx: &[u32], sem: &Semantics<'_>) -> Result<Vec<u8>, 
         "POSITION".into(),
         json!(b.floats(&flat3(&g.positions), 3, true)),
     );
+    // COLOR_0 is linear (glTF §3.7.2.1); the splats' diffuse colour is sRGB-encoded.
     let c0 = transform::SH_C0 as f32;
+    let linear = |c: f32| {
+        if c <= 0.040_45 {
+            c / 12.92
+        } else {
+            ((c + 0.055) / 1.055).powf(2.4)
+        }
+    };
     let color: Vec<f32> = (0..n)
         .flat_map(|i| {
-            let [r, gg, bb] = g.f_dc[i].map(|f| (c0 * f + 0.5).clamp(0.0, 1.0));
+            let [r, gg, bb] = g.f_dc[i].map(|f| linear((c0 * f + 0.5).clamp(0.0, 1.0)));
             [r, gg, bb, g.activated_opacity(i).clamp(0.0, 1.0)]
         })
         .collect();

@@ -8,6 +8,7 @@
 // Usage: node validate_gltf.mjs FILE.glb…   (exit 0; the caller judges the counts)
 import { readFileSync } from "node:fs";
 import validator from "gltf-validator";
+import { renameGaussianSemantics } from "./glb_rename.mjs";
 
 function summary(report) {
   const issues = report.issues;
@@ -22,27 +23,6 @@ function summary(report) {
   };
 }
 
-/** The GLB `bytes` with its JSON chunk rewritten by `edit`. */
-function rewriteJson(bytes, edit) {
-  const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
-  const jsonLength = view.getUint32(12, true);
-  const json = JSON.parse(new TextDecoder().decode(bytes.subarray(20, 20 + jsonLength)));
-  edit(json);
-  let text = new TextEncoder().encode(JSON.stringify(json));
-  const padded = new Uint8Array((text.length + 3) & ~3).fill(0x20);
-  padded.set(text);
-  const rest = bytes.subarray(20 + jsonLength);
-  const out = new Uint8Array(20 + padded.length + rest.length);
-  const ov = new DataView(out.buffer);
-  out.set(bytes.subarray(0, 12));
-  ov.setUint32(8, out.length, true);
-  ov.setUint32(12, padded.length, true);
-  ov.setUint32(16, view.getUint32(16, true), true);
-  out.set(padded, 20);
-  out.set(rest, 20 + padded.length);
-  return out;
-}
-
 const options = (uri) => ({
   uri,
   maxIssues: 10000,
@@ -52,17 +32,7 @@ const options = (uri) => ({
 for (const file of process.argv.slice(2)) {
   const bytes = new Uint8Array(readFileSync(file));
   const raw = summary(await validator.validateBytes(bytes, options(file)));
-  const renamed = rewriteJson(bytes, (json) => {
-    for (const mesh of json.meshes ?? []) {
-      for (const prim of mesh.primitives ?? []) {
-        const attrs = {};
-        for (const [k, v] of Object.entries(prim.attributes)) {
-          attrs[k.replace(/^KHR_gaussian_splatting:/, "_KHR_GS_")] = v;
-        }
-        prim.attributes = attrs;
-      }
-    }
-  });
+  const renamed = renameGaussianSemantics(bytes);
   const other = summary(await validator.validateBytes(renamed, options(file)));
   console.log(JSON.stringify({ file, ...raw, renamed: other }));
 }
