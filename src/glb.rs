@@ -56,7 +56,7 @@ impl Builder {
     /// Appends `bytes` as a buffer view (8-byte aligned) and returns its index. Empty `bytes`
     /// (a string column of empty strings) become one zero byte: glTF forbids empty views.
     pub fn view(&mut self, bytes: &[u8], target: Option<u32>) -> usize {
-        while !self.bin.len().is_multiple_of(8) {
+        while self.bin.len() % 8 != 0 {
             self.bin.push(0);
         }
         let bytes = if bytes.is_empty() { &[0u8][..] } else { bytes };
@@ -103,11 +103,11 @@ impl Builder {
         json["bufferViews"] = Value::Array(self.views);
         json["accessors"] = Value::Array(self.accessors);
         let mut text = serde_json::to_vec(&json).expect("a JSON value serialises");
-        while !text.len().is_multiple_of(4) {
+        while text.len() % 4 != 0 {
             text.push(b' ');
         }
         let mut bin = self.bin;
-        while !bin.len().is_multiple_of(4) {
+        while bin.len() % 4 != 0 {
             bin.push(0);
         }
         let total = 12 + 8 + text.len() + 8 + bin.len();
