@@ -628,7 +628,7 @@ pub fn export(
     let tmp = partial_dir(out);
     let _ = std::fs::remove_dir_all(&tmp);
     fsutil::create_dir(&tmp.join("tiles"))?;
-    let result = write_tiles(&tmp, &nodes, &all, &g, &ecef, &sem, alignment, georef, opts);
+    let result = write_tiles(&tmp, &nodes, &all, &g, &ecef, &sem, alignment, georef);
     let (tileset, bytes, depth) = match result {
         Ok(r) => r,
         Err(e) => {
@@ -721,7 +721,6 @@ fn write_tiles(
     sem: &Semantics<'_>,
     alignment: &Alignment,
     georef: &Georef,
-    opts: &TilesOptions,
 ) -> Result<(u64, u64, u32), QueryError> {
     let leaves: Vec<usize> = (0..nodes.len())
         .filter(|&i| nodes[i].children.is_empty())
@@ -834,7 +833,6 @@ fn write_tiles(
     });
     let text = serde_json::to_vec_pretty(&tileset).expect("JSON values serialise");
     fsutil::write_bytes(&dir.join("tileset.json"), &text)?;
-    let _ = opts;
     Ok((text.len() as u64, bytes, depth))
 }
 
