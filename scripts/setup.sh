@@ -11,7 +11,9 @@ SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 pkgs=(build-essential pkg-config libembree-dev libclang-dev clang libopencv-dev libcgal-dev libgmp-dev libmpfr-dev
       libusb-1.0-0 libgl1 libegl1 libgomp1
-      slurm-wlm munge)   # slurm-wlm + munge: scripts/slurm_test.sh (a single-node Slurm, tile plans)
+      slurm-wlm munge    # slurm-wlm + munge: scripts/slurm_test.sh (a single-node Slurm, tile plans)
+      libproj-dev proj-bin   # PROJ 9.1 for `export --format 3dtiles` (the proj crate, by pkg-config); cs2cs for its tests
+      chromium)          # headless Chromium: CesiumJS loads the exported tileset (tests/export_3dtiles.rs)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
@@ -56,9 +58,13 @@ if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
   fi
 fi
 # The JavaScript tools the tests run (tools/js: package.json + package-lock.json, pinned):
-# @playcanvas/splat-transform reads the viewer-ready PLY exports back (tests/export_ply.rs).
+# @playcanvas/splat-transform reads the viewer-ready PLY exports back (tests/export_ply.rs);
+# gltf-validator, 3d-tiles-tools, cesium and playwright-core check the 3D Tiles export
+# (tests/export_3dtiles.rs: validate_gltf.mjs, read_tileset.mjs, cesium_shot.mjs; Chromium is
+# Debian's, playwright-core downloads no browser).
 # Node.js and npm from Debian when the machine has none (Debian 12: Node 18, which
-# splat-transform 2.7.1 declares it supports). ~210 MB in tools/js/node_modules, ~5 s.
+# splat-transform 2.7.1 declares it supports; cesium 1.145 asks for Node 20+ and warns only).
+# ~450 MB in tools/js/node_modules, ~1 min.
 if [ "${GS4CITY_SKIP_JS:-0}" != 1 ]; then
   if ! command -v npm >/dev/null 2>&1; then
     echo "setup: installing nodejs npm"
@@ -66,7 +72,9 @@ if [ "${GS4CITY_SKIP_JS:-0}" != 1 ]; then
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 nodejs npm >/dev/null
   fi
   js="$(cd "$(dirname "$0")/.." && pwd)/tools/js"
-  if [ ! -x "$js/node_modules/.bin/splat-transform" ]; then
+  if [ ! -x "$js/node_modules/.bin/splat-transform" ] || [ ! -d "$js/node_modules/cesium" ] \
+     || [ ! -d "$js/node_modules/gltf-validator" ] || [ ! -d "$js/node_modules/3d-tiles-tools" ] \
+     || [ ! -d "$js/node_modules/playwright-core" ]; then
     echo "setup: npm ci in tools/js"
     (cd "$js" && npm ci --no-audit --no-fund --loglevel=error)
   fi

@@ -18,6 +18,7 @@ mod cli;
 mod cli_stages;
 mod colmap;
 mod eval;
+mod export_3dtiles;
 mod export_ply;
 mod fuse;
 mod gt_reference;

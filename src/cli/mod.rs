@@ -6,6 +6,7 @@ mod check;
 mod citymodel;
 mod demo;
 mod eval;
+mod export;
 mod fuse;
 mod lift;
 mod masks;
@@ -128,6 +129,8 @@ enum Command {
     View(view::ViewArgs),
     #[command(flatten)]
     City(tile::CityCommand),
+    #[command(flatten)]
+    Export(export::ExportCommand),
 }
 
 /// Parses the process arguments and runs the chosen subcommand.
@@ -158,6 +161,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Synth(args) => synth::run(&args),
         Command::Segment(args) => segment::run(&args),
         Command::City(cmd) => tile::run(&cmd),
+        Command::Export(cmd) => export::run(&cmd),
     }
 }
 

@@ -137,7 +137,7 @@ fn parse_level(s: &str, flag: &str) -> anyhow::Result<Level> {
     })
 }
 
-fn parse(what: &str, text: &str) -> anyhow::Result<Expr> {
+pub(crate) fn parse(what: &str, text: &str) -> anyhow::Result<Expr> {
     selection::grammar::parse(text).map_err(|error| {
         anyhow::Error::new(selection::SelectionError::Parse {
             what: what.to_string(),

@@ -9,6 +9,7 @@
 //! per-view masks. The paper's query-driven evaluation is `eval::by_query`.
 pub mod export;
 pub mod sqlite;
+pub mod tiles3d;
 
 use std::collections::{BTreeMap, HashSet};
 use std::path::Path;
@@ -48,6 +49,10 @@ pub enum QueryError {
     Fs(#[from] fsutil::FsError),
     #[error(transparent)]
     Sqlite(#[from] sqlite::SqliteError),
+    #[error(transparent)]
+    Crs(#[from] crate::crs::CrsError),
+    #[error(transparent)]
+    Glb(#[from] crate::glb::GlbError),
 }
 
 /// Writes `<stem>.mask.npy` (uint8 H×W) and `<stem>.mask.png` into `out`.

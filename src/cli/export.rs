@@ -1,0 +1,145 @@
+//! `gs4city export`: a finished run (or a selection of it) in the formats city tools read —
+//! today a georeferenced 3D Tiles 1.1 tileset of `KHR_gaussian_splatting` glTF tiles with
+//! per-splat building / surface / part feature ids and property tables (docs/export.md).
+use std::collections::BTreeSet;
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::{Args, Subcommand, ValueEnum};
+
+use crate::citymodel::CitymodelSummary;
+use crate::layout::{Mode, Stage, Summary};
+use crate::query::ColorBy;
+use crate::query::tiles3d::{self, TilesOptions};
+
+#[derive(Debug, Subcommand)]
+pub enum ExportCommand {
+    /// Export a finished run (or a --where selection of it) as a georeferenced 3D Tiles 1.1
+    /// tileset: glTF tiles with KHR_gaussian_splatting, per-splat building / surface / part
+    /// feature ids (EXT_mesh_features) and property tables (EXT_structural_metadata).
+    #[command(
+        after_help = "Example:\n  gs4city export --run R --format 3dtiles --out T\n  gs4city export --run R --format 3dtiles --where 'class=Building' --color-by class --crs EPSG:25832 --out T"
+    )]
+    Export(ExportArgs),
+}
+
+/// The export formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Format {
+    /// 3D Tiles 1.1 (tileset.json + tiles/*.glb).
+    #[value(name = "3dtiles")]
+    Tiles3d,
+}
+
+#[derive(Debug, Args)]
+pub struct ExportArgs {
+    /// A finished run folder (`gs4city run --scene S --out R`).
+    #[arg(long, value_name = "R")]
+    pub run: PathBuf,
+    /// The scene folder the run was made from; default: the one recorded in R/run.json.
+    #[arg(long, value_name = "DIR")]
+    pub scene: Option<PathBuf>,
+    /// Which per-Gaussian labels: `vote` (R/lift) or `learned` (R/train); default: learned when
+    /// R/train/gaussians.npy exists.
+    #[arg(long)]
+    pub mode: Option<Mode>,
+    /// The output format.
+    #[arg(long, value_enum)]
+    pub format: Format,
+    /// Export only the Gaussians this selection holds (the query language of `gs4city query
+    /// --where`, docs/query.md); default: every Gaussian.
+    #[arg(long = "where", value_name = "EXPR")]
+    pub where_: Option<String>,
+    /// The city model's CRS (an EPSG code or any name PROJ knows); default: the srsName of the
+    /// run's CityGML (R/citymodel/summary.json).
+    #[arg(long, value_name = "EPSG:…")]
+    pub crs: Option<String>,
+    /// Splat colours: rgb (the input's), class (the class palette) or building (one colour per
+    /// building).
+    #[arg(long, value_name = "rgb|class|building", default_value = "rgb")]
+    pub color_by: ColorBy,
+    /// The largest number of Gaussians in one tile (a quadtree node with more is split).
+    #[arg(long, default_value_t = tiles3d::MAX_SPLATS)]
+    pub max_splats: usize,
+    /// Output folder (built beside it, renamed when complete; an earlier export there is replaced).
+    #[arg(long, value_name = "T")]
+    pub out: PathBuf,
+}
+
+/// The CRS of the run: `--crs`, else the one srsName of its city model files.
+fn run_crs(a: &ExportArgs) -> anyhow::Result<String> {
+    if let Some(c) = &a.crs {
+        return Ok(c.clone());
+    }
+    let dir = Stage::Citymodel.path(&a.run);
+    let s = CitymodelSummary::read(&dir)
+        .with_context(|| format!("reading the city model's CRS from {}", dir.display()))?;
+    let names: BTreeSet<&str> = s
+        .files
+        .iter()
+        .filter_map(|f| f.srs_name.as_deref())
+        .collect();
+    match names.len() {
+        1 => Ok(names.into_iter().next().expect("one name").to_string()),
+        0 => bail!(
+            "{}: no city model file names a CRS (no srsName on an Envelope or a geometry; CityJSON: no metadata.referenceSystem): give the CRS with --crs, e.g. --crs EPSG:25832",
+            dir.join("summary.json").display()
+        ),
+        _ => bail!(
+            "{}: the city model files name different CRSs ({}): give the one the coordinates are in with --crs",
+            dir.join("summary.json").display(),
+            names.into_iter().collect::<Vec<_>>().join(", ")
+        ),
+    }
+}
+
+pub fn run(cmd: &ExportCommand) -> anyhow::Result<()> {
+    let ExportCommand::Export(a) = cmd;
+    let Format::Tiles3d = a.format;
+    if a.max_splats == 0 {
+        bail!("--max-splats must be at least 1, got 0");
+    }
+    let crs = run_crs(a)?;
+    let georef = crate::crs::Georef::new(&crs)?;
+    let apath = Stage::Citymodel.path(&a.run).join("alignment.json");
+    let alignment = crate::alignment::Alignment::read(&apath)?;
+    let sr = super::query::open_run(&a.run, a.scene.as_deref(), a.mode)?;
+    let (selected, query) = match &a.where_ {
+        Some(w) => {
+            let expr = super::query::parse("--where", w)?;
+            let sel = sr.select_as("--where", w, &expr, Default::default())?;
+            for w in &sel.warnings {
+                eprintln!("warning: {w}");
+            }
+            (sr.gaussian_selection(&sel.labels), expr.to_string())
+        }
+        None => (vec![true; sr.label_of.len()], "every Gaussian".to_string()),
+    };
+    let opts = TilesOptions {
+        color_by: a.color_by,
+        max_splats: a.max_splats,
+    };
+    let s = tiles3d::export(&sr, &selected, &query, &alignment, &georef, &opts, &a.out)?;
+    println!(
+        "export 3dtiles `{}`: {} Gaussians in {} tiles ({} leaves, depth {}), {:.1} MB, CRS {} → root at lon {:.7}° lat {:.7}° h {:.2} m → {}  [{:.2} s]",
+        s.query,
+        s.splats,
+        s.tiles,
+        s.leaves,
+        s.depth,
+        s.bytes as f64 / 1e6,
+        s.crs,
+        s.root.lon,
+        s.root.lat,
+        s.root.height,
+        a.out.display(),
+        s.timing.total_s
+    );
+    if s.invalid > 0 {
+        eprintln!(
+            "warning: {} selected Gaussians have invalid values and were left out",
+            s.invalid
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,193 @@
+// Loads a 3D Tiles tileset in CesiumJS (npm `cesium`) in headless Chromium (Debian's
+// /usr/bin/chromium driven by npm `playwright-core`, WebGL by SwiftShader), flies to it, takes a
+// screenshot and measures it: prints one JSON object with the canvas size, the tileset's
+// bounding sphere (centre longitude/latitude/height, its projection on the canvas and radius
+// in pixels), the camera's longitude/latitude/height, and per palette colour the pixels that
+// show it (and their centroid). Everything is served by a node http server on 127.0.0.1 (the
+// tileset, Cesium's build, one page); no Cesium ion, no imagery, no terrain, no internet.
+// Usage: node cesium_shot.mjs TILESET_DIR OUT.png PALETTE_JSON
+//   PALETTE_JSON: {"name": [r, g, b], …} the colours to count.
+import { createServer } from "node:http";
+import { readFile, stat, writeFile } from "node:fs/promises";
+import path from "node:path";
+import { fileURLToPath } from "node:url";
+import { chromium } from "playwright-core";
+import { renameGaussianSemantics } from "./glb_rename.mjs";
+
+const here = path.dirname(fileURLToPath(import.meta.url));
+const [tilesetDir, outPng, paletteJson] = process.argv.slice(2);
+const palette = JSON.parse(paletteJson);
+const cesiumDir = path.join(here, "node_modules/cesium/Build/Cesium");
+
+const page = `<!doctype html>
+<html><head><meta charset="utf-8">
+<link rel="stylesheet" href="/cesium/Widgets/widgets.css">
+<style>html,body,#c{margin:0;width:100%;height:100%;overflow:hidden;background:#000}</style>
+<script src="/cesium/Cesium.js"></script></head>
+<body><div id="c"></div><script>
+window.CESIUM_BASE_URL = "/cesium/";
+(async () => {
+  try {
+    const viewer = new Cesium.Viewer("c", {
+      baseLayer: false, baseLayerPicker: false, geocoder: false, homeButton: false,
+      sceneModePicker: false, navigationHelpButton: false, animation: false, timeline: false,
+      fullscreenButton: false, infoBox: false, selectionIndicator: false,
+      terrainProvider: new Cesium.EllipsoidTerrainProvider(),
+      contextOptions: { webgl: { preserveDrawingBuffer: true, antialias: false } },
+      msaaSamples: 1,
+    });
+    viewer.scene.globe.baseColor = Cesium.Color.BLACK;
+    viewer.scene.backgroundColor = Cesium.Color.BLACK;
+    viewer.scene.skyAtmosphere.show = false;
+    viewer.scene.globe.showGroundAtmosphere = false;
+    viewer.scene.fog.enabled = false;
+    if (viewer.scene.skyBox) viewer.scene.skyBox.show = false;
+    viewer.scene.sun.show = false;
+    viewer.scene.moon.show = false;
+    viewer.scene.globe.depthTestAgainstTerrain = false;
+    const tileset = await Cesium.Cesium3DTileset.fromUrl("/tiles/tileset.json", {
+      maximumScreenSpaceError: 1,
+    });
+    tileset.pointCloudShading.attenuation = true;
+    tileset.pointCloudShading.maximumAttenuation = 6;
+    tileset.pointCloudShading.baseResolution = 0.05;
+    tileset.pointCloudShading.eyeDomeLighting = false;
+    viewer.scene.primitives.add(tileset);
+    const sphere = tileset.boundingSphere;
+    viewer.camera.flyToBoundingSphere(sphere, {
+      duration: 0,
+      offset: new Cesium.HeadingPitchRange(0.3, -0.8, sphere.radius * 2.2),
+    });
+    let frames = 0;
+    await new Promise((resolve) => {
+      const done = () => {
+        frames += 1;
+        if ((tileset.tilesLoaded && frames > 20) || frames > 600) {
+          viewer.scene.postRender.removeEventListener(done);
+          resolve();
+        }
+      };
+      viewer.scene.postRender.addEventListener(done);
+    });
+    viewer.scene.render();
+    const centre = Cesium.Cartographic.fromCartesian(sphere.center);
+    const cam = viewer.camera.positionCartographic;
+    const win = Cesium.SceneTransforms.worldToWindowCoordinates(viewer.scene, sphere.center);
+    const edge = Cesium.SceneTransforms.worldToWindowCoordinates(
+      viewer.scene,
+      Cesium.Cartesian3.add(sphere.center,
+        Cesium.Cartesian3.multiplyByScalar(viewer.camera.rightWC, sphere.radius, new Cesium.Cartesian3()),
+        new Cesium.Cartesian3()),
+    );
+    const canvas = viewer.scene.canvas;
+    window.__result = {
+      ok: true,
+      frames,
+      tilesLoaded: tileset.tilesLoaded,
+      canvas: [canvas.width, canvas.height],
+      client: [canvas.clientWidth, canvas.clientHeight],
+      centre: { lon: Cesium.Math.toDegrees(centre.longitude), lat: Cesium.Math.toDegrees(centre.latitude), height: centre.height },
+      camera: { lon: Cesium.Math.toDegrees(cam.longitude), lat: Cesium.Math.toDegrees(cam.latitude), height: cam.height },
+      centreWindow: win ? [win.x, win.y] : null,
+      radiusPixels: win && edge ? Math.hypot(edge.x - win.x, edge.y - win.y) : null,
+    };
+  } catch (e) {
+    window.__result = { ok: false, error: String(e && e.stack || e) };
+  }
+})();
+</script></body></html>`;
+
+const types = { ".js": "text/javascript", ".css": "text/css", ".json": "application/json",
+  ".glb": "model/gltf-binary", ".html": "text/html", ".png": "image/png", ".wasm": "application/wasm" };
+
+function inside(root, rel) {
+  const p = path.resolve(root, "." + decodeURIComponent(rel));
+  return p.startsWith(path.resolve(root) + path.sep) ? p : null;
+}
+
+const server = createServer(async (req, res) => {
+  try {
+    const url = new URL(req.url, "http://127.0.0.1");
+    let file = null;
+    if (url.pathname === "/" || url.pathname === "/index.html") {
+      res.writeHead(200, { "content-type": "text/html" });
+      res.end(page);
+      return;
+    } else if (url.pathname.startsWith("/cesium/")) {
+      file = inside(cesiumDir, url.pathname.slice("/cesium".length));
+    } else if (url.pathname.startsWith("/tiles/")) {
+      file = inside(tilesetDir, url.pathname.slice("/tiles".length));
+    }
+    if (!file || !(await stat(file)).isFile()) throw new Error("not found");
+    res.writeHead(200, { "content-type": types[path.extname(file)] ?? "application/octet-stream" });
+    let body = await readFile(file);
+    if (file.endsWith(".glb")) body = Buffer.from(renameGaussianSemantics(new Uint8Array(body)));
+    res.end(body);
+  } catch {
+    res.writeHead(404);
+    res.end();
+  }
+});
+await new Promise((r) => server.listen(0, "127.0.0.1", r));
+const port = server.address().port;
+
+const browser = await chromium.launch({
+  executablePath: "/usr/bin/chromium",
+  headless: true,
+  args: ["--no-sandbox", "--disable-quic", "--no-first-run", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync", "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"],
+});
+let result;
+try {
+  const ctx = await browser.newContext({ viewport: { width: 800, height: 600 } });
+  const tab = await ctx.newPage();
+  const logs = [];
+  tab.on("console", (m) => logs.push(`${m.type()}: ${m.text()}`));
+  tab.on("pageerror", (e) => logs.push(`pageerror: ${e}`));
+  await tab.goto(`http://127.0.0.1:${port}/`);
+  try {
+    await tab.waitForFunction(() => window.__result !== undefined, null, { timeout: Number(process.env.CESIUM_TIMEOUT_MS ?? 240000) });
+    result = await tab.evaluate(() => window.__result);
+  } catch (e) {
+    result = { ok: false, error: `no result: ${e.message}` };
+  }
+  if (result.ok) {
+    // Count palette colours in the canvas (the WebGL drawing buffer is preserved).
+    result.pixels = await tab.evaluate((pal) => {
+      const src = document.querySelector("#c canvas");
+      const c = document.createElement("canvas");
+      c.width = src.width;
+      c.height = src.height;
+      const g = c.getContext("2d");
+      g.drawImage(src, 0, 0);
+      const d = g.getImageData(0, 0, c.width, c.height).data;
+      const out = {};
+      for (const [name, rgb] of Object.entries(pal)) out[name] = { count: 0, sx: 0, sy: 0 };
+      let lit = 0;
+      for (let i = 0; i < d.length; i += 4) {
+        if (d[i] + d[i + 1] + d[i + 2] > 30) lit += 1;
+        for (const [name, rgb] of Object.entries(pal)) {
+          if (Math.abs(d[i] - rgb[0]) <= 12 && Math.abs(d[i + 1] - rgb[1]) <= 12 && Math.abs(d[i + 2] - rgb[2]) <= 12) {
+            const p = i / 4;
+            out[name].count += 1;
+            out[name].sx += p % c.width;
+            out[name].sy += Math.floor(p / c.width);
+          }
+        }
+      }
+      for (const v of Object.values(out)) {
+        v.centroid = v.count ? [v.sx / v.count, v.sy / v.count] : null;
+        delete v.sx;
+        delete v.sy;
+      }
+      return { lit, byColor: out };
+    }, palette);
+    await tab.screenshot({ path: outPng });
+  }
+  result.logs = logs.slice(0, 30);
+} finally {
+  await browser.close();
+  server.close();
+}
+console.log(JSON.stringify(result));
