@@ -19,6 +19,7 @@ mod cli_stages;
 mod colmap;
 mod eval;
 mod export_ply;
+mod features;
 mod fuse;
 mod gt_reference;
 mod hardening;

@@ -8,6 +8,9 @@
 //! masks upscaled to the image size (nearest) → `S/masks/<stem>.json` (SAM format, `sam`).
 //! ONNX Runtime is loaded at run time (`model`); docs/segment.md has the model folder layout.
 pub mod amg;
+pub mod bpe;
+pub mod clip;
+pub mod features;
 pub mod model;
 
 use std::path::{Path, PathBuf};
@@ -21,6 +24,8 @@ use crate::fsutil::FsError;
 use crate::imageio::{self, ImageError, Resample};
 use crate::sam::{self, SamError, SamMask};
 
+pub use clip::{CLIP_LAYOUT_HELP, Clip};
+pub use features::{FeaturesOptions, FeaturesSummary};
 pub use model::{LAYOUT_HELP, ModelInfo};
 
 /// Errors of the segment stage; each names the file (model, image or mask file) at fault.
@@ -30,6 +35,13 @@ pub enum SegmentError {
     Runtime(String),
     #[error("no SAM-family model in {dir}: {missing} missing; {LAYOUT_HELP}")]
     NoModel { dir: PathBuf, missing: String },
+    #[error(
+        "no CLIP model in {dir}: {missing} missing; {}",
+        clip::CLIP_LAYOUT_HELP
+    )]
+    NoClip { dir: PathBuf, missing: String },
+    #[error(transparent)]
+    Tokenizer(#[from] bpe::BpeError),
     #[error("model file {path}: {why}")]
     Model { path: PathBuf, why: String },
     #[error("{path}: {why}")]
