@@ -25,7 +25,9 @@ fn arg(name: &str) -> Option<String> {
 
 fn model(size: &str) -> PathBuf {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let dir = root.join("target/bench-models").join(format!("clip_{size}"));
+    let dir = root
+        .join("target/bench-models")
+        .join(format!("clip_{size}"));
     if !dir.join("clip_text.onnx").is_file() {
         eprintln!(
             "generating the random-weight CLIP {size} model in {}",
@@ -53,7 +55,9 @@ fn cpu_s() -> f64 {
 
 fn main() {
     let (h, w) = (494usize, 660usize);
-    let rgb = Array3::from_shape_fn((h, w, 3), |(y, x, c)| ((x * 7 + y * 3 + c * 50) % 256) as u8);
+    let rgb = Array3::from_shape_fn((h, w, 3), |(y, x, c)| {
+        ((x * 7 + y * 3 + c * 50) % 256) as u8
+    });
     let n: usize = arg("--masks").map_or(32, |v| v.parse().expect("--masks N"));
     let threads: usize = arg("--threads").map_or(0, |t| t.parse().expect("--threads N"));
     let size = arg("--size").unwrap_or_else(|| "vit_b32".into());
