@@ -8,50 +8,15 @@
 //! ```text
 //! cargo bench --bench features [-- --masks 32] [--threads N] [--size vit_b32|tiny]
 //! ```
-use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Instant;
+
+mod common;
+
+use common::{arg, cpu_s};
 
 use gs4city::segment::Clip;
 use gs4city::segment::clip;
 use ndarray::{Array2, Array3};
-
-fn arg(name: &str) -> Option<String> {
-    let a: Vec<String> = std::env::args().collect();
-    a.iter()
-        .position(|x| x == name)
-        .and_then(|i| a.get(i + 1).cloned())
-}
-
-fn model(size: &str) -> PathBuf {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let dir = root
-        .join("target/bench-models")
-        .join(format!("clip_{size}"));
-    if !dir.join("clip_text.onnx").is_file() {
-        eprintln!(
-            "generating the random-weight CLIP {size} model in {}",
-            dir.display()
-        );
-        let ok = Command::new("python3")
-            .arg(root.join("scripts/make_test_models.py"))
-            .args(["--clip", size, "--out"])
-            .arg(&dir)
-            .status()
-            .expect("python3");
-        assert!(ok.success(), "make_test_models.py failed");
-    }
-    dir
-}
-
-/// CPU seconds (user + system, all threads) of this process so far, from /proc/self/stat.
-fn cpu_s() -> f64 {
-    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
-    let after = stat.rsplit(')').next().unwrap_or("");
-    let f: Vec<&str> = after.split_whitespace().collect();
-    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-    (ticks(11) + ticks(12)) / 100.0
-}
 
 fn main() {
     let (h, w) = (494usize, 660usize);
@@ -71,7 +36,11 @@ fn main() {
             })
         })
         .collect();
-    let dir = model(&size);
+    let dir = common::model(
+        &format!("clip_{size}"),
+        &["--clip", &size],
+        "clip_text.onnx",
+    );
     let mut m = Clip::open(&dir, threads).expect("model");
     println!(
         "CLIP {size} (random weights), {n} masks on a {w}×{h} image, input {0}×{0}, ONNX Runtime threads {threads} (0 = its default)",

@@ -60,10 +60,7 @@ fn reference(args: &[&str]) {
 }
 
 fn gs4city(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_gs4city"))
-        .args(args)
-        .output()
-        .unwrap()
+    crate::segment::gs4city(args, &[])
 }
 
 const TEXTS: &[&str] = &[
@@ -146,34 +143,12 @@ fn tokenizer_matches_the_tokenizers_library() {
     assert_eq!(last[76], bpe.vocab_size() as i64 - 1);
 }
 
-/// A 330×247 image (gradient, rectangles, a disc) in `scene/images/` (and as .npy) with seven
-/// masks of different shapes in `scene/masks/v000.json`.
+/// `segment`'s 330×247 test scene (gradient, rectangles, a disc; the image also as .npy) with
+/// eight masks of different shapes in `scene/masks/v000.json`.
 fn scene(name: &str) -> (PathBuf, PathBuf) {
     let (h, w) = (247usize, 330usize);
-    let mut rgb = ndarray::Array3::<u8>::zeros((h, w, 3));
-    for ((y, x, c), v) in rgb.indexed_iter_mut() {
-        let (dx, dy) = (x as f64 - 240.0, y as f64 - 60.0);
-        *v = if dx * dx + dy * dy < 900.0 {
-            [250, 240, 30][c]
-        } else if (30..100).contains(&y) && (40..150).contains(&x) {
-            [200, 40, 40][c]
-        } else if (125..225).contains(&y) && (175..300).contains(&x) {
-            [30, 160, 220][c]
-        } else {
-            [
-                (x * 255 / w) as u8,
-                (y * 255 / h) as u8,
-                ((x * y) % 251) as u8,
-            ][c]
-        };
-    }
-    let s = root().join(name);
-    let _ = std::fs::remove_dir_all(&s);
-    std::fs::create_dir_all(s.join("images")).unwrap();
+    let (s, npy) = crate::segment::scene(&format!("features-{name}"));
     std::fs::create_dir_all(s.join("masks")).unwrap();
-    gs4city::imageio::write_png(&s.join("images/v000.png"), &rgb).unwrap();
-    let npy = s.join("v000.npy");
-    gs4city::npy::write(&npy, &[h, w, 3], rgb.as_slice().unwrap()).unwrap();
     let shapes: Vec<Box<dyn Fn(usize, usize) -> bool>> = vec![
         Box::new(|y, x| (30..100).contains(&y) && (40..150).contains(&x)),
         Box::new(|y, x| {
@@ -461,9 +436,11 @@ fn run_with_a_model_computes_masks_and_features() {
         return;
     }
     let dir = root().join("run");
-    let _ = std::fs::remove_dir_all(&dir);
-    let model = dir.join("models");
-    make_model(&["--size", "tiny", "--seed", "3"], &model);
+    let model = root().join("sam-and-clip");
+    std::fs::create_dir_all(&model).unwrap();
+    for f in ["encoder.onnx", "decoder.onnx", "model.json"] {
+        std::fs::copy(crate::segment::tiny_model().join(f), model.join(f)).unwrap();
+    }
     for f in [
         "clip_image.onnx",
         "clip_text.onnx",
@@ -472,29 +449,7 @@ fn run_with_a_model_computes_masks_and_features() {
     ] {
         std::fs::copy(tiny_clip().join(f), model.join(f)).unwrap();
     }
-    let mut cfg = gs4city::synth::SynthConfig::preset(gs4city::synth::Preset::Small);
-    cfg.cameras.orbit_views = 3;
-    cfg.cameras.street_views = 0;
-    cfg.cameras.width = 330;
-    cfg.cameras.height = 247;
-    let s = dir.join("scene");
-    gs4city::synth::run(&cfg, &s).unwrap();
-    std::fs::remove_dir_all(s.join("masks")).unwrap();
-    let _ = std::fs::remove_dir_all(s.join("features"));
-    let r = dir.join("out");
-    let out = gs4city(&[
-        "run",
-        "--scene",
-        s.to_str().unwrap(),
-        "--out",
-        r.to_str().unwrap(),
-        "--model-dir",
-        model.to_str().unwrap(),
-        "--segment-points-per-side",
-        "4",
-        "--test-every",
-        "3",
-    ]);
+    let (s, r, out) = crate::segment::run_without_masks(&dir, &model);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{err}");
     let images = gs4city::segment::list_images(&s.join("images")).unwrap();
