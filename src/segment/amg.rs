@@ -227,6 +227,64 @@ mod tests {
         assert_eq!(point_grid(1), vec![[0.5, 0.5]]);
     }
 
+    /// The per-axis maps equal the two resizes done one after the other on whole images
+    /// (PyTorch's / ONNX Runtime's bilinear, half-pixel centres, source coordinates clamped).
+    #[test]
+    fn upscale_equals_two_full_resizes() {
+        fn resize(src: &[f64], h: usize, w: usize, oh: usize, ow: usize) -> Vec<f64> {
+            let coord = |o: usize, n_in: usize, n_out: usize| {
+                let s = ((o as f64 + 0.5) * n_in as f64 / n_out as f64 - 0.5).max(0.0);
+                let i0 = (s.floor() as usize).min(n_in - 1);
+                (i0, (i0 + 1).min(n_in - 1), s - s.floor())
+            };
+            let mut out = vec![0.0; oh * ow];
+            for y in 0..oh {
+                let (y0, y1, fy) = coord(y, h, oh);
+                for x in 0..ow {
+                    let (x0, x1, fx) = coord(x, w, ow);
+                    let top = src[y0 * w + x0] * (1.0 - fx) + src[y0 * w + x1] * fx;
+                    let bot = src[y1 * w + x0] * (1.0 - fx) + src[y1 * w + x1] * fx;
+                    out[y * ow + x] = top * (1.0 - fy) + bot * fy;
+                }
+            }
+            out
+        }
+        let low = 8;
+        let lowres: Vec<f32> = (0..low * low)
+            .map(|i| ((i * 37 % 23) as f32 - 11.0) * 0.7)
+            .collect();
+        let big = resize(
+            &lowres.iter().map(|&v| f64::from(v)).collect::<Vec<_>>(),
+            low,
+            low,
+            1024,
+            1024,
+        );
+        for (pre_h, pre_w, h, w) in [
+            (700, 1024, 90, 130),
+            (1024, 1024, 37, 37),
+            (1024, 300, 400, 117),
+        ] {
+            let cropped: Vec<f64> = (0..pre_h)
+                .flat_map(|y| big[y * 1024..y * 1024 + pre_w].to_vec())
+                .collect();
+            let want = resize(&cropped, pre_h, pre_w, h, w);
+            let got = upscale_logits(
+                &lowres,
+                low,
+                &AxisMap::new(low, pre_h, h),
+                &AxisMap::new(low, pre_w, w),
+            );
+            assert_eq!(got.len(), h * w);
+            for (k, (a, b)) in got.iter().zip(&want).enumerate() {
+                assert!(
+                    (f64::from(*a) - b).abs() < 1e-4,
+                    "{pre_h}×{pre_w}→{h}×{w} at {k}: {a} vs {b}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn stability_by_hand() {
         // > 1: 2 values; > -1: 4 values
