@@ -22,7 +22,20 @@ are left out (their compute is negligible). The decoder is SAM's (two-way transf
 256 wide, 8 heads, MLP 2048, attention downsample 2, upscaling to 256x256 with 32 channels,
 hypernetwork MLPs, IoU head) in every size except `tiny` (depth 1, downsample 8, 8 channels).
 
+With `--clip tiny|vit_b32` it writes a CLIP model folder instead (gs4city features):
+
+  clip_image.onnx  pixel_values [B,3,224,224] (CLIP-normalised) -> image_embeds [B,E]
+  clip_text.onnx   input_ids [B,77] int64 (0-padded) -> text_embeds [B,E] (the state at the
+                   argmax id, <|endoftext|>)
+  vocab.json, merges.txt  a small byte-level BPE (a few hundred merges) trained with the
+                   `tokenizers` library on a built-in text, in CLIP's vocabulary layout
+
+`vit_b32` has OpenAI CLIP ViT-B/32's sizes (image: patch 32, 768 wide, 12 layers, 12 heads;
+text: 512 wide, 12 layers, 8 heads, 49408 tokens; embedding 512; 151 M parameters); `tiny` is
+a small one for the tests. The blocks use GELU (CLIP: QuickGELU; the same compute).
+
 Usage: python3 scripts/make_test_models.py --size tiny|mobilesam|vit_b --out DIR [--seed N]
+       python3 scripts/make_test_models.py --clip tiny|vit_b32 --out DIR [--seed N]
 """
 import argparse
 import json
@@ -101,8 +114,9 @@ class G:
     def reshape(self, x, shape):
         return self.op("Reshape", [x, self.i64(shape)])
 
-    def attention(self, q_in, k_in, v_in, dim, heads, inner=None, qlen=-1, klen=-1):
-        """Multi-head attention on [B, L, dim] inputs (B may be broadcast); projections to `inner`."""
+    def attention(self, q_in, k_in, v_in, dim, heads, inner=None, qlen=-1, klen=-1, mask=None):
+        """Multi-head attention on [B, L, dim] inputs (B may be broadcast); projections to `inner`;
+        `mask` an additive [L, L] constant (CLIP's causal text mask)."""
         inner = inner or dim
         dh = inner // heads
         q = self.linear(q_in, dim, inner)
@@ -115,15 +129,18 @@ class G:
         q, k, v = split(q, qlen), split(k, klen), split(v, klen)
         kt = self.op("Transpose", [k], perm=[0, 1, 3, 2])
         s = self.op("Mul", [self.op("MatMul", [q, kt]), self.f32(1.0 / math.sqrt(dh))])
+        if mask is not None:
+            s = self.op("Add", [s, mask])
         a = self.op("Softmax", [s], axis=-1)
         o = self.op("Transpose", [self.op("MatMul", [a, v])], perm=[0, 2, 1, 3])
         return self.linear(self.reshape(o, [0, qlen, inner]), inner, dim)
 
-    def vit_block(self, x, h, w, dim, heads, window, mlp_ratio=4.0):
-        """Pre-norm transformer block on x [1, h*w, dim]; window 0 = global attention."""
+    def vit_block(self, x, h, w, dim, heads, window, mlp_ratio=4.0, mask=None):
+        """Pre-norm transformer block on x [1, h*w, dim] (any batch with window 0); window 0 =
+        global attention, `mask` its additive attention mask."""
         y = self.layernorm(x, dim)
         if window == 0:
-            y = self.attention(y, y, y, dim, heads)
+            y = self.attention(y, y, y, dim, heads, mask=mask)
         else:
             ph, pw = -h % window, -w % window
             hp, wp = h + ph, w + pw
@@ -322,6 +339,119 @@ def decoder(size, seed):
     return helper.make_graph(g.nodes, "decoder", inputs, outputs, g.inits)
 
 
+# ---------------------------------------------------------------------------------------------
+# CLIP (gs4city features): image encoder, text encoder, BPE files
+
+CLIP_SIZES = {
+    # image: patch, width, layers, heads; text: width, layers, heads, vocabulary; embedding
+    "tiny": dict(patch=32, width=48, layers=2, heads=2, twidth=32, tlayers=1, theads=2,
+                 vocab=None, embed=24),
+    # OpenAI CLIP ViT-B/32: 87.8 M image + 63.2 M text parameters (with the embeddings)
+    "vit_b32": dict(patch=32, width=768, layers=12, heads=12, twidth=512, tlayers=12, theads=8,
+                    vocab=49408, embed=512),
+}
+CONTEXT = 77
+
+# The training text of the test BPE (a few hundred merges): city words, the class prompts,
+# contractions, digits, punctuation and non-ASCII letters.
+CORPUS = """
+a wall of a building. a facade of a building. a roof. a window of a building. a door.
+the ground surface of a building. a balcony of a building. a tree. a person. a car. a road.
+water. the sky. a building. the windows of the buildings; the doors of the houses! roofs,
+chimneys, dormers and balconies. it's a tall building, isn't it? we're near the street's end.
+they've parked 2 cars and 13 bicycles in 2024. the café on the straße has a green façade.
+street lamps, traffic signs, poles, trees, bushes and people walking on the sidewalk.
+"""
+
+
+def clip_bpe(out, merges_wanted=300):
+    """Trains a byte-level BPE with CLIP's conventions (`</w>` word ends) on CORPUS with the
+    `tokenizers` library and writes vocab.json + merges.txt in CLIP's layout: the 256 byte
+    characters, the same with `</w>`, one token per merge, <|startoftext|>, <|endoftext|>."""
+    import tempfile
+    from tokenizers import Regex, Tokenizer, models, normalizers, pre_tokenizers, trainers
+    byte_level = pre_tokenizers.ByteLevel(add_prefix_space=False, use_regex=False)
+    alphabet = sorted(pre_tokenizers.ByteLevel.alphabet(), key=ord)
+    tok = Tokenizer(models.BPE(end_of_word_suffix="</w>"))
+    tok.normalizer = normalizers.Lowercase()
+    tok.pre_tokenizer = pre_tokenizers.Sequence([
+        pre_tokenizers.Split(Regex(r"""'s|'t|'re|'ve|'m|'ll|'d|[\p{L}]+|[\p{N}]|[^\s\p{L}\p{N}]+"""),
+                             behavior="removed", invert=True),
+        byte_level])
+    trainer = trainers.BpeTrainer(vocab_size=2 * len(alphabet) + merges_wanted, show_progress=False,
+                                  initial_alphabet=alphabet, end_of_word_suffix="</w>")
+    tok.train_from_iterator([CORPUS] * 3, trainer)
+    with tempfile.TemporaryDirectory() as d:
+        tok.model.save(d)
+        with open(os.path.join(d, "merges.txt"), encoding="utf-8") as f:
+            merges = [tuple(l.rstrip("\n").split(" ")) for l in f if l.strip() and not l.startswith("#version")]
+    tokens = alphabet + [c + "</w>" for c in alphabet]
+    seen = set(tokens)
+    for a, b in merges:
+        if a + b not in seen:
+            seen.add(a + b)
+            tokens.append(a + b)
+    tokens += ["<|startoftext|>", "<|endoftext|>"]
+    with open(os.path.join(out, "vocab.json"), "w", encoding="utf-8") as f:
+        json.dump({t: i for i, t in enumerate(tokens)}, f, ensure_ascii=False)
+    with open(os.path.join(out, "merges.txt"), "w", encoding="utf-8") as f:
+        f.write("#version: 0.2\n")
+        f.writelines(f"{a} {b}\n" for a, b in merges)
+    return len(tokens)
+
+
+def clip_image(size, seed):
+    """CLIP's ViT: patch conv, class token, positions, ln_pre, pre-norm blocks, ln_post on the
+    class token, projection: pixel_values [B,3,224,224] -> image_embeds [B,E]."""
+    c = CLIP_SIZES[size]
+    g = G(seed + 2)
+    W, P, E = c["width"], c["patch"], c["embed"]
+    n = 224 // P
+    x = g.conv("pixel_values", 3, W, P, stride=P)
+    x = g.op("Transpose", [g.reshape(x, [0, W, n * n])], perm=[0, 2, 1])  # [B, n*n, W]
+    bshape = g.op("Shape", ["pixel_values"], start=0, end=1)
+    cls = g.op("Expand", [g.w((1, 1, W), 1.0), g.op("Concat", [bshape, g.i64([1, W])], axis=0)])
+    x = g.op("Concat", [cls, x], axis=1)
+    x = g.op("Add", [x, g.w((1, n * n + 1, W), 0.2)])
+    x = g.layernorm(x, W)
+    for _ in range(c["layers"]):
+        x = g.vit_block(x, 0, 0, W, c["heads"], 0)
+    t = g.layernorm(g.op("Slice", [x, g.i64([0]), g.i64([1]), g.i64([1])]), W)
+    t = g.reshape(g.op("MatMul", [t, g.w((W, E), 1.0 / math.sqrt(W))]), [-1, E])
+    g.nodes.append(helper.make_node("Identity", [t], ["image_embeds"]))
+    return helper.make_graph(
+        g.nodes, "clip_image",
+        [helper.make_tensor_value_info("pixel_values", TensorProto.FLOAT, ["batch", 3, 224, 224])],
+        [helper.make_tensor_value_info("image_embeds", TensorProto.FLOAT, ["batch", E])],
+        g.inits)
+
+
+def clip_text(size, seed, vocab):
+    """CLIP's text transformer: token + position embeddings, causal pre-norm blocks, ln_final,
+    the state at <|endoftext|> (argmax of the ids), projection: input_ids [B,77] int64 ->
+    text_embeds [B,E]."""
+    c = CLIP_SIZES[size]
+    g = G(seed + 3)
+    W, E = c["twidth"], c["embed"]
+    x = g.op("Gather", [g.w((vocab, W), 1.0), "input_ids"], axis=0)  # [B,77,W]
+    x = g.op("Add", [x, g.w((1, CONTEXT, W), 0.1)])
+    causal = g.const(np.triu(np.full((CONTEXT, CONTEXT), -1e9, np.float32), 1), "causal")
+    for _ in range(c["tlayers"]):
+        x = g.vit_block(x, 0, 0, W, c["theads"], 0, mask=causal)
+    x = g.layernorm(x, W)
+    eot = g.op("ArgMax", ["input_ids"], axis=1, keepdims=1)  # [B,1]
+    pos = g.const(np.arange(CONTEXT, dtype=np.int64)[None, :], "positions")
+    onehot = g.op("Cast", [g.op("Equal", [pos, eot])], to=TensorProto.FLOAT)  # [B,77]
+    pooled = g.op("MatMul", [g.op("Unsqueeze", [onehot, g.i64([1])]), x])  # [B,1,W]
+    t = g.reshape(g.op("MatMul", [pooled, g.w((W, E), 1.0 / math.sqrt(W))]), [-1, E])
+    g.nodes.append(helper.make_node("Identity", [t], ["text_embeds"]))
+    return helper.make_graph(
+        g.nodes, "clip_text",
+        [helper.make_tensor_value_info("input_ids", TensorProto.INT64, ["batch", CONTEXT])],
+        [helper.make_tensor_value_info("text_embeds", TensorProto.FLOAT, ["batch", E])],
+        g.inits)
+
+
 def save(graph, path):
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)],
                               producer_name="gs4city make_test_models.py (random weights)")
@@ -332,11 +462,19 @@ def save(graph, path):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--size", choices=["tiny", "mobilesam", "vit_b"], required=True)
+    ap.add_argument("--size", choices=["tiny", "mobilesam", "vit_b"])
+    ap.add_argument("--clip", choices=sorted(CLIP_SIZES))
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args()
+    if (a.size is None) == (a.clip is None):
+        ap.error("give one of --size (SAM family) and --clip")
     os.makedirs(a.out, exist_ok=True)
+    if a.clip:
+        n = clip_bpe(a.out)
+        save(clip_image(a.clip, a.seed), os.path.join(a.out, "clip_image.onnx"))
+        save(clip_text(a.clip, a.seed, CLIP_SIZES[a.clip]["vocab"] or n), os.path.join(a.out, "clip_text.onnx"))
+        return
     save(encoder(a.size, a.seed), os.path.join(a.out, "encoder.onnx"))
     save(decoder(a.size, a.seed), os.path.join(a.out, "decoder.onnx"))
     family = {"tiny": "test", "mobilesam": "mobile_sam", "vit_b": "sam"}[a.size]

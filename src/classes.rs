@@ -146,6 +146,26 @@ pub fn table(entities: &[Entity]) -> Vec<i32> {
         .collect()
 }
 
+/// The class prompts of the pipeline's text queries and of `gs4city features`' `prompts.json`,
+/// each with the class it targets (`None` = "a building", no single class: counted as a wall,
+/// a building prompt). The simulator (`synth`) places its simulated prompt vectors by them.
+pub const CLASS_PROMPTS: [(&str, Option<i32>); 14] = [
+    ("a wall of a building", Some(WALL)),
+    ("a facade of a building", Some(WALL)),
+    ("a roof", Some(ROOF)),
+    ("a window of a building", Some(WINDOW)),
+    ("a door", Some(DOOR)),
+    ("the ground surface of a building", Some(GROUND_SURFACE)),
+    ("a balcony of a building", Some(INSTALLATION)),
+    ("a tree", Some(TREE)),
+    ("a person", Some(PERSON)),
+    ("a car", Some(CAR)),
+    ("a road", Some(ROAD)),
+    ("water", Some(WATER)),
+    ("the sky", Some(NONE)),
+    ("a building", None),
+];
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -21,7 +21,7 @@ fn root() -> PathBuf {
 }
 
 /// The tiny random-weight model, generated once per test binary.
-fn tiny_model() -> PathBuf {
+pub(crate) fn tiny_model() -> PathBuf {
     static M: OnceLock<PathBuf> = OnceLock::new();
     M.get_or_init(|| {
         let dir = root().join("tiny");
@@ -43,7 +43,7 @@ fn tiny_model() -> PathBuf {
 }
 
 /// A 330×247 test image (gradient, rectangles, a disc) as PNG in `scene/images/` and as .npy.
-fn scene(name: &str) -> (PathBuf, PathBuf) {
+pub(crate) fn scene(name: &str) -> (PathBuf, PathBuf) {
     let (h, w) = (247usize, 330usize);
     let mut rgb = ndarray::Array3::<u8>::zeros((h, w, 3));
     for y in 0..h {
@@ -73,7 +73,7 @@ fn scene(name: &str) -> (PathBuf, PathBuf) {
     (s, npy)
 }
 
-fn gs4city(args: &[&str], env: &[(&str, &str)]) -> std::process::Output {
+pub(crate) fn gs4city(args: &[&str], env: &[(&str, &str)]) -> std::process::Output {
     let mut c = Command::new(env!("CARGO_BIN_EXE_gs4city"));
     c.args(args);
     for (k, v) in env {
@@ -322,7 +322,29 @@ fn run_with_a_model_segments_a_scene_without_masks() {
     }
     let model = tiny_model();
     let dir = root().join("run");
+    let (s, r, out) = run_without_masks(&dir, &model);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let images = gs4city::segment::list_images(&s.join("images")).unwrap();
+    assert_eq!(images.len(), 3);
+    for img in &images {
+        let f = gs4city::segment::mask_path(&s.join("masks"), img);
+        sam::read_sam_json_sized(&f, Some([247, 330])).unwrap();
+    }
+    assert!(r.join("masks").is_dir() && r.join("lift/gaussians.npy").is_file());
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `gs4city run --model-dir MODEL` on a SIMULATED scene (synth small preset, 3 orbit views of
+/// 330×247) whose masks/ and features/ are removed, in `dir`: (scene, run folder, the output).
+pub(crate) fn run_without_masks(
+    dir: &Path,
+    model: &Path,
+) -> (PathBuf, PathBuf, std::process::Output) {
+    let _ = std::fs::remove_dir_all(dir);
     let mut cfg = gs4city::synth::SynthConfig::preset(gs4city::synth::Preset::Small);
     cfg.cameras.orbit_views = 3;
     cfg.cameras.street_views = 0;
@@ -349,17 +371,5 @@ fn run_with_a_model_segments_a_scene_without_masks() {
         ],
         &[],
     );
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let images = gs4city::segment::list_images(&s.join("images")).unwrap();
-    assert_eq!(images.len(), 3);
-    for img in &images {
-        let f = gs4city::segment::mask_path(&s.join("masks"), img);
-        sam::read_sam_json_sized(&f, Some([247, 330])).unwrap();
-    }
-    assert!(r.join("masks").is_dir() && r.join("lift/gaussians.npy").is_file());
-    let _ = std::fs::remove_dir_all(&dir);
+    (s, r, out)
 }

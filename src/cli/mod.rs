@@ -7,6 +7,7 @@ mod citymodel;
 mod demo;
 mod eval;
 mod export;
+mod features;
 mod fuse;
 mod lift;
 mod masks;
@@ -121,6 +122,9 @@ enum Command {
         after_help = "Example:\n  gs4city segment --scene S --model models/mobile_sam --points-per-side 32"
     )]
     Segment(segment::SegmentArgs),
+    /// CLIP features of the scene's SAM masks on the CPU (ONNX models) → S/features/<stem>.npy + prompts.json.
+    #[command(after_help = "Example:\n  gs4city features --scene S --model models/clip-vit-b-32")]
+    Features(features::FeaturesArgs),
     /// Write a SIMULATED scene folder (Gaussians, cameras, images, exact GT) from real CityGML.
     #[command(after_help = "Example:\n  gs4city synth --preset small --out /tmp/small")]
     Synth(synth::SynthArgs),
@@ -160,6 +164,7 @@ pub fn main() -> anyhow::Result<()> {
         Command::Demo(args) => demo::run(&args),
         Command::Synth(args) => synth::run(&args),
         Command::Segment(args) => segment::run(&args),
+        Command::Features(args) => features::run(&args),
         Command::City(cmd) => tile::run(&cmd),
         Command::Export(cmd) => export::run(&cmd),
     }

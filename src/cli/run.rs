@@ -13,8 +13,10 @@ pub struct RunArgs {
     /// alignment.json, optional masks/, features/, gt/.
     #[arg(long)]
     pub scene: PathBuf,
-    /// A SAM-family model folder (docs/segment.md): when the scene has no masks/<stem>.json,
-    /// `gs4city segment` writes them (into the scene's masks/, default options) before the run.
+    /// A model folder: with SAM-family files (docs/segment.md), when the scene has no
+    /// masks/<stem>.json, `gs4city segment` writes them (into the scene's masks/, default
+    /// options) before the run; with CLIP files (docs/features.md), when the scene has no
+    /// features/prompts.json, `gs4city features` then writes the masks' features.
     #[arg(long, value_name = "DIR")]
     pub model_dir: Option<PathBuf>,
     /// Points per side of the prompt grid of that segmentation (`gs4city segment --points-per-side`).
@@ -234,6 +236,17 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                 ),
                 t.elapsed().as_secs_f64(),
             );
+        }
+        // CLIP features when the folder has a CLIP model and the scene has masks but no features
+        let prompts = args.scene.join("features/prompts.json");
+        if crate::segment::clip::has_any(dir) && !prompts.is_file() {
+            let t = std::time::Instant::now();
+            let f = crate::segment::features::run(
+                &args.scene,
+                dir,
+                &crate::segment::FeaturesOptions::default(),
+            )?;
+            super::features::report(&f, t.elapsed().as_secs_f64());
         }
     }
     let s = run::run(&args.scene, &args.out, &opts)?;

@@ -152,6 +152,67 @@ pub fn upscale_nearest(
     Array2::from_shape_fn((big_h, big_w), |(y, x)| mask[(y * h / big_h) * w + xs[x]])
 }
 
+/// One axis of SAM's export post-processing as a linear map from the 256 low-resolution
+/// logits: bilinear to 1024 (half-pixel centres, coordinates clamped to the edges), the first
+/// `pre` of those, bilinear to `out`. Entry `o` lists `(low index, weight)`.
+#[derive(Debug, Clone)]
+pub struct AxisMap(Vec<Vec<(usize, f32)>>);
+
+/// The two taps of a half-pixel bilinear resize from `n_in` to `n_out` at output `o`.
+fn taps(n_in: usize, n_out: usize, o: usize) -> [(usize, f64); 2] {
+    let src = ((o as f64 + 0.5) * n_in as f64 / n_out as f64 - 0.5).max(0.0);
+    let i0 = (src.floor() as usize).min(n_in - 1);
+    let i1 = (i0 + 1).min(n_in - 1);
+    let w = if i0 == n_in - 1 { 0.0 } else { src - i0 as f64 };
+    [(i0, 1.0 - w), (i1, w)]
+}
+
+impl AxisMap {
+    /// The map of one axis: `low` logits → 1024 → the first `pre` → `out` values.
+    pub fn new(low: usize, pre: usize, out: usize) -> AxisMap {
+        const FRAME: usize = 1024;
+        AxisMap(
+            (0..out)
+                .map(|o| {
+                    let mut taps_out: Vec<(usize, f32)> = Vec::with_capacity(4);
+                    for (m, wm) in taps(pre, out, o) {
+                        for (l, wl) in taps(low, FRAME, m) {
+                            let w = (wm * wl) as f32;
+                            match taps_out.iter_mut().find(|(i, _)| *i == l) {
+                                Some(t) => t.1 += w,
+                                None => taps_out.push((l, w)),
+                            }
+                        }
+                    }
+                    taps_out
+                })
+                .collect(),
+        )
+    }
+}
+
+/// SAM's export post-processing of one low-resolution mask (`low × low` logits, row-major):
+/// the `rows.len() × cols.len()` logits at the image size ([`AxisMap`] per axis).
+pub fn upscale_logits(lowres: &[f32], low: usize, rows: &AxisMap, cols: &AxisMap) -> Vec<f32> {
+    let w = cols.0.len();
+    let mut tmp = vec![0f32; low * w];
+    for (r, row) in lowres.chunks_exact(low).enumerate() {
+        for (x, taps) in cols.0.iter().enumerate() {
+            tmp[r * w + x] = taps.iter().map(|&(i, t)| row[i] * t).sum();
+        }
+    }
+    let mut out = vec![0f32; rows.0.len() * w];
+    for (y, taps) in rows.0.iter().enumerate() {
+        let dst = &mut out[y * w..(y + 1) * w];
+        for &(r, t) in taps {
+            for (d, s) in dst.iter_mut().zip(&tmp[r * w..(r + 1) * w]) {
+                *d += s * t;
+            }
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -164,6 +225,64 @@ mod tests {
             vec![[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]]
         );
         assert_eq!(point_grid(1), vec![[0.5, 0.5]]);
+    }
+
+    /// The per-axis maps equal the two resizes done one after the other on whole images
+    /// (PyTorch's / ONNX Runtime's bilinear, half-pixel centres, source coordinates clamped).
+    #[test]
+    fn upscale_equals_two_full_resizes() {
+        fn resize(src: &[f64], h: usize, w: usize, oh: usize, ow: usize) -> Vec<f64> {
+            let coord = |o: usize, n_in: usize, n_out: usize| {
+                let s = ((o as f64 + 0.5) * n_in as f64 / n_out as f64 - 0.5).max(0.0);
+                let i0 = (s.floor() as usize).min(n_in - 1);
+                (i0, (i0 + 1).min(n_in - 1), s - s.floor())
+            };
+            let mut out = vec![0.0; oh * ow];
+            for y in 0..oh {
+                let (y0, y1, fy) = coord(y, h, oh);
+                for x in 0..ow {
+                    let (x0, x1, fx) = coord(x, w, ow);
+                    let top = src[y0 * w + x0] * (1.0 - fx) + src[y0 * w + x1] * fx;
+                    let bot = src[y1 * w + x0] * (1.0 - fx) + src[y1 * w + x1] * fx;
+                    out[y * ow + x] = top * (1.0 - fy) + bot * fy;
+                }
+            }
+            out
+        }
+        let low = 8;
+        let lowres: Vec<f32> = (0..low * low)
+            .map(|i| ((i * 37 % 23) as f32 - 11.0) * 0.7)
+            .collect();
+        let big = resize(
+            &lowres.iter().map(|&v| f64::from(v)).collect::<Vec<_>>(),
+            low,
+            low,
+            1024,
+            1024,
+        );
+        for (pre_h, pre_w, h, w) in [
+            (700, 1024, 90, 130),
+            (1024, 1024, 37, 37),
+            (1024, 300, 400, 117),
+        ] {
+            let cropped: Vec<f64> = (0..pre_h)
+                .flat_map(|y| big[y * 1024..y * 1024 + pre_w].to_vec())
+                .collect();
+            let want = resize(&cropped, pre_h, pre_w, h, w);
+            let got = upscale_logits(
+                &lowres,
+                low,
+                &AxisMap::new(low, pre_h, h),
+                &AxisMap::new(low, pre_w, w),
+            );
+            assert_eq!(got.len(), h * w);
+            for (k, (a, b)) in got.iter().zip(&want).enumerate() {
+                assert!(
+                    (f64::from(*a) - b).abs() < 1e-4,
+                    "{pre_h}×{pre_w}→{h}×{w} at {k}: {a} vs {b}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -8,6 +8,9 @@
 //! masks upscaled to the image size (nearest) → `S/masks/<stem>.json` (SAM format, `sam`).
 //! ONNX Runtime is loaded at run time (`model`); docs/segment.md has the model folder layout.
 pub mod amg;
+pub mod bpe;
+pub mod clip;
+pub mod features;
 pub mod model;
 
 use std::path::{Path, PathBuf};
@@ -21,6 +24,8 @@ use crate::fsutil::FsError;
 use crate::imageio::{self, ImageError, Resample};
 use crate::sam::{self, SamError, SamMask};
 
+pub use clip::{CLIP_LAYOUT_HELP, Clip};
+pub use features::{FeaturesOptions, FeaturesSummary};
 pub use model::{LAYOUT_HELP, ModelInfo};
 
 /// Errors of the segment stage; each names the file (model, image or mask file) at fault.
@@ -30,6 +35,13 @@ pub enum SegmentError {
     Runtime(String),
     #[error("no SAM-family model in {dir}: {missing} missing; {LAYOUT_HELP}")]
     NoModel { dir: PathBuf, missing: String },
+    #[error(
+        "no CLIP model in {dir}: {missing} missing; {}",
+        clip::CLIP_LAYOUT_HELP
+    )]
+    NoClip { dir: PathBuf, missing: String },
+    #[error(transparent)]
+    Tokenizer(#[from] bpe::BpeError),
     #[error("model file {path}: {why}")]
     Model { path: PathBuf, why: String },
     #[error("{path}: {why}")]
@@ -51,6 +63,8 @@ const PIXEL_MEAN: [f64; 3] = [123.675, 116.28, 103.53];
 const PIXEL_STD: [f64; 3] = [58.395, 57.12, 57.375];
 /// The encoder's input side.
 pub const IMAGE_SIDE: usize = 1024;
+/// The side of the decoder's low-resolution masks.
+const LOW_RES: usize = 256;
 
 /// The options of automatic mask generation (SAM's `SamAutomaticMaskGenerator` names).
 #[derive(Debug, Clone, serde::Serialize)]
@@ -144,6 +158,9 @@ pub struct Segmenter {
     decoder_path: PathBuf,
     /// The decoder's fixed batch size, if it has one.
     fixed_batch: Option<usize>,
+    /// Whether the decoder has `low_res_masks`: then only it and `iou_predictions` are asked
+    /// for, and the masks that pass the IoU filter are upscaled here (`amg::upscale_logits`).
+    low_res: bool,
 }
 
 impl Segmenter {
@@ -202,6 +219,10 @@ impl Segmenter {
         model::require_outputs(&decoder, &decoder_path, &["masks", "iou_predictions"])?;
         let pc = model::input_shape(&decoder, &decoder_path, "point_coords")?;
         let fixed_batch = pc.first().copied().filter(|&b| b > 0).map(|b| b as usize);
+        let low_res = decoder
+            .outputs()
+            .iter()
+            .any(|o| o.name() == "low_res_masks");
         Ok(Segmenter {
             info,
             encoder,
@@ -209,6 +230,7 @@ impl Segmenter {
             encoder_path,
             decoder_path,
             fixed_batch,
+            low_res,
         })
     }
 
@@ -271,6 +293,18 @@ impl Segmenter {
             point: [f64; 2],
         }
         let mut cands: Vec<Cand> = Vec::new();
+        // SAM's export post-processing per axis: 256 → 1024 → the resized image → h × w
+        let (rows, cols) = (
+            amg::AxisMap::new(LOW_RES, nh, h),
+            amg::AxisMap::new(LOW_RES, nw, w),
+        );
+        let low_res_only = ort::session::RunOptions::new()
+            .map_err(|e| run_err(&self.decoder_path, e))?
+            .with_outputs(
+                ort::session::OutputSelector::no_default()
+                    .with("iou_predictions")
+                    .with("low_res_masks"),
+            );
         for chunk in points.chunks(batch) {
             let t1 = Instant::now();
             let b = chunk.len();
@@ -292,8 +326,19 @@ impl Segmenter {
                 "has_mask_input" => model::tensor(&[1], vec![0.0], dp)?,
                 "orig_im_size" => model::tensor(&[2], vec![h as f32, w as f32], dp)?,
             ];
-            let out = self.decoder.run(inputs).map_err(|e| run_err(dp, e))?;
-            let (mshape, masks) = out["masks"]
+            let out = if self.low_res {
+                self.decoder
+                    .run_with_options(inputs, &low_res_only)
+                    .map_err(|e| run_err(dp, e))?
+            } else {
+                self.decoder.run(inputs).map_err(|e| run_err(dp, e))?
+            };
+            let mask_name = if self.low_res {
+                "low_res_masks"
+            } else {
+                "masks"
+            };
+            let (mshape, masks) = out[mask_name]
                 .try_extract_tensor::<f32>()
                 .map_err(|e| run_err(dp, e))?;
             let (ishape, ious) = out["iou_predictions"]
@@ -301,10 +346,15 @@ impl Segmenter {
                 .map_err(|e| run_err(dp, e))?;
             let ms: Vec<i64> = mshape.iter().copied().collect();
             let is: Vec<i64> = ishape.iter().copied().collect();
+            let (mh, mw) = if self.low_res {
+                (LOW_RES as i64, LOW_RES as i64)
+            } else {
+                (h as i64, w as i64)
+            };
             if ms.len() != 4
                 || ms[0] != b as i64
-                || ms[2] != h as i64
-                || ms[3] != w as i64
+                || ms[2] != mh
+                || ms[3] != mw
                 || is.len() != 2
                 || is[0] != b as i64
                 || is[1] != ms[1]
@@ -313,7 +363,7 @@ impl Segmenter {
                 return Err(SegmentError::Model {
                     path: dp.clone(),
                     why: format!(
-                        "outputs masks {ms:?} and iou_predictions {is:?} for {b} prompts on a {w}×{h} image; expected [{b}, 4, {h}, {w}] and [{b}, 4]"
+                        "outputs {mask_name} {ms:?} and iou_predictions {is:?} for {b} prompts on a {w}×{h} image; expected [{b}, 4, {mh}, {mw}] and [{b}, 4]"
                     ),
                 });
             }
@@ -322,7 +372,7 @@ impl Segmenter {
             let first = usize::from(k_all == 4);
             t.decoder_s += t1.elapsed().as_secs_f64();
             let t2 = Instant::now();
-            let plane = h * w;
+            let plane = (mh * mw) as usize;
             for (i, p) in chunk.iter().enumerate() {
                 for k in first..k_all {
                     let iou = ious[i * k_all + k];
@@ -330,7 +380,14 @@ impl Segmenter {
                     if iou.partial_cmp(&o.pred_iou_thresh) != Some(std::cmp::Ordering::Greater) {
                         continue;
                     }
-                    let lg = &masks[(i * k_all + k) * plane..(i * k_all + k + 1) * plane];
+                    let raw = &masks[(i * k_all + k) * plane..(i * k_all + k + 1) * plane];
+                    let up;
+                    let lg = if self.low_res {
+                        up = amg::upscale_logits(raw, LOW_RES, &rows, &cols);
+                        &up[..]
+                    } else {
+                        raw
+                    };
                     let stability = amg::stability_score(lg, o.stability_score_offset);
                     if stability < o.stability_score_thresh {
                         continue;

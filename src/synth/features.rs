@@ -42,26 +42,9 @@ impl Default for FeatureNoise {
     }
 }
 
-/// The prompts and the class each one targets (`None` = the shared building direction).
-pub const PROMPTS: [(&str, Option<i32>); 14] = [
-    ("a wall of a building", Some(classes::WALL)),
-    ("a facade of a building", Some(classes::WALL)),
-    ("a roof", Some(classes::ROOF)),
-    ("a window of a building", Some(classes::WINDOW)),
-    ("a door", Some(classes::DOOR)),
-    (
-        "the ground surface of a building",
-        Some(classes::GROUND_SURFACE),
-    ),
-    ("a balcony of a building", Some(classes::INSTALLATION)),
-    ("a tree", Some(classes::TREE)),
-    ("a person", Some(classes::PERSON)),
-    ("a car", Some(classes::CAR)),
-    ("a road", Some(classes::ROAD)),
-    ("water", Some(classes::WATER)),
-    ("the sky", Some(classes::NONE)),
-    ("a building", None),
-];
+/// The prompts and the class each one targets (`None` = the shared building direction): the
+/// class prompts of the pipeline ([`classes::CLASS_PROMPTS`]).
+pub const PROMPTS: [(&str, Option<i32>); 14] = classes::CLASS_PROMPTS;
 
 fn unit(v: &mut [f64]) {
     let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
