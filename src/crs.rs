@@ -65,21 +65,66 @@ fn epsg_codes(srs: &str) -> Option<String> {
     }
 }
 
-/// The names to offer PROJ for a `srsName`, best first: the name itself, the EPSG codes it
-/// names, an AdV name's horizontal CRS.
+/// The names to offer PROJ for a `srsName`, best first: the EPSG codes it names (`EPSG:a` or
+/// `EPSG:a+b`), else an AdV name's horizontal CRS, else the name itself. A name PROJ cannot
+/// resolve makes PROJ log a line of its own, so a name with an EPSG code in it is offered as
+/// that code alone.
 pub fn candidates(srs: &str) -> Vec<String> {
-    let mut out = vec![srs.trim().to_string()];
     if let Some(e) = epsg_codes(srs) {
-        out.push(e);
+        return vec![e];
     }
     let up = srs.to_ascii_uppercase();
-    for (name, epsg) in ADV {
-        if up.contains(name) {
-            out.push(epsg.to_string());
-        }
+    let mut out: Vec<String> = ADV
+        .iter()
+        .filter(|(name, _)| up.contains(name))
+        .map(|(_, epsg)| epsg.to_string())
+        .collect();
+    if out.is_empty() {
+        out.push(srs.trim().to_string());
     }
     out.dedup();
     out
+}
+
+/// PROJ's database `proj.db`: in `$PROJ_DATA` or `$PROJ_LIB` (`:`-separated), else the
+/// system's `/usr/share/proj` or `/usr/local/share/proj`.
+fn proj_db() -> Option<std::path::PathBuf> {
+    let mut dirs: Vec<std::path::PathBuf> = Vec::new();
+    for var in ["PROJ_DATA", "PROJ_LIB"] {
+        if let Some(v) = std::env::var_os(var) {
+            dirs.extend(std::env::split_paths(&v));
+        }
+    }
+    dirs.push("/usr/share/proj".into());
+    dirs.push("/usr/local/share/proj".into());
+    dirs.into_iter()
+        .map(|d| d.join("proj.db"))
+        .find(|p| p.is_file())
+}
+
+/// For a name `EPSG:a` or `EPSG:a+b`: the first code that PROJ's database does not hold (so
+/// PROJ is not asked, and does not log a line of its own), with the database's path. `None`
+/// when every code is there, the name is of another form, or the database cannot be read (PROJ
+/// then decides).
+fn missing_epsg(name: &str) -> Option<(String, std::path::PathBuf)> {
+    let codes = name.strip_prefix("EPSG:")?;
+    let db = proj_db()?;
+    let conn =
+        rusqlite::Connection::open_with_flags(&db, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY)
+            .ok()?;
+    for code in codes.split('+') {
+        let n: i64 = conn
+            .query_row(
+                "SELECT count(*) FROM crs_view WHERE auth_name = 'EPSG' AND code = ?1",
+                [code],
+                |r| r.get(0),
+            )
+            .ok()?;
+        if n == 0 {
+            return Some((format!("EPSG:{code}"), db));
+        }
+    }
+    None
 }
 
 /// A CRS and the PROJ operations that take its coordinates to the globe.
@@ -103,6 +148,12 @@ impl Georef {
     pub fn new(srs: &str) -> Result<Georef, CrsError> {
         let mut why = String::new();
         for name in candidates(srs) {
+            if let Some((code, db)) = missing_epsg(&name) {
+                if why.is_empty() {
+                    why = format!("{code} is not in its database {}", db.display());
+                }
+                continue;
+            }
             match Proj::new_known_crs(&name, "EPSG:4326", None) {
                 Ok(to_lonlat) => {
                     let cart = |tail: &str| {
@@ -208,7 +259,15 @@ mod tests {
             Some("EPSG:25832+7837")
         );
         assert_eq!(epsg_codes("urn:adv:crs:ETRS89_UTM32*DE_DHHN92_NH"), None);
-        assert!(candidates("urn:adv:crs:ETRS89_UTM32*DE_DHHN92_NH").contains(&"EPSG:25832".into()));
+        assert_eq!(
+            candidates("urn:adv:crs:ETRS89_UTM32*DE_DHHN92_NH"),
+            vec!["EPSG:25832".to_string()]
+        );
+        assert_eq!(
+            candidates("urn:ogc:def:crs:EPSG::25832"),
+            vec!["EPSG:25832".to_string()]
+        );
+        assert_eq!(candidates(" WGS 84 "), vec!["WGS 84".to_string()]);
     }
 
     #[test]
