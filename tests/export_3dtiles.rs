@@ -1,4 +1,4 @@
-//! `gs4city export --format 3dtiles` (issue 27) on a SIMULATED scene run (`synth --preset
+//! `gs4city export --format 3dtiles` (and `--spz`) (issue 27) on a SIMULATED scene run (`synth --preset
 //! small`: two real Ingolstadt LoD3 buildings in EPSG:32632, `run --mode vote`), checked by
 //! tools that are not the code under test:
 //! - the Khronos glTF validator (npm `gltf-validator`, tools/js/validate_gltf.mjs) on every tile;
@@ -9,6 +9,8 @@
 //!   on the globe by the tile transforms, matched to the run's Gaussians placed by the
 //!   alignment formula and `cs2cs`, its building / surface / part gml:ids and class compared
 //!   with semantic.ply and semantics.json, its colour with the class palette;
+//! - scripts/spz_reference.py (NumPy): the `--spz` tiles' SPZ blobs decoded and compared with the
+//!   uncompressed export; CesiumJS (tools/js/cesium_shot.mjs) drawing them as Gaussian splats;
 //! - `gs4city query`'s count for `--where`; bad inputs → one error line and no output folder.
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

@@ -6,6 +6,9 @@
 //!   `:SCALE` (log), `:OPACITY` (after the sigmoid), `:SH_DEGREE_ℓ_COEF_n` (the 3DGS SH,
 //!   turned with the Gaussians) and `COLOR_0` (the diffuse colour, made linear as glTF's
 //!   vertex colours are, and the opacity: what a renderer without splats shows).
+//! - **SPZ** (`spz`): the splats as one SPZ v2 blob ([`crate::spz`]) per tile,
+//!   `KHR_gaussian_splatting_compression_spz_2`, the attributes declared by accessors without
+//!   buffer views, the tileset declaring the extensions as `3DTILES_content_gltf` requires.
 //! - **Semantics**: `EXT_mesh_features` feature ids per splat — `_FEATURE_ID_0` building,
 //!   `_FEATURE_ID_1` surface, `_FEATURE_ID_2` part (rows of the tile's property tables of the
 //!   same names, absent levels `nullFeatureId`), `_FEATURE_ID_3` the evaluation class (rows of
