@@ -682,7 +682,8 @@ fn cesium_draws_the_class_colours_at_the_right_place() {
     let r: Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(r["ok"], true, "{r}");
     assert_eq!(r["tilesLoaded"], true, "{r}");
-    // Every tile drawn as Gaussian splats.
+    // Every tile drawn as Gaussian splats, all of them gathered and sorted before the shot.
+    assert_eq!(r["splatsReady"], true, "{r}");
     let leaves = read_json(&t.join("summary.json"))["leaves"].clone();
     assert_eq!(r["contents"], leaves, "{r}");
     assert_eq!(r["splatContents"], leaves, "{r}");

@@ -59,11 +59,23 @@ window.CESIUM_BASE_URL = "/cesium/";
       duration: 0,
       offset: new Cesium.HeadingPitchRange(0.3, -0.8, sphere.radius * 2.2),
     });
-    let frames = 0;
+    // Gaussian splats are drawn once Cesium has gathered every tile's splats into its one
+    // splat primitive and sorted them (asynchronously): wait for 20 frames with all of them
+    // (the export's summary.json count) sorted, or 20 frames after loading without splats.
+    const expected = await fetch("/tiles/summary.json").then((r) => (r.ok ? r.json() : null))
+      .then((s) => (s ? s.splats : null)).catch(() => null);
+    const splatsReady = () => {
+      const p = tileset.gaussianSplatPrimitive;
+      if (!p) return true;
+      return p._numSplats === expected && p._indexes !== undefined && p._indexes.length === p._numSplats;
+    };
+    let frames = 0, steady = 0;
+    const t0 = performance.now();
     await new Promise((resolve) => {
       const done = () => {
         frames += 1;
-        if ((tileset.tilesLoaded && frames > 20) || frames > 600) {
+        steady = tileset.tilesLoaded && splatsReady() ? steady + 1 : 0;
+        if (steady > 20 || performance.now() - t0 > 180000) {
           viewer.scene.postRender.removeEventListener(done);
           resolve();
         }
@@ -95,6 +107,7 @@ window.CESIUM_BASE_URL = "/cesium/";
       ok: true,
       frames,
       tilesLoaded: tileset.tilesLoaded,
+      splatsReady: splatsReady(),
       contents,
       splatContents,
       canvas: [canvas.width, canvas.height],
