@@ -12,6 +12,8 @@ use serde_json::{Value, json};
 pub const FLOAT: u32 = 5126;
 /// `componentType` of unsigned 32-bit integers.
 pub const UNSIGNED_INT: u32 = 5125;
+/// `componentType` of unsigned bytes.
+pub const UNSIGNED_BYTE: u32 = 5121;
 /// `bufferView.target` of vertex attributes.
 pub const ARRAY_BUFFER: u32 = 34962;
 
@@ -89,6 +91,29 @@ impl Builder {
                     hi[k] = hi[k].max(e[k]);
                 }
             }
+            a["min"] = json!(lo);
+            a["max"] = json!(hi);
+        }
+        self.accessors.push(a);
+        self.accessors.len() - 1
+    }
+
+    /// An accessor with no buffer view (its data comes from an extension, e.g. SPZ): `count`
+    /// elements of `n` components of `component_type`, `normalized`, with `min`/`max` when
+    /// given. Returns the accessor index.
+    pub fn declared(
+        &mut self,
+        component_type: u32,
+        n: usize,
+        count: usize,
+        normalized: bool,
+        bounds: Option<(Vec<f32>, Vec<f32>)>,
+    ) -> usize {
+        let mut a = json!({"componentType": component_type, "count": count, "type": type_name(n)});
+        if normalized {
+            a["normalized"] = json!(true);
+        }
+        if let Some((lo, hi)) = bounds {
             a["min"] = json!(lo);
             a["max"] = json!(hi);
         }

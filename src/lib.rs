@@ -51,6 +51,7 @@ pub mod segment;
 pub mod selection;
 pub mod semantics;
 pub mod splat;
+pub mod spz;
 pub mod synth;
 pub mod textembed;
 pub mod tile;

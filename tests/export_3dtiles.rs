@@ -1,4 +1,4 @@
-//! `gs4city export --format 3dtiles` (issue 27) on a SIMULATED scene run (`synth --preset
+//! `gs4city export --format 3dtiles` (and `--spz`) (issue 27) on a SIMULATED scene run (`synth --preset
 //! small`: two real Ingolstadt LoD3 buildings in EPSG:32632, `run --mode vote`), checked by
 //! tools that are not the code under test:
 //! - the Khronos glTF validator (npm `gltf-validator`, tools/js/validate_gltf.mjs) on every tile;
@@ -9,6 +9,8 @@
 //!   on the globe by the tile transforms, matched to the run's Gaussians placed by the
 //!   alignment formula and `cs2cs`, its building / surface / part gml:ids and class compared
 //!   with semantic.ply and semantics.json, its colour with the class palette;
+//! - scripts/spz_reference.py (NumPy): the `--spz` tiles' SPZ blobs decoded and compared with the
+//!   uncompressed export; CesiumJS (tools/js/cesium_shot.mjs) drawing them as Gaussian splats;
 //! - `gs4city query`'s count for `--where`; bad inputs → one error line and no output folder.
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -160,6 +162,75 @@ fn full_export() -> &'static PathBuf {
     })
 }
 
+/// The same export as [`full_export`] with `--spz` (the splats SPZ-compressed).
+fn spz_export() -> &'static PathBuf {
+    static T: OnceLock<PathBuf> = OnceLock::new();
+    T.get_or_init(|| {
+        let (_, run) = small_run();
+        let out = run.parent().unwrap().join("tiles-class-spz");
+        let _ = std::fs::remove_dir_all(&out);
+        ok(&export(
+            run,
+            &out,
+            &[
+                "--color-by",
+                "class",
+                "--max-splats",
+                &MAX_SPLATS.to_string(),
+                "--spz",
+            ],
+        ));
+        out
+    })
+}
+
+/// `--spz`: every tile's SPZ blob decoded by scripts/spz_reference.py (an SPZ v2 decoder
+/// written from the format's description) holds the uncompressed export's splats within half
+/// a quantisation step (positions 1/4096 m, alphas 1/255, DC colours 1/(0.15·255), log scales
+/// 1/16, quaternion x y z 1/127.5, SH 8/128 and 16/128 buckets); the attributes are declared
+/// by accessors without buffer views, counts equal to the SPZ count, while the feature ids,
+/// `EXT_mesh_features` and the property tables are those of the uncompressed export; the
+/// tileset declares the extensions CesiumJS needs; and SPZ is the smaller.
+#[test]
+fn spz_tiles_decode_to_the_uncompressed_splats() {
+    let test = "export_3dtiles::spz_tiles_decode_to_the_uncompressed_splats";
+    if !common::python_can_import(test, &["numpy", "scipy"]) {
+        return;
+    }
+    let (plain, spz) = (full_export(), spz_export());
+    let o = Command::new("python3")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/spz_reference.py"))
+        .arg(plain)
+        .arg(spz)
+        .output()
+        .unwrap();
+    ok(&o);
+    let r: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["structure_errors"], serde_json::json!([]), "{r}");
+    let s: Value = read_json(&plain.join("summary.json"));
+    assert_eq!(r["splats"], s["splats"], "{r}");
+    assert_eq!(r["tiles"], s["leaves"], "{r}");
+    assert_eq!(r["sh_degree"], 1, "{r}");
+    for (k, e) in r["max_error"].as_object().unwrap() {
+        let bound = r["half_step"][k].as_f64().unwrap();
+        assert!(e.as_f64().unwrap() <= bound, "{k}: {e} > {bound}: {r}");
+    }
+    let ts = read_json(&spz.join("tileset.json"));
+    let required = &ts["extensions"]["3DTILES_content_gltf"]["extensionsRequired"];
+    assert_eq!(
+        required,
+        &serde_json::json!([
+            "KHR_gaussian_splatting",
+            "KHR_gaussian_splatting_compression_spz_2"
+        ])
+    );
+    let spz_summary = read_json(&spz.join("summary.json"));
+    assert!(
+        spz_summary["bytes"].as_u64() < s["bytes"].as_u64(),
+        "{spz_summary}"
+    );
+}
+
 /// Layout: a 3D Tiles 1.1 tileset, a quadtree whose leaves hold at most `--max-splats`
 /// Gaussians and together every Gaussian of the run once, tiles read back by 3d-tiles-tools.
 #[test]
@@ -234,7 +305,7 @@ fn tileset_layout_is_read_by_3d_tiles_tools() {
     }
 }
 
-/// The Khronos validator on every tile: its only errors are the `KHR_gaussian_splatting:*`
+/// The Khronos validator on every tile (uncompressed and `--spz`): its only errors are the `KHR_gaussian_splatting:*`
 /// attribute semantics it predates (one per such attribute), and with those renamed to
 /// application-specific names it reports no error and no warning.
 #[test]
@@ -244,9 +315,9 @@ fn every_tile_passes_the_gltf_validator() {
     {
         return;
     }
-    let t = full_export();
-    let mut files: Vec<PathBuf> = std::fs::read_dir(t.join("tiles"))
-        .unwrap()
+    let mut files: Vec<PathBuf> = [full_export(), spz_export()]
+        .iter()
+        .flat_map(|t| std::fs::read_dir(t.join("tiles")).unwrap())
         .map(|e| e.unwrap().path())
         .collect();
     files.sort();
@@ -271,7 +342,9 @@ fn every_tile_passes_the_gltf_validator() {
             .keys()
             .filter(|k| k.starts_with("KHR_gaussian_splatting:"))
             .count();
-        assert!(khr >= 5, "ROTATION, SCALE, OPACITY, SH degree 0 and 1");
+        // Uncompressed: ROTATION, SCALE, OPACITY, SH degree 0 and 1; SPZ: ROTATION, SCALE and
+        // SH degree 1 (the opacity and the DC colour are COLOR_0's).
+        assert!(khr >= 5, "{khr} KHR_gaussian_splatting attributes");
         assert_eq!(r["errors"], khr, "{r}");
         for m in r["messages"].as_array().unwrap() {
             assert_eq!(m["code"], "MESH_PRIMITIVE_INVALID_ATTRIBUTE", "{m}");
@@ -569,10 +642,9 @@ fn crs_to_ecef_matches_cs2cs() {
 /// CesiumJS 1.145 in headless Chromium (SwiftShader WebGL; tools/js/cesium_shot.mjs, served on
 /// 127.0.0.1, no ion, no imagery, no terrain) loads the class-coloured tileset, flies to it and
 /// draws the class colours where the tileset projects, on the globe where cs2cs puts the root.
-/// CesiumJS draws `KHR_gaussian_splatting` as splats only with SPZ compression; it loads these
-/// uncompressed tiles as a glTF point cloud (COLOR_0), and its shader generator needs the
-/// `KHR_gaussian_splatting:*` semantics served as `_KHR_GS_*` (the harness renames them in the
-/// served JSON chunk, bytes unchanged; docs/export.md). The screenshot is docs/img/cesium_3dtiles.png.
+/// The tileset is the `--spz` export, served as written (no renaming): Cesium loads every tile
+/// through its Gaussian splat path (`GaussianSplat3DTileContent`) and draws splats
+/// (docs/export.md). The screenshot is docs/img/cesium_3dtiles.png.
 #[test]
 fn cesium_draws_the_class_colours_at_the_right_place() {
     let test = "export_3dtiles::cesium_draws_the_class_colours_at_the_right_place";
@@ -594,7 +666,7 @@ fn cesium_draws_the_class_colours_at_the_right_place() {
         );
         return;
     }
-    let t = full_export();
+    let t = spz_export();
     let png = t.parent().unwrap().join("cesium.png");
     // The class palette of docs/design.md, by hand.
     let palette = r#"{"wall":[200,180,140],"roof":[180,60,50],"window":[60,140,230],"tree":[40,160,60],"car":[230,230,30]}"#;
@@ -610,6 +682,11 @@ fn cesium_draws_the_class_colours_at_the_right_place() {
     let r: Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(r["ok"], true, "{r}");
     assert_eq!(r["tilesLoaded"], true, "{r}");
+    // Every tile drawn as Gaussian splats, all of them gathered and sorted before the shot.
+    assert_eq!(r["splatsReady"], true, "{r}");
+    let leaves = read_json(&t.join("summary.json"))["leaves"].clone();
+    assert_eq!(r["contents"], leaves, "{r}");
+    assert_eq!(r["splatContents"], leaves, "{r}");
     assert!(png.is_file());
     // Where Cesium puts the tileset: the root translation through cs2cs to latitude/longitude.
     let ts = read_json(&t.join("tileset.json"));

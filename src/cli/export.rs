@@ -61,6 +61,10 @@ pub struct ExportArgs {
     /// The largest number of Gaussians in one tile (a quadtree node with more is split).
     #[arg(long, default_value_t = tiles3d::MAX_SPLATS)]
     pub max_splats: usize,
+    /// Store each tile's splats SPZ-compressed (`KHR_gaussian_splatting_compression_spz_2`, a
+    /// draft; lossy: docs/export.md), which CesiumJS draws as Gaussian splats.
+    #[arg(long)]
+    pub spz: bool,
     /// Output folder (built beside it, renamed when complete; an earlier export there is replaced).
     #[arg(long, value_name = "T")]
     pub out: PathBuf,
@@ -118,6 +122,7 @@ pub fn run(cmd: &ExportCommand) -> anyhow::Result<()> {
     let opts = TilesOptions {
         color_by: a.color_by,
         max_splats: a.max_splats,
+        spz: a.spz,
     };
     let s = tiles3d::export(&sr, &selected, &query, &alignment, &georef, &opts, &a.out)?;
     println!(

@@ -53,6 +53,8 @@ pub enum QueryError {
     Crs(#[from] crate::crs::CrsError),
     #[error(transparent)]
     Glb(#[from] crate::glb::GlbError),
+    #[error(transparent)]
+    Spz(#[from] crate::spz::SpzError),
 }
 
 /// Writes `<stem>.mask.npy` (uint8 H×W) and `<stem>.mask.png` into `out`.

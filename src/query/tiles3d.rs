@@ -6,6 +6,9 @@
 //!   `:SCALE` (log), `:OPACITY` (after the sigmoid), `:SH_DEGREE_ℓ_COEF_n` (the 3DGS SH,
 //!   turned with the Gaussians) and `COLOR_0` (the diffuse colour, made linear as glTF's
 //!   vertex colours are, and the opacity: what a renderer without splats shows).
+//! - **SPZ** (`spz`): the splats as one SPZ v2 blob ([`crate::spz`]) per tile,
+//!   `KHR_gaussian_splatting_compression_spz_2`, the attributes declared by accessors without
+//!   buffer views, the tileset declaring the extensions as `3DTILES_content_gltf` requires.
 //! - **Semantics**: `EXT_mesh_features` feature ids per splat — `_FEATURE_ID_0` building,
 //!   `_FEATURE_ID_1` surface, `_FEATURE_ID_2` part (rows of the tile's property tables of the
 //!   same names, absent levels `nullFeatureId`), `_FEATURE_ID_3` the evaluation class (rows of
@@ -43,7 +46,7 @@ use crate::selection::SemanticRun;
 use crate::semantics::Entity;
 use crate::splat::transform::{self, Motion};
 use crate::splat::{self, Gaussians};
-use crate::{classes, fsutil};
+use crate::{classes, fsutil, spz};
 
 /// The default largest number of Gaussians in one tile.
 pub const MAX_SPLATS: usize = 200_000;
@@ -57,6 +60,9 @@ pub struct TilesOptions {
     pub color_by: ColorBy,
     /// A node with more Gaussians than this is split.
     pub max_splats: usize,
+    /// The splats SPZ-compressed (`KHR_gaussian_splatting_compression_spz_2`).
+    #[serde(default)]
+    pub spz: bool,
 }
 
 impl Default for TilesOptions {
@@ -64,6 +70,7 @@ impl Default for TilesOptions {
         TilesOptions {
             color_by: ColorBy::Rgb,
             max_splats: MAX_SPLATS,
+            spz: false,
         }
     }
 }
@@ -323,13 +330,10 @@ fn entity_table(b: &mut glb::Builder, class: &str, rows: &[i32], ents: &[Entity]
     })
 }
 
-/// One leaf's glTF binary: `g` already in the leaf's frame (Y up), `idx` the exported indices
-/// of its Gaussians (for their semantics).
-fn tile_glb(g: &Gaussians, idx: &[u32], sem: &Semantics<'_>) -> Result<Vec<u8>, QueryError> {
+/// The splats as uncompressed `KHR_gaussian_splatting` attributes (module docs) into `attrs`.
+fn plain_splats(b: &mut glb::Builder, g: &Gaussians, attrs: &mut serde_json::Map<String, Value>) {
     let n = g.len();
-    let mut b = glb::Builder::new();
     let flat3 = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
-    let mut attrs = serde_json::Map::new();
     attrs.insert(
         "POSITION".into(),
         json!(b.floats(&flat3(&g.positions), 3, true)),
@@ -393,6 +397,98 @@ fn tile_glb(g: &Gaussians, idx: &[u32], sem: &Semantics<'_>) -> Result<Vec<u8>, 
             );
         }
     }
+}
+
+/// The splats SPZ-compressed (`KHR_gaussian_splatting_compression_spz_2`): the SPZ bytes as
+/// one buffer view (returned) and the attributes it maps to declared as accessors without
+/// buffer views (`POSITION` with bounds, `COLOR_0` as normalised bytes (the DC colour and the
+/// opacity), `:SCALE`, `:ROTATION`, `:SH_DEGREE_ℓ_COEF_n` for ℓ ≥ 1) into `attrs`.
+fn spz_splats(
+    b: &mut glb::Builder,
+    g: &Gaussians,
+    attrs: &mut serde_json::Map<String, Value>,
+) -> Result<usize, QueryError> {
+    let n = g.len();
+    let alphas: Vec<f32> = (0..n)
+        .map(|i| g.activated_opacity(i).clamp(0.0, 1.0))
+        .collect();
+    let rotations: Vec<[f32; 4]> = (0..n)
+        .map(|i| {
+            let [w, x, y, z] = g.normalized_rotation(i).unwrap_or([1.0, 0.0, 0.0, 0.0]);
+            [x, y, z, w]
+        })
+        .collect();
+    let dim = spz::sh_dim(g.sh_degree);
+    let rest = g.rest_per_gaussian();
+    let k = rest / 3;
+    let mut sh = Vec::with_capacity(n * dim * 3);
+    for i in 0..n {
+        let c = &g.f_rest[i * rest..(i + 1) * rest];
+        for j in 0..dim {
+            sh.extend([c[j], c[k + j], c[2 * k + j]]);
+        }
+    }
+    let bytes = spz::write(&spz::Cloud {
+        positions: &g.positions,
+        alphas: &alphas,
+        colors: &g.f_dc,
+        scales: &g.scale,
+        rotations: &rotations,
+        sh_degree: g.sh_degree,
+        sh: &sh,
+    })?;
+    let view = b.view(&bytes, None);
+    let (mut lo, mut hi) = (vec![f32::INFINITY; 3], vec![f32::NEG_INFINITY; 3]);
+    for p in &g.positions {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    let bounds = (n > 0).then_some((lo, hi));
+    attrs.insert(
+        "POSITION".into(),
+        json!(b.declared(glb::FLOAT, 3, n, false, bounds)),
+    );
+    attrs.insert(
+        "COLOR_0".into(),
+        json!(b.declared(glb::UNSIGNED_BYTE, 4, n, true, None)),
+    );
+    attrs.insert(
+        "KHR_gaussian_splatting:SCALE".into(),
+        json!(b.declared(glb::FLOAT, 3, n, false, None)),
+    );
+    attrs.insert(
+        "KHR_gaussian_splatting:ROTATION".into(),
+        json!(b.declared(glb::FLOAT, 4, n, false, None)),
+    );
+    for l in 1..=usize::from(g.sh_degree) {
+        for m in 0..2 * l + 1 {
+            attrs.insert(
+                format!("KHR_gaussian_splatting:SH_DEGREE_{l}_COEF_{m}"),
+                json!(b.declared(glb::FLOAT, 3, n, false, None)),
+            );
+        }
+    }
+    Ok(view)
+}
+
+/// One leaf's glTF binary: `g` already in the leaf's frame (Y up), `idx` the exported indices
+/// of its Gaussians (for their semantics).
+fn tile_glb(
+    g: &Gaussians,
+    idx: &[u32],
+    sem: &Semantics<'_>,
+    spz: bool,
+) -> Result<Vec<u8>, QueryError> {
+    let mut b = glb::Builder::new();
+    let mut attrs = serde_json::Map::new();
+    let spz_view = if spz {
+        Some(spz_splats(&mut b, g, &mut attrs)?)
+    } else {
+        plain_splats(&mut b, g, &mut attrs);
+        None
+    };
 
     // Semantics: one feature id set and one property table per level present.
     let mut feature_ids = Vec::new();
@@ -465,6 +561,16 @@ fn tile_glb(g: &Gaussians, idx: &[u32], sem: &Semantics<'_>) -> Result<Vec<u8>, 
         }
     });
     let mut used = vec!["KHR_gaussian_splatting"];
+    let mut required = Vec::new();
+    if let Some(view) = spz_view {
+        prim_ext["KHR_gaussian_splatting"]["extensions"] =
+            json!({"KHR_gaussian_splatting_compression_spz_2": {"bufferView": view}});
+        used.push("KHR_gaussian_splatting_compression_spz_2");
+        required.extend([
+            "KHR_gaussian_splatting",
+            "KHR_gaussian_splatting_compression_spz_2",
+        ]);
+    }
     let mut root_ext = serde_json::Map::new();
     if !feature_ids.is_empty() {
         prim_ext["EXT_mesh_features"] = json!({ "featureIds": feature_ids });
@@ -482,6 +588,9 @@ fn tile_glb(g: &Gaussians, idx: &[u32], sem: &Semantics<'_>) -> Result<Vec<u8>, 
         "nodes": [{"mesh": 0}],
         "meshes": [{"primitives": [{"attributes": attrs, "mode": 0, "extensions": prim_ext}]}],
     });
+    if !required.is_empty() {
+        doc["extensionsRequired"] = json!(required);
+    }
     if !root_ext.is_empty() {
         doc["extensions"] = Value::Object(root_ext);
     }
@@ -628,7 +737,9 @@ pub fn export(
     let tmp = partial_dir(out);
     let _ = std::fs::remove_dir_all(&tmp);
     fsutil::create_dir(&tmp.join("tiles"))?;
-    let result = write_tiles(&tmp, &nodes, &all, &g, &ecef, &sem, alignment, georef);
+    let result = write_tiles(
+        &tmp, &nodes, &all, &g, &ecef, &sem, alignment, georef, opts.spz,
+    );
     let (tileset, bytes, depth) = match result {
         Ok(r) => r,
         Err(e) => {
@@ -721,6 +832,7 @@ fn write_tiles(
     sem: &Semantics<'_>,
     alignment: &Alignment,
     georef: &Georef,
+    spz: bool,
 ) -> Result<(u64, u64, u32), QueryError> {
     let leaves: Vec<usize> = (0..nodes.len())
         .filter(|&i| nodes[i].children.is_empty())
@@ -764,7 +876,7 @@ fn write_tiles(
             let l = y_up() * (node.frame.transpose() * (ecef[m as usize] - node.centre));
             *p = l.to_array().map(|x| x as f32);
         }
-        let bytes_glb = tile_glb(&tile, members, sem)?;
+        let bytes_glb = tile_glb(&tile, members, sem, spz)?;
         bytes += bytes_glb.len() as u64;
         let name = format!("tiles/{}.glb", node.path);
         fsutil::write_bytes(&dir.join(&name), &bytes_glb)?;
@@ -823,7 +935,7 @@ fn write_tiles(
     }
     let root = tiles[0].take().expect("the root tile");
     let root_error = root["geometricError"].as_f64().unwrap_or(0.0);
-    let tileset = json!({
+    let mut tileset = json!({
         "asset": {
             "version": "1.1",
             "generator": format!("gs4city {}", env!("CARGO_PKG_VERSION")),
@@ -831,6 +943,16 @@ fn write_tiles(
         "geometricError": (2.0 * root_error).max(1.0),
         "root": root,
     });
+    if spz {
+        // The glTF extensions the content needs, declared at the tileset (what CesiumJS reads
+        // to load the tiles as Gaussian splats).
+        tileset["extensionsUsed"] = json!(["3DTILES_content_gltf"]);
+        tileset["extensions"] = json!({"3DTILES_content_gltf": {
+            "extensionsUsed": ["KHR_gaussian_splatting", "KHR_gaussian_splatting_compression_spz_2",
+                "EXT_mesh_features", "EXT_structural_metadata"],
+            "extensionsRequired": ["KHR_gaussian_splatting", "KHR_gaussian_splatting_compression_spz_2"],
+        }});
+    }
     let text = serde_json::to_vec_pretty(&tileset).expect("JSON values serialise");
     fsutil::write_bytes(&dir.join("tileset.json"), &text)?;
     Ok((text.len() as u64, bytes, depth))

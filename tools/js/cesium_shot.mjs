@@ -4,7 +4,8 @@
 // bounding sphere (centre longitude/latitude/height, its projection on the canvas and radius
 // in pixels), the camera's longitude/latitude/height, and per palette colour the pixels that
 // show it (and their centroid). Everything is served by a node http server on 127.0.0.1 (the
-// tileset, Cesium's build, one page); no Cesium ion, no imagery, no terrain, no internet.
+// tileset, Cesium's build, one page; tiles whose splats are not SPZ-compressed are served with
+// their KHR_gaussian_splatting:* semantics renamed, glb_rename.mjs); no Cesium ion, no imagery, no terrain, no internet.
 // Usage: node cesium_shot.mjs TILESET_DIR OUT.png PALETTE_JSON
 //   PALETTE_JSON: {"name": [r, g, b], …} the colours to count.
 import { createServer } from "node:http";
@@ -58,11 +59,23 @@ window.CESIUM_BASE_URL = "/cesium/";
       duration: 0,
       offset: new Cesium.HeadingPitchRange(0.3, -0.8, sphere.radius * 2.2),
     });
-    let frames = 0;
+    // Gaussian splats are drawn once Cesium has gathered every tile's splats into its one
+    // splat primitive and sorted them (asynchronously): wait for 20 frames with all of them
+    // (the export's summary.json count) sorted, or 20 frames after loading without splats.
+    const expected = await fetch("/tiles/summary.json").then((r) => (r.ok ? r.json() : null))
+      .then((s) => (s ? s.splats : null)).catch(() => null);
+    const splatsReady = () => {
+      const p = tileset.gaussianSplatPrimitive;
+      if (!p) return true;
+      return p._numSplats === expected && p._indexes !== undefined && p._indexes.length === p._numSplats;
+    };
+    let frames = 0, steady = 0;
+    const t0 = performance.now();
     await new Promise((resolve) => {
       const done = () => {
         frames += 1;
-        if ((tileset.tilesLoaded && frames > 20) || frames > 600) {
+        steady = tileset.tilesLoaded && splatsReady() ? steady + 1 : 0;
+        if (steady > 20 || performance.now() - t0 > 180000) {
           viewer.scene.postRender.removeEventListener(done);
           resolve();
         }
@@ -79,11 +92,24 @@ window.CESIUM_BASE_URL = "/cesium/";
         Cesium.Cartesian3.multiplyByScalar(viewer.camera.rightWC, sphere.radius, new Cesium.Cartesian3()),
         new Cesium.Cartesian3()),
     );
+    // Which tiles Cesium drew through its Gaussian splat path.
+    let contents = 0, splatContents = 0;
+    const walk = (tile) => {
+      if (tile.hasRenderableContent) {
+        contents += 1;
+        if (tile.content instanceof Cesium.GaussianSplat3DTileContent) splatContents += 1;
+      }
+      tile.children.forEach(walk);
+    };
+    walk(tileset.root);
     const canvas = viewer.scene.canvas;
     window.__result = {
       ok: true,
       frames,
       tilesLoaded: tileset.tilesLoaded,
+      splatsReady: splatsReady(),
+      contents,
+      splatContents,
       canvas: [canvas.width, canvas.height],
       client: [canvas.clientWidth, canvas.clientHeight],
       centre: { lon: Cesium.Math.toDegrees(centre.longitude), lat: Cesium.Math.toDegrees(centre.latitude), height: centre.height },
@@ -121,7 +147,11 @@ const server = createServer(async (req, res) => {
     if (!file || !(await stat(file)).isFile()) throw new Error("not found");
     res.writeHead(200, { "content-type": types[path.extname(file)] ?? "application/octet-stream" });
     let body = await readFile(file);
-    if (file.endsWith(".glb")) body = Buffer.from(renameGaussianSemantics(new Uint8Array(body)));
+    // Uncompressed splats: their semantics renamed for Cesium's shader (docs/export.md); SPZ
+    // tiles (KHR_gaussian_splatting_compression_spz_2) are served as written.
+    if (file.endsWith(".glb") && !body.includes("KHR_gaussian_splatting_compression_spz_2")) {
+      body = Buffer.from(renameGaussianSemantics(new Uint8Array(body)));
+    }
     res.end(body);
   } catch {
     res.writeHead(404);
