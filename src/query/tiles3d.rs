@@ -473,6 +473,29 @@ fn spz_splats(
     Ok(view)
 }
 
+/// Adds one `EXT_mesh_features` feature id set: the attribute `_FEATURE_ID_<slot>` holding
+/// `fid` and its entry `(featureCount, propertyTable, nullFeatureId, label)` in `feature_ids`.
+fn add_feature_ids(
+    b: &mut glb::Builder,
+    attrs: &mut serde_json::Map<String, serde_json::Value>,
+    feature_ids: &mut Vec<serde_json::Value>,
+    fid: &[f32],
+    (count, table, null_id, label): (usize, usize, usize, &str),
+) {
+    let slot = feature_ids.len();
+    attrs.insert(
+        format!("_FEATURE_ID_{slot}"),
+        json!(b.floats(fid, 1, false)),
+    );
+    feature_ids.push(json!({
+        "featureCount": count,
+        "attribute": slot,
+        "propertyTable": table,
+        "nullFeatureId": null_id,
+        "label": label,
+    }));
+}
+
 /// One leaf's glTF binary: `g` already in the leaf's frame (Y up), `idx` the exported indices
 /// of its Gaussians (for their semantics).
 fn tile_glb(
@@ -506,18 +529,9 @@ fn tile_glb(
             .iter()
             .map(|&e| rows.binary_search(&e).unwrap_or(none_row) as f32)
             .collect();
-        let slot = feature_ids.len();
-        attrs.insert(
-            format!("_FEATURE_ID_{slot}"),
-            json!(b.floats(&fid, 1, false)),
-        );
-        feature_ids.push(json!({
-            "featureCount": rows.len(),
-            "attribute": slot,
-            "propertyTable": tables.len(),
-            "nullFeatureId": none_row,
-            "label": name,
-        }));
+        let table = tables.len();
+        let set = (rows.len(), table, none_row, name);
+        add_feature_ids(&mut b, &mut attrs, &mut feature_ids, &fid, set);
         tables.push(entity_table(&mut b, name, &rows, sem.entities));
     }
     let classes: Vec<i32> = idx.iter().map(|&i| sem.class[i as usize]).collect();
@@ -529,18 +543,8 @@ fn tile_glb(
             .iter()
             .map(|&c| if c >= 0 { c as f32 } else { n_classes as f32 })
             .collect();
-        let slot = feature_ids.len();
-        attrs.insert(
-            format!("_FEATURE_ID_{slot}"),
-            json!(b.floats(&fid, 1, false)),
-        );
-        feature_ids.push(json!({
-            "featureCount": present.len(),
-            "attribute": slot,
-            "propertyTable": tables.len(),
-            "nullFeatureId": n_classes,
-            "label": "category",
-        }));
+        let set = (present.len(), tables.len(), n_classes, "category");
+        add_feature_ids(&mut b, &mut attrs, &mut feature_ids, &fid, set);
         let ids: Vec<i32> = (0..n_classes as i32).collect();
         let names: Vec<String> = ids.iter().map(|&c| classes::name(c).to_string()).collect();
         tables.push(json!({
