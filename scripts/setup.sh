@@ -62,8 +62,9 @@ fi
 # gltf-validator, 3d-tiles-tools, cesium and playwright-core check the 3D Tiles export
 # (tests/export_3dtiles.rs: validate_gltf.mjs, read_tileset.mjs, cesium_shot.mjs; Chromium is
 # Debian's, playwright-core downloads no browser).
-# Node.js and npm from Debian when the machine has none (Debian 12: Node 18, which
-# splat-transform 2.7.1 declares it supports; cesium 1.145 asks for Node 20+ and warns only).
+# Node.js and npm from Debian when the machine has none (Debian 12: Node 18). splat-transform 2.7.1
+# runs on 18; cesium 1.145 declares Node >= 22 (npm only warns: it runs in Chromium, not in Node);
+# playwright-core 1.65 (the Cesium test's driver) needs Node >= 20, which these machines have (20).
 # ~450 MB in tools/js/node_modules, ~1 min.
 if [ "${GS4CITY_SKIP_JS:-0}" != 1 ]; then
   if ! command -v npm >/dev/null 2>&1; then
