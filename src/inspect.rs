@@ -378,6 +378,34 @@ fn image_size(p: &Path) -> Option<(u32, u32)> {
     crate::imageio::declared_size(&buf)
 }
 
+/// Why a PNG or JPEG whose header reads well looks cut short (a partial copy or download):
+/// a PNG ends with its `IEND` chunk, a JPEG with an end-of-image marker (`FF D9`, searched
+/// in the last 4 KiB, since cameras may append bytes after it). Reads the file's tail only.
+fn truncated(p: &Path) -> Option<String> {
+    use std::io::{Read, Seek, SeekFrom};
+    let mut file = std::fs::File::open(p).ok()?;
+    let len = file.metadata().ok()?.len();
+    let mut head = [0u8; 8];
+    file.read_exact(&mut head).ok()?;
+    let tail_len = len.min(4096);
+    file.seek(SeekFrom::Start(len - tail_len)).ok()?;
+    let mut tail = Vec::with_capacity(tail_len as usize);
+    file.read_to_end(&mut tail).ok()?;
+    let grey = "mask overlays and report.html show a grey panel for it";
+    if head == *b"\x89PNG\r\n\x1a\n" {
+        const IEND: [u8; 12] = [0, 0, 0, 0, b'I', b'E', b'N', b'D', 0xAE, 0x42, 0x60, 0x82];
+        return (!tail.ends_with(&IEND)).then(|| {
+            format!("truncated: a PNG ends with its IEND chunk and this one ({len} bytes) does not; {grey}")
+        });
+    }
+    if head.starts_with(&[0xFF, 0xD8]) {
+        return (!tail.windows(2).any(|w| w == [0xFF, 0xD9])).then(|| {
+            format!("truncated: no JPEG end-of-image marker in its last {tail_len} bytes; {grey}")
+        });
+    }
+    None
+}
+
 /// `images/` against the COLMAP names and camera sizes; returns the number of images found.
 fn check_images(root: &Path, views: Option<&[View]>, f: &mut Findings) -> usize {
     let dir = root.join("images");
@@ -417,7 +445,11 @@ fn check_images(root: &Path, views: Option<&[View]>, f: &mut Findings) -> usize 
                     v.camera_id, k.width, k.height
                 ),
             ),
-            Some(_) => {}
+            Some(_) => {
+                if let Some(why) = truncated(&p) {
+                    f.warn(&p, why);
+                }
+            }
             None => f.warn(
                 &p,
                 "not a PNG or JPEG whose size can be read from its header",

@@ -278,6 +278,22 @@ fn check_names_each_defect_in_one_line_and_run_stops_before_any_stage() {
         "{err}"
     );
     assert!(out.contains(" 0 errors"), "{out}");
+
+    // A PNG cut short after its header (a partial copy): the run needs no pixels, so a
+    // warning naming the image, exit 0; the intact images are not named.
+    let d = r.join("truncated-image");
+    variant(&base, &d, &["images"]);
+    let p = d.join("images").join(img);
+    let bytes = std::fs::read(&p).unwrap();
+    std::fs::write(&p, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let (ok, _, err) = cli_in(None, &["check", "--scene", s(&d)]);
+    assert!(ok, "a truncated image is a warning: {err}");
+    let warned: Vec<&str> = err
+        .lines()
+        .filter(|l| l.starts_with("warning: ") && l.contains("truncated"))
+        .collect();
+    assert_eq!(warned.len(), 1, "{err}");
+    assert!(warned[0].contains(&format!("images/{img}")), "{err}");
     let _ = std::fs::remove_dir_all(&r);
 }
 

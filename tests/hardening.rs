@@ -368,6 +368,23 @@ fn alignments_that_leave_the_scene_frame_are_refused() {
     assert!(w.contains("no alignment given"), "{w}");
 }
 
+/// A round window whose ring has a few mistyped exponents (`…e9`, found by a mutation sweep of
+/// the FZK house) made the triangulator panic inside spade, before the frame check on its
+/// output ran. Every vertex is now checked before triangulation: one line naming the polygon.
+#[test]
+fn a_ring_with_mistyped_exponents_is_refused_before_triangulation() {
+    let gml = data_bad("citygml/mistyped_exponents_circle.gml");
+    let e = citymodel::run(std::slice::from_ref(&gml), &citymodel::Options::default())
+        .err()
+        .expect("refused");
+    let msg = check_message(&e, "mistyped_exponents_circle.gml");
+    assert!(
+        msg.contains("mistyped_exponents_circle.gml:4: polygon P1")
+            && msg.contains("in the scene frame, beyond"),
+        "{msg}"
+    );
+}
+
 /// Mirrored and degenerate point pairs used to give an RMS of 31 m without a word.
 #[test]
 fn mirrored_degenerate_and_poor_point_pairs_are_refused_or_warned() {

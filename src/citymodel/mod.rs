@@ -415,6 +415,23 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
     let labels = semantics::chains(&entities);
     for (fi, m) in models.iter().enumerate() {
         for p in m.used_polygons() {
+            // Every vertex must land inside the scene frame before the triangulator sees it:
+            // a vertex far outside (a mistyped exponent) leaves the rest of its polygon
+            // without precision in the plane, where constrained triangulation is not robust.
+            for q in std::iter::once(&p.exterior)
+                .chain(&p.interiors)
+                .flat_map(|r| &r.points)
+            {
+                let s = alignment.apply(*q);
+                if let Some(why) = outside_scene_frame(s) {
+                    return Err(CityModelError::Frame {
+                        path: m.path.clone(),
+                        line: p.line,
+                        polygon: p.name(),
+                        why,
+                    });
+                }
+            }
             let owner = p.owner.expect("used polygons have owners");
             jobs.push(Job {
                 file: fi,
@@ -488,15 +505,12 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
                 let base_v = mesh.vertices.len() as u32;
                 for v in &t.vertices {
                     let s = alignment.apply(*v + alignment.origin);
-                    if !s.is_finite() || s.abs().max_element() > SCENE_COORD_LIMIT {
+                    if let Some(why) = outside_scene_frame(s) {
                         return Err(CityModelError::Frame {
                             path: m.path.clone(),
                             line: job.poly.line,
                             polygon: job.poly.name(),
-                            why: format!(
-                                "a vertex lands at ({:e}, {:e}, {:e}) in the scene frame, beyond ±{SCENE_COORD_LIMIT:e} (camera::SCENE_COORD_LIMIT, the f32 frame's limit): check the alignment's scale and translation",
-                                s.x, s.y, s.z
-                            ),
+                            why,
                         });
                     }
                     mesh.vertices.push([s.x as f32, s.y as f32, s.z as f32]);
@@ -703,4 +717,16 @@ fn show_warnings(items: &[String]) {
             items.len() - WARNINGS_SHOWN
         );
     }
+}
+
+/// Why a point in the scene frame cannot be used (not finite, or beyond
+/// [`SCENE_COORD_LIMIT`]), or `None` when it can.
+fn outside_scene_frame(s: DVec3) -> Option<String> {
+    if s.is_finite() && s.abs().max_element() <= SCENE_COORD_LIMIT {
+        return None;
+    }
+    Some(format!(
+        "a vertex lands at ({:e}, {:e}, {:e}) in the scene frame, beyond ±{SCENE_COORD_LIMIT:e} (camera::SCENE_COORD_LIMIT, the f32 frame's limit): check the coordinates and the alignment's scale and translation",
+        s.x, s.y, s.z
+    ))
 }
