@@ -385,6 +385,22 @@ fn a_ring_with_mistyped_exponents_is_refused_before_triangulation() {
     );
 }
 
+/// A self-crossing ring 10 km wide, 100 km tall and 12 cm deep (a mutation of the FZK house,
+/// with a small pinned triangle so that the local origin is the mutant's) made spade fail an
+/// internal assertion ("Failed to locate position"): the polygon is now skipped with spade's
+/// words, the rest of the model is written, and nothing is printed as a panic.
+#[test]
+fn a_ring_the_triangulator_fails_on_is_skipped_not_a_crash() {
+    let gml = data_bad("citygml/spade_locate_failure.gml");
+    let out = citymodel::run(std::slice::from_ref(&gml), &citymodel::Options::default())
+        .expect("the pinned triangle is still written");
+    let skipped = &out.summary.skipped.polygons;
+    assert_eq!(skipped.len(), 1, "{skipped:?}");
+    assert_eq!(skipped[0].polygon.as_deref(), Some("P1"));
+    assert!(skipped[0].reason.contains("spade"), "{:?}", skipped[0]);
+    assert_eq!(out.mesh.faces.len(), 1, "the pinned triangle");
+}
+
 /// Mirrored and degenerate point pairs used to give an RMS of 31 m without a word.
 #[test]
 fn mirrored_degenerate_and_poor_point_pairs_are_refused_or_warned() {

@@ -427,6 +427,21 @@ fn survives_malformed_requests() {
         assert_eq!(tail(server), tail(&cli), "{q}");
         assert!(server.contains("column"), "{server}");
     }
+    // 3000 nested `(` in one 6 KB request overflowed the server thread's stack and killed the
+    // viewer: now a 400 naming the bound.
+    let (open, close) = ("(".repeat(3000), ")".repeat(3000));
+    let (s, j) = srv.get_json(&format!(
+        "/api/query?where={open}{}{close}",
+        enc("class=Window")
+    ));
+    assert_eq!(s, 400, "{j}");
+    assert!(
+        j["error"]
+            .as_str()
+            .unwrap()
+            .contains("nested deeper than 128"),
+        "{j}"
+    );
     // Still serving.
     let (s, meta) = srv.get_json("/api/meta");
     assert_eq!(s, 200);

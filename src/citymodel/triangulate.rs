@@ -21,7 +21,7 @@ pub enum SkipReason {
     ZeroArea,
     /// A coordinate is NaN or infinite.
     NonFinite,
-    /// spade refused a vertex (coordinates out of its range).
+    /// spade refused a vertex (coordinates out of its range) or failed on the ring.
     Cdt(String),
     /// The constraints enclose no face.
     Empty,
@@ -215,6 +215,53 @@ fn point_in_rings(p: DVec2, rings: &[Vec<DVec2>]) -> bool {
 /// Triangulates one polygon given as an exterior ring and interior rings (already in a local
 /// frame: subtract a georeferenced origin in f64 before calling).
 pub fn triangulate(
+    exterior: &[DVec3],
+    interiors: &[Vec<DVec3>],
+) -> Result<PolygonTriangles, SkipReason> {
+    // spade has internal assertions that extreme rings can trip ("Failed to locate position.
+    // This is a bug in spade.", on a self-crossing ring 100 km tall and 12 cm deep, found by a
+    // mutation sweep): such a polygon is skipped with the triangulator's words, not a crash.
+    match quietly(|| triangulate_ring(exterior, interiors)) {
+        Ok(r) => r,
+        Err(payload) => {
+            let why = payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "no message".into());
+            Err(SkipReason::Cdt(format!(
+                "spade: {}",
+                why.replace('\n', " ")
+            )))
+        }
+    }
+}
+
+thread_local! {
+    /// Set while [`quietly`] runs a closure on this thread.
+    static QUIET: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs `f`, catching a panic in it without printing the panic message (the hook installed
+/// once here stays silent only on a thread inside `quietly`; every other panic is printed by
+/// the hook that was installed before).
+fn quietly<T>(f: impl FnOnce() -> T) -> std::thread::Result<T> {
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if !QUIET.with(std::cell::Cell::get) {
+                previous(info);
+            }
+        }));
+    });
+    QUIET.with(|q| q.set(true));
+    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    QUIET.with(|q| q.set(false));
+    r
+}
+
+fn triangulate_ring(
     exterior: &[DVec3],
     interiors: &[Vec<DVec3>],
 ) -> Result<PolygonTriangles, SkipReason> {

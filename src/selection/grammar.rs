@@ -343,7 +343,17 @@ fn lex(text: &str) -> Result<Vec<(Tok, usize)>, ParseError> {
 struct Parser {
     toks: Vec<(Tok, usize)>,
     pos: usize,
+    /// Open `(` and `not` around the current position.
+    depth: usize,
+    /// Terms read so far.
+    terms: usize,
 }
+
+/// The deepest nesting of `(` and `not` an expression may have: the parser and every walk of
+/// the expression recurse once per level, on a thread's stack (the viewer's too).
+pub const MAX_NESTING: usize = 128;
+/// The most terms an expression may have (a chain of `and`/`or` is as deep as it is long).
+pub const MAX_TERMS: usize = 4096;
 
 /// A number at the start of `w` and the rest (a unit), e.g. `10m` → (10, "m"), `1e3` → (1000, "").
 fn split_number(w: &str) -> Option<(f64, &str)> {
@@ -413,26 +423,41 @@ impl Parser {
     }
 
     fn unary(&mut self) -> Result<Expr, ParseError> {
+        if self.peek_keyword("not") || self.peek().0 == Tok::LParen {
+            self.depth += 1;
+            if self.depth > MAX_NESTING {
+                let c = self.peek().1;
+                return self.err(
+                    c,
+                    format!("nested deeper than {MAX_NESTING} levels of `(` and `not`"),
+                );
+            }
+            let e = self.nested();
+            self.depth -= 1;
+            return e;
+        }
+        self.term()
+    }
+
+    /// `not` UNARY or `(` EXPR `)`.
+    fn nested(&mut self) -> Result<Expr, ParseError> {
         if self.peek_keyword("not") {
             self.next();
             return Ok(Expr::Not(Box::new(self.unary()?)));
         }
-        if self.peek().0 == Tok::LParen {
-            let (_, col) = self.next();
-            let e = self.expr()?;
-            let (t, c) = self.next();
-            if t != Tok::RParen {
-                return self.err(
-                    c,
-                    format!(
-                        "expected `)` to close the `(` of column {col}, found {}",
-                        t.describe()
-                    ),
-                );
-            }
-            return Ok(e);
+        let (_, col) = self.next();
+        let e = self.expr()?;
+        let (t, c) = self.next();
+        if t != Tok::RParen {
+            return self.err(
+                c,
+                format!(
+                    "expected `)` to close the `(` of column {col}, found {}",
+                    t.describe()
+                ),
+            );
         }
-        self.term()
+        Ok(e)
     }
 
     /// `(` VALUE `)` after a function word.
@@ -508,6 +533,10 @@ impl Parser {
 
     fn term(&mut self) -> Result<Expr, ParseError> {
         let (t, col) = self.next();
+        self.terms += 1;
+        if self.terms > MAX_TERMS {
+            return self.err(col, format!("more than {MAX_TERMS} terms"));
+        }
         let word = match t {
             Tok::Word(w) => w,
             t => {
@@ -662,7 +691,12 @@ pub fn parse(text: &str) -> Result<Expr, ParseError> {
             why: "empty selection".into(),
         });
     }
-    let mut p = Parser { toks, pos: 0 };
+    let mut p = Parser {
+        toks,
+        pos: 0,
+        depth: 0,
+        terms: 0,
+    };
     let e = p.expr()?;
     let (t, c) = p.next();
     if t != Tok::End {
@@ -867,6 +901,29 @@ mod tests {
         // Columns count characters, not bytes.
         let x = e("name='é' >");
         assert_eq!(x.column, 10, "{x}");
+    }
+
+    #[test]
+    fn nesting_and_length_are_bounded_before_the_stack_is() {
+        let e = |s: &str| parse(s).unwrap_err();
+        // 100 000 `(` overflowed the stack (an abort, in the viewer a dead server).
+        let deep = format!("{}class=Window{}", "(".repeat(100_000), ")".repeat(100_000));
+        let x = e(&deep);
+        assert!(x.why.contains("nested deeper than 128"), "{x}");
+        assert_eq!(x.column, MAX_NESTING + 1);
+        let x = e(&format!("{}class=Window", "not ".repeat(1000)));
+        assert!(x.why.contains("nested deeper"), "{x}");
+        // At the bound: parsed, and as deep as written.
+        let ok = format!(
+            "{}class=Window{}",
+            "(".repeat(MAX_NESTING),
+            ")".repeat(MAX_NESTING)
+        );
+        assert_eq!(p(&ok), p("class=Window"));
+        let chain = |n: usize| vec!["label=1"; n].join(" or ");
+        assert!(parse(&chain(MAX_TERMS)).is_ok());
+        let x = e(&chain(MAX_TERMS + 1));
+        assert!(x.why.contains("more than 4096 terms"), "{x}");
     }
 
     #[test]

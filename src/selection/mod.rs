@@ -28,18 +28,29 @@ pub use masks::MaskRule;
 pub use select::SelectError;
 pub use text::{Candidate, FreeText, LabelFeatures, TextMatch, TextOptions};
 
+/// An expression as error messages quote it: whole up to 200 characters, else its start and
+/// its length (a machine-made expression can be megabytes long).
+fn shown(text: &str) -> String {
+    const MAX: usize = 200;
+    if text.chars().count() <= MAX {
+        return text.to_string();
+    }
+    let head: String = text.chars().take(MAX / 2).collect();
+    format!("{head}… ({} characters)", text.chars().count())
+}
+
 /// Errors of loading a finished run and evaluating selections over it.
 #[derive(Debug, thiserror::Error)]
 pub enum SelectionError {
     /// `what` names where the text came from (`--where`, `--attr`, …); the error is part of
     /// the message and not a `source`, so a printed chain says it once.
-    #[error("{what} `{text}`: {error}")]
+    #[error("{what} `{}`: {error}", shown(.text))]
     Parse {
         what: String,
         text: String,
         error: ParseError,
     },
-    #[error("{what} `{text}`: {error}")]
+    #[error("{what} `{}`: {error}", shown(.text))]
     Select {
         what: String,
         text: String,

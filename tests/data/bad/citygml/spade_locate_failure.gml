@@ -1,0 +1,8 @@
+<?xml version="1.0" encoding="UTF-8"?>
+<core:CityModel xsi:schemaLocation="http://www.opengis.net/citygml/1.0 http://schemas.opengis.net/citygml/1.0/cityGMLBase.xsd  http://www.opengis.net/citygml/appearance/1.0 http://schemas.opengis.net/citygml/appearance/1.0/appearance.xsd http://www.opengis.net/citygml/building/1.0 http://schemas.opengis.net/citygml/building/1.0/building.xsd" xmlns:core="http://www.opengis.net/citygml/1.0" xmlns="http://www.opengis.net/citygml/profiles/base/1.0" xmlns:bldg="http://www.opengis.net/citygml/building/1.0" xmlns:grp="http://www.opengis.net/citygml/cityobjectgroup/1.0" xmlns:app="http://www.opengis.net/citygml/appearance/1.0" xmlns:gml="http://www.opengis.net/gml" xmlns:xAL="urn:oasis:names:tc:ciq:xsdschema:xAL:2.0" xmlns:xlink="http://www.w3.org/1999/xlink" xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance">
+<core:cityObjectMember><bldg:Building gml:id="B1"><bldg:boundedBy><bldg:WallSurface gml:id="W1">
+<bldg:lod3MultiSurface><gml:MultiSurface><gml:surfaceMember><gml:Polygon gml:id="P1">
+<gml:exterior><gml:LinearRing><gml:posList srsDimension="3">448887.21 5438353.0 2.0 458887.21 5438353.12 2 448887.21 5438353.12 100000.8 458887.21 5438353 0.8 458887.21 5438353 2</gml:posList></gml:LinearRing></gml:exterior>
+</gml:Polygon></gml:surfaceMember><gml:surfaceMember><gml:Polygon gml:id="PIN"><gml:exterior><gml:LinearRing><gml:posList srsDimension="3">448877.12 5428357.566987298 -9999.2 448878.12 5428357.566987298 -9999.2 448877.12 5428358.566987298 -9999.2 448877.12 5428357.566987298 -9999.2</gml:posList></gml:LinearRing></gml:exterior></gml:Polygon></gml:surfaceMember></gml:MultiSurface></bldg:lod3MultiSurface>
+</bldg:WallSurface></bldg:boundedBy></bldg:Building></core:cityObjectMember>
+</core:CityModel>
