@@ -82,6 +82,15 @@ put("citygml", "v3_building.gml", CITYGML3)
 put("citygml", "latin1.gml", CITYGML2.replace('encoding="UTF-8"', 'encoding="ISO-8859-1"')
     .replace("House &amp; garden", "H\u00e4user").encode("latin-1"))
 
+# The citymodel target triangulates what the citygml target reads: the same seeds.
+for name in ("v2_building.gml", "v1_building.gml", "v3_building.gml", "latin1.gml"):
+    put("citymodel", name, open(os.path.join(ROOT, "citygml", name), "rb").read())
+
+# ------------------------------------------------------------------ selection expressions
+put("where", "class_and_attr.txt", "class=Window and measuredHeight >= 1200 cm")
+put("where", "nested.txt", "not (level=part or within(\"DEBY 1\")) and text('a car') or label=3")
+put("where", "dates_ids.txt", "creationDate>=2020-09-01 and id=B1 or category=tree")
+
 # ------------------------------------------------------------------ PLY
 CORE = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
         "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]

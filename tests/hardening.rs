@@ -373,7 +373,7 @@ fn alignments_that_leave_the_scene_frame_are_refused() {
 /// output ran. Every vertex is now checked before triangulation: one line naming the polygon.
 #[test]
 fn a_ring_with_mistyped_exponents_is_refused_before_triangulation() {
-    let gml = data_bad("citygml/mistyped_exponents_circle.gml");
+    let gml = data_bad("fuzz/citymodel/mistyped_exponents_circle.gml");
     let e = citymodel::run(std::slice::from_ref(&gml), &citymodel::Options::default())
         .err()
         .expect("refused");
@@ -391,7 +391,7 @@ fn a_ring_with_mistyped_exponents_is_refused_before_triangulation() {
 /// words, the rest of the model is written, and nothing is printed as a panic.
 #[test]
 fn a_ring_the_triangulator_fails_on_is_skipped_not_a_crash() {
-    let gml = data_bad("citygml/spade_locate_failure.gml");
+    let gml = data_bad("fuzz/citymodel/spade_locate_failure.gml");
     let out = citymodel::run(std::slice::from_ref(&gml), &citymodel::Options::default())
         .expect("the pinned triangle is still written");
     let skipped = &out.summary.skipped.polygons;

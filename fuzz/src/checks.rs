@@ -12,11 +12,13 @@ use gs4city::alignment::{self as align, Alignment};
 use gs4city::mesh::TriMesh;
 use gs4city::semantics;
 use gs4city::splat::{InvalidPolicy, ReadOptions, read_ply_bytes};
-use gs4city::{citygml, colmap, npy, sam};
+use gs4city::{citygml, citymodel, colmap, npy, sam, selection};
 
 /// The readers, by fuzz-target name.
-pub const READERS: [&str; 8] = [
+pub const READERS: [&str; 10] = [
     "citygml",
+    "citymodel",
+    "where",
     "ply_splat",
     "ply_mesh",
     "colmap_bin",
@@ -30,6 +32,8 @@ pub const READERS: [&str; 8] = [
 pub fn run(name: &str, data: &[u8]) -> Option<String> {
     match name {
         "citygml" => citygml(data),
+        "citymodel" => citymodel_triangles(data),
+        "where" => where_expr(data),
         "ply_splat" => ply_splat(data),
         "ply_mesh" => ply_mesh(data),
         "colmap_bin" => colmap_model(data, true),
@@ -212,6 +216,44 @@ pub fn align_json(data: &[u8]) -> Option<String> {
             let back = Alignment::from_json_str(Path::new("a.json"), &a.to_json().to_string())
                 .expect("a written alignment reads back");
             assert_eq!(back, a);
+            None
+        }
+        Err(e) => Some(e.to_string()),
+    }
+}
+
+/// CityGML read, then every polygon triangulated as the citymodel stage does (after the
+/// reader, where spade's assertions and our ring repairs run): a model whose triangulated
+/// polygons have a finite, non-negative area and at least one triangle, or the reader's error.
+pub fn citymodel_triangles(data: &[u8]) -> Option<String> {
+    let model = match citygml::read_bytes(Path::new("fuzz.gml"), data) {
+        Ok(m) => m,
+        Err(e) => return Some(e.to_string()),
+    };
+    for p in citymodel::triangulate_all(&model) {
+        if let Ok((triangles, area)) = p.result {
+            assert!(triangles > 0, "polygon {:?}: no triangles", p.id);
+            assert!(
+                area.is_finite() && area >= 0.0,
+                "polygon {:?}: area {area}",
+                p.id
+            );
+        }
+    }
+    None
+}
+
+/// A selection expression (`--where`, the viewer's query box): parsed, or one error with a
+/// column; an accepted expression prints as text that parses back to the same tree.
+pub fn where_expr(data: &[u8]) -> Option<String> {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return Some("not UTF-8".into());
+    };
+    match selection::grammar::parse(text) {
+        Ok(e) => {
+            let again = selection::grammar::parse(&e.to_string())
+                .unwrap_or_else(|err| panic!("`{e}` does not parse back: {err}"));
+            assert_eq!(again.to_string(), e.to_string());
             None
         }
         Err(e) => Some(e.to_string()),
