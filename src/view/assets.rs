@@ -13,66 +13,45 @@ pub struct Asset {
 
 const JS: &str = "text/javascript; charset=utf-8";
 const TEXT: &str = "text/plain; charset=utf-8";
+const HTML: &str = "text/html; charset=utf-8";
+
+/// An [`Asset`] of the file `src/view/FILE` served at `/URL`.
+macro_rules! asset {
+    ($url:literal, $ty:expr, $file:literal) => {
+        Asset {
+            path: $url,
+            content_type: $ty,
+            bytes: include_bytes!($file),
+        }
+    };
+}
 
 /// Every file the page loads, by URL path.
 pub const ASSETS: &[Asset] = &[
-    Asset {
-        path: "/",
-        content_type: "text/html; charset=utf-8",
-        bytes: include_bytes!("page.html"),
-    },
-    Asset {
-        path: "/index.html",
-        content_type: "text/html; charset=utf-8",
-        bytes: include_bytes!("page.html"),
-    },
-    Asset {
-        path: "/viewer.js",
-        content_type: JS,
-        bytes: include_bytes!("viewer.js"),
-    },
-    Asset {
-        path: "/vendor/spark.module.min.js",
-        content_type: JS,
-        bytes: include_bytes!("vendor/spark.module.min.js"),
-    },
-    Asset {
-        path: "/vendor/three.module.min.js",
-        content_type: JS,
-        bytes: include_bytes!("vendor/three.module.min.js"),
-    },
-    Asset {
-        path: "/vendor/three.core.min.js",
-        content_type: JS,
-        bytes: include_bytes!("vendor/three.core.min.js"),
-    },
-    Asset {
-        path: "/vendor/three/addons/postprocessing/Pass.js",
-        content_type: JS,
-        bytes: include_bytes!("vendor/three/addons/postprocessing/Pass.js"),
-    },
-    Asset {
-        path: "/vendor/LICENSE.spark",
-        content_type: TEXT,
-        bytes: include_bytes!("vendor/LICENSE.spark"),
-    },
-    Asset {
-        path: "/vendor/LICENSE.three",
-        content_type: TEXT,
-        bytes: include_bytes!("vendor/LICENSE.three"),
-    },
+    asset!("/", HTML, "page.html"),
+    asset!("/index.html", HTML, "page.html"),
+    asset!("/viewer.js", JS, "viewer.js"),
+    asset!(
+        "/vendor/spark.module.min.js",
+        JS,
+        "vendor/spark.module.min.js"
+    ),
+    asset!(
+        "/vendor/three.module.min.js",
+        JS,
+        "vendor/three.module.min.js"
+    ),
+    asset!("/vendor/three.core.min.js", JS, "vendor/three.core.min.js"),
+    asset!(
+        "/vendor/three/addons/postprocessing/Pass.js",
+        JS,
+        "vendor/three/addons/postprocessing/Pass.js"
+    ),
+    asset!("/vendor/LICENSE.spark", TEXT, "vendor/LICENSE.spark"),
+    asset!("/vendor/LICENSE.three", TEXT, "vendor/LICENSE.three"),
 ];
 
 /// The embedded file served at URL path `path`.
 pub fn find(path: &str) -> Option<&'static Asset> {
     ASSETS.iter().find(|a| a.path == path)
-}
-
-/// Bytes of everything embedded (the page, its script and the vendored renderer).
-pub fn total_bytes() -> usize {
-    ASSETS
-        .iter()
-        .filter(|a| a.path != "/index.html")
-        .map(|a| a.bytes.len())
-        .sum()
 }

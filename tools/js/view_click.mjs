@@ -9,16 +9,10 @@
 // SPEC: { url, eye: [x,y,z], target: [x,y,z], click: [x,y,z], queries: [..], screenshot: PATH,
 //         screenshot_query, screenshot_overview (the page's first view), width, height }
 import { readFileSync } from 'node:fs';
-import { chromium } from 'playwright-core';
+import { launchChromium } from './chromium.mjs';
 
 const spec = JSON.parse(readFileSync(process.argv[2], 'utf8'));
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
-  headless: true,
-  args: ['--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader', '--ignore-gpu-blocklist',
-    '--disable-quic', '--no-first-run', '--disable-background-networking', '--disable-component-update',
-    '--disable-sync'],
-});
+const browser = await launchChromium();
 const out = { console: [] };
 try {
   const page = await browser.newPage({ viewport: { width: spec.width || 960, height: spec.height || 640 } });
