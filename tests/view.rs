@@ -3,8 +3,10 @@
 //! /proc/net/tcp), refuses paths outside the run folder and survives malformed requests (raw TCP
 //! sockets), its query API counts what `gs4city query` selects, its pick API reports the
 //! hierarchy `semantic.ply` stores, and in headless Chromium (Debian's, driven by playwright-core
-//! from tools/viewer) a real mouse click on a window shows that window, its wall and its
+//! from tools/js) the splat renderer (Spark, vendored from npm) draws the window's class colour
+//! where the window is, a real mouse click on a window shows that window, its wall and its
 //! building, and a query typed in the box highlights as many Gaussians as `gs4city query` selects.
+//! The vendored renderer is byte for byte the npm package pinned in tools/js.
 //! The truth is read here from `R/lift/semantic.ply` and `R/citymodel/semantics.json`.
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{Ipv4Addr, SocketAddr, TcpStream, UdpSocket};
@@ -14,6 +16,7 @@ use std::sync::OnceLock;
 use std::time::Duration;
 
 use glam::DVec3;
+use gs4city::classes;
 use gs4city::splat::{self, ReadOptions};
 use serde_json::Value;
 
@@ -198,6 +201,9 @@ fn cli_count(run: &Path, q: &str) -> Result<usize, String> {
 struct Truth {
     pos: Vec<DVec3>,
     sigma: Vec<f64>,
+    /// Raw log scales and raw quaternions `(w, x, y, z)` of `semantic.ply`.
+    log_scale: Vec<[f32; 3]>,
+    rot: Vec<[f32; 4]>,
     opacity: Vec<f64>,
     class: Vec<i32>,
     feature: Vec<i32>,
@@ -246,6 +252,8 @@ fn truth(run: &Path) -> Truth {
             .iter()
             .map(|s| f64::from(s[0].max(s[1]).max(s[2])).exp())
             .collect(),
+        log_scale: g.scale.clone(),
+        rot: g.rotation.clone(),
         opacity: g
             .opacity
             .iter()
@@ -617,11 +625,11 @@ fn window_shot(t: &Truth) -> (i32, usize, DVec3, DVec3) {
 #[test]
 fn click_on_a_window_and_type_queries_in_headless_chromium() {
     let test = "view::click_on_a_window_and_type_queries_in_headless_chromium";
-    let tools = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/viewer");
+    let tools = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/js");
     if !tools.join("node_modules/playwright-core").is_dir() {
         crate::common::skip(
             test,
-            "tools/viewer/node_modules/playwright-core is missing (scripts/setup.sh runs npm ci in tools/viewer)",
+            "tools/js/node_modules/playwright-core is missing (scripts/setup.sh runs npm ci in tools/js)",
         );
         return;
     }
@@ -664,7 +672,7 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
     let spec_path = dir.join("click-spec.json");
     std::fs::write(&spec_path, spec.to_string()).unwrap();
     let o = Command::new("node")
-        .arg(tools.join("click_test.mjs"))
+        .arg(tools.join("view_click.mjs"))
         .arg(&spec_path)
         .current_dir(&tools)
         .output()
@@ -678,6 +686,37 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
     let r: Value = serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"));
     assert!(r["error"].is_null(), "{r}");
     assert_eq!(r["gaussians"].as_u64(), Some(t.pos.len() as u64));
+    assert_eq!(r["renderer"].as_str(), Some("spark"), "{r}");
+    // Spark drew the window where the camera sees it: in the Class mode the pixels around the
+    // clicked point are nearer the window's class colour than any other class colour or the
+    // background, and the RGB mode drew something else there.
+    let near = |rgb: &Value| -> (usize, f64) {
+        let c: Vec<f64> = (0..3).map(|k| rgb[k].as_f64().unwrap()).collect();
+        let mut cands: Vec<[u8; 3]> = (0..classes::NAMES.len() as i32)
+            .map(classes::color)
+            .collect();
+        cands.push([0x1c, 0x20, 0x25]);
+        let d = |p: &[u8; 3]| {
+            (0..3)
+                .map(|k| (c[k] - f64::from(p[k])).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        };
+        let best = (0..cands.len())
+            .min_by(|&a, &b| d(&cands[a]).total_cmp(&d(&cands[b])))
+            .unwrap();
+        (best, d(&cands[best]))
+    };
+    let (cls, dist) = near(&r["class_at_click"]["rgb"]);
+    assert_eq!(
+        cls, 2,
+        "Spark's colour at the window is not the window class colour: {r}"
+    );
+    assert!(dist < 60.0, "{r}");
+    assert_ne!(r["rgb_at_click"]["rgb"], r["class_at_click"]["rgb"], "{r}");
+    // The overview shows the scene: most of the canvas is drawn, not background.
+    let bg = r["overview"]["background_share"].as_f64().unwrap();
+    assert!(bg < 0.75, "the overview is {bg} background: {r}");
     // The click: a Gaussian of the window, and the panel shows the window, its wall, its building.
     let picked = r["picked_gaussian"].as_i64().unwrap();
     assert!(picked >= 0, "the click hit nothing: {r}");
@@ -712,5 +751,126 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
     // GS4CITY_VIEW_PNG=docs/img/view.png keeps the screenshot (docs/view.md).
     if let Some(keep) = std::env::var_os("GS4CITY_VIEW_PNG") {
         std::fs::write(keep, &png).unwrap();
+    }
+}
+
+/// `/api/splats.bin` (version 2) holds what Spark draws: per Gaussian the centre, σ, the three
+/// activated scales and the unit quaternion in Spark's `x y z w` order, checked against the
+/// raw `semantic.ply` columns (exp of the log scales, the quaternion normalised here).
+#[test]
+fn splats_binary_holds_centres_scales_and_rotations() {
+    let run = run_dir();
+    let t = truth(run);
+    let srv = Server::start(run);
+    let (status, b) = srv.get("/api/splats.bin");
+    assert_eq!(status, 200);
+    let n = t.pos.len();
+    assert_eq!(&b[..4], b"GS4V");
+    let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().unwrap());
+    assert_eq!((u32_at(4), u32_at(8) as usize), (2, n));
+    assert_eq!(b.len(), 16 + 56 * n);
+    let f = |o: usize| f64::from(f32::from_le_bytes(b[o..o + 4].try_into().unwrap()));
+    let (pos, sig, scl, rot) = (16, 16 + 12 * n, 16 + 16 * n, 16 + 28 * n);
+    for i in (0..n).step_by(97) {
+        for k in 0..3 {
+            assert_eq!(f(pos + 12 * i + 4 * k), t.pos[i][k], "x{k} of {i}");
+            let e = f64::from(t.log_scale[i][k]).exp();
+            assert!(
+                (f(scl + 12 * i + 4 * k) - e).abs() <= 1e-5 * e,
+                "scale {k} of {i}"
+            );
+        }
+        assert!(
+            (f(sig + 4 * i) - t.sigma[i]).abs() <= 1e-5 * t.sigma[i],
+            "σ of {i}"
+        );
+        let q = t.rot[i].map(f64::from);
+        let l = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        for (k, raw) in [q[1], q[2], q[3], q[0]].into_iter().enumerate() {
+            assert!(
+                (f(rot + 16 * i + 4 * k) - raw / l).abs() < 1e-6,
+                "quaternion {k} of {i}"
+            );
+        }
+    }
+}
+
+/// The renderer embedded in the binary and served under `/vendor/` is byte for byte the npm
+/// packages pinned in tools/js (`@sparkjsdev/spark`, `three`), with their licence files.
+#[test]
+fn vendored_renderer_is_the_npm_package() {
+    let test = "view::vendored_renderer_is_the_npm_package";
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let nm = root.join("tools/js/node_modules");
+    if !nm.join("@sparkjsdev/spark").is_dir() || !nm.join("three").is_dir() {
+        crate::common::skip(
+            test,
+            "tools/js/node_modules has no @sparkjsdev/spark or three (scripts/setup.sh runs npm ci in tools/js)",
+        );
+        return;
+    }
+    let lock: Value = serde_json::from_str(
+        &std::fs::read_to_string(root.join("tools/js/package-lock.json")).unwrap(),
+    )
+    .unwrap();
+    for (pkg, version) in [("@sparkjsdev/spark", "2.2.0"), ("three", "0.180.0")] {
+        let installed: Value = serde_json::from_str(
+            &std::fs::read_to_string(nm.join(pkg).join("package.json")).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(installed["version"].as_str(), Some(version), "{pkg}");
+        assert_eq!(
+            lock["packages"][format!("node_modules/{pkg}")]["version"].as_str(),
+            Some(version),
+            "{pkg} in package-lock.json"
+        );
+    }
+    let srv = Server::start(run_dir());
+    for (url, npm) in [
+        (
+            "/vendor/spark.module.min.js",
+            "@sparkjsdev/spark/dist/spark.module.min.js",
+        ),
+        ("/vendor/LICENSE.spark", "@sparkjsdev/spark/LICENSE"),
+        (
+            "/vendor/three.module.min.js",
+            "three/build/three.module.min.js",
+        ),
+        ("/vendor/three.core.min.js", "three/build/three.core.min.js"),
+        (
+            "/vendor/three/addons/postprocessing/Pass.js",
+            "three/examples/jsm/postprocessing/Pass.js",
+        ),
+        ("/vendor/LICENSE.three", "three/LICENSE"),
+    ] {
+        let want = std::fs::read(nm.join(npm)).unwrap();
+        let vendored =
+            std::fs::read(root.join("src/view").join(url.trim_start_matches('/'))).unwrap();
+        assert!(
+            vendored == want,
+            "src/view{url} differs from node_modules/{npm}"
+        );
+        let (status, text, body) = srv.raw(
+            format!(
+                "GET {url} HTTP/1.1\r\nHost: 127.0.0.1:{}\r\nConnection: close\r\n\r\n",
+                srv.port
+            )
+            .as_bytes(),
+        );
+        assert_eq!(status, 200, "{url}");
+        assert!(
+            body == want,
+            "{url}: the served bytes differ from node_modules/{npm}"
+        );
+        let ct = if url.ends_with(".js") {
+            "text/javascript"
+        } else {
+            "text/plain"
+        };
+        assert!(
+            text.lines()
+                .any(|l| l.starts_with("Content-Type: ") && l.contains(ct)),
+            "{url}: not {ct}"
+        );
     }
 }

@@ -35,10 +35,12 @@ pub struct Response {
     pub body: Body,
 }
 
-/// A response body: bytes in memory, shared bytes, or a file streamed from disk.
+/// A response body: bytes in memory, shared bytes, bytes embedded in the binary, or a file
+/// streamed from disk.
 #[derive(Debug, Clone)]
 pub enum Body {
     Bytes(Vec<u8>),
+    Static(&'static [u8]),
     Shared(Arc<Vec<u8>>),
     File(std::path::PathBuf, u64),
 }
@@ -168,6 +170,7 @@ pub fn read_head(stream: &mut impl Read) -> Result<Request, HeadError> {
 pub fn write_response(stream: &mut impl Write, resp: &Response, head_only: bool) -> io::Result<()> {
     let len = match &resp.body {
         Body::Bytes(b) => b.len() as u64,
+        Body::Static(b) => b.len() as u64,
         Body::Shared(b) => b.len() as u64,
         Body::File(_, n) => *n,
     };
@@ -181,6 +184,7 @@ pub fn write_response(stream: &mut impl Write, resp: &Response, head_only: bool)
     if !head_only {
         match &resp.body {
             Body::Bytes(b) => stream.write_all(b)?,
+            Body::Static(b) => stream.write_all(b)?,
             Body::Shared(b) => stream.write_all(b)?,
             Body::File(p, n) => {
                 let f = std::fs::File::open(p)?;

@@ -1,10 +1,12 @@
 //! `gs4city view R`: a local interactive viewer of a finished run (docs/view.md). A small HTTP
-//! server ([`http`], bound to 127.0.0.1 only) serves the page and its WebGL2 renderer (embedded
-//! in the binary), the run's Gaussians in a compact binary ([`splats_binary`]), a JSON API and
-//! the run folder's files ([`files`]):
+//! server ([`http`], bound to 127.0.0.1 only) serves the page, its script and the splat renderer
+//! it draws with (Spark on three.js, vendored from npm; all embedded in the binary, [`assets`]),
+//! the run's Gaussians in a compact binary ([`splats_binary`]), a JSON API and the run folder's
+//! files ([`files`]):
 //!
 //! * `GET /api/meta`: Gaussian count, mode, scene up axis, centre and extent, the class legend;
-//! * `GET /api/splats.bin`: positions, sizes, RGB / class / building colours ([`splats_binary`]);
+//! * `GET /api/splats.bin`: centres, scales, rotations, RGB / class / building colours
+//!   ([`splats_binary`]);
 //! * `GET /api/query?where=EXPR`: the selection of `gs4city query --where EXPR` — the same parser
 //!   and evaluation ([`crate::selection`]) over the same per-Gaussian labels — as a count and a
 //!   bitmask (base64, bit `i` of byte `i / 8` LSB first = Gaussian `i`); a bad expression is
@@ -13,8 +15,10 @@
 //!   part with gml:ids and attributes ([`crate::query::chain`], as `query --pick`);
 //! * `GET /files/PATH`: a regular file inside the run folder, nothing outside it.
 //!
-//! The page picks on the client: it renders every splat's index + 1 as an RGBA colour into an
-//! offscreen target and reads the clicked pixel, then asks `/api/pick`.
+//! The page picks on the client: with the renderer's camera it draws every splat's index + 1 as an
+//! RGBA colour into an offscreen target of its own and reads the clicked pixel, then asks
+//! `/api/pick`.
+pub mod assets;
 pub mod files;
 pub mod http;
 
@@ -30,13 +34,11 @@ use crate::splat::{self, ReadOptions};
 use crate::{alignment, classes, query, semantics};
 use http::{Body, Request, Response};
 
-/// The page, its script and its stylesheet, embedded at build time.
-const PAGE: &str = include_str!("page.html");
-const SCRIPT: &str = include_str!("viewer.js");
-
 /// Magic and version of [`splats_binary`].
 pub const SPLATS_MAGIC: &[u8; 4] = b"GS4V";
-pub const SPLATS_VERSION: u32 = 1;
+pub const SPLATS_VERSION: u32 = 2;
+/// Bytes per Gaussian in [`splats_binary`] (after the 16-byte head).
+pub const SPLATS_STRIDE: usize = 56;
 
 /// Errors of opening a run for viewing or binding the server.
 #[derive(Debug, thiserror::Error)]
@@ -70,26 +72,37 @@ fn dc_rgb(dc: [f32; 3]) -> [u8; 3] {
     dc.map(|c| ((0.5 + C0 * c).clamp(0.0, 1.0) * 255.0).round() as u8)
 }
 
-/// The page's binary of `n` Gaussians (little endian, every block 4-byte aligned):
-/// `GS4V`, u32 version, u32 n, u32 0; f32 `x y z` × n; f32 size × n (the largest activated
-/// scale, σ in scene units); RGBA8 × n (DC colour, activated opacity); RGBA8 × n (class colour,
-/// `classes::color`); RGBA8 × n (building colour, `classes::building_color`).
+/// The page's binary of `n` Gaussians (little endian, every block 4-byte aligned), 16 +
+/// [`SPLATS_STRIDE`]·n bytes: `GS4V`, u32 version, u32 n, u32 0; f32 `x y z` × n; f32 size × n
+/// (the largest activated scale, σ in scene units); f32 activated scales `sx sy sz` × n; f32
+/// unit quaternion `x y z w` × n (identity for a zero or non-finite one); RGBA8 × n (DC colour,
+/// activated opacity); RGBA8 × n (class colour, `classes::color`); RGBA8 × n (building colour,
+/// `classes::building_color`). Non-finite scales are sent as 0.
 pub fn splats_binary(g: &splat::Gaussians, class_of: &[i32], building_of: &[i32]) -> Vec<u8> {
     let n = g.len();
-    let mut out = Vec::with_capacity(16 + n * 28);
+    let mut out = Vec::with_capacity(16 + n * SPLATS_STRIDE);
     out.extend_from_slice(SPLATS_MAGIC);
     out.extend_from_slice(&SPLATS_VERSION.to_le_bytes());
     out.extend_from_slice(&(n as u32).to_le_bytes());
     out.extend_from_slice(&0u32.to_le_bytes());
-    for p in &g.positions {
-        for v in p {
-            out.extend_from_slice(&v.to_le_bytes());
+    let f32s = |out: &mut Vec<u8>, v: &[f32]| {
+        for x in v {
+            out.extend_from_slice(&(if x.is_finite() { *x } else { 0.0 }).to_le_bytes());
         }
+    };
+    for p in &g.positions {
+        f32s(&mut out, p);
     }
     for i in 0..n {
         let s = g.activated_scale(i);
-        let m = s[0].max(s[1]).max(s[2]);
-        out.extend_from_slice(&(if m.is_finite() { m } else { 0.0 }).to_le_bytes());
+        f32s(&mut out, &[s[0].max(s[1]).max(s[2])]);
+    }
+    for i in 0..n {
+        f32s(&mut out, &g.activated_scale(i));
+    }
+    for i in 0..n {
+        let [w, x, y, z] = g.normalized_rotation(i).unwrap_or([1.0, 0.0, 0.0, 0.0]);
+        f32s(&mut out, &[x, y, z, w]);
     }
     for i in 0..n {
         let [r, gg, b] = dc_rgb(g.f_dc[i]);
@@ -304,17 +317,14 @@ impl Viewer {
         }
         let params = parse_query(&req.query);
         let param = |k: &str| params.iter().find(|(n, _)| n == k).map(|(_, v)| v.as_str());
+        if let Some(a) = assets::find(&req.path) {
+            return Response {
+                status: 200,
+                content_type: a.content_type,
+                body: Body::Static(a.bytes),
+            };
+        }
         match req.path.as_str() {
-            "/" | "/index.html" => Response {
-                status: 200,
-                content_type: "text/html; charset=utf-8",
-                body: Body::Bytes(PAGE.as_bytes().to_vec()),
-            },
-            "/viewer.js" => Response {
-                status: 200,
-                content_type: "text/javascript; charset=utf-8",
-                body: Body::Bytes(SCRIPT.as_bytes().to_vec()),
-            },
             "/api/meta" => Response::json(200, &self.meta),
             "/api/splats.bin" => Response {
                 status: 200,

@@ -1,21 +1,24 @@
-// gs4city view: a small WebGL2 splat viewer (docs/view.md). Each Gaussian is drawn as a
-// depth-tested round sprite whose diameter is 4σ (its largest activated scale) in perspective;
-// Gaussians with opacity below MIN_OPACITY are not drawn. Picking renders every splat's
-// index + 1 as an RGBA colour into an offscreen target with the same geometry and reads the
-// clicked pixel, then asks the server for the Gaussian's hierarchy (/api/pick).
-'use strict';
-(async function () {
-  const MIN_OPACITY = 0.05;
-  const FOVY = 50 * Math.PI / 180;
-  const $ = (id) => document.getElementById(id);
-  const api = { ready: false, error: null };
-  window.gs4city = api;
-  const fail = (msg) => { api.error = msg; $('status').textContent = msg; };
+// gs4city view (docs/view.md). The run's Gaussians are drawn by Spark (@sparkjsdev/spark, a 3D
+// Gaussian Splatting renderer on three.js, vendored from npm and embedded in the binary): every
+// Gaussian as an anisotropic, depth-sorted, alpha-blended splat from its centre, scales,
+// rotation, opacity and colour. The colour modes and the query highlight rewrite the splats'
+// colours (RGB = the DC colour, Class, Building). Picking is a pass of our own with the same
+// camera matrices: every Gaussian with opacity ≥ MIN_OPACITY is drawn as a depth-tested disc of
+// diameter 4σ (σ its largest scale) with its index + 1 as its RGBA colour into an offscreen
+// target of a second WebGL2 context, the clicked pixel is read back, and the server is asked
+// for the Gaussian's hierarchy (/api/pick).
+import * as THREE from 'three';
+import { PackedSplats, SparkRenderer, SplatMesh, setPackedSplat, utils } from '@sparkjsdev/spark';
 
-  const canvas = $('gl');
-  const gl = canvas.getContext('webgl2', { antialias: false, preserveDrawingBuffer: true });
-  if (!gl) { fail('WebGL2 is not available in this browser.'); return; }
+const MIN_OPACITY = 0.05;
+const FOVY = 50;
+const BACKGROUND = 0x1c2025;
+const $ = (id) => document.getElementById(id);
+const api = { ready: false, error: null, frames: 0 };
+window.gs4city = api;
+const fail = (msg) => { api.error = msg; $('status').textContent = msg; };
 
+async function main() {
   let meta, buf;
   try {
     meta = await (await fetch('api/meta')).json();
@@ -26,59 +29,79 @@
   const head = new DataView(buf);
   const magic = String.fromCharCode(head.getUint8(0), head.getUint8(1), head.getUint8(2), head.getUint8(3));
   const n = head.getUint32(8, true);
-  if (magic !== 'GS4V' || head.getUint32(4, true) !== 1 || buf.byteLength !== 16 + 28 * n) {
-    fail('api/splats.bin: not a version-1 GS4V buffer'); return;
+  if (magic !== 'GS4V' || head.getUint32(4, true) !== 2 || buf.byteLength !== 16 + 56 * n) {
+    fail('api/splats.bin: not a version-2 GS4V buffer'); return;
   }
   let off = 16;
   const take = (T, count, bytes) => { const a = new T(buf, off, count); off += bytes; return a; };
   const pos = take(Float32Array, 3 * n, 12 * n);
   const size = take(Float32Array, n, 4 * n);
+  const scl = take(Float32Array, 3 * n, 12 * n);
+  const quat = take(Float32Array, 4 * n, 16 * n);
   const rgba = take(Uint8Array, 4 * n, 4 * n);
   const cls = take(Uint8Array, 4 * n, 4 * n);
   const bld = take(Uint8Array, 4 * n, 4 * n);
   const sel = new Uint8Array(n);
 
-  // --- shaders -------------------------------------------------------------------------
+  // --- the splat renderer ---------------------------------------------------------------
+  const canvas = $('gl');
+  let renderer;
+  try {
+    renderer = new THREE.WebGLRenderer({ canvas, antialias: false, preserveDrawingBuffer: true });
+  } catch (e) { fail('WebGL2 is not available in this browser: ' + e.message); return; }
+  renderer.setPixelRatio(1);
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(BACKGROUND);
+  const camera = new THREE.PerspectiveCamera(FOVY, 1, 0.01, 100);
+  let pending = false;
+  const redraw = () => {
+    if (pending) return;
+    pending = true;
+    requestAnimationFrame(() => { pending = false; draw(); });
+  };
+  // Spark sorts the splats by depth in a worker; `onDirty` asks for the frame that shows it.
+  const spark = new SparkRenderer({ renderer, onDirty: redraw });
+  scene.add(spark);
+  const packed = new Uint32Array(utils.computeMaxSplats(n) * 4);
+  for (let i = 0; i < n; i++) {
+    setPackedSplat(packed, i, pos[3 * i], pos[3 * i + 1], pos[3 * i + 2],
+      scl[3 * i], scl[3 * i + 1], scl[3 * i + 2], quat[4 * i], quat[4 * i + 1], quat[4 * i + 2], quat[4 * i + 3],
+      rgba[4 * i + 3] / 255, rgba[4 * i] / 255, rgba[4 * i + 1] / 255, rgba[4 * i + 2] / 255);
+  }
+  const splats = new PackedSplats({ packedArray: packed, numSplats: n });
+  const mesh = new SplatMesh({ packedSplats: splats });
+  scene.add(mesh);
+  await mesh.initialized;
+
+  // --- the pick pass: a second WebGL2 context, discs of 4σ, index + 1 as the colour -------
+  const pickCanvas = document.createElement('canvas');
+  const gl = pickCanvas.getContext('webgl2', { antialias: false });
+  if (!gl) { fail('WebGL2 is not available in this browser.'); return; }
   const VS = `#version 300 es
   layout(location=0) in vec3 aPos;
   layout(location=1) in float aSize;
-  layout(location=2) in vec4 aRgb;
-  layout(location=3) in vec4 aClass;
-  layout(location=4) in vec4 aBuilding;
-  layout(location=5) in float aSel;
+  layout(location=2) in float aAlpha;
   uniform mat4 uViewProj;
   uniform float uFocal;
   uniform float uMaxPoint;
-  uniform int uMode;
-  uniform int uQuery;
-  out vec4 vColor;
   flat out uint vId;
   void main() {
     vec4 c = uViewProj * vec4(aPos, 1.0);
     vId = uint(gl_VertexID) + 1u;
-    if (aRgb.a < ${MIN_OPACITY.toFixed(4)} || c.w <= 0.0) {
-      gl_Position = vec4(2.0, 2.0, 2.0, 1.0); gl_PointSize = 1.0; vColor = vec4(0.0); return;
+    if (aAlpha < ${MIN_OPACITY.toFixed(4)} || c.w <= 0.0) {
+      gl_Position = vec4(2.0, 2.0, 2.0, 1.0); gl_PointSize = 1.0; return;
     }
     gl_Position = c;
     gl_PointSize = clamp(4.0 * aSize * uFocal / c.w, 1.0, uMaxPoint);
-    vec3 col = uMode == 1 ? aClass.rgb : (uMode == 2 ? aBuilding.rgb : aRgb.rgb);
-    if (uQuery == 1) col = aSel > 0.5 ? min(col * 1.15 + 0.05, 1.0) : col * 0.18 + 0.03;
-    vColor = vec4(col, 1.0);
   }`;
   const FS = `#version 300 es
   precision highp float;
-  in vec4 vColor;
   flat in uint vId;
-  uniform int uPick;
   out vec4 o;
   void main() {
     vec2 d = gl_PointCoord * 2.0 - 1.0;
     if (dot(d, d) > 1.0) discard;
-    if (uPick == 1) {
-      o = vec4(float(vId & 255u), float((vId >> 8) & 255u), float((vId >> 16) & 255u), float((vId >> 24) & 255u)) / 255.0;
-    } else {
-      o = vColor;
-    }
+    o = vec4(float(vId & 255u), float((vId >> 8) & 255u), float((vId >> 16) & 255u), float((vId >> 24) & 255u)) / 255.0;
   }`;
   const compile = (type, src) => {
     const s = gl.createShader(type); gl.shaderSource(s, src); gl.compileShader(s);
@@ -93,24 +116,19 @@
     if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
   } catch (e) { fail('Shader: ' + e.message); return; }
   const U = {};
-  for (const u of ['uViewProj', 'uFocal', 'uMaxPoint', 'uMode', 'uQuery', 'uPick']) U[u] = gl.getUniformLocation(prog, u);
-
+  for (const u of ['uViewProj', 'uFocal', 'uMaxPoint']) U[u] = gl.getUniformLocation(prog, u);
   const vao = gl.createVertexArray();
   gl.bindVertexArray(vao);
-  const attr = (loc, data, comps, type, normalized) => {
+  const attr = (loc, data, comps, type, normalized, stride, offset) => {
     const b = gl.createBuffer();
     gl.bindBuffer(gl.ARRAY_BUFFER, b);
     gl.bufferData(gl.ARRAY_BUFFER, data, gl.STATIC_DRAW);
     gl.enableVertexAttribArray(loc);
-    gl.vertexAttribPointer(loc, comps, type, normalized, 0, 0);
-    return b;
+    gl.vertexAttribPointer(loc, comps, type, normalized, stride, offset);
   };
-  attr(0, pos, 3, gl.FLOAT, false);
-  attr(1, size, 1, gl.FLOAT, false);
-  attr(2, rgba, 4, gl.UNSIGNED_BYTE, true);
-  attr(3, cls, 4, gl.UNSIGNED_BYTE, true);
-  attr(4, bld, 4, gl.UNSIGNED_BYTE, true);
-  const selBuf = attr(5, sel, 1, gl.UNSIGNED_BYTE, true);
+  attr(0, pos, 3, gl.FLOAT, false, 0, 0);
+  attr(1, size, 1, gl.FLOAT, false, 0, 0);
+  attr(2, rgba, 1, gl.UNSIGNED_BYTE, true, 4, 3);
   const maxPoint = Math.min(256, gl.getParameter(gl.ALIASED_POINT_SIZE_RANGE)[1]);
 
   // --- camera: orbit about a target, `up` the scene's up axis ---------------------------
@@ -126,14 +144,14 @@
   const e1 = v3.norm(Math.abs(up[0]) < 0.9 ? v3.cross(up, [1, 0, 0]) : v3.cross(up, [0, 1, 0]));
   const e2 = v3.cross(up, e1);
   const cam = {};
-  const resetCamera = () => {
-    Object.assign(cam, { target: meta.center.slice(), dist: meta.extent * 1.6, yaw: 0.6, pitch: 0.6 });
-    redraw();
-  };
   const eye = () => {
     const h = Math.cos(cam.pitch);
     const dir = v3.add(v3.add(v3.mul(e1, h * Math.cos(cam.yaw)), v3.mul(e2, h * Math.sin(cam.yaw))), v3.mul(up, Math.sin(cam.pitch)));
     return v3.add(cam.target, v3.mul(dir, cam.dist));
+  };
+  const resetCamera = () => {
+    Object.assign(cam, { target: meta.center.slice(), dist: meta.extent * 1.6, yaw: 0.6, pitch: 0.6 });
+    redraw();
   };
   const setCamera = (e, t) => {
     cam.target = t.slice();
@@ -144,69 +162,58 @@
     cam.yaw = Math.atan2(v3.dot(dn, e2), v3.dot(dn, e1));
     redraw();
   };
-  // Column-major 4×4 matrices.
-  const lookAt = (e, t, u) => {
-    const f = v3.norm(v3.sub(t, e));
-    const s = v3.norm(v3.cross(f, u));
-    const uu = v3.cross(s, f);
-    return [s[0], uu[0], -f[0], 0, s[1], uu[1], -f[1], 0, s[2], uu[2], -f[2], 0,
-      -v3.dot(s, e), -v3.dot(uu, e), v3.dot(f, e), 1];
-  };
-  const perspective = (fovy, aspect, near, far) => {
-    const f = 1 / Math.tan(fovy / 2);
-    return [f / aspect, 0, 0, 0, 0, f, 0, 0, 0, 0, (far + near) / (near - far), -1, 0, 0, 2 * far * near / (near - far), 0];
-  };
-  const mul4 = (a, b) => {
-    const o = new Array(16).fill(0);
-    for (let c = 0; c < 4; c++) for (let r = 0; r < 4; r++) for (let k = 0; k < 4; k++) o[c * 4 + r] += a[k * 4 + r] * b[c * 4 + k];
-    return o;
-  };
-  const viewProj = () => {
-    const w = canvas.width, h = canvas.height;
-    const near = Math.max(cam.dist * 0.005, meta.extent * 1e-5);
-    const far = cam.dist + meta.extent * 6;
-    // Looking straight along `up`: another up vector keeps lookAt defined.
-    const e = eye();
-    const fwd = v3.norm(v3.sub(cam.target, e));
-    const u = Math.abs(v3.dot(fwd, up)) > 0.999 ? e1 : up;
-    return mul4(perspective(FOVY, w / h, near, far), lookAt(e, cam.target, u));
-  };
-
-  // --- drawing --------------------------------------------------------------------------
-  let mode = 0, queryOn = 0, pending = false;
-  const pickFbo = { fb: null, tex: null, depth: null, w: 0, h: 0 };
   const resize = () => {
     const dpr = window.devicePixelRatio || 1;
     const w = Math.max(1, Math.round(canvas.clientWidth * dpr)), h = Math.max(1, Math.round(canvas.clientHeight * dpr));
-    if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
+    if (canvas.width !== w || canvas.height !== h) renderer.setSize(w, h, false);
   };
-  const draw = (pick) => {
+  // The three.js camera from the orbit state; both passes draw with its matrices.
+  const applyCamera = () => {
     resize();
-    const w = canvas.width, h = canvas.height;
-    gl.useProgram(prog);
-    gl.bindVertexArray(vao);
-    gl.uniformMatrix4fv(U.uViewProj, false, new Float32Array(viewProj()));
-    gl.uniform1f(U.uFocal, h / (2 * Math.tan(FOVY / 2)));
-    gl.uniform1f(U.uMaxPoint, maxPoint);
-    gl.uniform1i(U.uMode, mode);
-    gl.uniform1i(U.uQuery, queryOn);
-    gl.uniform1i(U.uPick, pick ? 1 : 0);
-    gl.viewport(0, 0, w, h);
-    gl.enable(gl.DEPTH_TEST);
-    gl.depthFunc(gl.LESS);
-    gl.disable(gl.BLEND);
-    if (pick) gl.clearColor(0, 0, 0, 0); else gl.clearColor(0.11, 0.125, 0.145, 1);
-    gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
-    gl.drawArrays(gl.POINTS, 0, n);
+    const e = eye();
+    // Looking straight along `up`: another up vector keeps lookAt defined.
+    const fwd = v3.norm(v3.sub(cam.target, e));
+    camera.up.fromArray(Math.abs(v3.dot(fwd, up)) > 0.999 ? e1 : up);
+    camera.position.fromArray(e);
+    camera.lookAt(...cam.target);
+    camera.aspect = canvas.width / canvas.height;
+    camera.near = Math.max(cam.dist * 0.005, meta.extent * 1e-5);
+    camera.far = cam.dist + meta.extent * 6;
+    camera.updateProjectionMatrix();
+    camera.updateMatrixWorld();
   };
-  const redraw = () => {
-    if (pending) return;
-    pending = true;
-    requestAnimationFrame(() => { pending = false; draw(false); });
+  // Column-major projection × view, as the pick pass and the test use it.
+  const viewProj = () => {
+    applyCamera();
+    return new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse).toArray();
   };
+  const draw = () => {
+    applyCamera();
+    renderer.render(scene, camera);
+    api.frames += 1;
+  };
+
+  // --- colours: RGB / class / building, the query highlight -----------------------------
+  let mode = 0, queryOn = 0;
+  const recolor = () => {
+    const src = mode === 1 ? cls : (mode === 2 ? bld : rgba);
+    for (let i = 0; i < n; i++) {
+      let r = src[4 * i] / 255, g = src[4 * i + 1] / 255, b = src[4 * i + 2] / 255;
+      if (queryOn) {
+        if (sel[i]) { r = Math.min(r * 1.15 + 0.05, 1); g = Math.min(g * 1.15 + 0.05, 1); b = Math.min(b * 1.15 + 0.05, 1); }
+        else { r = r * 0.18 + 0.03; g = g * 0.18 + 0.03; b = b * 0.18 + 0.03; }
+      }
+      utils.setPackedSplatRgb(packed, i, r, g, b);
+    }
+    splats.needsUpdate = true;
+    mesh.updateVersion();
+    redraw();
+  };
+
   // The index of the splat under CSS pixel (x, y) of the canvas, or −1.
+  const pickFbo = { fb: null, tex: null, depth: null, w: 0, h: 0 };
   const pickAt = (x, y) => {
-    resize();
+    const m = viewProj();
     const w = canvas.width, h = canvas.height;
     if (pickFbo.w !== w || pickFbo.h !== h) {
       if (pickFbo.fb) { gl.deleteFramebuffer(pickFbo.fb); gl.deleteTexture(pickFbo.tex); gl.deleteRenderbuffer(pickFbo.depth); }
@@ -223,7 +230,18 @@
       pickFbo.w = w; pickFbo.h = h;
     }
     gl.bindFramebuffer(gl.FRAMEBUFFER, pickFbo.fb);
-    draw(true);
+    gl.useProgram(prog);
+    gl.bindVertexArray(vao);
+    gl.uniformMatrix4fv(U.uViewProj, false, new Float32Array(m));
+    gl.uniform1f(U.uFocal, h / (2 * Math.tan(FOVY * Math.PI / 360)));
+    gl.uniform1f(U.uMaxPoint, maxPoint);
+    gl.viewport(0, 0, w, h);
+    gl.enable(gl.DEPTH_TEST);
+    gl.depthFunc(gl.LESS);
+    gl.disable(gl.BLEND);
+    gl.clearColor(0, 0, 0, 0);
+    gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+    gl.drawArrays(gl.POINTS, 0, n);
     const dpr = w / canvas.clientWidth;
     const px = Math.min(w - 1, Math.max(0, Math.floor(x * dpr)));
     const py = Math.min(h - 1, Math.max(0, h - 1 - Math.floor(y * dpr)));
@@ -272,7 +290,7 @@
     mode = m;
     for (const b of document.querySelectorAll('button[data-mode]')) b.classList.toggle('active', Number(b.dataset.mode) === m);
     $('legend').style.display = m === 1 ? '' : 'none';
-    redraw();
+    recolor();
   };
   for (const b of document.querySelectorAll('button[data-mode]')) b.addEventListener('click', () => setMode(Number(b.dataset.mode)));
   for (const c of meta.classes) {
@@ -286,11 +304,11 @@
   for (const f of meta.files) { const a = el('a', { href: 'files/' + f, target: '_blank' }, f); $('files').append(a, el('br')); }
 
   const clearQuery = () => {
+    const was = queryOn;
     sel.fill(0); queryOn = 0;
-    gl.bindBuffer(gl.ARRAY_BUFFER, selBuf); gl.bufferSubData(gl.ARRAY_BUFFER, 0, sel);
     $('count').textContent = ''; $('count').removeAttribute('data-count');
     $('query-info').textContent = '';
-    redraw();
+    if (was) recolor();
   };
   const runQuery = async (text) => {
     $('query-error').textContent = '';
@@ -301,16 +319,15 @@
     let count = 0;
     for (let i = 0; i < n; i++) {
       const on = (bin.charCodeAt(i >> 3) >> (i & 7)) & 1;
-      sel[i] = on ? 255 : 0;
+      sel[i] = on;
       count += on;
     }
-    gl.bindBuffer(gl.ARRAY_BUFFER, selBuf); gl.bufferSubData(gl.ARRAY_BUFFER, 0, sel);
     queryOn = 1;
+    recolor();
     $('count').textContent = `${count} Gaussians`;
     $('count').setAttribute('data-count', String(count));
     $('query-info').textContent = `${j.query}: ${j.labels} labels, ${j.entities} entities` + (j.warnings.length ? ' — ' + j.warnings.join('; ') : '');
     api.lastQuery = { count, server: j.count, query: j.query };
-    redraw();
   };
   $('query-form').addEventListener('submit', (e) => { e.preventDefault(); runQuery($('query').value); });
   $('clear-query').addEventListener('click', () => { $('query').value = ''; $('query-error').textContent = ''; clearQuery(); });
@@ -332,7 +349,7 @@
       const f = v3.norm(v3.sub(cam.target, e0));
       const s = v3.norm(v3.cross(f, up));
       const u = v3.cross(s, f);
-      const k = cam.dist * 2 * Math.tan(FOVY / 2) / canvas.clientHeight;
+      const k = cam.dist * 2 * Math.tan(FOVY * Math.PI / 360) / canvas.clientHeight;
       cam.target = v3.add(cam.target, v3.add(v3.mul(s, -dx * k), v3.mul(u, dy * k)));
     } else {
       cam.yaw -= dx * 0.008;
@@ -361,15 +378,31 @@
   resetCamera();
   fromHash();
 
+  // Resolves true once Spark has sorted for the current camera and that frame is on the canvas
+  // (false after `limitMs`).
+  const settled = async (limitMs = 240000) => {
+    const t0 = performance.now();
+    for (let quiet = 0; quiet < 3;) {
+      if (performance.now() - t0 > limitMs) return false;
+      await new Promise((r) => setTimeout(r, 50));
+      quiet = (pending || spark.sorting || spark.sortDirty || spark.dirty) ? 0 : quiet + 1;
+    }
+    return true;
+  };
   Object.assign(api, {
     n,
-    viewProj: () => viewProj(),
+    renderer: 'spark',
+    spark,
+    viewProj,
     setCamera,
     resetCamera,
     pickAt,
     runQuery,
     setMode,
+    settled,
   });
   $('status').textContent = `${n} Gaussians · ${meta.mode} labels · ${meta.run}`;
-  requestAnimationFrame(() => { draw(false); api.ready = true; document.body.dataset.ready = '1'; });
-})();
+  requestAnimationFrame(() => { draw(); api.ready = true; document.body.dataset.ready = '1'; });
+}
+
+main().catch((e) => fail('viewer: ' + (e && e.message || e)));
