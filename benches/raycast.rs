@@ -1,6 +1,7 @@
 //! Raycasting benchmark (plain `Instant`): scene build, two-pass and single-pass rays/s at
 //! 1 MP, time per 20 MP view, and Open3D `RaycastingScene` on the same mesh and rays
-//! (via `python3 scripts/open3d_check.py DIR --bench`, same run).
+//! (via `python3 scripts/open3d_check.py DIR --bench`, same run); each packet width (8, 16
+//! lanes) and Embree's high-quality BVH build, for comparison.
 //! Run: `cargo bench --bench raycast`.
 #[path = "../tests/common/mod.rs"]
 mod common;
@@ -8,7 +9,8 @@ mod common;
 use std::process::Command;
 use std::time::Instant;
 
-use gs4city::raycast::{RaycastOptions, TwoPassScene, pixel_ray, raycast_view};
+use gs4city::embree::PacketWidth;
+use gs4city::raycast::{RaycastOptions, TwoPassScene, pixel_ray, raycast_view, raycast_view_with};
 
 fn best_of<T>(n: usize, mut f: impl FnMut() -> T) -> (f64, T) {
     let mut best = f64::INFINITY;
@@ -48,6 +50,31 @@ fn main() {
     let (t_two, v) = best_of(5, || raycast_view(&scene, &cam1, &two));
     let (t_one, _) = best_of(5, || raycast_view(&scene, &cam1, &one));
     let hits = v.face.iter().filter(|&&f| f >= 0).count();
+    println!("native packet width: {:?}", scene.packet_width());
+    for width in [PacketWidth::W8, PacketWidth::W16] {
+        let (a, _) = best_of(5, || raycast_view_with(&scene, &cam1, &two, width));
+        let (b, _) = best_of(5, || raycast_view_with(&scene, &cam1, &one, width));
+        println!(
+            "1 MP, {} lanes: two-pass {:.1} ms = {:.2} Mrays/s, single-pass {:.1} ms = {:.2} Mrays/s",
+            width.lanes(),
+            a * 1e3,
+            n1 / a / 1e6,
+            b * 1e3,
+            n1 / b / 1e6
+        );
+    }
+    let (build_hq, scene_hq) = best_of(3, || TwoPassScene::build_with(&mesh, true).expect("scene"));
+    let (a, _) = best_of(5, || raycast_view(&scene_hq, &cam1, &two));
+    let (b, _) = best_of(5, || raycast_view(&scene_hq, &cam1, &one));
+    println!(
+        "high-quality BVH: build {:.1} ms; 1 MP two-pass {:.1} ms = {:.2} Mrays/s, single-pass {:.1} ms = {:.2} Mrays/s",
+        build_hq * 1e3,
+        a * 1e3,
+        n1 / a / 1e6,
+        b * 1e3,
+        n1 / b / 1e6
+    );
+    drop(scene_hq);
     println!(
         "1 MP (1280x800, {:.1} % hit): two-pass {:.1} ms = {:.2} Mrays/s (pixels), single-pass {:.1} ms = {:.2} Mrays/s; recovered parts {}",
         100.0 * hits as f64 / n1,

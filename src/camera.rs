@@ -346,8 +346,14 @@ impl Camera {
     /// `None` where undistortion does not converge.
     pub fn try_pixel_ray(&self, u: f64, v: f64) -> Option<DVec3> {
         let k = &self.intrinsics;
-        let d = DVec2::new((u - k.cx) / k.fx, (v - k.cy) / k.fy);
-        let n = k.distortion.undistort(d)?;
+        self.try_normalized_ray(DVec2::new((u - k.cx) / k.fx, (v - k.cy) / k.fy))
+    }
+
+    /// As [`Camera::try_pixel_ray`], from the distorted normalised position
+    /// `((u − cx)/fx, (v − cy)/fy)` (callers tracing whole images compute the two terms
+    /// once per column and row).
+    pub fn try_normalized_ray(&self, d: DVec2) -> Option<DVec3> {
+        let n = self.intrinsics.distortion.undistort(d)?;
         DVec3::new(n.x, n.y, 1.0).try_normalize()
     }
 

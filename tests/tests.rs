@@ -29,6 +29,7 @@ mod masks;
 mod open3d_check;
 mod query;
 mod raycast;
+mod raycast_packets;
 mod real_raycast;
 mod refine;
 mod render;

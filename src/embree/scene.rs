@@ -1,6 +1,6 @@
 //! Embree scenes: [`Scene`] (being built, owns its geometry buffers) and
 //! [`CommittedScene`] (read-only, `Send + Sync`, the only thing that can be queried), plus
-//! the single-ray and 16-ray packet queries.
+//! the single-ray query (packets: `packet.rs`).
 use std::ptr::NonNull;
 use std::sync::Arc;
 
@@ -24,26 +24,6 @@ pub struct Hit {
     pub v: f32,
     /// Unnormalised geometric normal.
     pub ng: [f32; 3],
-}
-
-/// 16 rays for [`CommittedScene::intersect16`]; inactive lanes are ignored and miss.
-#[derive(Debug, Clone, Copy)]
-pub struct Packet16 {
-    pub org: [[f32; 3]; 16],
-    pub dir: [[f32; 3]; 16],
-    pub tfar: [f32; 16],
-    pub active: [bool; 16],
-}
-
-impl Default for Packet16 {
-    fn default() -> Self {
-        Packet16 {
-            org: [[0.0; 3]; 16],
-            dir: [[0.0, 0.0, 1.0]; 16],
-            tfar: [f32::INFINITY; 16],
-            active: [false; 16],
-        }
-    }
 }
 
 /// Triangle buffers shared with Embree. The vertex buffer carries one extra (zero) vertex:
@@ -192,6 +172,20 @@ impl Scene {
         Ok(Some(id))
     }
 
+    /// Asks for Embree's high-quality BVH build (`RTC_BUILD_QUALITY_HIGH`: SAH with
+    /// spatial splits) instead of the default medium one: slower to build, meant for a
+    /// static scene (the default `RTC_SCENE_FLAG_NONE`: no dynamic updates) traced often.
+    pub fn set_high_quality(&mut self) -> Result<(), EmbreeError> {
+        // SAFETY: `raw` is live and uncommitted; HIGH is a valid build quality.
+        unsafe {
+            sys::rtcSetSceneBuildQuality(
+                self.raw.as_ptr(),
+                sys::RTCBuildQuality::RTC_BUILD_QUALITY_HIGH,
+            )
+        };
+        self.device.check("rtcSetSceneBuildQuality")
+    }
+
     /// Builds the BVH; only a committed scene can be queried.
     pub fn commit(self) -> Result<CommittedScene, EmbreeError> {
         // SAFETY: `raw` is live and no other thread can reach an uncommitted `Scene`
@@ -220,36 +214,13 @@ unsafe impl Send for CommittedScene {}
 // SAFETY: see `Send` above: every `&self` method only issues concurrent-safe traversal calls.
 unsafe impl Sync for CommittedScene {}
 
-/// The `rtcInitIntersectContext` that Embree 3 defines inline (no symbol for bindgen).
-#[cfg(not(feature = "embree4"))]
-fn intersect_context(coherent: bool) -> sys::RTCIntersectContext {
-    sys::RTCIntersectContext {
-        flags: if coherent {
-            sys::RTCIntersectContextFlags::RTC_INTERSECT_CONTEXT_FLAG_COHERENT
-        } else {
-            sys::RTCIntersectContextFlags::RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT
-        },
-        filter: None,
-        instID: [INVALID_GEOMETRY_ID; 1],
-    }
-}
-
 /// One ray query (Embree 3 signature).
 #[cfg(not(feature = "embree4"))]
 fn raw_intersect1(scene: sys::RTCScene, rh: &mut sys::RTCRayHit) {
-    let mut ctx = intersect_context(false);
+    let mut ctx = super::packet::intersect_context(false);
     // SAFETY: `scene` is a live committed scene; `ctx` and `rh` are valid, aligned,
     // exclusively borrowed for the call.
     unsafe { sys::rtcIntersect1(scene, &mut ctx, rh) };
-}
-
-/// One 16-ray packet query (Embree 3 signature).
-#[cfg(not(feature = "embree4"))]
-fn raw_intersect16(scene: sys::RTCScene, valid: &Valid16, rh: &mut sys::RTCRayHit16) {
-    let mut ctx = intersect_context(true);
-    // SAFETY: `valid` and `rh` are 64-byte aligned (their types say so) and valid for the
-    // call; `scene` is live and committed.
-    unsafe { sys::rtcIntersect16(valid.0.as_ptr(), scene, &mut ctx, rh) };
 }
 
 /// One ray query (Embree 4 signature; not compiled or tested on Debian 12).
@@ -258,22 +229,6 @@ fn raw_intersect1(scene: sys::RTCScene, rh: &mut sys::RTCRayHit) {
     // SAFETY: a null RTCIntersectArguments selects Embree 4's defaults (incoherent).
     unsafe { sys::rtcIntersect1(scene, rh, std::ptr::null_mut()) };
 }
-
-/// One 16-ray packet query (Embree 4 signature; not compiled or tested on Debian 12).
-#[cfg(feature = "embree4")]
-fn raw_intersect16(scene: sys::RTCScene, valid: &Valid16, rh: &mut sys::RTCRayHit16) {
-    // `rtcInitIntersectArguments` is inline in Embree 4: zero, then flags + feature mask
-    // (context = NULL means Embree's default context).
-    let mut args = sys::RTCIntersectArguments::default();
-    args.flags = sys::RTCRayQueryFlags::RTC_RAY_QUERY_FLAG_COHERENT;
-    args.feature_mask = sys::RTCFeatureFlags::RTC_FEATURE_FLAG_ALL;
-    // SAFETY: as for Embree 3: aligned, valid, exclusively borrowed; scene committed.
-    unsafe { sys::rtcIntersect16(valid.0.as_ptr(), scene, rh, &mut args) };
-}
-
-/// The `valid` mask of a 16-wide query (−1 = active), 64-byte aligned as Embree requires.
-#[repr(C, align(64))]
-struct Valid16([i32; 16]);
 
 impl CommittedScene {
     pub(super) fn raw(&self) -> sys::RTCScene {
@@ -323,41 +278,12 @@ impl CommittedScene {
             ng: [rh.hit.Ng_x, rh.hit.Ng_y, rh.hit.Ng_z],
         })
     }
-
-    /// Nearest hits of a 16-ray packet (best used on 4×4 pixel tiles: coherent flag).
-    pub fn intersect16(&self, packet: &Packet16) -> [Option<Hit>; 16] {
-        let mut valid = Valid16([0; 16]);
-        let mut rh = sys::RTCRayHit16::default();
-        for i in 0..16 {
-            valid.0[i] = if packet.active[i] { -1 } else { 0 };
-            let r = &mut rh.ray;
-            [r.org_x[i], r.org_y[i], r.org_z[i]] = packet.org[i];
-            [r.dir_x[i], r.dir_y[i], r.dir_z[i]] = packet.dir[i];
-            r.tnear[i] = 0.0;
-            r.tfar[i] = packet.tfar[i];
-            r.mask[i] = u32::MAX;
-            rh.hit.geomID[i] = INVALID_GEOMETRY_ID;
-            rh.hit.instID[0][i] = INVALID_GEOMETRY_ID;
-        }
-        if packet.active.iter().any(|&a| a) {
-            raw_intersect16(self.raw(), &valid, &mut rh);
-        }
-        std::array::from_fn(|i| {
-            (packet.active[i] && rh.hit.geomID[i] != INVALID_GEOMETRY_ID).then(|| Hit {
-                t: rh.ray.tfar[i],
-                prim_id: rh.hit.primID[i],
-                geom_id: rh.hit.geomID[i],
-                u: rh.hit.u[i],
-                v: rh.hit.v[i],
-                ng: [rh.hit.Ng_x[i], rh.hit.Ng_y[i], rh.hit.Ng_z[i]],
-            })
-        })
-    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::embree::{Packet8, Packet16, RayPacket};
 
     fn quad_scene() -> CommittedScene {
         let dev = Device::new().unwrap();
@@ -383,8 +309,7 @@ mod tests {
     }
 
     #[test]
-    #[allow(clippy::needless_range_loop)] // lanes index several parallel arrays
-    fn intersect1_and_intersect16_agree() {
+    fn intersect1_and_packets_agree() {
         let sc = quad_scene();
         let h = sc
             .intersect1([0.75, 0.25, 0.0], [0.0, 0.0, 1.0], f32::INFINITY)
@@ -407,25 +332,36 @@ mod tests {
                 .is_none()
         );
 
-        let mut p = Packet16::default();
-        for i in 0..16 {
-            p.org[i] = [-0.6 + 0.1 * i as f32, 0.3 + 0.01 * i as f32, 0.0];
-            p.active[i] = i != 7;
-        }
-        let hits = sc.intersect16(&p);
-        for i in 0..16 {
-            let single = sc.intersect1(p.org[i], p.dir[i], f32::INFINITY);
-            if i == 7 {
-                assert!(hits[i].is_none());
-            } else {
-                assert_eq!(
-                    hits[i].map(|h| (h.t, h.geom_id, h.prim_id)),
-                    single.map(|h| (h.t, h.geom_id, h.prim_id)),
-                    "lane {i}"
-                );
+        fn lanes<P: RayPacket>(sc: &CommittedScene) {
+            let mut p = P::empty();
+            let dir = [0.0, 0.0, 1.0];
+            let org = |i: usize| [-0.6 + 0.1 * i as f32, 0.3 + 0.01 * i as f32, 0.0];
+            for i in 0..P::LANES {
+                if i != 7 {
+                    p.set(i, org(i), dir, f32::INFINITY);
+                }
             }
+            assert!(!p.is_active(7) && p.is_active(0));
+            p.intersect(sc);
+            let mut hits = 0;
+            for i in 0..P::LANES {
+                let single = sc.intersect1(org(i), dir, f32::INFINITY);
+                if i == 7 {
+                    assert!(p.hit(i).is_none());
+                } else {
+                    hits += usize::from(p.hit(i).is_some());
+                    assert_eq!(
+                        p.hit(i).map(|h| (h.t, h.geom_id, h.prim_id)),
+                        single.map(|h| (h.t, h.geom_id, h.prim_id)),
+                        "lane {i} of {}",
+                        P::LANES
+                    );
+                }
+            }
+            assert!(hits >= P::LANES / 2 + 2);
         }
-        assert!(hits.iter().filter(|h| h.is_some()).count() >= 10);
+        lanes::<Packet8>(&sc);
+        lanes::<Packet16>(&sc);
     }
 
     #[test]
@@ -446,11 +382,12 @@ mod tests {
             c.intersect1([0.0; 3], [0.0, 0.0, 1.0], f32::INFINITY)
                 .is_none()
         );
-        let p = Packet16 {
-            active: [true; 16],
-            ..Default::default()
-        };
-        assert!(c.intersect16(&p).iter().all(|h| h.is_none()));
+        let mut p = Packet16::empty();
+        for k in 0..16 {
+            p.set(k, [k as f32, 0.0, 0.0], [0.0, 0.0, 1.0], f32::INFINITY);
+        }
+        p.intersect(&c);
+        assert!((0..16).all(|k| p.hit(k).is_none()));
     }
 
     #[test]

@@ -15,10 +15,14 @@
 //! Depth is z-depth along the camera axis (`t · dot(dir, forward)` for the unit ray
 //! direction), NaN where nothing is hit. τ is in scene units (the caller converts metres
 //! with the alignment scale). The part pass only needs hits with `D̃ ≤ D_t + τ`, so its
-//! `tfar` is limited accordingly — the result is identical, the work smaller.
+//! `tfar` is limited accordingly, and no part face (each is also a face of the global
+//! scene) lies in front of the global hit, so its `tnear` starts just before that hit —
+//! the result is identical, the work smaller.
 //!
-//! Rays are traced in 4×4 pixel tiles with Embree's 16-wide coherent packets, rows of
-//! tiles in parallel (rayon); every pixel's result is independent of the thread count.
+//! Rays are traced in Embree's coherent packets as wide as the CPU traces natively
+//! ([`PacketWidth::native`]: 16 lanes on 4×4 pixel tiles with AVX-512, else 8 lanes on 4×2),
+//! in 8×8-pixel blocks, strips of 8 rows in parallel (rayon); every pixel's result is
+//! independent of the packet width and the thread count.
 mod output;
 
 use std::time::Instant;
@@ -26,7 +30,9 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::camera::Camera;
-use crate::embree::{CommittedScene, Device, EmbreeError, Packet16, Scene};
+use crate::embree::{
+    CommittedScene, Device, EmbreeError, Packet8, Packet16, PacketWidth, RayPacket, Scene,
+};
 use crate::mesh::{FaceLabel, TriMesh};
 
 pub use output::{RaycastSummary, ViewSummary, run};
@@ -90,6 +96,8 @@ pub struct TwoPassScene {
     labels: Vec<FaceLabel>,
     /// Indexed by surface id: whether any part face has that parent surface.
     surface_has_parts: Vec<bool>,
+    /// Lanes per packet in [`raycast_view`].
+    packet_width: PacketWidth,
     /// Seconds spent building both scenes.
     pub build_seconds: f64,
 }
@@ -101,6 +109,12 @@ impl TwoPassScene {
     /// also stay below [`MAX_LABEL_ID`] (the per-surface table is dense); checking them
     /// against the semantic table is `semantics::check_mesh_labels`.
     pub fn build(mesh: &TriMesh) -> Result<TwoPassScene, RaycastError> {
+        TwoPassScene::build_with(mesh, false)
+    }
+
+    /// [`TwoPassScene::build`], optionally with Embree's high-quality BVH build
+    /// ([`Scene::set_high_quality`]; measured in `benches/raycast.rs`).
+    pub fn build_with(mesh: &TriMesh, high_quality: bool) -> Result<TwoPassScene, RaycastError> {
         mesh.validate().map_err(RaycastError::Mesh)?;
         if let Some((i, l)) = mesh
             .labels
@@ -116,12 +130,18 @@ impl TwoPassScene {
         let t0 = Instant::now();
         let device = Device::new()?;
         let mut global = Scene::new(&device)?;
+        if high_quality {
+            global.set_high_quality()?;
+        }
         global.add_triangles(&mesh.vertices, &mesh.faces)?;
         let part_faces: Vec<u32> = (0..mesh.faces.len() as u32)
             .filter(|&i| mesh.labels[i as usize].part != -1)
             .collect();
         let sub: Vec<[u32; 3]> = part_faces.iter().map(|&i| mesh.faces[i as usize]).collect();
         let mut part = Scene::new(&device)?;
+        if high_quality {
+            part.set_high_quality()?;
+        }
         part.add_triangles(&mesh.vertices, &sub)?;
         let (global, part) = (global.commit()?, part.commit()?);
         let max_surface = mesh.labels.iter().map(|l| l.surface).max().unwrap_or(-1);
@@ -137,6 +157,7 @@ impl TwoPassScene {
             part_faces,
             surface_has_parts,
             labels: mesh.labels.clone(),
+            packet_width: PacketWidth::native(&device),
             build_seconds: t0.elapsed().as_secs_f64(),
         })
     }
@@ -148,6 +169,11 @@ impl TwoPassScene {
             .and_then(|i| self.surface_has_parts.get(i))
             .copied()
             .unwrap_or(false)
+    }
+
+    /// The packet width [`raycast_view`] traces with (the CPU's native one).
+    pub fn packet_width(&self) -> PacketWidth {
+        self.packet_width
     }
 
     /// Number of faces in the global and in the part scene.
@@ -218,15 +244,79 @@ pub fn pixel_ray(camera: &Camera, i: usize, j: usize) -> Option<([f32; 3], [f32;
     Some((org.as_vec3().to_array(), dir.as_vec3().to_array(), c.z))
 }
 
-#[derive(Clone, Copy)]
-struct Lane {
-    pixel: usize,
-    zf: f64,
+/// Pixels per side of the blocks a strip is traced in (4×4 or 4×2 packet tiles inside).
+const BLOCK: usize = 8;
+
+/// The rays of one view: the camera centre and, per column and per row, the distorted
+/// normalised coordinate (`(i + 0.5 − cx)/fx`, `(j + 0.5 − cy)/fy`, as
+/// [`Camera::try_pixel_ray`] computes them: the same f64 operations, so the same rays).
+struct ViewRays<'a> {
+    camera: &'a Camera,
+    org: [f32; 3],
+    rt: glam::DMat3,
+    xs: Vec<f64>,
+    ys: Vec<f64>,
 }
 
-/// Casts both passes for one view (see the module docs for the rules).
-#[allow(clippy::needless_range_loop)] // packet lanes index several parallel arrays
+impl<'a> ViewRays<'a> {
+    fn new(camera: &'a Camera, w: usize, h: usize) -> ViewRays<'a> {
+        let k = &camera.intrinsics;
+        ViewRays {
+            camera,
+            org: camera.pose.center().as_vec3().to_array(),
+            rt: camera.pose.rotation.transpose(),
+            xs: (0..w).map(|i| (i as f64 + 0.5 - k.cx) / k.fx).collect(),
+            ys: (0..h).map(|j| (j as f64 + 0.5 - k.cy) / k.fy).collect(),
+        }
+    }
+
+    /// Unit world direction and z-depth factor of pixel `(i, j)`, as [`pixel_ray`].
+    #[inline]
+    fn ray(&self, i: usize, j: usize) -> Option<([f32; 3], f64)> {
+        let c = self
+            .camera
+            .try_normalized_ray(glam::DVec2::new(self.xs[i], self.ys[j]))?;
+        Some(((self.rt * c).as_vec3().to_array(), c.z))
+    }
+}
+
+/// One strip's share of the output arrays (rows `j0 .. j0 + rows`, row-major).
+struct Strip<'a> {
+    j0: usize,
+    feature: &'a mut [i32],
+    surface: &'a mut [i32],
+    part: &'a mut [i32],
+    city: &'a mut [i32],
+    depth: &'a mut [f32],
+    face: &'a mut [i32],
+    recovered: &'a mut [bool],
+}
+
+/// Casts both passes for one view (see the module docs for the rules), with the scene's
+/// native packet width ([`TwoPassScene::packet_width`]).
 pub fn raycast_view(scene: &TwoPassScene, camera: &Camera, opts: &RaycastOptions) -> ViewIds {
+    raycast_view_with(scene, camera, opts, scene.packet_width)
+}
+
+/// [`raycast_view`] with packets of the given width (4×2 tiles for 8 lanes, 4×4 for 16).
+/// Every width gives the same result.
+pub fn raycast_view_with(
+    scene: &TwoPassScene,
+    camera: &Camera,
+    opts: &RaycastOptions,
+    width: PacketWidth,
+) -> ViewIds {
+    match width {
+        PacketWidth::W8 => trace_view::<Packet8>(scene, camera, opts),
+        PacketWidth::W16 => trace_view::<Packet16>(scene, camera, opts),
+    }
+}
+
+fn trace_view<P: RayPacket>(
+    scene: &TwoPassScene,
+    camera: &Camera,
+    opts: &RaycastOptions,
+) -> ViewIds {
     let (w, h) = (
         camera.intrinsics.width as usize,
         camera.intrinsics.height as usize,
@@ -247,13 +337,8 @@ pub fn raycast_view(scene: &TwoPassScene, camera: &Camera, opts: &RaycastOptions
     if n == 0 {
         return out;
     }
-    let rows = 4 * w;
-    let rt = camera.pose.rotation.transpose();
-    let org = camera.pose.center().as_vec3().to_array();
-    let ray = |i: usize, j: usize| -> Option<([f32; 3], [f32; 3], f64)> {
-        let c = camera.try_pixel_ray(i as f64 + 0.5, j as f64 + 0.5)?;
-        Some((org, (rt * c).as_vec3().to_array(), c.z))
-    };
+    let rays = ViewRays::new(camera, w, h);
+    let rows = BLOCK * w;
     let failures: usize = out
         .feature
         .par_chunks_mut(rows)
@@ -264,104 +349,148 @@ pub fn raycast_view(scene: &TwoPassScene, camera: &Camera, opts: &RaycastOptions
         .zip(out.face.par_chunks_mut(rows))
         .zip(out.recovered.par_chunks_mut(rows))
         .enumerate()
-        .map(|(ty, ((((((fe, su), pa), ci), de), fa), re))| {
-            let mut failures = 0;
-            let j0 = ty * 4;
-            let th = fe.len() / w;
-            for tx in 0..w.div_ceil(4) {
-                let mut packet = Packet16::default();
-                let mut lanes = [None::<Lane>; 16];
-                for k in 0..16 {
-                    let (di, dj) = (k % 4, k / 4);
-                    let (i, jl) = (tx * 4 + di, dj);
-                    if i >= w || jl >= th {
-                        continue;
-                    }
-                    match ray(i, j0 + jl) {
-                        Some((o, d, zf)) => {
-                            packet.org[k] = o;
-                            packet.dir[k] = d;
-                            packet.active[k] = true;
-                            lanes[k] = Some(Lane {
-                                pixel: jl * w + i,
-                                zf,
-                            });
-                        }
-                        None => failures += 1,
-                    }
-                }
-                let hits = scene.global.intersect16(&packet);
-                let mut globals = [None; 16];
-                let mut part_packet = packet;
-                for k in 0..16 {
-                    let Some(lane) = lanes[k] else { continue };
-                    let Some(hit) = hits[k] else {
-                        part_packet.active[k] = false;
-                        continue;
-                    };
-                    let face = hit.prim_id as usize;
-                    let Some(label) = scene.labels.get(face).copied() else {
-                        part_packet.active[k] = false;
-                        continue;
-                    };
-                    let p = lane.pixel;
-                    let depth = f64::from(hit.t) * lane.zf;
-                    fe[p] = label.feature;
-                    su[p] = label.surface;
-                    pa[p] = label.part;
-                    de[p] = depth as f32;
-                    fa[p] = face as i32;
-                    globals[k] = Some((label, depth));
-                    // Only part hits with D̃ ≤ D_t + τ can be accepted; a missing surface
-                    // can never match.
-                    // A part face hit directly keeps its part (the part pass could only find
-                    // that face again); a surface without openings has nothing to recover.
-                    if opts.single_pass || label.part != -1 || !scene.has_parts(label.surface) {
-                        part_packet.active[k] = false;
-                    } else {
-                        let tmax = (depth + opts.tau) / lane.zf;
-                        // Widen by a relative ulp margin so f32 rounding of tfar never drops
-                        // a hit exactly at the limit; the exact test is done below in f64.
-                        part_packet.tfar[k] = (tmax * (1.0 + 1e-6) + 1e-6) as f32;
-                    }
-                }
-                if !opts.single_pass && part_packet.active.iter().any(|&a| a) {
-                    let phits = scene.part.intersect16(&part_packet);
-                    for k in 0..16 {
-                        let (Some(lane), Some((label, depth)), Some(ph)) =
-                            (lanes[k], globals[k], phits[k])
-                        else {
-                            continue;
-                        };
-                        if !part_packet.active[k] {
-                            continue;
-                        }
-                        let Some(&face) = scene.part_faces.get(ph.prim_id as usize) else {
-                            continue;
-                        };
-                        let pl = scene.labels[face as usize];
-                        let pdepth = f64::from(ph.t) * lane.zf;
-                        if pl.surface == label.surface && pdepth - depth <= opts.tau {
-                            let p = lane.pixel;
-                            pa[p] = pl.part;
-                            re[p] = label.part == -1;
-                        }
-                    }
-                }
-                for lane in lanes.iter().flatten() {
-                    let p = lane.pixel;
-                    ci[p] = if pa[p] != -1 {
-                        pa[p]
-                    } else if su[p] != -1 {
-                        su[p]
-                    } else {
-                        fe[p]
-                    };
-                }
-            }
-            failures
-        })
+        .map(
+            |(sy, ((((((feature, surface), part), city), depth), face), recovered))| {
+                let mut strip = Strip {
+                    j0: sy * BLOCK,
+                    feature,
+                    surface,
+                    part,
+                    city,
+                    depth,
+                    face,
+                    recovered,
+                };
+                trace_strip::<P>(scene, &rays, opts, &mut strip)
+            },
+        )
         .sum();
     out.undistort_failures = failures;
     out
+}
+
+/// Traces one strip of [`BLOCK`] rows in blocks of `BLOCK`×`BLOCK` pixels (coherent ray
+/// order: the packets of a block share most of their BVH path); returns the pixels whose
+/// ray could not be undistorted.
+fn trace_strip<P: RayPacket>(
+    scene: &TwoPassScene,
+    rays: &ViewRays<'_>,
+    opts: &RaycastOptions,
+    strip: &mut Strip<'_>,
+) -> usize {
+    let w = rays.xs.len();
+    let sh = strip.feature.len() / w;
+    let th = P::LANES / 4;
+    let mut failures = 0;
+    for bx in (0..w).step_by(BLOCK) {
+        for ty in (0..sh).step_by(th) {
+            for tx in (bx..(bx + BLOCK).min(w)).step_by(4) {
+                failures += trace_tile::<P>(scene, rays, opts, strip, tx, ty);
+            }
+        }
+    }
+    failures
+}
+
+/// Traces the 4-pixel-wide tile whose top-left pixel is `(tx, ty)` of the strip.
+#[allow(clippy::needless_range_loop)] // packet lanes index several parallel arrays
+fn trace_tile<P: RayPacket>(
+    scene: &TwoPassScene,
+    rays: &ViewRays<'_>,
+    opts: &RaycastOptions,
+    s: &mut Strip<'_>,
+    tx: usize,
+    ty: usize,
+) -> usize {
+    let w = rays.xs.len();
+    let sh = s.feature.len() / w;
+    let mut failures = 0;
+    let mut packet = P::empty();
+    let mut pixel = [0usize; 16];
+    let mut zf = [0f64; 16];
+    let mut dir = [[0f32; 3]; 16];
+    for k in 0..P::LANES {
+        let (i, jl) = (tx + k % 4, ty + k / 4);
+        if i >= w || jl >= sh {
+            continue;
+        }
+        match rays.ray(i, s.j0 + jl) {
+            Some((d, z)) => {
+                packet.set(k, rays.org, d, f32::INFINITY);
+                (pixel[k], zf[k], dir[k]) = (jl * w + i, z, d);
+            }
+            None => failures += 1,
+        }
+    }
+    packet.intersect(&scene.global);
+    let mut part_packet = P::empty();
+    let mut globals = [None; 16];
+    for k in 0..P::LANES {
+        let Some(hit) = packet.hit(k) else { continue };
+        let face = hit.prim_id as usize;
+        let Some(label) = scene.labels.get(face).copied() else {
+            continue;
+        };
+        let p = pixel[k];
+        let depth = f64::from(hit.t) * zf[k];
+        s.feature[p] = label.feature;
+        s.surface[p] = label.surface;
+        s.part[p] = label.part;
+        s.depth[p] = depth as f32;
+        s.face[p] = face as i32;
+        s.city[p] = city_id(label.part, label.surface, label.feature);
+        // Only part hits with D̃ ≤ D_t + τ can be accepted; a missing surface can never
+        // match. A part face hit directly keeps its part (the part pass could only find
+        // that face again); a surface without openings has nothing to recover.
+        if opts.single_pass || label.part != -1 || !scene.has_parts(label.surface) {
+            continue;
+        }
+        let tmax = (depth + opts.tau) / zf[k];
+        // Widen by a relative ulp margin so f32 rounding of tfar never drops a hit exactly
+        // at the limit; the exact test is done below in f64. Every part face is also in
+        // the global scene (same vertices), so none lies in front of the global hit: the
+        // segment starts just before it (a relative 1e-5, far above f32 rounding of `t`,
+        // for coplanar windows), which spares the traversal of everything in front.
+        let tmin = (f64::from(hit.t) * (1.0 - 1e-5)) as f32;
+        part_packet.set_segment(
+            k,
+            rays.org,
+            dir[k],
+            tmin,
+            (tmax * (1.0 + 1e-6) + 1e-6) as f32,
+        );
+        globals[k] = Some((label, depth));
+    }
+    if !part_packet.any_active() {
+        return failures;
+    }
+    part_packet.intersect(&scene.part);
+    for k in 0..P::LANES {
+        let (Some((label, depth)), Some(ph)) = (globals[k], part_packet.hit(k)) else {
+            continue;
+        };
+        let Some(&face) = scene.part_faces.get(ph.prim_id as usize) else {
+            continue;
+        };
+        let pl = scene.labels[face as usize];
+        let pdepth = f64::from(ph.t) * zf[k];
+        if pl.surface == label.surface && pdepth - depth <= opts.tau {
+            let p = pixel[k];
+            s.part[p] = pl.part;
+            s.recovered[p] = label.part == -1;
+            s.city[p] = city_id(pl.part, label.surface, label.feature);
+        }
+    }
+    failures
+}
+
+/// `M_city`: the part id if ≠ −1, else the surface id if ≠ −1, else the feature id.
+fn city_id(part: i32, surface: i32, feature: i32) -> i32 {
+    if part != -1 {
+        part
+    } else if surface != -1 {
+        surface
+    } else {
+        feature
+    }
 }
