@@ -21,6 +21,7 @@ pub enum Stage {
     Raycast,
     Render,
     Masks,
+    Openings,
     Associate,
     Fuse,
     Lift,
@@ -30,12 +31,13 @@ pub enum Stage {
 
 impl Stage {
     /// Every stage folder a run can hold.
-    pub const ALL: [Stage; 10] = [
+    pub const ALL: [Stage; 11] = [
         Stage::Align,
         Stage::Citymodel,
         Stage::Raycast,
         Stage::Render,
         Stage::Masks,
+        Stage::Openings,
         Stage::Associate,
         Stage::Fuse,
         Stage::Lift,
@@ -51,6 +53,7 @@ impl Stage {
             Stage::Raycast => "raycast",
             Stage::Render => "render",
             Stage::Masks => "masks",
+            Stage::Openings => "openings",
             Stage::Associate => "associate",
             Stage::Fuse => "fuse",
             Stage::Lift => "lift",
