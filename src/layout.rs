@@ -74,6 +74,17 @@ impl std::fmt::Display for Stage {
     }
 }
 
+/// The semantic table of run folder `run`: the openings stage's completed table when it added
+/// openings (`openings/semantics.json`, docs/completeness.md), else the citymodel stage's.
+pub fn semantics_file(run: &Path) -> PathBuf {
+    let completed = Stage::Openings.path(run).join("semantics.json");
+    if completed.is_file() {
+        completed
+    } else {
+        Stage::Citymodel.path(run).join("semantics.json")
+    }
+}
+
 /// Which per-Gaussian labels a run's queries and evaluation read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]

@@ -857,17 +857,17 @@ pub fn run(
         unsupported,
     };
     let cityjson = completeness_cityjson(&completeness, ins.srs_name.clone());
+    // Loud only where the stage was needed: a model without openings that got none.
     let mut warnings = Vec::new();
-    if ins.sam.is_none() {
-        warnings.push(
-            "openings: the masks came from the mask-free source (no SAM lists): no candidates"
-                .to_string(),
-        );
-    } else if n_cand == 0 {
-        warnings.push(
-            "openings: no candidate (no window/door prompt won on a dropped building mask; without features there are none)"
-                .to_string(),
-        );
+    if model_pts.is_empty() && completeness.missing_in_model.is_empty() {
+        warnings.push(if ins.sam.is_none() {
+            "openings: the model has no windows or doors and the masks came from the mask-free source (no SAM lists): none found".to_string()
+        } else {
+            format!(
+                "openings: the model has no windows or doors and the images gave {n_cand} candidates, none seen in {} views (no window/door prompt on the dropped masks? without features there are none)",
+                opts.m_view
+            )
+        });
     }
     let summary = OpeningsSummary {
         options: *opts,

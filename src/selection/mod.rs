@@ -101,13 +101,7 @@ impl SemanticRun {
         let t0 = Instant::now();
         let mode = mode.unwrap_or_else(|| Mode::default_for(run));
         let scene = Scene::open(scene)?;
-        // The openings stage's completed table when it added openings (docs/completeness.md).
-        let completed = run.join("openings/semantics.json");
-        let entities = semantics::read(&if completed.is_file() {
-            completed
-        } else {
-            run.join("citymodel/semantics.json")
-        })?;
+        let entities = semantics::read(&crate::layout::semantics_file(run))?;
         let fuse = run.join("fuse");
         let (labels, labels_source) = if fuse.is_dir() {
             let p = fuse.join("labels.json");
