@@ -891,6 +891,9 @@ pub fn run(
     })
 }
 
+/// A wall's findings with what each is (`missing_in_model` / `unsupported`).
+type Findings<'a> = Vec<(&'a Opening, &'a str)>;
+
 /// `completeness.city.json`: per building with findings, a CityJSON Building whose geometry
 /// holds its walls' openings of the report as Window/Door semantic surfaces under a
 /// WallSurface of the wall's object id (attributes `source` = image|model and `completeness`
@@ -905,7 +908,7 @@ pub fn completeness_cityjson(c: &Completeness, srs_name: Option<String>) -> serd
         .map(|o| (o, "missing_in_model"))
         .chain(c.unsupported.iter().map(|o| (o, "unsupported")))
         .collect();
-    let mut by_building: BTreeMap<&str, BTreeMap<&str, Vec<(&Opening, &str)>>> = BTreeMap::new();
+    let mut by_building: BTreeMap<&str, BTreeMap<&str, Findings<'_>>> = BTreeMap::new();
     for (o, what) in &all {
         by_building
             .entry(&o.building_object_id)
