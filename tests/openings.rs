@@ -27,11 +27,17 @@ fn opts() -> RunOptions {
     }
 }
 
-/// Every file under `dir` (relative name → bytes), `summary.json` files left out (timings).
-fn outputs(dir: &Path) -> Vec<(String, Vec<u8>)> {
+/// Every file under `dir` (relative name → bytes), `summary.json` files left out (timings);
+/// the scene folder's path (in the entities' `source`) written as `SCENE`.
+fn outputs(dir: &Path, scene: &Path) -> Vec<(String, Vec<u8>)> {
+    let path = scene.display().to_string();
     common::files(dir)
         .into_iter()
         .filter(|(name, _)| !name.ends_with("summary.json"))
+        .map(|(name, bytes)| {
+            let text = String::from_utf8_lossy(&bytes).replace(&path, "SCENE");
+            (name, text.into_bytes())
+        })
         .collect()
 }
 
@@ -171,7 +177,10 @@ fn lod2_openings_from_the_images() {
     std::fs::remove_dir_all(scene2.join("gt")).unwrap();
     let out2 = dir.join("run2");
     run(&scene2, &out2, &opts()).unwrap();
-    let (x, y) = (outputs(&od), outputs(&out2.join("openings")));
+    let (x, y) = (
+        outputs(&od, &scene),
+        outputs(&out2.join("openings"), &scene2),
+    );
     assert!(
         x.len() > 3,
         "{:?}",
