@@ -197,7 +197,15 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
     let s = run(&scene, &out, &o).unwrap();
     assert_eq!(
         reruns(&s),
-        ["render", "masks", "associate", "fuse", "lift", "eval"]
+        [
+            "render",
+            "masks",
+            "openings",
+            "associate",
+            "fuse",
+            "lift",
+            "eval"
+        ]
     );
     let s = run(
         &scene,
@@ -210,7 +218,15 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
     .unwrap();
     assert_eq!(
         reruns(&s),
-        ["raycast", "masks", "associate", "fuse", "lift", "eval"]
+        [
+            "raycast",
+            "masks",
+            "openings",
+            "associate",
+            "fuse",
+            "lift",
+            "eval"
+        ]
     );
     // Touching an input without changing it reruns nothing (identity = content digest).
     std::fs::write(&ply, &bytes).unwrap();
