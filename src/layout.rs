@@ -21,6 +21,7 @@ pub enum Stage {
     Raycast,
     Render,
     Masks,
+    Openings,
     Associate,
     Fuse,
     Lift,
@@ -30,12 +31,13 @@ pub enum Stage {
 
 impl Stage {
     /// Every stage folder a run can hold.
-    pub const ALL: [Stage; 10] = [
+    pub const ALL: [Stage; 11] = [
         Stage::Align,
         Stage::Citymodel,
         Stage::Raycast,
         Stage::Render,
         Stage::Masks,
+        Stage::Openings,
         Stage::Associate,
         Stage::Fuse,
         Stage::Lift,
@@ -51,6 +53,7 @@ impl Stage {
             Stage::Raycast => "raycast",
             Stage::Render => "render",
             Stage::Masks => "masks",
+            Stage::Openings => "openings",
             Stage::Associate => "associate",
             Stage::Fuse => "fuse",
             Stage::Lift => "lift",
@@ -68,6 +71,17 @@ impl Stage {
 impl std::fmt::Display for Stage {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.dir())
+    }
+}
+
+/// The semantic table of run folder `run`: the openings stage's completed table when it added
+/// openings (`openings/semantics.json`, docs/completeness.md), else the citymodel stage's.
+pub fn semantics_file(run: &Path) -> PathBuf {
+    let completed = Stage::Openings.path(run).join("semantics.json");
+    if completed.is_file() {
+        completed
+    } else {
+        Stage::Citymodel.path(run).join("semantics.json")
     }
 }
 

@@ -37,6 +37,7 @@ pub mod maskfile;
 pub mod masks;
 pub mod mesh;
 pub mod npy;
+pub mod openings;
 pub mod ply;
 pub mod prediction;
 pub mod progress;

@@ -35,6 +35,7 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
             "raycast",
             "render",
             "masks",
+            "openings",
             "associate",
             "fuse",
             "lift",
@@ -116,6 +117,7 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
                 "citymodel",
                 "raycast",
                 "masks",
+                "openings",
                 "associate",
                 "fuse",
                 "lift",
@@ -125,17 +127,33 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
         (
             "raycast",
             "v03.ids.npy",
-            &["raycast", "masks", "associate", "fuse", "lift", "eval"],
+            &[
+                "raycast",
+                "masks",
+                "openings",
+                "associate",
+                "fuse",
+                "lift",
+                "eval",
+            ],
         ),
         (
             "render",
             "v05.contrib",
-            &["render", "masks", "associate", "fuse", "lift", "eval"],
+            &[
+                "render",
+                "masks",
+                "openings",
+                "associate",
+                "fuse",
+                "lift",
+                "eval",
+            ],
         ),
         (
             "masks",
             "summary.json",
-            &["masks", "associate", "fuse", "lift", "eval"],
+            &["masks", "openings", "associate", "fuse", "lift", "eval"],
         ),
         (
             "associate",
@@ -179,7 +197,15 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
     let s = run(&scene, &out, &o).unwrap();
     assert_eq!(
         reruns(&s),
-        ["render", "masks", "associate", "fuse", "lift", "eval"]
+        [
+            "render",
+            "masks",
+            "openings",
+            "associate",
+            "fuse",
+            "lift",
+            "eval"
+        ]
     );
     let s = run(
         &scene,
@@ -192,7 +218,15 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
     .unwrap();
     assert_eq!(
         reruns(&s),
-        ["raycast", "masks", "associate", "fuse", "lift", "eval"]
+        [
+            "raycast",
+            "masks",
+            "openings",
+            "associate",
+            "fuse",
+            "lift",
+            "eval"
+        ]
     );
     // Touching an input without changing it reruns nothing (identity = content digest).
     std::fs::write(&ply, &bytes).unwrap();

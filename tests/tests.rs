@@ -27,6 +27,7 @@ mod hardening;
 mod lift;
 mod masks;
 mod open3d_check;
+mod openings;
 mod query;
 mod raycast;
 mod raycast_packets;

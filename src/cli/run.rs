@@ -72,6 +72,11 @@ pub struct RunArgs {
     /// m_view: an associated group must be seen in at least this many views.
     #[arg(long, default_value_t = crate::associate::AssociateOptions::default().min_views)]
     pub min_views: usize,
+    /// Openings (windows, doors) the images show but the city model lacks: missing (add them
+    /// to the semantic table under their wall and raycast the completed model again) or off
+    /// (the completeness report only); docs/completeness.md. Uses --min-views as m_view.
+    #[arg(long, default_value = "missing")]
+    pub openings: crate::openings::Add,
     /// No city-part snapping of windows and doors to the image's own masks in the fuse stage.
     #[arg(long)]
     pub no_snap: bool,
@@ -168,6 +173,11 @@ impl RunArgs {
             lift,
             supervision: self.supervision,
             masks,
+            openings: crate::openings::OpeningsOptions {
+                add: self.openings,
+                m_view: self.min_views,
+                ..Default::default()
+            },
             associate,
             fuse,
             mode: self.mode,

@@ -27,6 +27,7 @@ pub use crate::layout::Mode;
 use crate::layout::Stage;
 use crate::lift::{self, LiftOptions, LiftSummary};
 use crate::masks::{self, MasksOptions, MasksSummary};
+use crate::openings::{self, OpeningsOptions, OpeningsSummary};
 use crate::raycast::{self, RaycastSummary};
 use crate::render;
 use crate::scene::{Scene, SceneError, Split};
@@ -106,6 +107,8 @@ pub enum RunError {
     #[error(transparent)]
     Masks(#[from] masks::MasksError),
     #[error(transparent)]
+    Openings(#[from] crate::openings::OpeningsError),
+    #[error(transparent)]
     Associate(#[from] associate::AssociateError),
     #[error(transparent)]
     Fuse(#[from] fuse::FuseError),
@@ -129,6 +132,10 @@ pub struct RunOptions {
     /// Where the labels come from (city model alone, or fused with the masks).
     pub supervision: Supervision,
     pub masks: MasksOptions,
+    /// Windows and doors from the images where the model lacks them, and the completeness
+    /// report (`R/openings/`, docs/completeness.md).
+    #[serde(default)]
+    pub openings: OpeningsOptions,
     pub associate: AssociateOptions,
     pub fuse: FuseOptions,
     /// The per-Gaussian labels that are evaluated and queried: the vote, or identity learning
@@ -161,6 +168,7 @@ impl Default for RunOptions {
             lift: LiftOptions::default(),
             supervision: Supervision::Fused,
             masks: MasksOptions::default(),
+            openings: OpeningsOptions::default(),
             associate: AssociateOptions::default(),
             fuse: FuseOptions::default(),
             mode: Mode::Vote,
@@ -205,6 +213,7 @@ fn files_in(dir: &Path) -> Vec<PathBuf> {
 
 /// Runs (or resumes) every stage of the scene folder `scene_dir` into `out`, in this order
 /// (the only place that knows it): align (optional) → citymodel → raycast → render → masks →
+/// openings (windows/doors the model lacks; the completed model is raycast again) →
 /// associate → fuse (fused supervision) → lift → train (mode learned) → eval (with `gt/`) →
 /// report.
 ///
@@ -220,13 +229,14 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     raycast_step(&mut r, cm.alignment.scale, opts)?;
     let cache = render_step(&mut r, opts)?;
     let entities = semantics::read(&r.st.dir(Stage::Citymodel).join("semantics.json"))?;
+    let srs = cm.files.iter().find_map(|f| f.srs_name.clone());
     let sup = match opts.supervision {
-        Supervision::City => city_supervision(&mut r, &entities)?,
+        Supervision::City => city_supervision(&mut r, entities)?,
         Supervision::Fused => {
-            fused_supervision(&mut r, &cache, &entities, cm.alignment.scale, opts)?
+            fused_supervision(&mut r, &cache, entities, cm.alignment.scale, srs, opts)?
         }
     };
-    let pred_dir = vote_steps(&mut r, &cache, &entities, &sup, cm.alignment.scale, opts)?;
+    let pred_dir = vote_steps(&mut r, &cache, &sup, cm.alignment.scale, opts)?;
     let eval = eval_step(&mut r, &cache, &pred_dir, out, opts)?;
     finish(r, out, opts, &pred_dir, eval, sup)
 }
@@ -483,6 +493,10 @@ fn render_step(r: &mut Running, opts: &RunOptions) -> Result<Cache, RunError> {
 /// The per-view label maps the vote reads, their label table, the stages they come from, and
 /// the masks stage's summary (fused supervision only).
 struct Supervised {
+    /// The semantic table of the labels: the model's, or the one the openings stage completed.
+    entities: Vec<semantics::Entity>,
+    /// The raycast folder of that table's mesh (the city votes' depth gate).
+    raycast: PathBuf,
     maps: LabelMaps,
     labels: LabelTable,
     upstream: Vec<Stage>,
@@ -495,14 +509,16 @@ struct Supervised {
 /// Steps 4–6 skipped: `M_city` alone (paper §3.1); the mask stages' folders are removed.
 fn city_supervision(
     r: &mut Running,
-    entities: &[semantics::Entity],
+    entities: Vec<semantics::Entity>,
 ) -> Result<Supervised, RunError> {
-    for stage in [Stage::Masks, Stage::Associate, Stage::Fuse] {
+    for stage in [Stage::Masks, Stage::Openings, Stage::Associate, Stage::Fuse] {
         r.st.discard(stage)?;
     }
     Ok(Supervised {
+        raycast: r.st.dir(Stage::Raycast),
         maps: LabelMaps::City(r.st.dir(Stage::Raycast)),
-        labels: LabelTable::city(entities, &classes::table(entities))?,
+        labels: LabelTable::city(&entities, &classes::table(&entities))?,
+        entities,
         upstream: vec![Stage::Citymodel, Stage::Raycast],
         masks: None,
         warnings: Vec::new(),
@@ -514,8 +530,9 @@ fn city_supervision(
 fn fused_supervision(
     r: &mut Running,
     cache: &Cache,
-    entities: &[semantics::Entity],
+    entities: Vec<semantics::Entity>,
     scale: f64,
+    srs_name: Option<String>,
     opts: &RunOptions,
 ) -> Result<Supervised, RunError> {
     let (scene, train) = (&r.scene, &r.split.train);
@@ -556,6 +573,54 @@ fn fused_supervision(
         .masks
         .as_deref()
         .filter(|_| ms.source == masks::Source::Sam);
+    // Openings the images show but the model lacks (docs/completeness.md); with any added,
+    // the completed model is raycast again and everything downstream uses it.
+    let cm_dir = r.st.dir(Stage::Citymodel);
+    let ro = raycast::RaycastOptions {
+        tau: opts.tau_m * scale,
+        single_pass: opts.single_pass,
+    };
+    let all_views = &r.views;
+    let os: OpeningsSummary = r.st.stage(
+        Stage::Openings,
+        &(opts.openings, ro),
+        &inputs,
+        &[Stage::Citymodel, Stage::Raycast, Stage::Masks],
+        |dir| {
+            let mesh = crate::mesh::TriMesh::read_ply(&cm_dir.join("mesh.ply"))?;
+            let alignment = Alignment::read(&cm_dir.join("alignment.json"))?;
+            let out = openings::run(
+                &openings::OpeningsInputs {
+                    views: train,
+                    raycast: &rc_dir,
+                    masks: &masks_dir,
+                    sam,
+                    entities: &entities,
+                    mesh: &mesh,
+                    alignment: &alignment,
+                    srs_name,
+                },
+                &opts.openings,
+            )?;
+            openings::write(&out, dir)?;
+            if let Some((e, m)) = &out.completed {
+                let rdir = dir.join("raycast");
+                fsutil::create_dir(&rdir)?;
+                semantics::check_mesh_labels(&dir.join("mesh.ply"), m, e)?;
+                let _rc: RaycastSummary = raycast::run(m, all_views, &ro, None, &rdir)?;
+            }
+            Ok::<_, RunError>(out.summary)
+        },
+    )?;
+    let od = r.st.dir(Stage::Openings);
+    let (entities, rc_dir) = if os.added > 0 {
+        (
+            semantics::read(&od.join("semantics.json"))?,
+            od.join("raycast"),
+        )
+    } else {
+        (entities, rc_dir)
+    };
     let asum: AssociateSummary = r.st.stage(
         Stage::Associate,
         &opts.associate,
@@ -588,6 +653,7 @@ fn fused_supervision(
             Stage::Citymodel,
             Stage::Raycast,
             Stage::Masks,
+            Stage::Openings,
             Stage::Associate,
         ],
         |dir| {
@@ -596,7 +662,7 @@ fn fused_supervision(
                     views: train,
                     associate: &as_dir,
                     raycast: &rc_dir,
-                    entities,
+                    entities: &entities,
                     sam,
                     features: features.as_deref(),
                     kept: Some(&masks_dir),
@@ -608,6 +674,7 @@ fn fused_supervision(
     )?;
     let fuse_dir = r.st.dir(Stage::Fuse);
     let mut warnings = ms.warnings.clone();
+    warnings.extend(os.warnings.iter().cloned());
     warnings.extend(asum.warnings.iter().cloned());
     let choices = asum
         .calibration
@@ -615,9 +682,11 @@ fn fused_supervision(
         .map(|c| format!("associate: τ_sim = {} ({}): {}", c.tau_sim, c.mode, c.why))
         .collect();
     Ok(Supervised {
+        entities,
+        raycast: rc_dir,
         labels: LabelTable::read(&fuse_dir.join("labels.json"))?,
         maps: LabelMaps::Fused(fuse_dir),
-        upstream: vec![Stage::Citymodel, Stage::Fuse],
+        upstream: vec![Stage::Citymodel, Stage::Openings, Stage::Fuse],
         masks: Some(ms),
         warnings,
         choices,
@@ -629,7 +698,6 @@ fn fused_supervision(
 fn vote_steps(
     r: &mut Running,
     cache: &Cache,
-    entities: &[semantics::Entity],
     sup: &Supervised,
     scale: f64,
     opts: &RunOptions,
@@ -641,7 +709,8 @@ fn vote_steps(
         upstream.push(Stage::Raycast);
     }
     let ply = r.scene.ply.clone();
-    let raycast = r.st.dir(Stage::Raycast);
+    let raycast = sup.raycast.clone();
+    let entities = &sup.entities;
     let inputs = VoteInputs {
         city_depth: Some((&raycast, scale)),
         ply: &ply,

@@ -12,6 +12,7 @@ use super::StageReport;
 use crate::camera::View;
 use crate::classes;
 use crate::eval::EvalSummary;
+use crate::fsutil;
 use crate::scene::Scene;
 
 /// Errors of report writing.
@@ -293,6 +294,7 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             let _ = write!(html, "<h3>{}</h3><img src=\"masks/{}\">", esc(o), esc(o));
         }
     }
+    completeness_table(&mut html, r.out);
     html.push_str(if r.semantics.is_some() {
         "<h2>Test views: image | semantic Gaussians rendered in class colours | ground truth | prediction</h2><p>"
     } else {
@@ -354,4 +356,64 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
     let path = out.join("report.html");
     crate::fsutil::write_bytes(&path, html.as_bytes())?;
     Ok(path)
+}
+
+/// The completeness report of `R/openings/completeness.json` (docs/completeness.md), when the
+/// run has one: per building the model's openings, those the images confirm, those the model
+/// lacks and those no image supports; then every finding with its polygon.
+fn completeness_table(html: &mut String, out: &Path) {
+    let p = out.join("openings/completeness.json");
+    let Ok(c) = fsutil::read_json::<crate::openings::Completeness>(&p) else {
+        return;
+    };
+    let _ = write!(
+        html,
+        "<h2>City-model completeness: {} openings the images show but the model lacks, {} model \
+         openings no image supports</h2><p>Machine-readable: <a href=\"openings/completeness.city.json\">\
+         openings/completeness.city.json</a> (CityJSON 2.0), <a href=\"openings/completeness.json\">\
+         openings/completeness.json</a>.</p><table><tr><th>building</th><th>model openings</th>\
+         <th>confirmed by images</th><th>missing in model</th><th>unsupported</th></tr>",
+        c.missing_in_model.len(),
+        c.unsupported.len()
+    );
+    for b in c
+        .buildings
+        .iter()
+        .filter(|b| b.model_openings + b.missing_in_model > 0)
+    {
+        let _ = write!(
+            html,
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            esc(&b.object_id),
+            b.model_openings,
+            b.confirmed,
+            b.missing_in_model,
+            b.unsupported
+        );
+    }
+    html.push_str("</table><table><tr><th>finding</th><th>class</th><th>id</th><th>wall</th><th>views</th><th>size (m)</th><th>polygon (CRS)</th></tr>");
+    let rows = c
+        .missing_in_model
+        .iter()
+        .map(|o| ("missing in model", o))
+        .chain(c.unsupported.iter().map(|o| ("unsupported", o)));
+    for (what, o) in rows {
+        let poly: Vec<String> = o
+            .polygon
+            .iter()
+            .map(|q| format!("({:.2}, {:.2}, {:.2})", q[0], q[1], q[2]))
+            .collect();
+        let _ = write!(
+            html,
+            "<tr><td>{what}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{:.2} × {:.2}</td><td>{}</td></tr>",
+            esc(&o.class),
+            esc(&o.object_id),
+            esc(&o.wall_object_id),
+            o.views,
+            o.rect_m[2] - o.rect_m[0],
+            o.rect_m[3] - o.rect_m[1],
+            esc(&poly.join(" "))
+        );
+    }
+    html.push_str("</table>");
 }

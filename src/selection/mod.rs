@@ -112,7 +112,7 @@ impl SemanticRun {
         let t0 = Instant::now();
         let mode = mode.unwrap_or_else(|| Mode::default_for(run));
         let scene = Scene::open(scene)?;
-        let entities = semantics::read(&run.join("citymodel/semantics.json"))?;
+        let entities = semantics::read(&crate::layout::semantics_file(run))?;
         let fuse = run.join("fuse");
         let (labels, labels_source) = if fuse.is_dir() {
             let p = fuse.join("labels.json");

@@ -197,7 +197,7 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
             continue;
         }
         let rd = run_dir(&Plan::tile_dir(plan_dir, tp));
-        let entities = crate::semantics::read(&rd.join("citymodel/semantics.json"))?;
+        let entities = crate::semantics::read(&crate::layout::semantics_file(&rd))?;
         let fuse = rd.join("fuse/labels.json");
         let labels = if fuse.is_file() {
             LabelTable::read(&fuse)?
