@@ -423,6 +423,10 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
                 .flat_map(|r| &r.points)
             {
                 let s = alignment.apply(*q);
+                // A non-finite coordinate is the triangulator's to skip (with its reason).
+                if !q.is_finite() {
+                    continue;
+                }
                 if let Some(why) = outside_scene_frame(s) {
                     return Err(CityModelError::Frame {
                         path: m.path.clone(),
