@@ -5,7 +5,7 @@
 #   scripts/fuzz.sh build [READER...]     only build the fuzz targets
 #   scripts/fuzz.sh list                  the readers
 #
-# READER: citygml ply_splat ply_mesh colmap_bin colmap_txt sam npy align (docs/robustness.md).
+# READER: citygml citymodel where ply_splat ply_mesh colmap_bin colmap_txt sam npy align (docs/robustness.md).
 # The targets live in fuzz/ (a crate of its own: the main build and CI never compile them).
 # They are built with SanitizerCoverage instrumentation through stable rustc flags
 # (-C passes=sancov-module, no nightly features) plus debug assertions and overflow checks,
@@ -20,7 +20,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-READERS="citygml ply_splat ply_mesh colmap_bin colmap_txt sam npy align"
+READERS="citygml citymodel where ply_splat ply_mesh colmap_bin colmap_txt sam npy align"
 TRIPLE="$(rustc -vV | sed -n 's/^host: //p')"
 BIN_DIR="fuzz/target/$TRIPLE/release"
 
@@ -54,7 +54,8 @@ MINUTES="${2:?usage: scripts/fuzz.sh READER MINUTES}"
 case " $READERS " in *" $READER "*) ;; *) echo "unknown reader $READER (one of: $READERS)" >&2; exit 2 ;; esac
 
 case "$READER" in
-    citygml) MAX_LEN=16384; DICT=citygml ;;
+    citygml | citymodel) MAX_LEN=16384; DICT=citygml ;;
+    where) MAX_LEN=4096; DICT=where ;;
     ply_splat | ply_mesh) MAX_LEN=8192; DICT=ply ;;
     colmap_bin | colmap_txt) MAX_LEN=4096; DICT=colmap ;;
     sam) MAX_LEN=8192; DICT=sam ;;
