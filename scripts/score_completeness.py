@@ -14,6 +14,7 @@ finding's wall plane (mean distance of its mesh vertices <= --plane-tol metres x
 truth's parent wall is often a small reveal surface, not the facade) when their rectangles on
 that plane (the finding's own corners; the dropped opening's vertices projected, bounding box)
 have IoU >= --min-iou; one-to-one, best IoU first.
+Classes: matched pairs counted as "<truth class> as <finding class>".
 Precision = matched findings / findings; recall = matched dropped / dropped, over all dropped
 openings and over those seen (>= 1e-4 of the image) in >= --m-view training views of the GT.
 Independent of gs4city's code: NumPy only.
@@ -105,11 +106,14 @@ def main():
                 pairs.append((iou, fi, oid))
     pairs.sort(reverse=True)
     used_f, used_d = set(), set()
+    classes = {}
     for iou, fi, oid in pairs:
         if fi in used_f or oid in used_d:
             continue
         used_f.add(fi)
         used_d.add(oid)
+        key = "%s as %s" % (dropped[oid]["class"], found[fi]["class"])
+        classes[key] = classes.get(key, 0) + 1
     # Dropped openings the training views see (GT part channel, full-model entity ids).
     gt = os.path.join(a.scene, "gt")
     stems = sorted(n[: -len(".hier.npy")] for n in os.listdir(gt) if n.endswith(".hier.npy"))
@@ -138,6 +142,7 @@ def main():
         "recall": len(used_d) / len(dropped) if dropped else None,
         "recall_seen": len(used_d & seen) / len(seen) if seen else None,
         "min_iou": a.min_iou,
+        "classes": dict(sorted(classes.items())),
     }
     json.dump(out, sys.stdout, indent=1)
     print()

@@ -768,9 +768,64 @@ fn pick_label(
     best.0
 }
 
+// Depth from the cache: the 3DGS median depth of a cached view.
+
+/// View-space z (the camera-axis depth the rasterizer sorts by) of every Gaussian centre.
+pub fn view_z(positions: &[[f32; 3]], pose: &crate::camera::Pose) -> Vec<f32> {
+    // Only the third row of `world_to_camera` (`R·p + t`).
+    let r = pose.rotation.row(2);
+    let tz = pose.translation.z;
+    positions
+        .iter()
+        .map(|p| (r.dot(glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64)) + tz) as f32)
+        .collect()
+}
+
+/// The 3DGS median depth per pixel from a view's contribution lists: the z of the Gaussian
+/// at which the accumulated weight `Σ α·T` (in depth order) first reaches 0.5 — where the
+/// transmittance crosses 0.5, the rasterizer's median depth. NaN where the kept weights never
+/// reach 0.5 (mostly transparent pixels, or mass lost to the top-k truncation). Unlike the
+/// expected depth, it is not pulled forward by semi-transparent Gaussians in front (a tree
+/// crown at 1 m covering 25 % of a wall pixel at 11 m moves the expected depth to 8.6 m and
+/// the median not at all).
+pub fn median_depth(c: &ViewContrib, z: &[f32]) -> Vec<f32> {
+    (0..c.pixels())
+        .map(|p| {
+            let (ids, w) = c.pixel(p);
+            let mut acc = 0.0f32;
+            for (&i, &wi) in ids.iter().zip(w) {
+                acc += wi;
+                if acc >= 0.5 {
+                    return z[i as usize];
+                }
+            }
+            f32::NAN
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn view_z_is_the_camera_z_of_world_to_camera() {
+        let pose = crate::camera::Pose::look_at(
+            glam::DVec3::new(3.0, -7.0, 2.0),
+            glam::DVec3::new(0.5, 1.0, 1.0),
+            glam::DVec3::Z,
+        )
+        .unwrap();
+        let pts = [[0.0f32, 0.0, 0.0], [1.5, 2.5, -0.5], [-4.0, 8.0, 3.0]];
+        let z = view_z(&pts, &pose);
+        for (p, z) in pts.iter().zip(z) {
+            let e = pose
+                .world_to_camera(glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+                .z;
+            assert!((z as f64 - e).abs() < 1e-5, "{z} {e}");
+        }
+    }
+
     use rand::{Rng, SeedableRng};
 
     /// The rule written the plain way: sort by label, sum each run, keep the first strict

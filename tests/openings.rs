@@ -3,7 +3,8 @@
 //! openings it adds overlap the dropped ones (the expectation comes from `gt/model_edit.json`
 //! and the complete CityGML, scored by the NumPy script `scripts/score_completeness.py`; the
 //! test alone reads gt/), they hang under a wall of their building, `query` selects them, the
-//! completeness CityJSON is read by cjio and by our reader, and deleting gt/ changes no output.
+//! completeness CityJSON is read by cjio and by our reader, deleting gt/ changes no output, and
+//! without features the geometric cue (recessed regions in the 3DGS depth) alone finds them.
 use std::path::Path;
 use std::process::Command;
 
@@ -56,6 +57,37 @@ fn differing(a: &[(String, Vec<u8>)], b: &[(String, Vec<u8>)]) -> Vec<String> {
     out
 }
 
+/// The completeness score of `out` by `scripts/score_completeness.py` (NumPy; reads the
+/// SIMULATED scene's gt/), against the complete model written to `full`; `None` without NumPy.
+fn score(out: &Path, scene: &Path, full: &Path) -> Option<serde_json::Value> {
+    if !common::python_can_import("openings::score_completeness", &["numpy"]) {
+        return None;
+    }
+    if !full.join("mesh.ply").exists() {
+        let gml: Vec<_> = config(0.0)
+            .citygml
+            .iter()
+            .map(|p| std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(p))
+            .collect();
+        let files = gs4city::citymodel::collect_files(&gml).unwrap();
+        let a = gs4city::alignment::Alignment::read(&out.join("citymodel/alignment.json")).unwrap();
+        let o = gs4city::citymodel::run(
+            &files.files,
+            &gs4city::citymodel::Options { alignment: Some(a) },
+        )
+        .unwrap();
+        std::fs::create_dir_all(full).unwrap();
+        gs4city::citymodel::write(&o, full).unwrap();
+    }
+    let s = Command::new("python3")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/score_completeness.py"))
+        .args([out, scene, full])
+        .output()
+        .unwrap();
+    assert!(s.status.success(), "{}", String::from_utf8_lossy(&s.stderr));
+    Some(serde_json::from_slice(&s.stdout).unwrap())
+}
+
 #[test]
 fn lod2_openings_from_the_images() {
     let dir = wall::tmp("openings-lod2");
@@ -85,29 +117,8 @@ fn lod2_openings_from_the_images() {
 
     // The added openings overlap the dropped ones (scored by the NumPy reference on the
     // complete model's mesh; gt/ is read by the script only).
-    if common::python_can_import("openings::lod2_openings_from_the_images", &["numpy"]) {
-        let full = dir.join("full");
-        let gml: Vec<_> = config(0.0)
-            .citygml
-            .iter()
-            .map(|p| std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(p))
-            .collect();
-        let files = gs4city::citymodel::collect_files(&gml).unwrap();
-        let a = gs4city::alignment::Alignment::read(&out.join("citymodel/alignment.json")).unwrap();
-        let o = gs4city::citymodel::run(
-            &files.files,
-            &gs4city::citymodel::Options { alignment: Some(a) },
-        )
-        .unwrap();
-        std::fs::create_dir_all(&full).unwrap();
-        gs4city::citymodel::write(&o, &full).unwrap();
-        let s = Command::new("python3")
-            .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/score_completeness.py"))
-            .args([&out, &scene, &full])
-            .output()
-            .unwrap();
-        assert!(s.status.success(), "{}", String::from_utf8_lossy(&s.stderr));
-        let r: serde_json::Value = serde_json::from_slice(&s.stdout).unwrap();
+    let full = dir.join("full");
+    if let Some(r) = score(&out, &scene, &full) {
         eprintln!("openings-lod2 score: {r}");
         assert!(r["precision"].as_f64().unwrap() >= 0.8, "{r}");
         assert!(r["matched"].as_u64().unwrap() >= 3, "{r}");
@@ -196,6 +207,23 @@ fn lod2_openings_from_the_images() {
         std::fs::read(out.join("lift/gaussians.npy")).unwrap(),
         std::fs::read(out2.join("lift/gaussians.npy")).unwrap()
     );
+
+    // Geometry alone: without features (no window/door prompts) the recessed regions of the
+    // 3DGS depth still find the dropped openings (scene2 is scene without gt/).
+    std::fs::remove_dir_all(scene2.join("features")).unwrap();
+    let out3 = dir.join("run3");
+    let mut o3 = opts();
+    o3.openings.cues = gs4city::openings::Cues::Geometry;
+    run(&scene2, &out3, &o3).unwrap();
+    let s3: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out3.join("openings/summary.json")).unwrap())
+            .unwrap();
+    assert!(s3["added"].as_u64().unwrap() >= 3, "geometry alone: {s3}");
+    if let Some(r) = score(&out3, &scene, &full) {
+        eprintln!("openings-lod2 geometry-alone score: {r}");
+        assert!(r["precision"].as_f64().unwrap() >= 0.8, "{r}");
+        assert!(r["matched"].as_u64().unwrap() >= 3, "{r}");
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -228,4 +256,30 @@ fn bad_options_are_one_clear_line() {
         ..Default::default()
     };
     assert!(o.validate().unwrap_err().to_string().contains("size_m"));
+    let o = gs4city::openings::OpeningsOptions {
+        recess_m: [0.5, 0.1],
+        ..Default::default()
+    };
+    assert!(
+        o.validate().unwrap_err().to_string().contains("recess_m"),
+        "{o:?}"
+    );
+    // The command line names the cue choices.
+    let out = Command::new(env!("CARGO_BIN_EXE_gs4city"))
+        .args([
+            "run",
+            "--scene",
+            "s",
+            "--out",
+            "o",
+            "--opening-cues",
+            "depth",
+        ])
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && e.contains("features, geometry, both"),
+        "{e}"
+    );
 }

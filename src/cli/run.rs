@@ -77,6 +77,11 @@ pub struct RunArgs {
     /// (the completeness report only); docs/completeness.md. Uses --min-views as m_view.
     #[arg(long, default_value = "missing")]
     pub openings: crate::openings::Add,
+    /// Where opening candidates come from: features (dropped building masks whose best prompt
+    /// is a window or door prompt), geometry (regions recessed behind the wall in the 3DGS
+    /// depth) or both; docs/completeness.md.
+    #[arg(long, default_value = "both")]
+    pub opening_cues: crate::openings::Cues,
     /// No city-part snapping of windows and doors to the image's own masks in the fuse stage.
     #[arg(long)]
     pub no_snap: bool,
@@ -175,6 +180,7 @@ impl RunArgs {
             masks,
             openings: crate::openings::OpeningsOptions {
                 add: self.openings,
+                cues: self.opening_cues,
                 m_view: self.min_views,
                 ..Default::default()
             },

@@ -11,12 +11,9 @@
 //! the rendered depth across steep (grazing) depth gradients, and silhouettes; recessed
 //! windows (3DGS behind the opening's polygon) are "behind" or "on the surface", never "in
 //! front".
-use glam::DVec3;
 use ndarray::Array2;
 
 use super::MasksError;
-use crate::cache::ViewContrib;
-use crate::camera::Pose;
 use crate::imageio;
 
 /// No evidence: no city hit at the pixel, or no 3DGS depth.
@@ -216,40 +213,6 @@ pub fn classify(
             } else {
                 SURFACE
             }
-        })
-        .collect()
-}
-
-/// View-space z (the camera-axis depth the rasterizer sorts by) of every Gaussian centre.
-pub fn view_z(positions: &[[f32; 3]], pose: &Pose) -> Vec<f32> {
-    // Only the third row of `world_to_camera` (`R·p + t`).
-    let r = pose.rotation.row(2);
-    let tz = pose.translation.z;
-    positions
-        .iter()
-        .map(|p| (r.dot(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64)) + tz) as f32)
-        .collect()
-}
-
-/// The 3DGS median depth per pixel from a view's contribution lists: the z of the Gaussian
-/// at which the accumulated weight `Σ α·T` (in depth order) first reaches 0.5 — where the
-/// transmittance crosses 0.5, the rasterizer's median depth. NaN where the kept weights never
-/// reach 0.5 (mostly transparent pixels, or mass lost to the top-k truncation). Unlike the
-/// expected depth, it is not pulled forward by semi-transparent Gaussians in front (a tree
-/// crown at 1 m covering 25 % of a wall pixel at 11 m moves the expected depth to 8.6 m and
-/// the median not at all).
-pub fn median_depth(c: &ViewContrib, z: &[f32]) -> Vec<f32> {
-    (0..c.pixels())
-        .map(|p| {
-            let (ids, w) = c.pixel(p);
-            let mut acc = 0.0f32;
-            for (&i, &wi) in ids.iter().zip(w) {
-                acc += wi;
-                if acc >= 0.5 {
-                    return z[i as usize];
-                }
-            }
-            f32::NAN
         })
         .collect()
 }
@@ -609,24 +572,6 @@ mod tests {
         assert_eq!(b, vec![-2.0; 8]);
         let st = classify(&city, &gs2, &f, &s, h, w, &test(0, true));
         assert_eq!(st[2..], [FRONT; 6]);
-    }
-
-    #[test]
-    fn view_z_is_the_camera_z_of_world_to_camera() {
-        let pose = Pose::look_at(
-            DVec3::new(3.0, -7.0, 2.0),
-            DVec3::new(0.5, 1.0, 1.0),
-            DVec3::Z,
-        )
-        .unwrap();
-        let pts = [[0.0f32, 0.0, 0.0], [1.5, 2.5, -0.5], [-4.0, 8.0, 3.0]];
-        let z = view_z(&pts, &pose);
-        for (p, z) in pts.iter().zip(z) {
-            let e = pose
-                .world_to_camera(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-                .z;
-            assert!((z as f64 - e).abs() < 1e-5, "{z} {e}");
-        }
     }
 
     #[test]

@@ -104,7 +104,7 @@ pub enum Source {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum GsDepth {
-    /// Median depth from the cache's lists and the Gaussian centres ([`geometry::median_depth`];
+    /// Median depth from the cache's lists and the Gaussian centres ([`crate::cache::median_depth`];
     /// reads the scene's `point_cloud.ply`).
     Median,
     /// The cache's expected depth `Σ w·z / (1 − T)`.
@@ -624,7 +624,7 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
         }
         let t = Instant::now();
         let gs = match &plan.positions {
-            Some(pos) => geometry::median_depth(&c, &geometry::view_z(pos, &v.camera.pose)),
+            Some(pos) => crate::cache::median_depth(&c, &crate::cache::view_z(pos, &v.camera.pose)),
             None => c.depth,
         };
         let surface = &ids[h * w..2 * h * w];

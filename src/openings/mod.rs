@@ -35,6 +35,7 @@
 //! Reads only what `docs/design.md` allows: the masks stage's decisions, the scene's SAM lists,
 //! the raycast and the city mesh; never `gt/`.
 pub mod plane;
+mod recess;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -75,6 +76,8 @@ pub enum OpeningsError {
     Semantics(#[from] semantics::SemanticsError),
     #[error(transparent)]
     Mesh(#[from] crate::mesh::MeshError),
+    #[error(transparent)]
+    Cache(#[from] crate::cache::CacheError),
 }
 
 /// Which accepted openings enter the semantic table and the mesh.
@@ -98,10 +101,46 @@ impl std::str::FromStr for Add {
     }
 }
 
+/// Where candidates come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Cues {
+    /// Dropped building masks whose best prompt is a window or door prompt (needs features).
+    Features,
+    /// Regions recessed behind the wall plane in the 3DGS depth ([`recess`]; needs the cache).
+    Geometry,
+    /// Both, clustered together.
+    Both,
+}
+
+impl Cues {
+    fn features(self) -> bool {
+        matches!(self, Cues::Features | Cues::Both)
+    }
+    /// Whether the stage reads the contributions cache and the Gaussians.
+    pub fn geometry(self) -> bool {
+        matches!(self, Cues::Geometry | Cues::Both)
+    }
+}
+
+impl std::str::FromStr for Cues {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Cues, String> {
+        match s {
+            "features" => Ok(Cues::Features),
+            "geometry" => Ok(Cues::Geometry),
+            "both" => Ok(Cues::Both),
+            _ => Err(format!("{s:?} is not one of features, geometry, both")),
+        }
+    }
+}
+
 /// Options of the stage (module docs; defaults in `docs/completeness.md`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct OpeningsOptions {
     pub add: Add,
+    /// Where candidates come from.
+    pub cues: Cues,
     /// Distinct views a cluster needs to be accepted.
     pub m_view: usize,
     /// Share of a candidate's pixels on its wall.
@@ -128,12 +167,27 @@ pub struct OpeningsOptions {
     /// Walls whose normal makes more than this with the horizontal are not walls (cosine of
     /// the normal with up).
     pub max_tilt_cos: f64,
+    /// Geometric cue: how far behind its wall's own offset (metres × scale) the 3DGS must
+    /// stand for a pixel to be recessed, `[min, max]`.
+    pub recess_m: [f64; 2],
+    /// Geometric cue: the fewest pixels of a recessed component.
+    pub min_px: usize,
+    /// Geometric cue: a pixel counts only when the pixels this far up, down, left and right
+    /// hit the same wall (no blur across silhouettes).
+    pub guard_px: usize,
+    /// Geometric cue: the longer side of a rectangle at most this many times the shorter.
+    pub max_aspect: f64,
+    /// Geometric cue: a rectangle whose bottom lies within this height (metres × scale) of
+    /// its wall's bottom, and at least `door_height_m` tall, is a door.
+    pub door_sill_m: f64,
+    pub door_height_m: f64,
 }
 
 impl Default for OpeningsOptions {
     fn default() -> Self {
         OpeningsOptions {
             add: Add::Missing,
+            cues: Cues::Both,
             m_view: 3,
             min_wall_share: 0.8,
             support_floor: 0.3,
@@ -145,6 +199,12 @@ impl Default for OpeningsOptions {
             plane_tol_m: 0.5,
             seen_px_frac: 1e-4,
             max_tilt_cos: 0.3,
+            recess_m: [0.06, 1.0],
+            min_px: 12,
+            guard_px: 2,
+            max_aspect: 5.0,
+            door_sill_m: 0.6,
+            door_height_m: 1.7,
         }
     }
 }
@@ -166,10 +226,20 @@ impl OpeningsOptions {
         crate::check::positive("plane_tol_m", self.plane_tol_m).map_err(e)?;
         unit("seen_px_frac", self.seen_px_frac).map_err(e)?;
         unit("max_tilt_cos", self.max_tilt_cos).map_err(e)?;
-        let [lo, hi] = self.size_m;
-        if !(lo.is_finite() && hi.is_finite() && 0.0 < lo && lo < hi) {
-            return Err(e(format!("size_m must be 0 < lo < hi, got [{lo}, {hi}]")));
+        for (name, [lo, hi]) in [("size_m", self.size_m), ("recess_m", self.recess_m)] {
+            if !(lo.is_finite() && hi.is_finite() && 0.0 < lo && lo < hi) {
+                return Err(e(format!("{name} must be 0 < lo < hi, got [{lo}, {hi}]")));
+            }
         }
+        crate::check::positive("door_sill_m", self.door_sill_m).map_err(e)?;
+        crate::check::positive("door_height_m", self.door_height_m).map_err(e)?;
+        range(
+            "max_aspect",
+            self.max_aspect,
+            End::Closed(1.0),
+            End::Open(f64::INFINITY),
+        )
+        .map_err(e)?;
         Ok(())
     }
 }
@@ -189,6 +259,67 @@ pub struct OpeningsInputs<'a> {
     pub alignment: &'a Alignment,
     /// The city model's CRS (srsName), for the CityJSON's `referenceSystem`.
     pub srs_name: Option<String>,
+    /// The contributions cache and the Gaussian centres (the geometric cue); `None`: none.
+    pub geometry: Option<Geometry<'a>>,
+}
+
+/// What the geometric cue reads: the contributions cache of the views and the centres of the
+/// Gaussians it was built for.
+#[derive(Clone, Copy)]
+pub struct Geometry<'a> {
+    pub cache: &'a crate::cache::Cache,
+    pub positions: &'a [[f32; 3]],
+}
+
+/// One view's raycast maps (row-major `h×w`).
+struct ViewMaps<'a> {
+    view: &'a View,
+    index: usize,
+    surface: &'a [i32],
+    part: &'a [i32],
+    /// The city model's z-depth (NaN: no hit).
+    city: &'a [f32],
+}
+
+/// The `trim`-quantile rectangle on `fr`'s plane of the pixels `px` that hit `wall`,
+/// back-projected through the raycast depth; `None` with fewer than 4 such pixels.
+fn plane_rect(
+    vm: &ViewMaps<'_>,
+    fr: &WallFrame,
+    wall: i32,
+    px: &[usize],
+    trim: f64,
+) -> Option<Rect> {
+    let cam = &vm.view.camera;
+    let w = cam.intrinsics.width as usize;
+    let centre = cam.pose.center();
+    let to_world = cam.pose.rotation.transpose();
+    let (mut us, mut vs) = (Vec::with_capacity(px.len()), Vec::with_capacity(px.len()));
+    for &p in px {
+        let d = vm.city[p];
+        if vm.surface[p] != wall || !d.is_finite() {
+            continue;
+        }
+        let ray = cam.pixel_ray((p % w) as f64 + 0.5, (p / w) as f64 + 0.5);
+        if ray.z <= 0.0 {
+            continue;
+        }
+        let q = centre + to_world * ray * (d as f64 / ray.z);
+        let [u, v] = fr.to_plane(q);
+        us.push(u);
+        vs.push(v);
+    }
+    if us.len() < 4 {
+        return None;
+    }
+    us.sort_by(f64::total_cmp);
+    vs.sort_by(f64::total_cmp);
+    Some(Rect([
+        quantile(&us, trim),
+        quantile(&vs, trim),
+        quantile(&us, 1.0 - trim),
+        quantile(&vs, 1.0 - trim),
+    ]))
 }
 
 /// One candidate mask on a wall.
@@ -198,6 +329,8 @@ struct Candidate {
     wall: i32,
     rect: Rect,
     class: i32,
+    /// From the geometric cue (a recessed region), not a mask.
+    recess: bool,
     /// Passed the masks stage's quality rule; a weak candidate (`support_floor ≤
     /// predicted_iou < τ_q`) only joins clusters (like the associate stage's support-only
     /// masks): it never founds one nor moves its rectangle.
@@ -282,6 +415,8 @@ pub struct OpeningsOutput {
 /// a window/door mask lies on (part ids).
 struct ViewScan {
     candidates: Vec<Candidate>,
+    /// The view's masks carry prompt classes (features): its supports are evidence.
+    judged: bool,
     seen: BTreeMap<i32, u64>,
     supports: BTreeSet<i32>,
 }
@@ -332,54 +467,34 @@ fn scan_view(
             *seen.entry(p).or_insert(0u64) += 1;
         }
     }
-    let mut candidates = Vec::new();
-    let mut supports = BTreeSet::new();
-    let Some(sam_dir) = ins.sam else {
-        return Ok(ViewScan {
-            candidates,
-            seen,
-            supports,
-        });
+    let mut scan = ViewScan {
+        candidates: Vec::new(),
+        judged: false,
+        seen,
+        supports: BTreeSet::new(),
     };
-    let dpath = maskfile::decisions_file(ins.masks, &stem);
-    let decisions = maskfile::read_decisions(&dpath)?;
-    let want: Vec<(usize, i32, bool)> = decisions
-        .iter()
-        .filter(|d| !d.kept && d.source_index >= 0 && d.rule != Rule::Area)
-        .filter_map(|d| {
-            let c = d.scores.get("class").copied()? as i32;
-            let q = d.scores.get("predicted_iou").copied().unwrap_or(0.0);
-            let strong = !matches!(d.rule, Rule::Quality | Rule::LowQualitySupport);
-            ((c == crate::classes::WINDOW || c == crate::classes::DOOR)
-                && (strong || q >= opts.support_floor))
-                .then_some((d.source_index as usize, c, strong))
-        })
-        .collect();
-    if want.is_empty() {
-        return Ok(ViewScan {
-            candidates,
-            seen,
-            supports,
-        });
+    let masks = match ins.sam.filter(|_| opts.cues.features()) {
+        Some(sam_dir) => {
+            let (judged, masks) = window_masks(ins, sam_dir, &stem, [h, w], opts)?;
+            scan.judged = judged;
+            masks
+        }
+        None => Vec::new(),
+    };
+    let geometry = ins.geometry.filter(|_| opts.cues.geometry());
+    if masks.is_empty() && geometry.is_none() {
+        return Ok(scan);
     }
-    let spath = sam_dir.join(format!("{stem}.json"));
-    let list = sam::read_sam_json_sized(&spath, Some([h, w]))?;
-    let depth = idmap::read_depth(ins.raycast, &stem, w, h)?;
-    let centre = cam.pose.center();
-    let to_world = cam.pose.rotation.transpose();
+    let city = idmap::read_depth(ins.raycast, &stem, w, h)?;
+    let vm = ViewMaps {
+        view,
+        index: vi,
+        surface,
+        part,
+        city: &city,
+    };
     let scale = ins.alignment.scale;
-    for (i, class, strong) in want {
-        let Some(m) = list.get(i) else {
-            return Err(OpeningsError::Invalid {
-                path: dpath.clone(),
-                why: format!(
-                    "decision for mask {i}, but {} has {} masks (stale masks stage?)",
-                    spath.display(),
-                    list.len()
-                ),
-            });
-        };
-        let px = pixels_of(m);
+    for (px, class, strong) in masks {
         if px.is_empty() {
             continue;
         }
@@ -393,7 +508,7 @@ fn scan_view(
         if let Some((&pt, &k)) = parts.iter().max_by_key(|(_, k)| **k)
             && k as f64 >= opts.part_share * px.len() as f64
         {
-            supports.insert(pt);
+            scan.supports.insert(pt);
             continue;
         }
         let mut count: BTreeMap<i32, usize> = BTreeMap::new();
@@ -413,50 +528,89 @@ fn scan_view(
         let Some(frame) = frames.get(&wall) else {
             continue;
         };
-        let (mut us, mut vs) = (Vec::with_capacity(k), Vec::with_capacity(k));
-        for &p in &px {
-            let d = depth[p];
-            if surface[p] != wall || !d.is_finite() {
-                continue;
-            }
-            let ray = cam.pixel_ray((p % w) as f64 + 0.5, (p / w) as f64 + 0.5);
-            if ray.z <= 0.0 {
-                continue;
-            }
-            let q = centre + to_world * ray * (d as f64 / ray.z);
-            let [u, v] = frame.to_plane(q);
-            us.push(u);
-            vs.push(v);
-        }
-        if us.len() < 4 {
+        let Some(rect) = plane_rect(&vm, frame, wall, &px, opts.trim) else {
             continue;
-        }
-        us.sort_by(f64::total_cmp);
-        vs.sort_by(f64::total_cmp);
-        let rect = Rect([
-            quantile(&us, opts.trim),
-            quantile(&vs, opts.trim),
-            quantile(&us, 1.0 - opts.trim),
-            quantile(&vs, 1.0 - opts.trim),
-        ]);
+        };
         let [lo, hi] = opts.size_m;
         let ok = |x: f64| (lo * scale..=hi * scale).contains(&x);
         if !(ok(rect.width()) && ok(rect.height())) {
             continue;
         }
-        candidates.push(Candidate {
+        scan.candidates.push(Candidate {
             view: vi,
             wall,
             rect,
             class,
+            recess: false,
             strong,
         });
     }
-    Ok(ViewScan {
-        candidates,
-        seen,
-        supports,
-    })
+    if let Some(g) = geometry {
+        let c = g.cache.load(&stem)?;
+        if (c.height, c.width) != (h, w) {
+            return Err(OpeningsError::Invalid {
+                path: crate::cache::cache_file(&g.cache.dir, &stem),
+                why: format!(
+                    "{}×{} pixels, the view's image is {h}×{w}",
+                    c.height, c.width
+                ),
+            });
+        }
+        let gs = crate::cache::median_depth(&c, &crate::cache::view_z(g.positions, &cam.pose));
+        scan.candidates
+            .extend(recess::candidates(&vm, &gs, frames, opts, scale)?);
+    }
+    Ok(scan)
+}
+
+/// A window/door mask: its pixels, class and strength (strong: passed the quality rule).
+type WindowMask = (Vec<usize>, i32, bool);
+
+/// The pixels, class and strength of the view's masks that the masks stage dropped as
+/// building and whose best prompt is a window or door prompt (module docs), and whether the
+/// masks stage had prompt classes at all (features).
+fn window_masks(
+    ins: &OpeningsInputs<'_>,
+    sam_dir: &Path,
+    stem: &str,
+    [h, w]: [usize; 2],
+    opts: &OpeningsOptions,
+) -> Result<(bool, Vec<WindowMask>), OpeningsError> {
+    let dpath = maskfile::decisions_file(ins.masks, stem);
+    let decisions = maskfile::read_decisions(&dpath)?;
+    let judged = decisions.iter().any(|d| d.scores.contains_key("class"));
+    let want: Vec<(usize, i32, bool)> = decisions
+        .iter()
+        .filter(|d| !d.kept && d.source_index >= 0 && d.rule != Rule::Area)
+        .filter_map(|d| {
+            let c = d.scores.get("class").copied()? as i32;
+            let q = d.scores.get("predicted_iou").copied().unwrap_or(0.0);
+            let strong = !matches!(d.rule, Rule::Quality | Rule::LowQualitySupport);
+            ((c == crate::classes::WINDOW || c == crate::classes::DOOR)
+                && (strong || q >= opts.support_floor))
+                .then_some((d.source_index as usize, c, strong))
+        })
+        .collect();
+    if want.is_empty() {
+        return Ok((judged, Vec::new()));
+    }
+    let spath = sam_dir.join(format!("{stem}.json"));
+    let list = sam::read_sam_json_sized(&spath, Some([h, w]))?;
+    let masks = want
+        .into_iter()
+        .map(|(i, class, strong)| match list.get(i) {
+            Some(m) => Ok((pixels_of(m), class, strong)),
+            None => Err(OpeningsError::Invalid {
+                path: dpath.clone(),
+                why: format!(
+                    "decision for mask {i}, but {} has {} masks (stale masks stage?)",
+                    spath.display(),
+                    list.len()
+                ),
+            }),
+        })
+        .collect::<Result<_, _>>()?;
+    Ok((judged, masks))
 }
 
 /// A cluster of candidates on one wall.
@@ -488,13 +642,16 @@ impl Cluster {
         self.rect = Rect(r);
     }
 
+    /// The majority class of the mask members (appearance tells a door from a window better
+    /// than the recess's height above the wall's bottom), else of the recess members.
     fn class(&self) -> i32 {
-        let doors = self
-            .members
+        let masks = self.members.iter().any(|c| !c.recess);
+        let voters: Vec<&Candidate> = self.members.iter().filter(|c| c.recess != masks).collect();
+        let doors = voters
             .iter()
             .filter(|c| c.class == crate::classes::DOOR)
             .count();
-        if 2 * doors > self.members.len() {
+        if 2 * doors > voters.len() {
             crate::classes::DOOR
         } else {
             crate::classes::WINDOW
@@ -581,6 +738,9 @@ pub fn run(
         })
         .collect::<Result<Vec<_>, _>>()?;
     bar.finish();
+    // Unsupported needs mask evidence: window/door masks (features) that could have lain on
+    // a model opening.
+    let judged = scans.iter().any(|s| s.judged);
     // Per wall, candidates in view order.
     let mut by_wall: BTreeMap<i32, Vec<Candidate>> = BTreeMap::new();
     let mut n_cand = 0;
@@ -689,7 +849,7 @@ pub fn run(
         if sup >= opts.m_view {
             bc.confirmed += 1;
             confirmed_total += 1;
-        } else if sup == 0 && seen_views.get(&o).copied().unwrap_or(0) >= opts.m_view {
+        } else if judged && sup == 0 && seen_views.get(&o).copied().unwrap_or(0) >= opts.m_view {
             bc.unsupported += 1;
             let wall = oe.parent.unwrap_or(-1);
             let went = &ents[wall as usize];
@@ -860,14 +1020,18 @@ pub fn run(
     // Loud only where the stage was needed: a model without openings that got none.
     let mut warnings = Vec::new();
     if model_pts.is_empty() && completeness.missing_in_model.is_empty() {
-        warnings.push(if ins.sam.is_none() {
-            "openings: the model has no windows or doors and the masks came from the mask-free source (no SAM lists): none found".to_string()
-        } else {
-            format!(
-                "openings: the model has no windows or doors and the images gave {n_cand} candidates, none seen in {} views (no window/door prompt on the dropped masks? without features there are none)",
-                opts.m_view
-            )
-        });
+        warnings.push(format!(
+            "openings: the model has no windows or doors and the images gave {n_cand} candidates ({}), none seen in {} views",
+            cue_words(ins, opts),
+            opts.m_view
+        ));
+    }
+    if !model_pts.is_empty() && !judged {
+        warnings.push(format!(
+            "openings: the model's {} openings were not judged (unsupported needs SAM masks with features; {})",
+            model_pts.len(),
+            cue_words(ins, opts)
+        ));
     }
     let summary = OpeningsSummary {
         options: *opts,
@@ -889,6 +1053,21 @@ pub fn run(
         completed,
         cityjson,
     })
+}
+
+/// Which cues ran, in words (the stage's warnings).
+fn cue_words(ins: &OpeningsInputs<'_>, opts: &OpeningsOptions) -> String {
+    let f = match (opts.cues.features(), ins.sam.is_some()) {
+        (false, _) => "features off",
+        (true, false) => "no SAM lists (mask-free source)",
+        (true, true) => "window/door masks",
+    };
+    let g = match (opts.cues.geometry(), ins.geometry.is_some()) {
+        (false, _) => "geometry off",
+        (true, false) => "no cache for the geometric cue",
+        (true, true) => "recessed regions",
+    };
+    format!("{f}; {g}")
 }
 
 /// A wall's findings with what each is (`missing_in_model` / `unsupported`).
@@ -1042,6 +1221,7 @@ mod tests {
             wall: 0,
             rect: Rect(r),
             class: crate::classes::WINDOW,
+            recess: false,
             strong,
         }
     }
@@ -1063,6 +1243,36 @@ mod tests {
         assert_eq!(k[1].views(), 1);
         // The rectangle: medians of the strong members only ([0, 0, 1, 1] and [0.1, 0, 1.1, 1]).
         assert!((k[0].rect.0[0] - 0.05).abs() < 1e-12 && (k[0].rect.0[3] - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn mask_members_decide_a_clusters_class_over_recess_members() {
+        let door = |view, recess| Candidate {
+            class: crate::classes::DOOR,
+            recess,
+            ..cand(view, [0.0, 0.0, 1.0, 2.0], true)
+        };
+        let window = |view, recess| Candidate {
+            recess,
+            ..cand(view, [0.0, 0.0, 1.0, 2.0], true)
+        };
+        // Three recess windows and one door mask: a door.
+        let k = cluster(
+            &[
+                window(0, true),
+                window(1, true),
+                window(2, true),
+                door(3, false),
+            ],
+            0.5,
+        );
+        assert_eq!(k.len(), 1);
+        assert_eq!(k[0].class(), crate::classes::DOOR);
+        // Recess members alone: their majority.
+        let k = cluster(&[window(0, true), door(1, true), door(2, true)], 0.5);
+        assert_eq!(k[0].class(), crate::classes::DOOR);
+        let k = cluster(&[window(0, true), window(1, true), door(2, true)], 0.5);
+        assert_eq!(k[0].class(), crate::classes::WINDOW);
     }
 
     #[test]

@@ -585,10 +585,31 @@ fn fused_supervision(
         Stage::Openings,
         &(opts.openings, ro),
         &inputs,
-        &[Stage::Citymodel, Stage::Raycast, Stage::Masks],
+        &[
+            Stage::Citymodel,
+            Stage::Raycast,
+            Stage::Render,
+            Stage::Masks,
+        ],
         |dir| {
             let mesh = crate::mesh::TriMesh::read_ply(&cm_dir.join("mesh.ply"))?;
             let alignment = Alignment::read(&cm_dir.join("alignment.json"))?;
+            // The geometric cue's Gaussian centres (the cache was built for this PLY).
+            let positions = if opts.openings.cues.geometry() {
+                let (g, _) = crate::splat::read_ply(&scene.ply, &crate::splat::ReadOptions::KEEP)?;
+                if g.len() != cache.summary.gaussians {
+                    return Err(RunError::Refused(format!(
+                        "{}: {} Gaussians, but the cache {} was built for {}",
+                        scene.ply.display(),
+                        g.len(),
+                        cache.dir.display(),
+                        cache.summary.gaussians
+                    )));
+                }
+                Some(g.positions)
+            } else {
+                None
+            };
             let out = openings::run(
                 &openings::OpeningsInputs {
                     views: train,
@@ -599,6 +620,9 @@ fn fused_supervision(
                     mesh: &mesh,
                     alignment: &alignment,
                     srs_name,
+                    geometry: positions
+                        .as_deref()
+                        .map(|positions| openings::Geometry { cache, positions }),
                 },
                 &opts.openings,
             )?;
