@@ -305,6 +305,17 @@ impl Segmenter {
                     .with("iou_predictions")
                     .with("low_res_masks"),
             );
+        // With the low-resolution outputs only, the export's post-processing (upsampling to
+        // 1024², the crop to the resized image, the upsampling to `orig_im_size`) produces
+        // `masks`, which is not read but still computed (ONNX Runtime runs the whole graph): a
+        // 1 × 1024 "original" makes the crop one row and the last upsampling trivial. Neither
+        // `low_res_masks` nor `iou_predictions` depends on it (SAM's export applies it after
+        // the decoder).
+        let orig_im_size: [f32; 2] = if self.low_res {
+            [1.0, 1024.0]
+        } else {
+            [h as f32, w as f32]
+        };
         for chunk in points.chunks(batch) {
             let t1 = Instant::now();
             let b = chunk.len();
@@ -324,7 +335,7 @@ impl Segmenter {
                 "point_labels" => model::tensor(&[b, 2], labels, dp)?,
                 "mask_input" => model::tensor(&[1, 1, 256, 256], vec![0.0; 256 * 256], dp)?,
                 "has_mask_input" => model::tensor(&[1], vec![0.0], dp)?,
-                "orig_im_size" => model::tensor(&[2], vec![h as f32, w as f32], dp)?,
+                "orig_im_size" => model::tensor(&[2], orig_im_size.to_vec(), dp)?,
             ];
             let out = if self.low_res {
                 self.decoder
