@@ -61,7 +61,7 @@ fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
             city_depth: None,
         },
         &LiftOptions {
-            gamma,
+            gamma: Some(gamma),
             ..Default::default()
         },
         &dir.join("lift"),

@@ -443,7 +443,7 @@ fn outputs_are_standard_start_from_the_vote_and_predict_the_test_views() {
         None,
         1,
         0,
-        quick().gamma,
+        gs4city::vote::gamma_for(quick().gamma, &fx.maps()),
     )
     .unwrap();
     let init = fx.gaussians("init");

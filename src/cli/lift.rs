@@ -18,8 +18,9 @@ pub struct LiftArgs {
     #[command(flatten)]
     src: LabelSourceArgs,
     /// Background bias γ in [-1, 1] (FlashSplat), added to the normalised background vote.
-    #[arg(long, default_value_t = crate::vote::GAMMA, allow_negative_numbers = true)]
-    gamma: f32,
+    /// Default: −1 with fused (mask) supervision, −0.5 with the city model alone.
+    #[arg(long, allow_negative_numbers = true)]
+    gamma: Option<f32>,
     /// Depth gate of city votes in metres: a Gaussian more than this in front of the city
     /// surface its pixel's ray hits takes no vote from that surface's label (needs the raycast's
     /// depth: --raycast, or --depth with --fuse); 0 = off.

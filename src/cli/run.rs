@@ -29,8 +29,9 @@ pub struct RunArgs {
     #[arg(long)]
     pub single_pass: bool,
     /// Background bias γ of the vote, in [-1, 1].
-    #[arg(long, default_value_t = crate::vote::GAMMA, allow_negative_numbers = true)]
-    pub gamma: f32,
+    /// Default: −1 with fused (mask) supervision, −0.5 with the city model alone.
+    #[arg(long, allow_negative_numbers = true)]
+    pub gamma: Option<f32>,
     /// Depth gate of city votes in metres: a Gaussian more than this in front of the city
     /// surface its pixel's ray hits takes no vote from that surface's label; 0 = off.
     #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]

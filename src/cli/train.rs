@@ -70,8 +70,9 @@ pub struct TrainArgs {
     #[arg(long)]
     random_init: bool,
     /// Background bias γ of the initial vote, in [-1, 1].
-    #[arg(long, default_value_t = crate::vote::GAMMA, allow_negative_numbers = true)]
-    gamma: f32,
+    /// Default: −1 with fused (mask) supervision, −0.5 with the city model alone.
+    #[arg(long, allow_negative_numbers = true)]
+    gamma: Option<f32>,
     /// Depth gate of the initial vote's city votes, metres (as `lift`); 0 = off.
     #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]
     city_gate_m: f32,

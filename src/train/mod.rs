@@ -121,8 +121,9 @@ pub struct TrainOptions {
     pub init: Init,
     /// Logit scale β of the vote initialisation.
     pub init_scale: f64,
-    /// Background bias γ of the initial vote (as `lift`).
-    pub gamma: f32,
+    /// Background bias γ of the initial vote (as `lift`; `None`: by the label source).
+    #[serde(default)]
+    pub gamma: Option<f32>,
     /// Depth gate of the initial vote's city votes, metres (as `lift`; 0 = off).
     #[serde(default = "default_city_gate")]
     pub city_gate_m: f32,
@@ -162,7 +163,7 @@ impl Default for TrainOptions {
             kl_samples: 1000,
             init: Init::Vote,
             init_scale: 8.0,
-            gamma: crate::vote::GAMMA,
+            gamma: None,
             city_gate_m: crate::vote::CITY_GATE_M,
             window: 200,
             tol: 0.005,
@@ -666,7 +667,7 @@ pub fn run(
         gate.as_ref(),
         opts.stride,
         opts.top_k,
-        opts.gamma,
+        crate::vote::gamma_for(opts.gamma, inp.maps),
     )?;
     timing.read_s = t.elapsed().as_secs_f64() - pool.vote_s;
     timing.vote_s = pool.vote_s;
