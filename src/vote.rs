@@ -112,7 +112,9 @@ impl VoteOptions {
     pub fn validate(&self) -> Result<(), VoteError> {
         use crate::check::{End, non_negative, range};
         self.gamma
-            .map_or(Ok(()), |g| range("gamma", g, End::Closed(-1.0), End::Closed(1.0)))
+            .map_or(Ok(()), |g| {
+                range("gamma", g, End::Closed(-1.0), End::Closed(1.0))
+            })
             .and_then(|()| non_negative("city_gate_m", self.city_gate_m))
             .map_err(VoteError::Options)
     }
