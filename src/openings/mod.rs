@@ -107,7 +107,7 @@ impl std::str::FromStr for Add {
 pub enum Cues {
     /// Dropped building masks whose best prompt is a window or door prompt (needs features).
     Features,
-    /// Regions recessed behind the wall plane in the 3DGS depth ([`recess`]; needs the cache).
+    /// Regions recessed behind the wall plane in the 3DGS depth (`recess.rs`; needs the cache).
     Geometry,
     /// Both, clustered together.
     Both,
