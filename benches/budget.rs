@@ -2,10 +2,18 @@
 //! "Loss budget"). Benchmarks may read the simulation truth; no stage does.
 //!
 //! ```text
-//! cargo bench --bench budget -- --scene S --run NAME=RUN [--run NAME=RUN …] [--every 8]
+//! cargo bench --bench budget -- --scene S --run NAME=RUN [--run NAME=RUN …] [--every 8] [--abstain 0.5,0.7]
 //! ```
+//! `--abstain θ,…` adds, per run and θ, the test views predicted with the Gaussians whose
+//! `label_confidence` (`lift/semantic.ply`) is below θ abstaining: their weight leaves the
+//! pixel's competition instead of voting for their class (per-Gaussian "unknown", issue 23).
 //! All runs must share the scene's geometry (the same `point_cloud.ply` and cameras; the
 //! perception may differ). Rows:
+//! - **(0) truth Gaussians → pixel rule**: the simulator's own per-Gaussian classes
+//!   (`gt/gaussians.npy`) rendered through the cache with the pipeline's pixel rule (the class
+//!   whose Gaussians weigh most), and **(0′) … → top-1**: the class of each pixel's heaviest
+//!   Gaussian (the rule the simulator's truth maps are drawn with) — what a perfect per-Gaussian
+//!   labelling gives under each rule;
 //! - **(a) truth → vote**: the vote of the *ground-truth class maps* of the training views over
 //!   the first run's contributions cache, predicted on the test views with the pipeline's pixel
 //!   rule — the limit of the Gaussians and the cache;
@@ -32,6 +40,7 @@ struct Args {
     scene: PathBuf,
     runs: Vec<(String, PathBuf)>,
     every: usize,
+    abstain: Vec<f32>,
 }
 
 fn parse() -> Args {
@@ -39,6 +48,7 @@ fn parse() -> Args {
         scene: PathBuf::new(),
         runs: Vec::new(),
         every: 8,
+        abstain: Vec::new(),
     };
     let v: Vec<String> = std::env::args().skip(1).collect();
     let mut i = 0;
@@ -51,6 +61,12 @@ fn parse() -> Args {
                 a.runs.push((n.to_string(), r.into()));
             }
             "--every" => a.every = val.parse().expect("number"),
+            "--abstain" => {
+                a.abstain = val
+                    .split(',')
+                    .map(|x| x.parse().expect("--abstain θ,…"))
+                    .collect()
+            }
             "--bench" => {
                 i += 1;
                 continue;
@@ -61,6 +77,76 @@ fn parse() -> Args {
     }
     assert!(!a.runs.is_empty(), "at least one --run NAME=RUN");
     a
+}
+
+/// The class map of a cached view with the Gaussians of confidence in (0, θ) abstaining: per
+/// pixel the class with the largest summed weight of the other Gaussians, or −1 when the
+/// pixel's rest (1 − α, the truncated mass) and its background-class Gaussians weigh at least
+/// as much (the pipeline's pixel rule, `cache::predict_map`, without the abstaining weight).
+fn abstaining(c: &gs4city::cache::ViewContrib, class: &[i32], conf: &[f32], th: f32) -> Vec<i32> {
+    (0..c.pixels())
+        .map(|p| {
+            let (ids, ws) = c.pixel(p);
+            let mut sums: Vec<(i32, f32)> = Vec::new();
+            let mut none = 1.0 - c.alpha[p] + c.lists.residual[p];
+            for (&g, &w) in ids.iter().zip(ws) {
+                let (k, q) = (class[g as usize], conf[g as usize]);
+                if q > 0.0 && q < th {
+                    continue;
+                }
+                if k < 0 {
+                    none += w;
+                } else if let Some(e) = sums.iter_mut().find(|e| e.0 == k) {
+                    e.1 += w;
+                } else {
+                    sums.push((k, w));
+                }
+            }
+            sums.into_iter()
+                .filter(|e| e.1 > none)
+                .max_by(|x, y| x.1.total_cmp(&y.1).then(y.0.cmp(&x.0)))
+                .map_or(-1, |e| e.0)
+        })
+        .collect()
+}
+
+/// Per pixel the class of its heaviest listed Gaussian (first of equal weights), or −1 where
+/// the pixel's α is below 0.5 (the simulator's `output.min_alpha` default): how the truth maps
+/// are drawn.
+fn heaviest(c: &gs4city::cache::ViewContrib, class: &[i32]) -> Vec<i32> {
+    (0..c.pixels())
+        .map(|p| {
+            let (ids, ws) = c.pixel(p);
+            let mut best: Option<(u32, f32)> = None;
+            for (&g, &w) in ids.iter().zip(ws) {
+                if best.is_none_or(|b| w > b.1) {
+                    best = Some((g, w));
+                }
+            }
+            match best {
+                Some((g, _)) if c.alpha[p] >= 0.5 => class[g as usize],
+                _ => -1,
+            }
+        })
+        .collect()
+}
+
+/// Per pixel the class of the Gaussian at which the accumulated α·T (lists in depth order)
+/// reaches ½ — the visible surface at the median depth — or −1 where α < ½.
+fn median_rule(c: &gs4city::cache::ViewContrib, class: &[i32]) -> Vec<i32> {
+    (0..c.pixels())
+        .map(|p| {
+            let (ids, ws) = c.pixel(p);
+            let mut acc = 0.0f32;
+            for (&g, &w) in ids.iter().zip(ws) {
+                acc += w;
+                if acc >= 0.5 {
+                    return class[g as usize];
+                }
+            }
+            -1
+        })
+        .collect()
 }
 
 fn gt(scene: &Path, stem: &str) -> Vec<i32> {
@@ -175,6 +261,37 @@ fn main() {
     );
     println!("|---|---|---|---|{}", "---|".repeat(classes::FINE.len()));
 
+    // (0) The simulator's per-Gaussian truth, rendered by the pixel rule and by the top-1 rule.
+    let (shape, flat) =
+        gs4city::npy::read::<i32>(&a.scene.join("gt/gaussians.npy")).expect("gt/gaussians.npy");
+    assert_eq!(shape[0], n, "gt/gaussians.npy rows = the cache's Gaussians");
+    let truth_class: Vec<i32> = flat.chunks(shape[1]).map(|r| r[0]).collect();
+    let (mut rule, mut top1) = (Vec::new(), Vec::new());
+    let (mut lk_rule, mut lk_top1) = ((0, 0), (0, 0));
+    for v in &split.test {
+        let c = cache.load(&v.stem()).expect("cached test view");
+        let truth = gt(&a.scene, &v.stem());
+        let pred = predict_map(&c, &truth_class);
+        let l = leak(&truth, &pred);
+        lk_rule = (lk_rule.0 + l.0, lk_rule.1 + l.1);
+        rule.push(eval::accumulate(&truth, &pred));
+        let pred = heaviest(&c, &truth_class);
+        let l = leak(&truth, &pred);
+        lk_top1 = (lk_top1.0 + l.0, lk_top1.1 + l.1);
+        top1.push(eval::accumulate(&truth, &pred));
+    }
+    row("(0) truth Gaussians → pixel rule (test)", &rule, lk_rule);
+    row("(0′) truth Gaussians → top-1 (test)", &top1, lk_top1);
+    let mut med = Vec::new();
+    for v in &split.test {
+        let c = cache.load(&v.stem()).expect("cached test view");
+        med.push(eval::accumulate(
+            &gt(&a.scene, &v.stem()),
+            &median_rule(&c, &truth_class),
+        ));
+    }
+    row("(0″) truth Gaussians → median rule (test)", &med, (0, 0));
+
     // (a) The truth's class maps as supervision: label = class.
     let mut votes = Votes::new(n);
     for v in &split.train {
@@ -216,6 +333,7 @@ fn main() {
             lk = (lk.0 + l.0, lk.1 + l.1);
         }
         row(&format!("{name}: supervision (training views)"), &sup, lk);
+        let sup_counts = sup;
         let mut test = Vec::new();
         let mut lk = (0, 0);
         for (stem, truth) in &test_views {
@@ -226,6 +344,64 @@ fn main() {
             lk = (lk.0 + l.0, lk.1 + l.1);
         }
         row(&format!("{name}: test (vote)"), &test, lk);
+        {
+            let (_, table) = gs4city::npy::read::<i32>(&run.join("lift/gaussians.npy"))
+                .expect("the run's lift/gaussians.npy");
+            let class: Vec<i32> = table.chunks(2).map(|r| r[1]).collect();
+            let mut rows = Vec::new();
+            let mut lk = (0, 0);
+            for (stem, truth) in &test_views {
+                let c = cache.load(stem).expect("cached test view");
+                let pred = heaviest(&c, &class);
+                rows.push(eval::accumulate(truth, &pred));
+                let l = leak(truth, &pred);
+                lk = (lk.0 + l.0, lk.1 + l.1);
+            }
+            row(&format!("{name}: test (vote), top-1 rule"), &rows, lk);
+            let mut rows = Vec::new();
+            let mut lk = (0, 0);
+            for (stem, truth) in &test_views {
+                let c = cache.load(stem).expect("cached test view");
+                let pred = median_rule(&c, &class);
+                rows.push(eval::accumulate(truth, &pred));
+                let l = leak(truth, &pred);
+                lk = (lk.0 + l.0, lk.1 + l.1);
+            }
+            row(&format!("{name}: test (vote), median rule"), &rows, lk);
+        }
+        if !a.abstain.is_empty() {
+            let (_, table) = gs4city::npy::read::<i32>(&run.join("lift/gaussians.npy"))
+                .expect("the run's lift/gaussians.npy");
+            let class: Vec<i32> = table.chunks(2).map(|r| r[1]).collect();
+            let (g, _) =
+                gs4city::splat::read_ply(&run.join("lift/semantic.ply"), &Default::default())
+                    .expect("the run's lift/semantic.ply");
+            let conf = g
+                .extra("label_confidence")
+                .expect("label_confidence")
+                .values
+                .iter()
+                .map(|&x| x as f32)
+                .collect::<Vec<f32>>();
+            for &th in &a.abstain {
+                let mut rows = Vec::new();
+                let mut lk = (0, 0);
+                for (stem, truth) in &test_views {
+                    let c = cache.load(stem).expect("cached test view");
+                    let pred = abstaining(&c, &class, &conf, th);
+                    rows.push(eval::accumulate(truth, &pred));
+                    let l = leak(truth, &pred);
+                    lk = (lk.0 + l.0, lk.1 + l.1);
+                }
+                let abstained = conf.iter().filter(|&&x| x > 0.0 && x < th).count();
+                row(
+                    &format!("{name}: test, confidence < {th} abstains ({abstained} Gaussians)"),
+                    &rows,
+                    lk,
+                );
+            }
+        }
+        per_run.push((format!("{name}: supervision"), sup_counts));
         per_run.push((name.clone(), test));
     }
     confusion("(a) truth class maps → vote", &truth_counts);
