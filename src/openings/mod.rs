@@ -511,20 +511,9 @@ fn scan_view(
             scan.supports.insert(pt);
             continue;
         }
-        let mut count: BTreeMap<i32, usize> = BTreeMap::new();
-        for &p in &px {
-            *count.entry(surface[p]).or_insert(0) += 1;
-        }
-        let Some((&wall, &k)) = count
-            .iter()
-            .filter(|(s, _)| **s >= 0)
-            .max_by_key(|(_, k)| **k)
-        else {
+        let Some(wall) = dominant_wall(surface, &px, opts.min_wall_share) else {
             continue;
         };
-        if (k as f64) < opts.min_wall_share * px.len() as f64 {
-            continue;
-        }
         let Some(frame) = frames.get(&wall) else {
             continue;
         };
@@ -1209,6 +1198,21 @@ pub fn write(out: &OpeningsOutput, dir: &Path) -> Result<(), OpeningsError> {
         m.write_ply(&dir.join("mesh.ply"))?;
     }
     Ok(())
+}
+
+/// The raycast surface (a wall id ≥ 0) that most of the pixels `px` hit, when it holds at
+/// least `min_share` of them (ties: the larger id); `None` otherwise. One rule for the mask
+/// candidates and the recess cue.
+fn dominant_wall(surface: &[i32], px: &[usize], min_share: f64) -> Option<i32> {
+    let mut count: BTreeMap<i32, usize> = BTreeMap::new();
+    for &p in px {
+        *count.entry(surface[p]).or_insert(0) += 1;
+    }
+    let (&wall, &k) = count
+        .iter()
+        .filter(|(s, _)| **s >= 0)
+        .max_by_key(|(_, k)| **k)?;
+    ((k as f64) >= min_share * px.len() as f64).then_some(wall)
 }
 
 #[cfg(test)]

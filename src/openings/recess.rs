@@ -27,7 +27,9 @@ use std::collections::BTreeMap;
 use ndarray::Array2;
 
 use super::plane::WallFrame;
-use super::{Candidate, OpeningsError, OpeningsOptions, ViewMaps, plane_rect, quantile};
+use super::{
+    Candidate, OpeningsError, OpeningsOptions, ViewMaps, dominant_wall, plane_rect, quantile,
+};
 use crate::imageio::{self, Morph};
 
 /// The recessed-region candidates of one view (module docs).
@@ -119,20 +121,9 @@ pub(super) fn candidates(
     // 4. Rectangles on the wall plane.
     let mut out = Vec::new();
     for px in comps.into_iter().filter(|c| !c.is_empty()) {
-        let mut count: BTreeMap<i32, usize> = BTreeMap::new();
-        for &p in &px {
-            *count.entry(rv.surface[p]).or_insert(0) += 1;
-        }
-        let Some((&wall, &k)) = count
-            .iter()
-            .filter(|(s, _)| **s >= 0)
-            .max_by_key(|(_, k)| **k)
-        else {
+        let Some(wall) = dominant_wall(rv.surface, &px, opts.min_wall_share) else {
             continue;
         };
-        if (k as f64) < opts.min_wall_share * px.len() as f64 {
-            continue;
-        }
         let Some(fr) = frames.get(&wall) else {
             continue;
         };
