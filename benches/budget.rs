@@ -149,6 +149,22 @@ fn median_rule(c: &gs4city::cache::ViewContrib, class: &[i32]) -> Vec<i32> {
         .collect()
 }
 
+/// The counts and the leak of a per-view prediction `rule` over the test views (stem, truth).
+fn scored(
+    cache: &Cache,
+    views: &[(String, Vec<i32>)],
+    rule: impl Fn(&gs4city::cache::ViewContrib) -> Vec<i32>,
+) -> (Vec<Counts>, (u64, u64)) {
+    let (mut counts, mut lk) = (Vec::new(), (0, 0));
+    for (stem, truth) in views {
+        let pred = rule(&cache.load(stem).expect("cached test view"));
+        counts.push(eval::accumulate(truth, &pred));
+        let l = leak(truth, &pred);
+        lk = (lk.0 + l.0, lk.1 + l.1);
+    }
+    (counts, lk)
+}
+
 fn gt(scene: &Path, stem: &str) -> Vec<i32> {
     gs4city::npy::read::<i32>(&scene.join(format!("gt/{stem}.class.npy")))
         .expect("gt class map")
@@ -261,36 +277,23 @@ fn main() {
     );
     println!("|---|---|---|---|{}", "---|".repeat(classes::FINE.len()));
 
-    // (0) The simulator's per-Gaussian truth, rendered by the pixel rule and by the top-1 rule.
+    let test_views: Vec<(String, Vec<i32>)> = split
+        .test
+        .iter()
+        .map(|v| (v.stem(), gt(&a.scene, &v.stem())))
+        .collect();
+    // (0) The simulator's per-Gaussian truth, rendered by the pixel rule, the top-1 rule and
+    // the median rule.
     let (shape, flat) =
         gs4city::npy::read::<i32>(&a.scene.join("gt/gaussians.npy")).expect("gt/gaussians.npy");
     assert_eq!(shape[0], n, "gt/gaussians.npy rows = the cache's Gaussians");
     let truth_class: Vec<i32> = flat.chunks(shape[1]).map(|r| r[0]).collect();
-    let (mut rule, mut top1) = (Vec::new(), Vec::new());
-    let (mut lk_rule, mut lk_top1) = ((0, 0), (0, 0));
-    for v in &split.test {
-        let c = cache.load(&v.stem()).expect("cached test view");
-        let truth = gt(&a.scene, &v.stem());
-        let pred = predict_map(&c, &truth_class);
-        let l = leak(&truth, &pred);
-        lk_rule = (lk_rule.0 + l.0, lk_rule.1 + l.1);
-        rule.push(eval::accumulate(&truth, &pred));
-        let pred = heaviest(&c, &truth_class);
-        let l = leak(&truth, &pred);
-        lk_top1 = (lk_top1.0 + l.0, lk_top1.1 + l.1);
-        top1.push(eval::accumulate(&truth, &pred));
-    }
-    row("(0) truth Gaussians → pixel rule (test)", &rule, lk_rule);
-    row("(0′) truth Gaussians → top-1 (test)", &top1, lk_top1);
-    let mut med = Vec::new();
-    for v in &split.test {
-        let c = cache.load(&v.stem()).expect("cached test view");
-        med.push(eval::accumulate(
-            &gt(&a.scene, &v.stem()),
-            &median_rule(&c, &truth_class),
-        ));
-    }
-    row("(0″) truth Gaussians → median rule (test)", &med, (0, 0));
+    let (c, l) = scored(&cache, &test_views, |c| predict_map(c, &truth_class));
+    row("(0) truth Gaussians → pixel rule (test)", &c, l);
+    let (c, l) = scored(&cache, &test_views, |c| heaviest(c, &truth_class));
+    row("(0′) truth Gaussians → top-1 (test)", &c, l);
+    let (c, l) = scored(&cache, &test_views, |c| median_rule(c, &truth_class));
+    row("(0″) truth Gaussians → median rule (test)", &c, l);
 
     // (a) The truth's class maps as supervision: label = class.
     let mut votes = Votes::new(n);
@@ -300,18 +303,7 @@ fn main() {
     }
     let label: Vec<i32> = assign(&votes, n, 0.0).iter().map(|x| x.label).collect();
     drop(votes);
-    let mut test_views = Vec::new();
-    let mut counts = Vec::new();
-    let mut lk = (0, 0);
-    for v in &split.test {
-        let c = cache.load(&v.stem()).expect("cached test view");
-        let truth = gt(&a.scene, &v.stem());
-        let pred = predict_map(&c, &label);
-        counts.push(eval::accumulate(&truth, &pred));
-        let l = leak(&truth, &pred);
-        lk = (lk.0 + l.0, lk.1 + l.1);
-        test_views.push((v.stem(), truth));
-    }
+    let (counts, lk) = scored(&cache, &test_views, |c| predict_map(c, &label));
     row("(a) truth class maps → vote (test)", &counts, lk);
     let truth_counts = counts;
 
@@ -348,25 +340,9 @@ fn main() {
             let (_, table) = gs4city::npy::read::<i32>(&run.join("lift/gaussians.npy"))
                 .expect("the run's lift/gaussians.npy");
             let class: Vec<i32> = table.chunks(2).map(|r| r[1]).collect();
-            let mut rows = Vec::new();
-            let mut lk = (0, 0);
-            for (stem, truth) in &test_views {
-                let c = cache.load(stem).expect("cached test view");
-                let pred = heaviest(&c, &class);
-                rows.push(eval::accumulate(truth, &pred));
-                let l = leak(truth, &pred);
-                lk = (lk.0 + l.0, lk.1 + l.1);
-            }
+            let (rows, lk) = scored(&cache, &test_views, |c| heaviest(c, &class));
             row(&format!("{name}: test (vote), top-1 rule"), &rows, lk);
-            let mut rows = Vec::new();
-            let mut lk = (0, 0);
-            for (stem, truth) in &test_views {
-                let c = cache.load(stem).expect("cached test view");
-                let pred = median_rule(&c, &class);
-                rows.push(eval::accumulate(truth, &pred));
-                let l = leak(truth, &pred);
-                lk = (lk.0 + l.0, lk.1 + l.1);
-            }
+            let (rows, lk) = scored(&cache, &test_views, |c| median_rule(c, &class));
             row(&format!("{name}: test (vote), median rule"), &rows, lk);
         }
         if !a.abstain.is_empty() {
@@ -384,15 +360,7 @@ fn main() {
                 .map(|&x| x as f32)
                 .collect::<Vec<f32>>();
             for &th in &a.abstain {
-                let mut rows = Vec::new();
-                let mut lk = (0, 0);
-                for (stem, truth) in &test_views {
-                    let c = cache.load(stem).expect("cached test view");
-                    let pred = abstaining(&c, &class, &conf, th);
-                    rows.push(eval::accumulate(truth, &pred));
-                    let l = leak(truth, &pred);
-                    lk = (lk.0 + l.0, lk.1 + l.1);
-                }
+                let (rows, lk) = scored(&cache, &test_views, |c| abstaining(c, &class, &conf, th));
                 let abstained = conf.iter().filter(|&&x| x > 0.0 && x < th).count();
                 row(
                     &format!("{name}: test, confidence < {th} abstains ({abstained} Gaussians)"),
