@@ -205,6 +205,7 @@ fn useless_features_give_a_geometry_only_association() {
     }
     let fixed = AssociateOptions {
         calibrate: false,
+        min_views: 3,
         ..Default::default()
     };
     let s = run(&b, &fixed, &b.dir.join("fixed"), 1.0);
@@ -459,7 +460,12 @@ fn masks_dropped_for_quality_support_a_group_seen_in_too_few_views() {
     // person (only where those masks' Gaussians overlap the group's: the faces the two kept
     // views saw, not the far side).
     write_decisions(&b, |v, o| skip(v, o).then_some(Rule::Quality));
-    let (s, gf, per) = go("quality", &AssociateOptions::default());
+    // The mechanism at the paper's m_view = 3 (the default is 2).
+    let m3 = AssociateOptions {
+        min_views: 3,
+        ..Default::default()
+    };
+    let (s, gf, per) = go("quality", &m3);
     assert_eq!((s.groups, s.supported_groups), (OBJECTS, 1), "{s:?}");
     let person = gf.groups.iter().find(|g| g.class == 7).unwrap();
     let others: Vec<String> = person_views[2..]
@@ -480,7 +486,7 @@ fn masks_dropped_for_quality_support_a_group_seen_in_too_few_views() {
         "off",
         &AssociateOptions {
             support: false,
-            ..Default::default()
+            ..m3
         },
     );
     assert_eq!(
@@ -490,7 +496,7 @@ fn masks_dropped_for_quality_support_a_group_seen_in_too_few_views() {
     assert!(gf.groups.iter().all(|g| g.class != 7));
     // Dropped as building: no support.
     write_decisions(&b, |v, o| skip(v, o).then_some(Rule::OnSurface));
-    let (s, _, _) = go("surface", &AssociateOptions::default());
+    let (s, _, _) = go("surface", &m3);
     assert_eq!((s.groups, s.support_masks), (OBJECTS - 1, 0), "{s:?}");
 }
 

@@ -82,7 +82,7 @@ pub struct AssociateArgs {
     #[arg(long)]
     no_calibrate: bool,
     /// Groups seen in fewer views are dropped (m_view).
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = crate::associate::AssociateOptions::default().min_views)]
     min_views: usize,
     /// Groups farther than this many metres (× alignment scale) from every camera are dropped.
     #[arg(long, default_value_t = 80.0)]

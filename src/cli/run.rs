@@ -75,9 +75,13 @@ pub struct RunArgs {
     pub min_views: usize,
     /// Openings (windows, doors) the images show but the city model lacks: missing (add them
     /// to the semantic table under their wall and raycast the completed model again) or off
-    /// (the completeness report only); docs/completeness.md. Uses --min-views as m_view.
+    /// (the completeness report only); docs/completeness.md. Their m_view: --opening-views.
     #[arg(long, default_value = "missing")]
     pub openings: crate::openings::Add,
+    /// m_view of the openings stage: an opening the model lacks is added when at least this
+    /// many training views show it (the association's m_view is --min-views).
+    #[arg(long, default_value_t = crate::openings::OpeningsOptions::default().m_view)]
+    pub opening_views: usize,
     /// Where opening candidates come from: features (dropped building masks whose best prompt
     /// is a window or door prompt), geometry (regions recessed behind the wall in the 3DGS
     /// depth) or both; docs/completeness.md.
@@ -182,7 +186,7 @@ impl RunArgs {
             openings: crate::openings::OpeningsOptions {
                 add: self.openings,
                 cues: self.opening_cues,
-                m_view: self.min_views,
+                m_view: self.opening_views,
                 ..Default::default()
             },
             associate,
