@@ -282,4 +282,27 @@ fn bad_options_are_one_clear_line() {
         !out.status.success() && e.contains("features, geometry, both"),
         "{e}"
     );
+    // m_view 0 of either stage is refused before any stage runs (nothing is written).
+    let dir = std::env::temp_dir().join(format!("gs4city-openings-mview0-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    for (flag, want) in [
+        ("--opening-views", "--opening-views must be at least 1"),
+        ("--min-views", "--min-views) must be ≥ 1"),
+    ] {
+        let out_dir = dir.join(flag.trim_start_matches('-'));
+        let out = Command::new(env!("CARGO_BIN_EXE_gs4city"))
+            .args(["run", "--scene"])
+            .arg(dir.join("no-scene"))
+            .arg("--out")
+            .arg(&out_dir)
+            .args([flag, "0"])
+            .output()
+            .unwrap();
+        let e = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && e.contains(want), "{flag}: {e}");
+        assert_eq!(e.trim().lines().count(), 1, "{flag}: {e}");
+        assert!(!out_dir.exists(), "{flag}: a run folder was written");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
 }

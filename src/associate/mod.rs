@@ -230,6 +230,9 @@ impl AssociateOptions {
         if self.join_views == 0 {
             return bad("join_views must be ≥ 1".into());
         }
+        if self.min_views == 0 {
+            return bad("min_views (m_view, --min-views) must be ≥ 1".into());
+        }
         if let Some(f) = self.fill {
             range("fill", f, End::Open(0.0), End::Closed(1.0)).map_err(AssociateError::Options)?;
         }

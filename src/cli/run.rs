@@ -175,6 +175,18 @@ impl RunArgs {
             ..Default::default()
         };
         check.validate()?;
+        let openings = crate::openings::OpeningsOptions {
+            add: self.openings,
+            cues: self.opening_cues,
+            m_view: self.opening_views,
+            ..Default::default()
+        };
+        if self.opening_views == 0 {
+            anyhow::bail!(
+                "--opening-views must be at least 1 (the training views an opening needs)"
+            );
+        }
+        openings.validate()?;
         Ok(RunOptions {
             tau_m: self.tau,
             single_pass: self.single_pass,
@@ -183,12 +195,7 @@ impl RunArgs {
             lift,
             supervision: self.supervision,
             masks,
-            openings: crate::openings::OpeningsOptions {
-                add: self.openings,
-                cues: self.opening_cues,
-                m_view: self.opening_views,
-                ..Default::default()
-            },
+            openings,
             associate,
             fuse,
             mode: self.mode,
