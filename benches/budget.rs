@@ -132,20 +132,11 @@ fn heaviest(c: &gs4city::cache::ViewContrib, class: &[i32]) -> Vec<i32> {
 }
 
 /// Per pixel the class of the Gaussian at which the accumulated α·T (lists in depth order)
-/// reaches ½ — the visible surface at the median depth — or −1 where α < ½.
+/// reaches ½ — the visible surface at the median depth (`cache::median_gaussian`) — or −1
+/// where the kept weights never do.
 fn median_rule(c: &gs4city::cache::ViewContrib, class: &[i32]) -> Vec<i32> {
     (0..c.pixels())
-        .map(|p| {
-            let (ids, ws) = c.pixel(p);
-            let mut acc = 0.0f32;
-            for (&g, &w) in ids.iter().zip(ws) {
-                acc += w;
-                if acc >= 0.5 {
-                    return class[g as usize];
-                }
-            }
-            -1
-        })
+        .map(|p| gs4city::cache::median_gaussian(c, p).map_or(-1, |g| class[g as usize]))
         .collect()
 }
 

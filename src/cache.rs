@@ -790,18 +790,22 @@ pub fn view_z(positions: &[[f32; 3]], pose: &crate::camera::Pose) -> Vec<f32> {
 /// the median not at all).
 pub fn median_depth(c: &ViewContrib, z: &[f32]) -> Vec<f32> {
     (0..c.pixels())
-        .map(|p| {
-            let (ids, w) = c.pixel(p);
-            let mut acc = 0.0f32;
-            for (&i, &wi) in ids.iter().zip(w) {
-                acc += wi;
-                if acc >= 0.5 {
-                    return z[i as usize];
-                }
-            }
-            f32::NAN
-        })
+        .map(|p| median_gaussian(c, p).map_or(f32::NAN, |i| z[i as usize]))
         .collect()
+}
+
+/// The Gaussian of pixel `p` at which the accumulated weight `Σ α·T` (in depth order) first
+/// reaches 0.5 (the one [`median_depth`] reads), or `None` where the kept weights never do.
+pub fn median_gaussian(c: &ViewContrib, p: usize) -> Option<u32> {
+    let (ids, w) = c.pixel(p);
+    let mut acc = 0.0f32;
+    for (&i, &wi) in ids.iter().zip(w) {
+        acc += wi;
+        if acc >= 0.5 {
+            return Some(i);
+        }
+    }
+    None
 }
 
 #[cfg(test)]

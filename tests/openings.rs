@@ -287,7 +287,10 @@ fn bad_options_are_one_clear_line() {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     for (flag, want) in [
-        ("--opening-views", "--opening-views must be at least 1"),
+        (
+            "--opening-views",
+            "m_view (--opening-views) must be at least 1",
+        ),
         ("--min-views", "--min-views) must be ≥ 1"),
     ] {
         let out_dir = dir.join(flag.trim_start_matches('-'));

@@ -181,11 +181,6 @@ impl RunArgs {
             m_view: self.opening_views,
             ..Default::default()
         };
-        if self.opening_views == 0 {
-            anyhow::bail!(
-                "--opening-views must be at least 1 (the training views an opening needs)"
-            );
-        }
         openings.validate()?;
         Ok(RunOptions {
             tau_m: self.tau,

@@ -215,7 +215,7 @@ impl OpeningsOptions {
         use crate::check::{End, range, unit};
         let e = OpeningsError::Options;
         if self.m_view == 0 {
-            return Err(e("m_view must be at least 1".into()));
+            return Err(e("m_view (--opening-views) must be at least 1".into()));
         }
         unit("min_wall_share", self.min_wall_share).map_err(e)?;
         unit("support_floor", self.support_floor).map_err(e)?;
