@@ -108,6 +108,34 @@ pub fn exp_neg(x: f32) -> f32 {
     if x < -87.0 { 0.0 } else { e * scale }
 }
 
+/// The α of 8 pixels of a row, `x = x0..x0 + 8`, at vertical offset `dy` from the mean: INRIA's
+/// `power = −½(a·dx² + c·dy²) − b·dx·dy`, `α = min(0.99, o·e^power)`; returns the lanes that
+/// pass (bit i: not `power > 0`, `power < power_min` or `α < 1/255`). Branch-free, so the
+/// lanes vectorise; each lane computes exactly the scalar expression.
+#[inline(always)]
+fn row_alpha(
+    out: &mut [f32],
+    x0: usize,
+    [mx, dy]: [f32; 2],
+    conic: [f32; 3],
+    o: f32,
+    pmin: f32,
+) -> u32 {
+    let [ca, cb, cc] = conic;
+    for (i, a) in out.iter_mut().enumerate() {
+        let dx = mx - (x0 + i) as f32;
+        let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
+        let alpha = ALPHA_MAX.min(o * exp_neg(power));
+        let skip = power > 0.0 || power < pmin || alpha < ALPHA_MIN;
+        *a = if skip { 0.0 } else { alpha };
+    }
+    let mut pass = 0u32;
+    for (i, &a) in out.iter().enumerate() {
+        pass |= u32::from(a > 0.0) << i;
+    }
+    pass
+}
+
 /// Blends tile `t` given its depth-sorted list of indices into `input.projected`, with the
 /// widest vector instructions the CPU offers (runtime dispatch; same results on every path
 /// but for the vector width).
@@ -145,11 +173,10 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
     let mut depth_acc = vec![0.0f32; PIX];
     let mut median = vec![f32::NAN; PIX];
     let mut features = vec![0.0f32; PIX * ch];
-    let mut done = [true; PIX];
-    for y in 0..h {
-        for x in 0..w {
-            done[y * TILE + x] = false;
-        }
+    // Per row, bit x set while pixel x is inside the image and not yet saturated.
+    let mut live = [0u32; TILE];
+    for row in live.iter_mut().take(h) {
+        *row = (1u32 << w) - 1;
     }
     let mut alive = w * h;
     let keep_lists = input.mode != ContributionMode::None;
@@ -185,39 +212,47 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
             // Mean relative to the tile origin, exact enough in f32.
             let mx = (p.mean[0] - x0 as f64) as f32;
             let my = (p.mean[1] - y0 as f64) as f32;
-            let xa = (mx - p.extent[0]).floor().max(0.0);
-            let xb = (mx + p.extent[0]).ceil().min((w - 1) as f32);
-            let ya = (my - p.extent[1]).floor().max(0.0);
-            let yb = (my + p.extent[1]).ceil().min((h - 1) as f32);
+            let xa = (mx - p.extent[0]).ceil().max(0.0);
+            let xb = (mx + p.extent[0]).floor().min((w - 1) as f32);
+            let ya = (my - p.extent[1]).ceil().max(0.0);
+            let yb = (my + p.extent[1]).floor().min((h - 1) as f32);
             if !(xa <= xb && ya <= yb) {
                 continue;
             }
+
             let (ya, yb) = (ya as usize, yb as usize);
-            let [ca, cb, cc] = p.conic;
             let (o, pmin, z) = (p.opacity, p.power_min, p.depth);
             let [cr, cg, cbl] = p.color;
             let feat = &input.features[if ch > 0 { p.id as usize * ch } else { 0 }..][..ch];
             let (xa, xb) = (xa as usize, xb as usize);
-            for y in ya..=yb {
+            // Bits xa..=xb, and which 8-pixel halves of a row the box reaches.
+            let span = (u32::MAX >> (31 - xb)) & !((1u32 << xa) - 1);
+            let halves = [xa < 8, xb >= 8];
+            for (y, live_row) in live.iter_mut().enumerate().take(yb + 1).skip(ya) {
+                let row = *live_row & span;
+                if row == 0 {
+                    continue;
+                }
                 let dy = my - y as f32;
-                for x in xa..=xb {
+                // The α of the row's pixels, 8 lanes at a time (0 where the pixel is skipped).
+                let mut alphas = [0.0f32; TILE];
+                let mut pass = 0u32;
+                for (half, lanes) in alphas.chunks_exact_mut(8).enumerate() {
+                    if halves[half] {
+                        pass |=
+                            row_alpha(lanes, half * 8, [mx, dy], p.conic, o, pmin) << (half * 8);
+                    }
+                }
+                let mut hits = row & pass;
+                while hits != 0 {
+                    let x = hits.trailing_zeros() as usize;
+                    hits &= hits - 1;
                     let k = y * TILE + x;
-                    if done[k] {
-                        continue;
-                    }
-                    let dx = mx - x as f32;
-                    let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
-                    if power > 0.0 || power < pmin {
-                        continue;
-                    }
-                    let alpha = ALPHA_MAX.min(o * exp_neg(power));
-                    if alpha < ALPHA_MIN {
-                        continue;
-                    }
+                    let alpha = alphas[x];
                     let t_old = trans[k];
                     let t_new = t_old * (1.0 - alpha);
                     if t_new < T_MIN {
-                        done[k] = true;
+                        *live_row &= !(1u32 << x);
                         alive -= 1;
                         continue;
                     }
@@ -355,16 +390,15 @@ pub fn keep_mass(
         out.extend_from_slice(list);
         return 0.0;
     }
-    let chosen = &mut keys[..m];
-    for key in chosen.iter_mut() {
-        *key = u64::from(!(*key as u32));
+    if m == 0 {
+        return total;
     }
-    chosen.sort_unstable();
+    // The kept entries are those whose key is at least the last kept one's: one scan in
+    // depth order, no second sort.
+    let cut = keys[m - 1];
     let mut dropped = 0.0f32;
-    let mut next = chosen.iter().peekable();
     for (j, c) in list.iter().enumerate() {
-        if next.peek().is_some_and(|&&i| i == j as u64) {
-            next.next();
+        if (u64::from(c.weight.to_bits()) << 32) | u64::from(!(j as u32)) >= cut {
             out.push(*c);
         } else {
             dropped += c.weight;

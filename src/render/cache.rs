@@ -1,8 +1,11 @@
 //! Building the contributions cache (format and readers: [`crate::cache`]): every view
 //! rendered once with the lists of [`list_mode`] (top-k or the mass rule), weights rounded as
-//! stored, files coded and written on a second thread.
+//! stored, as many views at once as there are threads, files coded and written on a
+//! second thread.
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+
+use rayon::prelude::*;
 
 use super::{ContributionMode, PreparedScene, RenderError, RenderOptions};
 use crate::cache::{
@@ -115,8 +118,9 @@ pub fn build(
         write_s: 0.0,
         total_s: 0.0,
     };
-    // Rendering (parallel over tiles) overlaps with writing the previous view's file on a
-    // second thread; at most one finished view waits, so memory stays at two views.
+    // Rendering (parallel over views and tiles) overlaps with writing the previous views'
+    // files on a second thread; at most one finished view waits, so memory stays at
+    // threads + 2 views.
     let (tx, rx) = std::sync::mpsc::sync_channel::<(PathBuf, ViewContrib)>(1);
     let (written, sizes) = std::thread::scope(|sc| -> Result<(f64, Vec<u64>), RenderError> {
         let writer = sc.spawn(move || -> Result<(f64, Vec<u64>), CacheError> {
@@ -129,39 +133,51 @@ pub fn build(
             Ok((secs, sizes))
         });
         let rendered = (|| -> Result<(), RenderError> {
-            for v in views {
-                let t = Instant::now();
-                let c = contrib(scene, v, opts)?;
-                let render_s = t.elapsed().as_secs_f64();
-                summary.render_s += render_s;
-                let npx = c.pixels();
-                let (mut covered, mut share) = (0usize, 0.0f64);
-                for p in 0..npx {
-                    if c.alpha[p] >= DEPTH_MIN_ALPHA {
-                        covered += 1;
-                        share += f64::from(c.lists.residual[p]) / f64::from(c.alpha[p]);
+            // As many views at once as there are threads: each view's serial steps (the
+            // depth sort, assembling the lists) overlap with another view's parallel ones.
+            // Results are taken in view order, so the files and the summary do not depend
+            // on the number of threads.
+            let width = rayon::current_num_threads().max(1);
+            for group in views.chunks(width) {
+                let done: Vec<(Result<ViewContrib, RenderError>, f64)> = group
+                    .par_iter()
+                    .map(|v| {
+                        let t = Instant::now();
+                        (contrib(scene, v, opts), t.elapsed().as_secs_f64())
+                    })
+                    .collect();
+                for (v, (c, render_s)) in group.iter().zip(done) {
+                    let c = c?;
+                    summary.render_s += render_s;
+                    let npx = c.pixels();
+                    let (mut covered, mut share) = (0usize, 0.0f64);
+                    for p in 0..npx {
+                        if c.alpha[p] >= DEPTH_MIN_ALPHA {
+                            covered += 1;
+                            share += f64::from(c.lists.residual[p]) / f64::from(c.alpha[p]);
+                        }
                     }
+                    summary.views.push(CachedView {
+                        name: v.name.clone(),
+                        stem: v.stem(),
+                        width: c.width,
+                        height: c.height,
+                        entries: c.entries() as u64,
+                        mean_list: c.entries() as f64 / npx as f64,
+                        mean_dropped_share: if covered > 0 {
+                            share / covered as f64
+                        } else {
+                            0.0
+                        },
+                        coverage: covered as f64 / npx as f64,
+                        bytes: 0, // the writer's count, below
+                        render_s,
+                    });
+                    if tx.send((cache_file(out_dir, &v.stem()), c)).is_err() {
+                        return Ok(()); // the writer failed; its error is reported below
+                    }
+                    bar.inc(1);
                 }
-                summary.views.push(CachedView {
-                    name: v.name.clone(),
-                    stem: v.stem(),
-                    width: c.width,
-                    height: c.height,
-                    entries: c.entries() as u64,
-                    mean_list: c.entries() as f64 / npx as f64,
-                    mean_dropped_share: if covered > 0 {
-                        share / covered as f64
-                    } else {
-                        0.0
-                    },
-                    coverage: covered as f64 / npx as f64,
-                    bytes: 0, // the writer's count, below
-                    render_s,
-                });
-                if tx.send((cache_file(out_dir, &v.stem()), c)).is_err() {
-                    break; // the writer failed; its error is reported below
-                }
-                bar.inc(1);
             }
             Ok(())
         })();

@@ -72,7 +72,7 @@ pub struct Projected {
     /// Camera-frame z.
     pub depth: f32,
     pub color: [f32; 3],
-    /// Half extents of the box outside which `alpha < 1/255` for sure (+1 px margin).
+    /// Half extents of the box outside which `alpha < 1/255` for sure ([`alpha_extent`]).
     pub extent: [f32; 2],
     /// Below this `power`, `α < 1/255` for sure (`−ln(255·o) − 1e-3`): lets the blend skip
     /// `exp` without changing any decision.
@@ -114,6 +114,66 @@ fn rect(mean: [f64; 2], radius: f64, grid_x: usize, grid_y: usize) -> [u32; 4] {
         clamp((mean[0] + radius + t - 1.0) / t, grid_x),
         clamp((mean[1] + radius + t - 1.0) / t, grid_y),
     ]
+}
+
+fn limx_of(v: &ViewParams) -> f64 {
+    1.3 * v.tan_fovx
+}
+
+fn limy_of(v: &ViewParams) -> f64 {
+    1.3 * v.tan_fovy
+}
+
+/// Whether INRIA's tile rectangle is surely empty, decided before the 2D covariance is
+/// computed: its radius `⌈3√λ₁⌉` is bounded through `λ₁ ≤ 2L + 0.32`, where
+/// `L = ‖J‖²_F·‖Σ‖_F + 0.3` bounds the eigenvalues of the dilated `J·Σ·Jᵀ` (`‖Σ‖_F` bounds
+/// `|λ(Σ)|` for any symmetric Σ, PSD or not) and INRIA's `λ₁ = mid + √max(0.1, mid² − det)`
+/// adds at most 0.32 to the true one. A Gaussian whose mean lies further than that radius
+/// (+ 1 px) outside the grid gets an empty rectangle in [`rect`]; NaN never culls here.
+fn outside_grid(mean: [f64; 2], j0: &DVec3, j1: &DVec3, s: &[f64; 6], v: &ViewParams) -> bool {
+    let jf = j0.length_squared() + j1.length_squared();
+    let sf =
+        (s[0] * s[0] + s[3] * s[3] + s[5] * s[5] + 2.0 * (s[1] * s[1] + s[2] * s[2] + s[4] * s[4]))
+            .sqrt();
+    let l = jf * sf + LOW_PASS;
+    let r = (3.0 * (2.0 * l + 0.32).sqrt() + 1.0) * (1.0 + 1e-9) + 1.0;
+    let (wx, wy) = ((v.grid_x * TILE) as f64, (v.grid_y * TILE) as f64);
+    mean[0] + r < 0.0 || mean[1] + r < 0.0 || mean[0] - r > wx || mean[1] - r > wy
+}
+
+/// Half extents `[ex, ey]` of the ellipse where `α ≥ 1/255` is possible: the blend skips a
+/// pixel whose `power < −ln(255·o) − 1e-3`, i.e. whose `dᵀ·conic·d > q = 2(ln(255·o) + 1e-3)`,
+/// and that ellipse's half extents are `√(q·Σ_xx)`, `√(q·Σ_yy)` (`Σ = (a, b; b, c)`, the dilated
+/// 2D covariance). The margin covers the `f32` rounding of `power` in the blend: its error
+/// is a few ulp of `|a'dx²| + |c'dy²| + 2|b'dx·dy|`, which near the box's edge is at most
+/// `4/(1 − ρ²)` times `dᵀ·conic·d` (`ρ²= b²/(a·c)`), so the relative margin grows with the
+/// correlation; a pixel outside the box cannot pass the blend's test.
+fn alpha_extent(ln255o: f64, a: f64, c: f64, det: f64) -> [f32; 2] {
+    let q = 2.0 * (ln255o.max(0.0) + 1e-3);
+    let corr = (a * c / det).max(1.0);
+    let grow = 1.0 + (1e-4 + 4e-6 * corr).min(1.0);
+    [
+        ((q * a).sqrt() * grow + 1e-3) as f32,
+        ((q * c).sqrt() * grow + 1e-3) as f32,
+    ]
+}
+
+/// `r` cut to the tiles that the box `mean ± extent` reaches (pixel centres `x` with
+/// `|x − mean| ≤ extent`).
+fn tight_rect(r: [u32; 4], mean: [f64; 2], extent: [f32; 2]) -> [u32; 4] {
+    let t = TILE as f64;
+    // Tile of the first pixel column/row ≥ m − e (conservative: the tile of m − e), and one
+    // past the tile of the last ≤ m + e (0 when m + e < 0); `as u32` saturates.
+    let lo = |m: f64, e: f32| ((m - f64::from(e)).max(0.0) / t) as u32;
+    let hi = |m: f64, e: f32| {
+        let v = m + f64::from(e);
+        if v < 0.0 { 0 } else { (v / t) as u32 + 1 }
+    };
+    let x0 = r[0].max(lo(mean[0], extent[0]));
+    let y0 = r[1].max(lo(mean[1], extent[1]));
+    let x1 = r[2].min(hi(mean[0], extent[0])).max(x0);
+    let y1 = r[3].min(hi(mean[1], extent[1])).max(y0);
+    [x0, y0, x1, y1]
 }
 
 /// Evaluates the SH colour of Gaussian `i` for unit direction `d` (INRIA's
@@ -165,16 +225,18 @@ pub fn project(
     if t.z.is_nan() || t.z <= NEAR {
         return None;
     }
-    let s = scene.cov3d[i].map(f64::from);
-    let sigma = DMat3::from_cols_array(&[s[0], s[1], s[2], s[1], s[3], s[4], s[2], s[4], s[5]]);
-    let cov_cam = v.rot * sigma * v.rot.transpose();
-    let limx = 1.3 * v.tan_fovx;
-    let limy = 1.3 * v.tan_fovy;
-    let tx = (t.x / t.z).clamp(-limx, limx) * t.z;
-    let ty = (t.y / t.z).clamp(-limy, limy) * t.z;
+    let tx = (t.x / t.z).clamp(-limx_of(v), limx_of(v)) * t.z;
+    let ty = (t.y / t.z).clamp(-limy_of(v), limy_of(v)) * t.z;
     // J rows (2×3).
     let j0 = DVec3::new(v.fx / t.z, 0.0, -(v.fx * tx) / (t.z * t.z));
     let j1 = DVec3::new(0.0, v.fy / t.z, -(v.fy * ty) / (t.z * t.z));
+    let mean = [v.fx * t.x / t.z + v.cx - 0.5, v.fy * t.y / t.z + v.cy - 0.5];
+    let s = scene.cov3d[i].map(f64::from);
+    if outside_grid(mean, &j0, &j1, &s, v) {
+        return None;
+    }
+    let sigma = DMat3::from_cols_array(&[s[0], s[1], s[2], s[1], s[3], s[4], s[2], s[4], s[5]]);
+    let cov_cam = v.rot * sigma * v.rot.transpose();
     let cj0 = cov_cam * j0;
     let cj1 = cov_cam * j1;
     let mut a = j0.dot(cj0);
@@ -192,11 +254,6 @@ pub fn project(
     let mid = 0.5 * (a + c);
     let lambda1 = mid + (mid * mid - det).max(0.1).sqrt();
     let radius = (3.0 * lambda1.sqrt()).ceil();
-    let mean = [v.fx * t.x / t.z + v.cx - 0.5, v.fy * t.y / t.z + v.cy - 0.5];
-    let r = rect(mean, radius, v.grid_x, v.grid_y);
-    if (r[2] - r[0]) * (r[3] - r[1]) == 0 {
-        return None;
-    }
     let mut opacity = f64::from(scene.opacity[i]);
     if antialiased {
         opacity *= (det0 / det).max(0.000_025).sqrt();
@@ -205,11 +262,15 @@ pub fn project(
     if opacity.is_nan() || opacity < ALPHA_MIN {
         return None;
     }
-    // alpha ≥ 1/255 needs dᵀ·conic·d ≤ 2 ln(255·o); that ellipse's half extents are
-    // sqrt(q·Σ_xx), sqrt(q·Σ_yy). One pixel of margin keeps the box conservative.
     let ln255o = (255.0 * f64::from(opacity)).ln();
-    let q = 2.0 * ln255o.max(0.0);
-    let extent = [(q * a).sqrt() as f32 + 1.0, (q * c).sqrt() as f32 + 1.0];
+    let extent = alpha_extent(ln255o, a, c, det);
+    // INRIA's rectangle (3·√λ₁), cut to the tiles the α ≥ 1/255 box reaches: a tile outside
+    // that box gets nothing from this Gaussian, so leaving it out changes no pixel.
+    let r = rect(mean, radius, v.grid_x, v.grid_y);
+    let r = tight_rect(r, mean, extent);
+    if (r[2] - r[0]) * (r[3] - r[1]) == 0 {
+        return None;
+    }
     let dir = (pw - v.center).normalize_or_zero();
     let k = scene.coeffs;
     let degree = scene.sh_degree.min(max_degree);
@@ -236,6 +297,160 @@ mod tests {
         assert_eq!(rect([-5.0, 20.0], 3.0, 4, 4), [0, 1, 0, 2]);
         assert_eq!(rect([8.0, 8.0], 3.0, 4, 4), [0, 0, 1, 1]);
         assert_eq!(rect([8.0, 8.0], 1e30, 4, 4), [0, 0, 4, 4]);
+    }
+
+    /// A 2D covariance with eigenvalues `l1 ≥ l2` rotated by `theta`: `(a, b, c)`.
+    fn cov2(l1: f64, l2: f64, theta: f64) -> (f64, f64, f64) {
+        let (s, c) = theta.sin_cos();
+        (
+            l1 * c * c + l2 * s * s,
+            (l1 - l2) * s * c,
+            l1 * s * s + l2 * c * c,
+        )
+    }
+
+    #[test]
+    fn alpha_extent_box_holds_every_pixel_the_blend_can_take() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(29);
+        let mut inside_hits = 0usize;
+        for case in 0..400 {
+            // Dilated covariances from round to needle-thin and strongly correlated.
+            let l2 = 0.3 + rng.random::<f64>() * if case % 2 == 0 { 0.2 } else { 5.0 };
+            let l1 = l2 * 10f64.powf(rng.random::<f64>() * 3.5);
+            let theta = if case % 3 == 0 {
+                std::f64::consts::FRAC_PI_4 + rng.random::<f64>() * 1e-3
+            } else {
+                rng.random::<f64>() * std::f64::consts::PI
+            };
+            let (a, b, c) = cov2(l1, l2, theta);
+            let det = a * c - b * b;
+            let conic = [(c / det) as f32, (-b / det) as f32, (a / det) as f32];
+            let o = (ALPHA_MIN + rng.random::<f32>() * (1.0 - ALPHA_MIN)).min(1.0);
+            let ln255o = (255.0 * f64::from(o)).ln();
+            let pmin = (-ln255o - 1e-3) as f32;
+            let [ex, ey] = alpha_extent(ln255o, a, c, det);
+            let (mx, my) = (rng.random::<f32>() * 16.0, rng.random::<f32>() * 16.0);
+            // The blend's test, as `blend_tile` computes it.
+            let takes = |x: f32, y: f32| {
+                let (dx, dy) = (mx - x, my - y);
+                let power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy;
+                let alpha = 0.99f32.min(o * (f64::from(power).exp() as f32));
+                !(power > 0.0 || power < pmin || alpha < ALPHA_MIN)
+            };
+            let (x0, x1) = ((mx - ex).ceil(), (mx + ex).floor());
+            let (y0, y1) = ((my - ey).ceil(), (my + ey).floor());
+            // The two pixel columns and rows just outside the box, along the whole box
+            // (+3): there the ellipse comes closest to the outside.
+            for k in 1..=2 {
+                let k = k as f32;
+                let mut y = y0 - 3.0;
+                while y <= y1 + 3.0 {
+                    for x in [x0 - k, x1 + k] {
+                        assert!(
+                            !takes(x, y),
+                            "case {case}: pixel ({x}, {y}) outside the box is taken"
+                        );
+                    }
+                    y += 1.0;
+                }
+                let mut x = x0 - 3.0;
+                while x <= x1 + 3.0 {
+                    for y in [y0 - k, y1 + k] {
+                        assert!(
+                            !takes(x, y),
+                            "case {case}: pixel ({x}, {y}) outside the box is taken"
+                        );
+                    }
+                    x += 1.0;
+                }
+            }
+            inside_hits += usize::from(takes(mx.round(), my.round()));
+        }
+        // The pixel nearest the mean is taken in most cases: the test is not vacuous.
+        assert!(inside_hits > 300, "{inside_hits}");
+    }
+
+    #[test]
+    fn outside_grid_only_culls_gaussians_with_an_empty_rectangle() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let (width, height, f) = (640usize, 480usize, 500.0);
+        let v = ViewParams {
+            rot: DMat3::IDENTITY,
+            trans: DVec3::ZERO,
+            center: DVec3::ZERO,
+            fx: f,
+            fy: f,
+            cx: 320.0,
+            cy: 240.0,
+            tan_fovx: width as f64 / (2.0 * f),
+            tan_fovy: height as f64 / (2.0 * f),
+            width,
+            height,
+            grid_x: width.div_ceil(TILE),
+            grid_y: height.div_ceil(TILE),
+        };
+        let (mut culled, mut kept_nonempty) = (0, 0);
+        for _ in 0..20_000 {
+            let t = DVec3::new(
+                rng.random_range(-60.0..60.0),
+                rng.random_range(-60.0..60.0),
+                rng.random_range(0.25..60.0),
+            );
+            // Σ = R·diag(s²)·Rᵀ from a random rotation and log-uniform scales.
+            let q = glam::DQuat::from_xyzw(
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+                rng.random_range(-1.0..1.0),
+            )
+            .normalize();
+            let sc = DVec3::new(
+                10f64.powf(rng.random_range(-3.0..1.0)),
+                10f64.powf(rng.random_range(-3.0..1.0)),
+                10f64.powf(rng.random_range(-3.0..1.0)),
+            );
+            let r = DMat3::from_quat(q);
+            let sigma = r * DMat3::from_diagonal(sc * sc) * r.transpose();
+            let s = [
+                sigma.x_axis.x,
+                sigma.y_axis.x,
+                sigma.z_axis.x,
+                sigma.y_axis.y,
+                sigma.z_axis.y,
+                sigma.z_axis.z,
+            ];
+            let limx = 1.3 * v.tan_fovx;
+            let limy = 1.3 * v.tan_fovy;
+            let tx = (t.x / t.z).clamp(-limx, limx) * t.z;
+            let ty = (t.y / t.z).clamp(-limy, limy) * t.z;
+            let j0 = DVec3::new(v.fx / t.z, 0.0, -(v.fx * tx) / (t.z * t.z));
+            let j1 = DVec3::new(0.0, v.fy / t.z, -(v.fy * ty) / (t.z * t.z));
+            let mean = [v.fx * t.x / t.z + v.cx - 0.5, v.fy * t.y / t.z + v.cy - 0.5];
+            // INRIA's rectangle, computed the long way.
+            let a = j0.dot(sigma * j0) + LOW_PASS;
+            let b = j0.dot(sigma * j1);
+            let c = j1.dot(sigma * j1) + LOW_PASS;
+            let det = a * c - b * b;
+            let mid = 0.5 * (a + c);
+            let lambda1 = mid + (mid * mid - det).max(0.1).sqrt();
+            let rc = rect(mean, (3.0 * lambda1.sqrt()).ceil(), v.grid_x, v.grid_y);
+            let empty = (rc[2] - rc[0]) * (rc[3] - rc[1]) == 0;
+            if outside_grid(mean, &j0, &j1, &s, &v) {
+                assert!(
+                    empty,
+                    "culled but INRIA's rectangle is {rc:?} (mean {mean:?})"
+                );
+                culled += 1;
+            } else if !empty {
+                kept_nonempty += 1;
+            }
+        }
+        assert!(
+            culled > 5_000 && kept_nonempty > 1_000,
+            "{culled} {kept_nonempty}"
+        );
     }
 
     #[test]
