@@ -5,6 +5,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use ndarray::Array3;
+use rayon::prelude::*;
 
 use super::{RaycastError, RaycastOptions, TwoPassScene, ViewIds, raycast_view};
 use crate::camera::View;
@@ -116,14 +117,10 @@ pub fn run(
     let _ = std::fs::remove_file(out_dir.join("summary.json"));
     let bar = crate::progress::Bar::new("raycast", views.len() as u64, "views");
     let (faces, part_faces) = scene.face_counts();
-    let mut per_view = Vec::with_capacity(views.len());
-    let (mut rays, mut seconds) = (0u64, 0.0f64);
-    for v in views {
-        let t0 = Instant::now();
-        let ids = raycast_view(&scene, &v.camera, opts);
-        let dt = t0.elapsed().as_secs_f64();
-        seconds += dt;
-        rays += (ids.width * ids.height) as u64;
+    // Each view is traced alone (its strips in parallel), so its `seconds` are its own; the
+    // files of a group of views (maps, PNG overlay: serial work per view) are then written
+    // side by side. Summaries stay in view order: nothing depends on the number of threads.
+    let write = |v: &View, ids: &ViewIds| -> Result<bool, RaycastError> {
         let (h, w) = (ids.height, ids.width);
         let stem = v.stem();
         idmap::write_raycast(
@@ -141,21 +138,44 @@ pub fn run(
             .filter(|img| img.dim() == (h, w, 3));
         imageio::write_png(
             &out_dir.join(format!("{stem}.overlay.png")),
-            &overlay(&ids, image.as_ref()),
+            &overlay(ids, image.as_ref()),
         )?;
-        per_view.push(ViewSummary {
-            name: v.name.clone(),
-            width: w as u32,
-            height: h as u32,
-            hit_pixels: ids.face.iter().filter(|&&f| f >= 0).count(),
-            part_pixels: ids.part_pixels(),
-            recovered_pixels: ids.recovered_pixels(),
-            recovered_parts: ids.recovered_parts(),
-            undistort_failures: ids.undistort_failures,
-            seconds: dt,
-            overlay_blended: image.is_some(),
-        });
         bar.inc(1);
+        Ok(image.is_some())
+    };
+    let width = rayon::current_num_threads().max(1);
+    let mut per_view = Vec::with_capacity(views.len());
+    let (mut rays, mut seconds) = (0u64, 0.0f64);
+    for group in views.chunks(width) {
+        let traced: Vec<(ViewIds, f64)> = group
+            .iter()
+            .map(|v| {
+                let t0 = Instant::now();
+                let ids = raycast_view(&scene, &v.camera, opts);
+                (ids, t0.elapsed().as_secs_f64())
+            })
+            .collect();
+        let blended: Vec<Result<bool, RaycastError>> = group
+            .par_iter()
+            .zip(&traced)
+            .map(|(v, (ids, _))| write(v, ids))
+            .collect();
+        for ((v, (ids, dt)), b) in group.iter().zip(traced).zip(blended) {
+            seconds += dt;
+            rays += (ids.width * ids.height) as u64;
+            per_view.push(ViewSummary {
+                name: v.name.clone(),
+                width: ids.width as u32,
+                height: ids.height as u32,
+                hit_pixels: ids.face.iter().filter(|&&f| f >= 0).count(),
+                part_pixels: ids.part_pixels(),
+                recovered_pixels: ids.recovered_pixels(),
+                recovered_parts: ids.recovered_parts(),
+                undistort_failures: ids.undistort_failures,
+                seconds: dt,
+                overlay_blended: b?,
+            });
+        }
     }
     bar.finish();
     let summary = RaycastSummary {
