@@ -7,6 +7,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use ndarray::Array3;
+use rayon::prelude::*;
 
 use super::StageReport;
 use crate::camera::View;
@@ -312,12 +313,16 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
         Some(sr) if !r.views.is_empty() => Some(class_scene(scene, sr)?),
         _ => None,
     };
+    // Painted Gaussians have no view-dependent colour (degree 0 renders the same image).
     let white = crate::render::RenderOptions {
         background: [1.0; 3],
         features: false,
+        max_sh_degree: 0,
         ..Default::default()
     };
-    for v in r.views {
+    // One panel per test view (image | class-coloured render | truth | prediction), views
+    // side by side (each render is parallel too); the HTML lists them in view order.
+    let panel = |v: &View| -> Result<(), ReportError> {
         let stem = &v.stem();
         let (w, h) = (
             v.camera.intrinsics.width as usize,
@@ -343,8 +348,14 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             panels.push(crate::render::render_view(p, &v.camera, &white)?.rgb8());
         }
         panels.extend([overlay(&img, &gt), overlay(&img, &pred)]);
-        let panel = hstack(&panels);
-        crate::imageio::write_png(&dir.join(format!("{stem}.png")), &panel)?;
+        crate::imageio::write_png(&dir.join(format!("{stem}.png")), &hstack(&panels))?;
+        Ok(())
+    };
+    // The first failing view in view order is the one reported.
+    let done: Vec<Result<(), ReportError>> = r.views.par_iter().map(panel).collect();
+    done.into_iter().collect::<Result<Vec<()>, _>>()?;
+    for v in r.views {
+        let stem = &v.stem();
         let _ = write!(
             html,
             "<h3>{}</h3><img src=\"report/{}.png\">",
