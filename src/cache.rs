@@ -928,7 +928,7 @@ mod tests {
 
     #[test]
     fn reading_into_a_reused_view_equals_a_fresh_read() {
-        let dir = std::env::temp_dir().join(format!("gs4c-reuse-{}", std::process::id()));
+        let dir = crate::fsutil::test_temp_dir().join(format!("gs4c-reuse-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let big = sample();
         // A smaller view: every reused vector must shrink to it.

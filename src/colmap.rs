@@ -794,7 +794,8 @@ mod tests {
     use glam::DVec3;
 
     fn tmpdir(tag: &str) -> PathBuf {
-        let d = std::env::temp_dir().join(format!("gs4city-colmap-{tag}-{}", std::process::id()));
+        let d = crate::fsutil::test_temp_dir()
+            .join(format!("gs4city-colmap-{tag}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir_all(&d).unwrap();
         d

@@ -105,13 +105,39 @@ pub fn create_dir(dir: &Path) -> Result<(), FsError> {
     })
 }
 
+/// The folder the test suites write under: `<temp>/gs4city-tests-<pid>`, created on first use.
+/// That first use also removes the folders of earlier test processes that have ended, so a
+/// failed test keeps its files while its process lives and nothing piles up across runs.
+/// (For the crate's own tests and `tests/`; no stage uses it.)
+#[doc(hidden)]
+pub fn test_temp_dir() -> PathBuf {
+    static ROOT: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    ROOT.get_or_init(|| {
+        let tmp = std::env::temp_dir();
+        for e in fs::read_dir(&tmp).into_iter().flatten().flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            if let Some(pid) = name.strip_prefix("gs4city-tests-")
+                && pid.parse::<u32>().is_ok()
+                && !Path::new("/proc").join(pid).exists()
+            {
+                let _ = fs::remove_dir_all(e.path());
+            }
+        }
+        let root = tmp.join(format!("gs4city-tests-{}", std::process::id()));
+        let _ = fs::create_dir_all(&root);
+        root
+    })
+    .clone()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
     fn failed_fill_leaves_nothing_behind() {
-        let dir = std::env::temp_dir().join(format!("gs4city-fsutil-{}", std::process::id()));
+        let dir =
+            crate::fsutil::test_temp_dir().join(format!("gs4city-fsutil-{}", std::process::id()));
         create_dir(&dir).unwrap();
         let target = dir.join("out.bin");
         let r: Result<(), FsError> = atomic_write(&target, |w| {

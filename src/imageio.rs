@@ -252,7 +252,8 @@ mod tests {
 
     #[test]
     fn png_round_trip_is_lossless() {
-        let dir = std::env::temp_dir().join(format!("gs4city-imageio-{}", std::process::id()));
+        let dir =
+            crate::fsutil::test_temp_dir().join(format!("gs4city-imageio-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let img = Array3::from_shape_fn((5, 7, 3), |(y, x, c)| (y * 40 + x * 7 + c * 90) as u8);
         let p = dir.join("a.png");

@@ -26,7 +26,7 @@ fn s(p: &Path) -> &str {
 
 /// A fresh folder for one test.
 fn root(name: &str) -> PathBuf {
-    let r = std::env::temp_dir().join(format!("gs4city-check-{name}-{}", std::process::id()));
+    let r = crate::common::temp_dir().join(format!("gs4city-check-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&r);
     std::fs::create_dir_all(&r).unwrap();
     r

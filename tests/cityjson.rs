@@ -50,7 +50,8 @@ fn real_files() -> Vec<PathBuf> {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gs4city-cityjson-{name}-{}", std::process::id()));
+    let d =
+        crate::common::temp_dir().join(format!("gs4city-cityjson-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d

@@ -278,7 +278,7 @@ fn bad_input_gives_named_errors_or_warnings_never_panics() {
         ("0 0 0 4 0 0 0 0 0", "fewer than 3"),
         ("0 0 0 NaN 0 0 4 0 3 0 0 0", "non-finite"),
     ] {
-        let dir = std::env::temp_dir().join(format!("gs4city-bad-{}", std::process::id()));
+        let dir = crate::common::temp_dir().join(format!("gs4city-bad-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let f = dir.join("bad.gml");
         std::fs::write(

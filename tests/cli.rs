@@ -24,7 +24,7 @@ fn gs4city(args: &[&str]) -> (bool, String) {
 }
 
 fn tmp() -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gs4city-cli-{}", std::process::id()));
+    let d = crate::common::temp_dir().join(format!("gs4city-cli-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d

@@ -78,7 +78,7 @@ fn demo_associate_fuse_and_train_through_the_binary_give_measured_values() {
     ) {
         return;
     }
-    let dir = std::env::temp_dir().join(format!("gs4city-cli-stages-{}", std::process::id()));
+    let dir = crate::common::temp_dir().join(format!("gs4city-cli-stages-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let d = |s: &str| -> PathBuf { dir.join(s) };
     let p = |s: &str| d(s).to_string_lossy().into_owned();

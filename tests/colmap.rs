@@ -19,7 +19,7 @@ fn binary_models_from_an_independent_writer_read_back_exactly() {
     ) {
         return;
     }
-    let dir = std::env::temp_dir().join(format!("gs4city-colmap-bin-{}", std::process::id()));
+    let dir = crate::common::temp_dir().join(format!("gs4city-colmap-bin-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let out = Command::new("python3")
         .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/colmap_bin_writer.py"))

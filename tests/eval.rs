@@ -24,7 +24,8 @@ struct TmpDir(PathBuf);
 
 impl TmpDir {
     fn new(tag: &str) -> TmpDir {
-        let d = std::env::temp_dir().join(format!("gs4city-eval-{tag}-{}", std::process::id()));
+        let d =
+            crate::common::temp_dir().join(format!("gs4city-eval-{tag}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir_all(d.join("gt")).unwrap();
         std::fs::create_dir_all(d.join("pred")).unwrap();

@@ -111,7 +111,8 @@ impl Drop for Fixture {
 }
 
 fn fixture(name: &str, alignment: bool) -> Fixture {
-    let root = std::env::temp_dir().join(format!("gs4city-export-{name}-{}", std::process::id()));
+    let root =
+        crate::common::temp_dir().join(format!("gs4city-export-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&root);
     let (scene, run) = (root.join("scene"), root.join("run"));
     for d in ["citymodel", "sparse/0", "images"] {

@@ -17,7 +17,7 @@ use crate::common::python_can_import;
 const PY: &[&str] = &["numpy", "onnx", "onnxruntime", "tokenizers", "pycocotools"];
 
 fn root() -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gs4city-features-{}", std::process::id()));
+    let d = crate::common::temp_dir().join(format!("gs4city-features-{}", std::process::id()));
     std::fs::create_dir_all(&d).unwrap();
     d
 }

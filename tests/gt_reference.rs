@@ -25,7 +25,7 @@ fn synthetic_ground_truth_agrees_with_a_numpy_re_derivation() {
     ) {
         return;
     }
-    let dir = std::env::temp_dir().join(format!("gs4city-gtref-{}", std::process::id()));
+    let dir = crate::common::temp_dir().join(format!("gs4city-gtref-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let scene = dir.join("small");
     let st = Command::new(env!("CARGO_BIN_EXE_gs4city"))

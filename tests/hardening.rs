@@ -19,7 +19,8 @@ use gs4city::{citymodel, semantics};
 mod checks;
 
 fn tmp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gs4city-hardening-{}-{tag}", std::process::id()));
+    let d =
+        crate::common::temp_dir().join(format!("gs4city-hardening-{}-{tag}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d

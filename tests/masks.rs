@@ -148,7 +148,7 @@ impl Drop for TempDir {
 }
 
 fn tmpdir(name: &str) -> TempDir {
-    let d = std::env::temp_dir().join(format!("gs4city_masks_{name}_{}", std::process::id()));
+    let d = crate::common::temp_dir().join(format!("gs4city_masks_{name}_{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     TempDir(d)

@@ -47,7 +47,7 @@ fn global_pass_agrees_with_open3d() {
     let cams: Vec<_> = (0..4)
         .map(|k| orbit_camera(160, 120, 130.0, k as f64 * 1.57 + 0.3, 130.0, 25.0))
         .collect();
-    let dir = std::env::temp_dir().join(format!("gs4city-o3d-{}", std::process::id()));
+    let dir = crate::common::temp_dir().join(format!("gs4city-o3d-{}", std::process::id()));
     let n = export(&m, &cams, &dir);
     let out = Command::new("python3")
         .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/open3d_check.py"))

@@ -283,7 +283,8 @@ fn bad_options_are_one_clear_line() {
         "{e}"
     );
     // m_view 0 of either stage is refused before any stage runs (nothing is written).
-    let dir = std::env::temp_dir().join(format!("gs4city-openings-mview0-{}", std::process::id()));
+    let dir =
+        crate::common::temp_dir().join(format!("gs4city-openings-mview0-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     for (flag, want) in [

@@ -286,7 +286,8 @@ impl Drop for Fixture {
 
 /// Writes the scene and run folders; `fused`: with fuse/labels.json and label features.
 fn fixture(name: &str, fused: bool, ply: PlyEncoding) -> Fixture {
-    let root = std::env::temp_dir().join(format!("gs4city-query-{name}-{}", std::process::id()));
+    let root =
+        crate::common::temp_dir().join(format!("gs4city-query-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&root);
     let scene = root.join("scene");
     let run = root.join("run");
@@ -1177,7 +1178,8 @@ use crate::sim_labels;
 /// and "a person" match exactly labels of their class.
 #[test]
 fn absent_class_in_a_simulated_scene_without_cars() {
-    let root = std::env::temp_dir().join(format!("gs4city-query-nocar-{}", std::process::id()));
+    let root =
+        crate::common::temp_dir().join(format!("gs4city-query-nocar-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&root);
     std::fs::create_dir_all(&root).unwrap();
     let cfg = root.join("nocar.toml");

@@ -305,7 +305,7 @@ fn bad_inputs_are_errors() {
     assert!(TwoPassScene::build(&bad).is_err());
     assert!(TwoPassScene::build(&TriMesh::default()).is_ok());
 
-    let out = std::env::temp_dir().join(format!("gs4city-rc-bad-{}", std::process::id()));
+    let out = crate::common::temp_dir().join(format!("gs4city-rc-bad-{}", std::process::id()));
     let view = |w| gs4city::camera::View {
         image_id: 1,
         camera_id: 1,
@@ -327,7 +327,7 @@ fn run_writes_ids_depth_overlay_and_summary() {
     let mut m = TriMesh::default();
     wall(&mut m);
     zquad(&mut m, [-1.0, 1.0], [-1.0, 1.0], 10.3, label(0, 1, 2));
-    let out = std::env::temp_dir().join(format!("gs4city-rc-run-{}", std::process::id()));
+    let out = crate::common::temp_dir().join(format!("gs4city-rc-run-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     let views = vec![gs4city::camera::View {
         image_id: 3,

@@ -671,7 +671,7 @@ fn read_alignment(v: &serde_json::Value) -> Alignment {
 /// own files are never overwritten.
 #[test]
 fn cli_refines_a_synthetic_scene() {
-    let dir = std::env::temp_dir().join(format!("gs4city-refine-cli-{}", std::process::id()));
+    let dir = crate::common::temp_dir().join(format!("gs4city-refine-cli-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let cfg = dir.join("noise.toml");

@@ -295,7 +295,7 @@ fn render_to_dir_writes_png_depth_and_features() {
             },
         },
     ];
-    let dir = std::env::temp_dir().join(format!("gs4city-render-{}", std::process::id()));
+    let dir = crate::common::temp_dir().join(format!("gs4city-render-{}", std::process::id()));
     let summary = render_to_dir(&scene, &views, &dir, &RenderOptions::default()).unwrap();
     assert_eq!(summary.views.len(), 2);
     assert!(summary.gaussians_per_s > 0.0);

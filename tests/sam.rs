@@ -16,7 +16,7 @@ fn data(name: &str) -> PathBuf {
 }
 
 fn tmp_dir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gs4city-masks-{tag}-{}", std::process::id()));
+    let d = crate::common::temp_dir().join(format!("gs4city-masks-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&d).unwrap();
     d
 }

@@ -15,7 +15,7 @@ use crate::common::python_can_import;
 const PY: &[&str] = &["numpy", "onnx", "onnxruntime", "scipy", "pycocotools"];
 
 fn root() -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gs4city-segment-{}", std::process::id()));
+    let d = crate::common::temp_dir().join(format!("gs4city-segment-{}", std::process::id()));
     std::fs::create_dir_all(&d).unwrap();
     d
 }

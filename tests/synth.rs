@@ -40,7 +40,7 @@ fn tiny(seed: u64) -> SynthConfig {
 }
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gs4city_synth_{}_{name}", std::process::id()));
+    let d = crate::common::temp_dir().join(format!("gs4city_synth_{}_{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     d
 }

@@ -336,7 +336,7 @@ fn default_noise_writes_valid_sam_files_with_provenance() {
         assert!((0.0..=1.0).contains(&m.mask.stability_score));
         assert!(m.mask.area > 0);
     }
-    let dir = std::env::temp_dir().join(format!("gs4city-sim-{}", std::process::id()));
+    let dir = crate::common::temp_dir().join(format!("gs4city-sim-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let sam: Vec<_> = out.iter().map(|m| m.mask.clone()).collect();
     masks::write_sam_json(&dir.join("v.json"), &sam).unwrap();
@@ -427,7 +427,7 @@ fn simulated_features_cluster_by_class() {
     assert_eq!(prompts, p2);
     assert_eq!(prompts, p3);
     // Files.
-    let dir = std::env::temp_dir().join(format!("gs4city-feat-{}", std::process::id()));
+    let dir = crate::common::temp_dir().join(format!("gs4city-feat-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     masks::write_features_npy(&dir.join("f.npy"), FEATURE_DIM, &f).unwrap();
     let (shape, data) = gs4city::npy::read::<f32>(&dir.join("f.npy")).unwrap();

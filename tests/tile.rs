@@ -18,7 +18,7 @@ fn bin() -> Command {
 }
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gs4city-tile-{}-{name}", std::process::id()));
+    let d = crate::common::temp_dir().join(format!("gs4city-tile-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d

@@ -36,21 +36,9 @@ fn gs(args: &[&str]) -> (bool, String, String) {
 fn run_dir() -> &'static Path {
     static RUN: OnceLock<PathBuf> = OnceLock::new();
     RUN.get_or_init(|| {
-        // The fixture of an earlier test process (~380 MB) goes once that process has ended.
-        for e in std::fs::read_dir(std::env::temp_dir())
-            .into_iter()
-            .flatten()
-            .flatten()
-        {
-            let name = e.file_name().to_string_lossy().into_owned();
-            if let Some(pid) = name.strip_prefix("gs4city-view-")
-                && pid.parse::<u32>().is_ok()
-                && !Path::new("/proc").join(pid).exists()
-            {
-                let _ = std::fs::remove_dir_all(e.path());
-            }
-        }
-        let root = std::env::temp_dir().join(format!("gs4city-view-{}", std::process::id()));
+        // Under the tests' folder (~380 MB), which the next test run removes once this
+        // process has ended.
+        let root = crate::common::temp_dir().join(format!("gs4city-view-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
         std::fs::create_dir_all(&root).unwrap();
         let (scene, run) = (root.join("scene"), root.join("run"));

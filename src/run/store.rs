@@ -440,7 +440,8 @@ mod tests {
     use super::*;
 
     fn tmp(name: &str) -> PathBuf {
-        let d = std::env::temp_dir().join(format!("gs4city-store-{name}-{}", std::process::id()));
+        let d = crate::fsutil::test_temp_dir()
+            .join(format!("gs4city-store-{name}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir_all(&d).unwrap();
         d

@@ -677,7 +677,8 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     fn tmp(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("gs4city-ply-{}", std::process::id()));
+        let dir =
+            crate::fsutil::test_temp_dir().join(format!("gs4city-ply-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         dir.join(name)
     }

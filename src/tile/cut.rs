@@ -233,7 +233,8 @@ mod tests {
 
     #[test]
     fn padded_headers_have_one_length_and_parse() {
-        let dir = std::env::temp_dir().join(format!("gs4city-cut-{}", std::process::id()));
+        let dir =
+            crate::fsutil::test_temp_dir().join(format!("gs4city-cut-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let p = dir.join("a.ply");
         let mut bytes =

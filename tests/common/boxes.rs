@@ -33,7 +33,7 @@ pub fn boxes() -> [([f64; 3], [f64; 3]); 3] {
 }
 
 pub fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gs4city-assoc-{name}-{}", std::process::id()));
+    let d = crate::common::temp_dir().join(format!("gs4city-assoc-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d

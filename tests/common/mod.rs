@@ -2,12 +2,17 @@
 //! and a seeded synthetic city block.
 #![allow(dead_code)]
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DVec3};
 use gs4city::camera::{Camera, Distortion, Intrinsics, Pose};
 use gs4city::mesh::{FaceLabel, TriMesh};
 use rand::{Rng, SeedableRng};
+
+/// The folder every test writes under ([`gs4city::fsutil::test_temp_dir`]).
+pub fn temp_dir() -> PathBuf {
+    gs4city::fsutil::test_temp_dir()
+}
 
 pub fn label(feature: i32, surface: i32, part: i32) -> FaceLabel {
     FaceLabel {

@@ -245,7 +245,7 @@ pub fn write_scene(dir: &Path, seed: u64) -> (PathBuf, Splats) {
 
 /// A fresh temporary folder.
 pub fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gs4city-{name}-{}", std::process::id()));
+    let d = crate::common::temp_dir().join(format!("gs4city-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d
