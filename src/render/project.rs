@@ -72,7 +72,7 @@ pub struct Projected {
     /// Camera-frame z.
     pub depth: f32,
     pub color: [f32; 3],
-    /// Half extents of the box outside which `alpha < 1/255` for sure ([`alpha_extent`]).
+    /// Half extents of the box outside which `alpha < 1/255` for sure (`alpha_extent`).
     pub extent: [f32; 2],
     /// Below this `power`, `α < 1/255` for sure (`−ln(255·o) − 1e-3`): lets the blend skip
     /// `exp` without changing any decision.
