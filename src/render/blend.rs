@@ -80,6 +80,8 @@ pub struct BlendInput<'a> {
     pub height: usize,
     pub grid_x: usize,
     pub background: [f32; 3],
+    /// Accumulate the colour and the median depth ([`super::RenderOptions::images`]).
+    pub images: bool,
     pub mode: ContributionMode,
 }
 
@@ -168,6 +170,7 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
     let w = TILE.min(input.width - x0);
     let h = TILE.min(input.height - y0);
     let ch = input.channels;
+    let images = input.images;
     let mut trans = vec![1.0f32; PIX];
     let mut rgb = [vec![0.0f32; PIX], vec![0.0f32; PIX], vec![0.0f32; PIX]];
     let mut depth_acc = vec![0.0f32; PIX];
@@ -257,16 +260,20 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                         continue;
                     }
                     let wgt = alpha * t_old;
-                    rgb[0][k] += cr * wgt;
-                    rgb[1][k] += cg * wgt;
-                    rgb[2][k] += cbl * wgt;
-                    depth_acc[k] += z * wgt;
-                    if t_old >= 0.5 && t_new < 0.5 {
-                        median[k] = z;
+                    if images {
+                        rgb[0][k] += cr * wgt;
+                        rgb[1][k] += cg * wgt;
+                        rgb[2][k] += cbl * wgt;
+                        if t_old >= 0.5 && t_new < 0.5 {
+                            median[k] = z;
+                        }
                     }
+                    depth_acc[k] += z * wgt;
                     trans[k] = t_new;
-                    for (o, f) in features[k * ch..(k + 1) * ch].iter_mut().zip(feat) {
-                        *o += f * wgt;
+                    if ch > 0 {
+                        for (o, f) in features[k * ch..(k + 1) * ch].iter_mut().zip(feat) {
+                            *o += f * wgt;
+                        }
                     }
                     if keep_lists {
                         let c = Contribution {

@@ -50,10 +50,12 @@ pub fn contrib_unrounded(
 ) -> Result<ViewContrib, RenderError> {
     let mode = list_mode(opts);
     let k = opts.top_k;
-    // The cache keeps no colour: degree 0 skips the view-dependent SH evaluation.
+    // The cache keeps no colour: degree 0 skips the view-dependent SH evaluation, and the
+    // blend skips the colour and median-depth images.
     let opts = RenderOptions {
         features: false,
         max_sh_degree: 0,
+        images: false,
         contributions: mode,
         ..Default::default()
     };

@@ -74,6 +74,10 @@ pub struct RenderOptions {
     pub max_sh_degree: u8,
     /// Blend the scene's feature channels.
     pub features: bool,
+    /// Blend the colour and track the median depth (off where only alpha, expected depth and
+    /// the lists are read: the contributions cache; the colour then holds only `T·background`).
+    #[serde(default = "yes")]
+    pub images: bool,
     /// Per-pixel contribution lists.
     pub contributions: ContributionMode,
 }
@@ -85,9 +89,14 @@ impl Default for RenderOptions {
             antialiased: false,
             max_sh_degree: 3,
             features: true,
+            images: true,
             contributions: ContributionMode::None,
         }
     }
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// View-independent, activated Gaussian data, reusable across views.
@@ -315,6 +324,7 @@ pub fn render_view(
         height: v.height,
         grid_x: v.grid_x,
         background: options.background,
+        images: options.images,
         mode: options.contributions,
     };
     let tiles: Vec<TileOut> = (0..v.grid_x * v.grid_y)

@@ -35,6 +35,7 @@ pub fn label_view(
         antialiased: false,
         max_sh_degree: 3,
         features: false,
+        images: true,
         contributions: ContributionMode::TopK(1),
     };
     let r = render_view(scene, camera, &opts)?;
