@@ -118,7 +118,7 @@ pub fn run(
     let bar = crate::progress::Bar::new("raycast", views.len() as u64, "views");
     let (faces, part_faces) = scene.face_counts();
     // Each view is traced alone (its strips in parallel), so its `seconds` are its own; the
-    // files of a group of views (maps, PNG overlay: serial work per view) are then written
+    // files of a pair of views (maps, PNG overlay: serial work per view) are then written
     // side by side. Summaries stay in view order: nothing depends on the number of threads.
     let write = |v: &View, ids: &ViewIds| -> Result<bool, RaycastError> {
         let (h, w) = (ids.height, ids.width);
@@ -143,7 +143,9 @@ pub fn run(
         bar.inc(1);
         Ok(image.is_some())
     };
-    let width = rayon::current_num_threads().max(1);
+    // Two views' maps in memory at once (one with a single thread): a 20 MP view's maps
+    // take ≈ 0.5 GB.
+    let width = rayon::current_num_threads().clamp(1, 2);
     let mut per_view = Vec::with_capacity(views.len());
     let (mut rays, mut seconds) = (0u64, 0.0f64);
     for group in views.chunks(width) {

@@ -1,7 +1,6 @@
 //! Building the contributions cache (format and readers: [`crate::cache`]): every view
 //! rendered once with the lists of [`list_mode`] (top-k or the mass rule), weights rounded as
-//! stored, as many views at once as there are threads, files coded and written on a
-//! second thread.
+//! stored, two views at once, files coded and written on a second thread.
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -15,6 +14,9 @@ use crate::cache::{
 use crate::camera::View;
 use crate::fsutil;
 use crate::progress::Bar;
+
+/// Views rendered at once by [`build`].
+const VIEWS_AT_ONCE: usize = 2;
 
 /// The rasterizer's list rule of a cache: `epsilon > 0` keeps the largest weights until
 /// `1 − ε` of the pixel's α·T mass, at most `top_k` of them (0 = no bound); `epsilon = 0`
@@ -122,7 +124,7 @@ pub fn build(
     };
     // Rendering (parallel over views and tiles) overlaps with writing the previous views'
     // files on a second thread; at most one finished view waits, so memory stays at
-    // threads + 2 views.
+    // VIEWS_AT_ONCE + 2 views.
     let (tx, rx) = std::sync::mpsc::sync_channel::<(PathBuf, ViewContrib)>(1);
     let (written, sizes) = std::thread::scope(|sc| -> Result<(f64, Vec<u64>), RenderError> {
         let writer = sc.spawn(move || -> Result<(f64, Vec<u64>), CacheError> {
@@ -135,11 +137,12 @@ pub fn build(
             Ok((secs, sizes))
         });
         let rendered = (|| -> Result<(), RenderError> {
-            // As many views at once as there are threads: each view's serial steps (the
-            // depth sort, assembling the lists) overlap with another view's parallel ones.
-            // Results are taken in view order, so the files and the summary do not depend
-            // on the number of threads.
-            let width = rayon::current_num_threads().max(1);
+            // Two views at once (one with a single thread): each view's serial steps (the
+            // depth sort, assembling the lists) overlap with the other's parallel ones. Not
+            // more: every view in flight holds its projected Gaussians (80 B each) and its
+            // lists. Results are taken in view order, so the files and the summary do not
+            // depend on the number of threads.
+            let width = rayon::current_num_threads().clamp(1, VIEWS_AT_ONCE);
             for group in views.chunks(width) {
                 let done: Vec<(Result<ViewContrib, RenderError>, f64)> = group
                     .par_iter()

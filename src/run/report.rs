@@ -351,9 +351,12 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
         crate::imageio::write_png(&dir.join(format!("{stem}.png")), &hstack(&panels))?;
         Ok(())
     };
-    // The first failing view in view order is the one reported.
-    let done: Vec<Result<(), ReportError>> = r.views.par_iter().map(panel).collect();
-    done.into_iter().collect::<Result<Vec<()>, _>>()?;
+    // Two views at once (each render holds its projected Gaussians); the first failing view
+    // in view order is the one reported.
+    for pair in r.views.chunks(2) {
+        let done: Vec<Result<(), ReportError>> = pair.par_iter().map(panel).collect();
+        done.into_iter().collect::<Result<Vec<()>, _>>()?;
+    }
     for v in r.views {
         let stem = &v.stem();
         let _ = write!(
