@@ -222,7 +222,6 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
             if !(xa <= xb && ya <= yb) {
                 continue;
             }
-
             let (ya, yb) = (ya as usize, yb as usize);
             let (o, pmin, z) = (p.opacity, p.power_min, p.depth);
             let [cr, cg, cbl] = p.color;

@@ -116,14 +116,6 @@ fn rect(mean: [f64; 2], radius: f64, grid_x: usize, grid_y: usize) -> [u32; 4] {
     ]
 }
 
-fn limx_of(v: &ViewParams) -> f64 {
-    1.3 * v.tan_fovx
-}
-
-fn limy_of(v: &ViewParams) -> f64 {
-    1.3 * v.tan_fovy
-}
-
 /// Whether INRIA's tile rectangle is surely empty, decided before the 2D covariance is
 /// computed: its radius `⌈3√λ₁⌉` is bounded through `λ₁ ≤ 2L + 0.32`, where
 /// `L = ‖J‖²_F·‖Σ‖_F + 0.3` bounds the eigenvalues of the dilated `J·Σ·Jᵀ` (`‖Σ‖_F` bounds
@@ -225,8 +217,10 @@ pub fn project(
     if t.z.is_nan() || t.z <= NEAR {
         return None;
     }
-    let tx = (t.x / t.z).clamp(-limx_of(v), limx_of(v)) * t.z;
-    let ty = (t.y / t.z).clamp(-limy_of(v), limy_of(v)) * t.z;
+    let limx = 1.3 * v.tan_fovx;
+    let limy = 1.3 * v.tan_fovy;
+    let tx = (t.x / t.z).clamp(-limx, limx) * t.z;
+    let ty = (t.y / t.z).clamp(-limy, limy) * t.z;
     // J rows (2×3).
     let j0 = DVec3::new(v.fx / t.z, 0.0, -(v.fx * tx) / (t.z * t.z));
     let j1 = DVec3::new(0.0, v.fy / t.z, -(v.fy * ty) / (t.z * t.z));
@@ -335,34 +329,27 @@ mod tests {
             let takes = |x: f32, y: f32| {
                 let (dx, dy) = (mx - x, my - y);
                 let power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy;
-                let alpha = 0.99f32.min(o * (f64::from(power).exp() as f32));
+                let alpha =
+                    super::super::blend::ALPHA_MAX.min(o * super::super::blend::exp_neg(power));
                 !(power > 0.0 || power < pmin || alpha < ALPHA_MIN)
             };
             let (x0, x1) = ((mx - ex).ceil(), (mx + ex).floor());
             let (y0, y1) = ((my - ey).ceil(), (my + ey).floor());
             // The two pixel columns and rows just outside the box, along the whole box
             // (+3): there the ellipse comes closest to the outside.
-            for k in 1..=2 {
-                let k = k as f32;
-                let mut y = y0 - 3.0;
-                while y <= y1 + 3.0 {
-                    for x in [x0 - k, x1 + k] {
-                        assert!(
-                            !takes(x, y),
-                            "case {case}: pixel ({x}, {y}) outside the box is taken"
-                        );
-                    }
-                    y += 1.0;
-                }
-                let mut x = x0 - 3.0;
-                while x <= x1 + 3.0 {
-                    for y in [y0 - k, y1 + k] {
-                        assert!(
-                            !takes(x, y),
-                            "case {case}: pixel ({x}, {y}) outside the box is taken"
-                        );
-                    }
-                    x += 1.0;
+            let span = |a: f32, b: f32| (0..=(b - a) as i32 + 6).map(move |i| a - 3.0 + i as f32);
+            for k in [1.0f32, 2.0] {
+                let cols = [x0 - k, x1 + k]
+                    .into_iter()
+                    .flat_map(|x| span(y0, y1).map(move |y| (x, y)));
+                let rows = [y0 - k, y1 + k]
+                    .into_iter()
+                    .flat_map(|y| span(x0, x1).map(move |x| (x, y)));
+                for (x, y) in cols.chain(rows) {
+                    assert!(
+                        !takes(x, y),
+                        "case {case}: pixel ({x}, {y}) outside the box is taken"
+                    );
                 }
             }
             inside_hits += usize::from(takes(mx.round(), my.round()));
