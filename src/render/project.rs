@@ -116,6 +116,19 @@ fn rect(mean: [f64; 2], radius: f64, grid_x: usize, grid_y: usize) -> [u32; 4] {
     ]
 }
 
+/// The rows of INRIA's projection Jacobian `J` at camera-frame point `t` (its x/y clamped to
+/// 1.3× the field of view) and the projected mean in pixel-index coordinates.
+fn jacobian_and_mean(v: &ViewParams, t: DVec3) -> (DVec3, DVec3, [f64; 2]) {
+    let limx = 1.3 * v.tan_fovx;
+    let limy = 1.3 * v.tan_fovy;
+    let tx = (t.x / t.z).clamp(-limx, limx) * t.z;
+    let ty = (t.y / t.z).clamp(-limy, limy) * t.z;
+    let j0 = DVec3::new(v.fx / t.z, 0.0, -(v.fx * tx) / (t.z * t.z));
+    let j1 = DVec3::new(0.0, v.fy / t.z, -(v.fy * ty) / (t.z * t.z));
+    let mean = [v.fx * t.x / t.z + v.cx - 0.5, v.fy * t.y / t.z + v.cy - 0.5];
+    (j0, j1, mean)
+}
+
 /// Whether INRIA's tile rectangle is surely empty, decided before the 2D covariance is
 /// computed: its radius `⌈3√λ₁⌉` is bounded through `λ₁ ≤ 2L + 0.32`, where
 /// `L = ‖J‖²_F·‖Σ‖_F + 0.3` bounds the eigenvalues of the dilated `J·Σ·Jᵀ` (`‖Σ‖_F` bounds
@@ -217,14 +230,7 @@ pub fn project(
     if t.z.is_nan() || t.z <= NEAR {
         return None;
     }
-    let limx = 1.3 * v.tan_fovx;
-    let limy = 1.3 * v.tan_fovy;
-    let tx = (t.x / t.z).clamp(-limx, limx) * t.z;
-    let ty = (t.y / t.z).clamp(-limy, limy) * t.z;
-    // J rows (2×3).
-    let j0 = DVec3::new(v.fx / t.z, 0.0, -(v.fx * tx) / (t.z * t.z));
-    let j1 = DVec3::new(0.0, v.fy / t.z, -(v.fy * ty) / (t.z * t.z));
-    let mean = [v.fx * t.x / t.z + v.cx - 0.5, v.fy * t.y / t.z + v.cy - 0.5];
+    let (j0, j1, mean) = jacobian_and_mean(v, t);
     let s = scene.cov3d[i].map(f64::from);
     if outside_grid(mean, &j0, &j1, &s, v) {
         return None;
@@ -408,13 +414,7 @@ mod tests {
                 sigma.z_axis.y,
                 sigma.z_axis.z,
             ];
-            let limx = 1.3 * v.tan_fovx;
-            let limy = 1.3 * v.tan_fovy;
-            let tx = (t.x / t.z).clamp(-limx, limx) * t.z;
-            let ty = (t.y / t.z).clamp(-limy, limy) * t.z;
-            let j0 = DVec3::new(v.fx / t.z, 0.0, -(v.fx * tx) / (t.z * t.z));
-            let j1 = DVec3::new(0.0, v.fy / t.z, -(v.fy * ty) / (t.z * t.z));
-            let mean = [v.fx * t.x / t.z + v.cx - 0.5, v.fy * t.y / t.z + v.cy - 0.5];
+            let (j0, j1, mean) = jacobian_and_mean(&v, t);
             // INRIA's rectangle, computed the long way.
             let a = j0.dot(sigma * j0) + LOW_PASS;
             let b = j0.dot(sigma * j1);
