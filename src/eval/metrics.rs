@@ -174,7 +174,8 @@ impl Counts {
             tp,
             fp: pred - tp,
             fn_: gt - tp,
-            tn: self.fine_pixels() - gt - pred + tp,
+            // In this order: `total − gt − pred` alone can go below zero before `+ tp`.
+            tn: self.fine_pixels() + tp - gt - pred,
         }
     }
 }
