@@ -165,12 +165,14 @@ fn mass_on(c: &ViewContrib, pixels: &[u32], acc: &mut [f32], touched: &mut Vec<u
 
 /// The α·T candidates of every mask of a view (file order): per mask, the Gaussians whose mass
 /// inside the mask passes [`WeightedLimits`], weighted by that mass (in pixels). `total` is
-/// [`view_mass`] of the view, `centre` the mask each Gaussian's centre projects into
-/// ([`centre_masks`]; needed when `lim.centre_inside`).
+/// [`view_mass`] of the view. With `lim.centre_inside`, a Gaussian also needs its centre to
+/// project into the mask ([`centre_pixel`] through `centres` and `camera`); only the Gaussians
+/// that pass the mass tests are projected.
 pub fn weighted(
     c: &ViewContrib,
     total: &[f32],
-    centre: Option<&[i32]>,
+    centres: &[[f32; 3]],
+    camera: &Camera,
     vm: &ViewMasks,
     lim: &WeightedLimits,
 ) -> Vec<Candidate> {
@@ -189,9 +191,12 @@ pub fn weighted(
             let mut out = Candidate::default();
             for &g in &touched {
                 let a = std::mem::take(&mut acc[g as usize]);
-                let inside =
-                    !lim.centre_inside || centre.is_some_and(|c| c[g as usize] == m as i32);
-                if a >= lim.min_mass && a > lim.min_share * total[g as usize] && inside {
+                if a >= lim.min_mass
+                    && a > lim.min_share * total[g as usize]
+                    && (!lim.centre_inside
+                        || centre_pixel(&centres[g as usize], camera, vm.width, vm.height)
+                            .is_some_and(|(p, _)| vm.label[p] == m as i32))
+                {
                     out.ids.push(g);
                     out.weights.push(a);
                 }
@@ -237,18 +242,6 @@ pub fn weighted_one(
         }
     }
     out
-}
-
-/// Per Gaussian, the mask its centre projects into (through the lens model, to the pixel
-/// containing it), −1 outside every mask, behind the camera or outside the image.
-pub fn centre_masks(centres: &[[f32; 3]], camera: &Camera, vm: &ViewMasks) -> Vec<i32> {
-    centres
-        .iter()
-        .map(|c| match centre_pixel(c, camera, vm.width, vm.height) {
-            Some((p, _)) => vm.label[p],
-            None => -1,
-        })
-        .collect()
 }
 
 /// The row-major pixel containing a projected centre and its camera depth.
@@ -387,7 +380,30 @@ mod tests {
             centre_inside: false,
             ..Default::default()
         };
-        let cand = weighted(&c, &total, None, &vm, &loose_centre);
+        // Identity pose, fx = 1, cx = 0, cy = ½: a centre (x, 0, 1) lands in pixel ⌊x⌋ of the
+        // row. Gaussians 0 and 2 project into the mask, 1 into pixel 2 (outside it), 3 behind.
+        let camera = Camera {
+            intrinsics: crate::camera::Intrinsics {
+                width: 3,
+                height: 1,
+                fx: 1.0,
+                fy: 1.0,
+                cx: 0.0,
+                cy: 0.5,
+                distortion: crate::camera::Distortion::None,
+            },
+            pose: crate::camera::Pose {
+                rotation: glam::DMat3::IDENTITY,
+                translation: glam::DVec3::ZERO,
+            },
+        };
+        let centres = [
+            [0.5, 0.0, 1.0],
+            [2.5, 0.0, 1.0],
+            [1.5, 0.0, 1.0],
+            [0.5, 0.0, -1.0],
+        ];
+        let cand = weighted(&c, &total, &centres, &camera, &vm, &loose_centre);
         assert_eq!(cand[0].ids, vec![0]);
         assert!((cand[0].weights[0] - 0.9).abs() < 1e-6);
         let loose = WeightedLimits {
@@ -396,7 +412,7 @@ mod tests {
             centre_inside: false,
         };
         assert_eq!(
-            weighted(&c, &total, None, &vm, &loose)[0].ids,
+            weighted(&c, &total, &centres, &camera, &vm, &loose)[0].ids,
             vec![0, 1, 2]
         );
         // Centres: Gaussian 1's centre projects outside the mask.
@@ -404,9 +420,8 @@ mod tests {
             centre_inside: true,
             ..loose
         };
-        let centre = [0, -1, 0, -1];
         assert_eq!(
-            weighted(&c, &total, Some(&centre), &vm, &strict)[0].ids,
+            weighted(&c, &total, &centres, &camera, &vm, &strict)[0].ids,
             vec![0, 2]
         );
         // Visible: Gaussians 0 (0.9), 1 (0.8), 3 (0.9); not 2 (0.05).

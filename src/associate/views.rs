@@ -203,11 +203,7 @@ fn view_work(
     let total = cache_view.as_ref().map(candidates::view_mass);
     let cands = match (opts.candidates, &cache_view, &total) {
         (CandidateMode::Weighted, Some(c), Some(t)) => {
-            let centre = opts
-                .weighted
-                .centre_inside
-                .then(|| candidates::centre_masks(centres, &view.camera, &vm));
-            candidates::weighted(c, t, centre.as_deref(), &vm, &opts.weighted)
+            candidates::weighted(c, t, centres, &view.camera, &vm, &opts.weighted)
         }
         _ => candidates::projected(centres, &view.camera, &vm, &opts.projected),
     };
