@@ -13,6 +13,11 @@
 //! the rasterizer computes; the cache stores weights as IEEE half): the share of Gaussians whose
 //! voted label differs, and the share of pixels whose predicted label differs when the same
 //! per-Gaussian labels (those of the reference) are read back through the stored lists.
+//!
+//! `GS4CITY_READ=1` instead times the *readers'* side: every view of the run's `render/` cache is
+//! read and decoded (`ViewContrib::read_into`, buffers reused; one thread, best of 3 passes),
+//! reported as ms per view and million entries per second. A checksum of the decoded ids and
+//! weights is printed so that two builds can be compared for identical output.
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -31,6 +36,10 @@ fn main() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(24);
+    if std::env::var_os("GS4CITY_READ").is_some() {
+        read_speed(&run);
+        return;
+    }
     let rec: serde_json::Value =
         serde_json::from_slice(&std::fs::read(run.join("run.json")).expect("run.json")).unwrap();
     let scene = Scene::open(&PathBuf::from(rec["scene"].as_str().unwrap())).unwrap();
@@ -153,6 +162,35 @@ fn main() {
             reference = Some((assigned, kept));
         }
     }
+}
+
+/// Reading speed of the run's cache (see the file's docs).
+fn read_speed(run: &std::path::Path) {
+    let cache = gs4city::cache::Cache::open(&run.join("render")).unwrap();
+    let stems: Vec<String> = cache.summary.views.iter().map(|v| v.stem.clone()).collect();
+    let (mut view, mut buf) = (ViewContrib::empty(), Vec::new());
+    let (mut best, mut entries, mut sum) = (f64::INFINITY, 0usize, 0u64);
+    for _ in 0..3 {
+        let t = Instant::now();
+        let (mut e, mut s) = (0usize, 0u64);
+        for stem in &stems {
+            cache.load_into(stem, &mut view, &mut buf).unwrap();
+            e += view.entries();
+            // Order-dependent checksum of the decoded lists.
+            for (&id, &w) in view.lists.ids.iter().zip(&view.lists.weights) {
+                s = s.rotate_left(5) ^ u64::from(id) ^ (u64::from(w.to_bits()) << 32);
+            }
+        }
+        best = best.min(t.elapsed().as_secs_f64());
+        (entries, sum) = (e, s);
+    }
+    println!(
+        "{} views, {:.2} M entries per view: {:.2} ms per view (best of 3, checksum included), {:.1} M entries/s; checksum {sum:016x}",
+        stems.len(),
+        entries as f64 / stems.len() as f64 / 1e6,
+        1e3 * best / stems.len() as f64,
+        entries as f64 / best / 1e6
+    );
 }
 
 /// A rule's row label: `all, f32`, `all`, `16`, `ε 0.05`, `ε 0.05 ≤ 32`.

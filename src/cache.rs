@@ -421,16 +421,13 @@ impl ViewContrib {
             take_into(&b[o..o + 4 * npx], v);
             o += 4 * npx;
         }
-        let unit = |x: &f32| x.is_finite() && (0.0..=1.0 + 1e-5).contains(x);
-        if let Some(i) = self.lists.weights.iter().position(|w| !unit(w)) {
+        if let Some(i) = outside_unit(&self.lists.weights) {
             return Err(bad(format!("weight {i} is {}", self.lists.weights[i])));
         }
-        if let Some(p) = self
-            .lists
-            .residual
-            .iter()
-            .zip(&self.alpha)
-            .position(|(r, a)| !unit(r) || !unit(a))
+        if let Some(p) = [&self.lists.residual, &self.alpha]
+            .into_iter()
+            .filter_map(|v| outside_unit(v))
+            .min()
         {
             return Err(bad(format!("pixel {p}: residual or alpha outside [0, 1]")));
         }
@@ -440,6 +437,17 @@ impl ViewContrib {
         self.gaussians = gaussians as usize;
         Ok(())
     }
+}
+
+/// The first value of `v` outside `[0, 1 + 10⁻⁵]` (NaN and ±∞ included: they fail both
+/// comparisons). Checked a block at a time without branching, so the compiler vectorises it.
+fn outside_unit(v: &[f32]) -> Option<usize> {
+    const BLOCK: usize = 1024;
+    let inside = |x: f32| (x >= 0.0) & (x <= 1.0 + 1e-5);
+    v.chunks(BLOCK).enumerate().find_map(|(b, c)| {
+        let all = c.iter().fold(true, |ok, &x| ok & inside(x));
+        (!all).then(|| b * BLOCK + c.iter().position(|&x| !inside(x)).unwrap_or(0))
+    })
 }
 
 /// Appends `v` as an LEB128 varint.
@@ -539,8 +547,16 @@ fn decode_ids(
                 let p = y * width + x;
                 let n = (offsets[p + 1] - offsets[p]) as usize;
                 for _ in 0..n {
-                    let v = get_varint(row, &mut pos)
-                        .ok_or_else(|| format!("pixel {p}: the id code ends early or overflows"))?;
+                    // One-byte codes (most of them) without the general loop.
+                    let v = match row.get(pos) {
+                        Some(&b) if b < 0x80 => {
+                            pos += 1;
+                            u64::from(b)
+                        }
+                        _ => get_varint(row, &mut pos).ok_or_else(|| {
+                            format!("pixel {p}: the id code ends early or overflows")
+                        })?,
+                    };
                     out[e] = if v < prev_len as u64 {
                         out[prev_start + v as usize]
                     } else {
