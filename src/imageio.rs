@@ -128,14 +128,22 @@ pub fn blend_overlay(
     dim: f32,
     colour_at: impl Fn(usize) -> Option<[u8; 3]>,
 ) -> Array3<u8> {
-    Array3::from_shape_fn((height, width, 3), |(y, x, ch)| {
-        let base = image.map_or(background, |im| f32::from(im[[y, x, ch]]));
-        let v = match colour_at(y * width + x) {
-            Some(c) => (1.0 - alpha) * base + alpha * f32::from(c[ch]),
-            None => dim * base,
-        };
-        v.round().clamp(0.0, 255.0) as u8
-    })
+    let mut out = Array3::<u8>::zeros((height, width, 3));
+    // `colour_at` once per pixel (not per channel).
+    for ((y, x), colour) in ndarray::indices((height, width))
+        .into_iter()
+        .map(|(y, x)| ((y, x), colour_at(y * width + x)))
+    {
+        for ch in 0..3 {
+            let base = image.map_or(background, |im| f32::from(im[[y, x, ch]]));
+            let v = match colour {
+                Some(c) => (1.0 - alpha) * base + alpha * f32::from(c[ch]),
+                None => dim * base,
+            };
+            out[[y, x, ch]] = v.round().clamp(0.0, 255.0) as u8;
+        }
+    }
+    out
 }
 
 /// 8-connected components of a binary mask (`H×W`, nonzero = foreground) by OpenCV.
