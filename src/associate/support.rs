@@ -67,7 +67,7 @@ fn join_members(
     members: &mut [i32],
     owner: &[i32],
     joins: &[Vec<(usize, Vec<u32>)>],
-    visible: &[Vec<u64>],
+    visible: &[Option<Vec<u64>>],
     min_views: u32,
 ) -> usize {
     // Per claimed Gaussian: (group, views containing it), or a conflict (usize::MAX).
@@ -88,6 +88,7 @@ fn join_members(
     }
     let mut seen: std::collections::HashMap<u32, u32> = Default::default();
     for (view, bits) in joins.iter().zip(visible) {
+        let bits = bits.as_deref().unwrap_or_default();
         let groups: std::collections::HashSet<usize> = view.iter().map(|(k, _)| *k).collect();
         for (&g, &(k, _)) in &claim {
             let vis = bits
@@ -121,6 +122,7 @@ pub(super) fn join_support_masks(
     st: &Stage<'_>,
     fin: &bank::Finished,
     targets: &Targets,
+    visible: &[Option<Vec<u64>>],
     members: &mut [i32],
 ) -> Result<usize, AssociateError> {
     let (inp, opts, views) = (st.inp, st.opts, st.views);
@@ -140,8 +142,7 @@ pub(super) fn join_support_masks(
         joined_only: true,
         owner: &fin.owner,
     };
-    type Joins = (Vec<(usize, Vec<u32>)>, Vec<u64>);
-    let per: Vec<Result<Joins, AssociateError>> = views
+    let joins: Vec<Result<Vec<(usize, Vec<u32>)>, AssociateError>> = views
         .par_iter()
         .enumerate()
         .map(|(vi, v)| {
@@ -152,31 +153,20 @@ pub(super) fn join_support_masks(
             );
             let c = load_cache_view(inp, &stem, w, h)?;
             let mut scratch = vec![-1i32; w * h];
-            let joins: Vec<(usize, Vec<u32>)> = sup
+            Ok(sup
                 .hits(inp, opts, v, vi as u32, &c, &mut scratch)?
                 .into_iter()
                 .filter(|h| h.joined)
                 .map(|h| (h.group, h.gaussians))
-                .collect();
-            let vis = if joins.is_empty() {
-                Vec::new()
-            } else {
-                candidates::visible_set(&candidates::view_mass(&c), opts.weighted.min_mass)
-            };
-            Ok((joins, vis))
+                .collect())
         })
         .collect();
-    let (mut joins, mut vis) = (Vec::new(), Vec::new());
-    for r in per {
-        let (j, v) = r?;
-        joins.push(j);
-        vis.push(v);
-    }
+    let joins = joins.into_iter().collect::<Result<Vec<_>, _>>()?;
     Ok(join_members(
         members,
         &fin.owner,
         &joins,
-        &vis,
+        visible,
         opts.join_views,
     ))
 }

@@ -12,16 +12,15 @@ use super::views::{MaskView, load_cache_view, mask_view};
 use super::{AssociateError, AssociateOptions, Stage, Tally, bank};
 use crate::idmap;
 
-/// The fill members (empty when the fill is off) from the per-view visible Gaussians of pass 1,
-/// which are dropped here.
+/// The fill members (empty when the fill is off) from the per-view visible Gaussians of pass 1.
 pub(super) fn members(
     opts: &AssociateOptions,
     fin: &bank::Finished,
-    visible: Vec<Option<Vec<u64>>>,
+    visible: &[Option<Vec<u64>>],
     views: usize,
 ) -> Vec<i32> {
     if opts.fill.is_some() {
-        fill_members(fin, &visible, views)
+        fill_members(fin, visible, views)
     } else {
         Vec::new()
     }
