@@ -443,7 +443,7 @@ impl ViewContrib {
 /// comparisons). Checked a block at a time without branching, so the compiler vectorises it.
 fn outside_unit(v: &[f32]) -> Option<usize> {
     const BLOCK: usize = 1024;
-    let inside = |x: f32| (x >= 0.0) & (x <= 1.0 + 1e-5);
+    let inside = |x: f32| (0.0..=1.0 + 1e-5).contains(&x);
     v.chunks(BLOCK).enumerate().find_map(|(b, c)| {
         let all = c.iter().fold(true, |ok, &x| ok & inside(x));
         (!all).then(|| b * BLOCK + c.iter().position(|&x| !inside(x)).unwrap_or(0))
@@ -1167,5 +1167,41 @@ mod tests {
         let w0 = code0 + 6;
         x[w0..w0 + 2].copy_from_slice(&0x7e00u16.to_le_bytes()); // a half NaN
         assert!(e(&x).contains("weight 0"));
+    }
+
+    /// The vectorised range check finds what the old per-value test found (finite and in
+    /// [0, 1 + 10⁻⁵]), at every position of a block, across block boundaries.
+    #[test]
+    fn outside_unit_finds_the_first_value_the_per_value_test_refuses() {
+        let naive = |v: &[f32]| {
+            v.iter()
+                .position(|x| !(x.is_finite() && (0.0..=1.0 + 1e-5).contains(x)))
+        };
+        let specials = [
+            f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            -1e-30,
+            1.0 + 2e-5,
+            7.0,
+            -0.0,
+            0.0,
+            1.0,
+            1.0 + 1e-5,
+        ];
+        let mut refused = 0;
+        for len in [1usize, 7, 1023, 1024, 1025, 3000] {
+            for &x in &specials {
+                for at in [0, len / 2, len - 1] {
+                    let mut v: Vec<f32> = (0..len).map(|i| (i % 97) as f32 / 96.0).collect();
+                    v[at] = x;
+                    let want = naive(&v);
+                    refused += usize::from(want.is_some());
+                    assert_eq!(outside_unit(&v), want, "{x} at {at} of {len}");
+                }
+            }
+        }
+        assert_eq!(refused, 6 * 3 * 6, "six of the values are outside");
+        assert_eq!(outside_unit(&[]), None);
     }
 }

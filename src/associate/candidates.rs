@@ -166,7 +166,7 @@ fn mass_on(c: &ViewContrib, pixels: &[u32], acc: &mut [f32], touched: &mut Vec<u
 /// The α·T candidates of every mask of a view (file order): per mask, the Gaussians whose mass
 /// inside the mask passes [`WeightedLimits`], weighted by that mass (in pixels). `total` is
 /// [`view_mass`] of the view. With `lim.centre_inside`, a Gaussian also needs its centre to
-/// project into the mask ([`centre_pixel`] through `centres` and `camera`); only the Gaussians
+/// project into the mask (through `camera`'s lens model, to the pixel containing it); only the Gaussians
 /// that pass the mass tests are projected.
 pub fn weighted(
     c: &ViewContrib,

@@ -142,7 +142,9 @@ pub(super) fn join_support_masks(
         joined_only: true,
         owner: &fin.owner,
     };
-    let joins: Vec<Result<Vec<(usize, Vec<u32>)>, AssociateError>> = views
+    // Per view: (group, candidates) of each joining mask.
+    type Joins = Vec<(usize, Vec<u32>)>;
+    let joins: Vec<Result<Joins, AssociateError>> = views
         .par_iter()
         .enumerate()
         .map(|(vi, v)| {
