@@ -341,6 +341,15 @@ impl Camera {
         Some(DVec2::new(k.fx * d.x + k.cx, k.fy * d.y + k.cy))
     }
 
+    /// The row-major index of the pixel of a `width × height` image that contains the
+    /// projection of camera-frame point `p_cam` ([`Camera::project`]; pixel `(i, j)` covers
+    /// `[i, i + 1) × [j, j + 1)`); `None` behind the camera or outside the image.
+    pub fn pixel_containing(&self, p_cam: DVec3, width: usize, height: usize) -> Option<usize> {
+        let uv = self.project(p_cam)?;
+        (uv.x >= 0.0 && uv.y >= 0.0 && uv.x < width as f64 && uv.y < height as f64)
+            .then(|| uv.y as usize * width + uv.x as usize)
+    }
+
     /// The unit camera-frame ray through a position `(u, v)` of the *distorted* image, in
     /// COLMAP pixel coordinates (pixel index `(i, j)` has its centre at `(i + 0.5, j + 0.5)`).
     /// `None` where undistortion does not converge.

@@ -12,6 +12,8 @@ use std::collections::HashMap;
 use std::path::Path;
 use std::time::Instant;
 
+use rayon::prelude::*;
+
 use serde::{Deserialize, Serialize};
 
 use crate::cache::{Cache, CacheError, ViewContrib};
@@ -65,8 +67,11 @@ pub struct VoteOptions {
     /// Background bias γ ∈ [−1, 1], added to the normalised background vote; `None`: by the
     /// label source ([`gamma_for`]).
     pub gamma: Option<f32>,
-    /// Depth gate of city votes, in metres ([`CityGate`]); 0 turns it off.
+    /// Depth gate of city votes, in metres ([`CityGate`]); 0 turns it off (and the centre
+    /// gate with it).
     pub city_gate_m: f32,
+    /// The centre gate of city votes ([`CityGate`]).
+    pub centre_gate: bool,
 }
 
 /// The default background bias γ of the vote: −1, so the background's biased score (its share
@@ -103,6 +108,7 @@ impl Default for VoteOptions {
         VoteOptions {
             gamma: None,
             city_gate_m: CITY_GATE_M,
+            centre_gate: true,
         }
     }
 }
@@ -128,6 +134,13 @@ impl VoteOptions {
 /// left out of their vote instead of counting for the wall behind them. Gaussians behind the
 /// surface keep the vote (recessed windows, reflections modelled behind the glass). Image
 /// labels and background pixels are not gated.
+///
+/// With the **centre gate** (on by default, [`VoteOptions::centre_gate`]) a city-labelled pixel
+/// also gives no vote to a Gaussian whose centre projects, in the same view, onto a city label
+/// of *another class*: a wall Gaussian that straddles a door's outline takes no door votes from
+/// the door pixels it spills onto (and a door Gaussian no wall votes), so each Gaussian follows
+/// the city-model surface its centre lies on. A centre outside the image, behind the camera or
+/// on a pixel that is not city-labelled (background, an image label) gates nothing.
 pub struct CityGate {
     centres: Vec<[f32; 3]>,
     raycast: std::path::PathBuf,
@@ -135,19 +148,31 @@ pub struct CityGate {
     tol: f64,
     /// Labels in `0..city_below` are city labels.
     city_below: i32,
+    /// The class of each label, when the centre gate is on.
+    classes: Option<LabelTable>,
 }
 
 /// The gate of one view: Gaussian z-depths and the raycast z-depth per pixel.
 pub struct GateView {
     z: Vec<f32>,
+    /// Per Gaussian, the class of the city label its centre projects onto (`i32::MIN`: none);
+    /// empty when the centre gate is off.
+    centre: Vec<i32>,
+    /// Per pixel, the class of its label (empty when the centre gate is off).
+    pclass: Vec<i32>,
     depth: Vec<f32>,
     tol: f32,
     city_below: i32,
 }
 
 impl CityGate {
-    /// The gate of a vote's inputs: `None` when `gate_m` is 0 or the inputs name no raycast.
-    pub fn for_inputs(inp: &VoteInputs<'_>, gate_m: f32) -> Result<Option<CityGate>, VoteError> {
+    /// The gate of a vote's inputs: `None` when `gate_m` is 0 or the inputs name no raycast
+    /// (the centre gate, `centre`, is part of it).
+    pub fn for_inputs(
+        inp: &VoteInputs<'_>,
+        gate_m: f32,
+        centre: bool,
+    ) -> Result<Option<CityGate>, VoteError> {
         let Some((raycast, scene_per_metre)) = inp.city_depth else {
             return Ok(None);
         };
@@ -170,12 +195,16 @@ impl CityGate {
             LabelMaps::City(_) => i32::MAX,
             LabelMaps::Fused(_) => inp.labels.delta,
         };
-        Ok(Some(CityGate::new(
+        let mut gate = CityGate::new(
             g.positions,
             raycast,
             f64::from(gate_m) * scene_per_metre,
             city_below,
-        )))
+        );
+        if centre {
+            gate.classes = Some(inp.labels.clone());
+        }
+        Ok(Some(gate))
     }
 
     /// A gate from Gaussian centres (scene frame, cache order), the raycast folder, the
@@ -186,23 +215,44 @@ impl CityGate {
             raycast: raycast.to_path_buf(),
             tol,
             city_below,
+            classes: None,
         }
     }
 
-    /// The gate of view `v` (`width × height`, the cached view's size).
-    pub fn view(&self, v: &View, width: usize, height: usize) -> Result<GateView, IdMapError> {
+    /// The gate of view `v` (`width × height`, the cached view's size) whose per-pixel labels
+    /// are `labels` (used by the centre gate only).
+    pub fn view(
+        &self,
+        v: &View,
+        width: usize,
+        height: usize,
+        labels: &[i32],
+    ) -> Result<GateView, IdMapError> {
         let depth = crate::idmap::read_depth(&self.raycast, &v.stem(), width, height)?;
         let pose = v.camera.pose;
-        let z = self
+        let city = |l: i32| (0..self.city_below).contains(&l);
+        let (z, centre): (Vec<f32>, Vec<i32>) = self
             .centres
-            .iter()
+            .par_iter()
             .map(|c| {
                 let p = glam::DVec3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]));
-                pose.world_to_camera(p).z as f32
+                let q = pose.world_to_camera(p);
+                // The class of the city label under the centre (i32::MIN: none to compare).
+                let class = self.classes.as_ref().and_then(|t| {
+                    let l = labels[v.camera.pixel_containing(q, width, height)?];
+                    city(l).then(|| t.class_of(l))
+                });
+                (q.z as f32, class.unwrap_or(i32::MIN))
             })
-            .collect();
+            .unzip();
+        let on = self.classes.is_some();
         Ok(GateView {
             z,
+            centre: if on { centre } else { Vec::new() },
+            pclass: match &self.classes {
+                Some(t) => labels.iter().map(|&l| t.class_of(l)).collect(),
+                None => Vec::new(),
+            },
             depth,
             tol: self.tol as f32,
             city_below: self.city_below,
@@ -298,6 +348,13 @@ impl Votes {
                 if let Some((gv, near)) = near {
                     city += f64::from(w);
                     if gv.z[g as usize] < near {
+                        gated += f64::from(w);
+                        continue;
+                    }
+                    if let Some(&cc) = gv.centre.get(g as usize)
+                        && cc != i32::MIN
+                        && cc != gv.pclass[p]
+                    {
                         gated += f64::from(w);
                         continue;
                     }
@@ -408,7 +465,9 @@ pub fn vote(
     let load = |v: &View, s: &mut Slot| -> Result<(), VoteError> {
         cache.load_into(&v.stem(), &mut s.0, &mut s.1)?;
         s.2 = maps.read(&v.stem(), s.0.width, s.0.height)?;
-        s.3 = gate.map(|g| g.view(v, s.0.width, s.0.height)).transpose()?;
+        s.3 = gate
+            .map(|g| g.view(v, s.0.width, s.0.height, &s.2))
+            .transpose()?;
         Ok(())
     };
     let mut slots: [Slot; 2] =
@@ -472,6 +531,8 @@ mod tests {
         };
         let gate = GateView {
             z: vec![2.0, 4.8, 7.0],
+            centre: Vec::new(),
+            pclass: Vec::new(),
             // Pixel 2: no city hit (NaN), so nothing to gate against.
             depth: vec![5.0, 5.0, f32::NAN],
             tol: 0.5,
@@ -509,6 +570,108 @@ mod tests {
             vec![(3, 0.5)],
             "pixel 1's label 12 is a city label now"
         );
+    }
+
+    /// The centre gate through [`CityGate::view`]: a 4 × 1 view (identity pose, fx = 1, cx = 0,
+    /// cy = ½: a centre (x, 0, 1) lands in pixel ⌊x⌋) whose pixels 0–1 are wall (city label 0),
+    /// pixel 2 a door (city label 1), pixel 3 a person (image label Δ). Gaussian 0's centre lies
+    /// on the wall, 1's on the door, 2's on the person, 3's outside the image.
+    #[test]
+    fn the_centre_gate_keeps_a_gaussian_to_the_city_class_its_centre_lies_on() {
+        use crate::camera::{Camera, Distortion, Intrinsics, Pose};
+        use crate::labels::{Label, Source};
+        let delta = 10;
+        let city = |id: i32, class: i32| Label {
+            id,
+            source: Source::City,
+            entity: Some(id),
+            group: None,
+            class,
+            level: None,
+        };
+        let person = Label {
+            id: delta,
+            source: Source::Image,
+            entity: None,
+            group: Some(0),
+            class: crate::classes::PERSON,
+            level: None,
+        };
+        let table = LabelTable::new(
+            delta,
+            vec![
+                city(0, crate::classes::WALL),
+                city(1, crate::classes::DOOR),
+                person,
+            ],
+        )
+        .unwrap();
+        let labels = [0, 0, 1, delta];
+        let dir = crate::fsutil::test_temp_dir().join("vote_centre_gate");
+        crate::fsutil::create_dir(&dir).unwrap();
+        crate::idmap::write_depth(&dir, "v", 4, 1, &[1.0; 4]).unwrap();
+        let view = View {
+            image_id: 1,
+            camera_id: 1,
+            name: "v.png".into(),
+            camera: Camera {
+                intrinsics: Intrinsics {
+                    width: 4,
+                    height: 1,
+                    fx: 1.0,
+                    fy: 1.0,
+                    cx: 0.0,
+                    cy: 0.5,
+                    distortion: Distortion::None,
+                },
+                pose: Pose {
+                    rotation: glam::DMat3::IDENTITY,
+                    translation: glam::DVec3::ZERO,
+                },
+            },
+        };
+        let centres = vec![
+            [0.5, 0.0, 1.0],
+            [2.5, 0.0, 1.0],
+            [3.5, 0.0, 1.0],
+            [9.5, 0.0, 1.0],
+        ];
+        // Pixel 0 (wall) lists Gaussians 1 and 0; pixel 2 (door) lists 0, 1, 2, 3.
+        let c = ViewContrib {
+            width: 4,
+            height: 1,
+            k: 0,
+            gaussians: 4,
+            lists: Contributions {
+                offsets: vec![0, 2, 2, 6, 6],
+                ids: vec![1, 0, 0, 1, 2, 3],
+                weights: vec![0.5, 0.5, 0.1, 0.2, 0.3, 0.4],
+                residual: vec![0.0; 4],
+            },
+            alpha: vec![1.0; 4],
+            depth: vec![1.0; 4],
+        };
+        let mut gate = CityGate::new(centres, &dir, 0.5, delta);
+        let off = gate.view(&view, 4, 1, &labels).unwrap();
+        gate.classes = Some(table);
+        let on = gate.view(&view, 4, 1, &labels).unwrap();
+        let mut v = Votes::new(4);
+        let (gated, total) = v.accumulate_gated(&c, &labels, Some(&on));
+        // Gaussian 0 (centre on the wall) loses its door vote, 1 (centre on the door) its wall
+        // vote; 2 (centre on a non-city label) and 3 (centre outside) keep theirs.
+        assert_eq!(v.of(0), vec![(0, 0.5)]);
+        assert!(v.of(1).len() == 1 && v.of(1)[0].0 == 1 && (v.of(1)[0].1 - 0.2).abs() < 1e-6);
+        assert!(v.of(2).len() == 1 && v.of(2)[0].0 == 1 && (v.of(2)[0].1 - 0.3).abs() < 1e-6);
+        assert!(v.of(3).len() == 1 && v.of(3)[0].0 == 1 && (v.of(3)[0].1 - 0.4).abs() < 1e-6);
+        assert!(
+            (gated - 0.6).abs() < 1e-6 && (total - 2.0).abs() < 1e-6,
+            "{gated} {total}"
+        );
+        // Without the centre gate both straddling Gaussians vote for both labels.
+        let mut u = Votes::new(4);
+        u.accumulate_gated(&c, &labels, Some(&off));
+        assert_eq!(u.of(0).len(), 2);
+        assert_eq!(u.of(1).len(), 2);
     }
 
     #[test]

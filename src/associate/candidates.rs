@@ -248,9 +248,7 @@ pub fn weighted_one(
 fn centre_pixel(c: &[f32; 3], camera: &Camera, w: usize, h: usize) -> Option<(usize, f64)> {
     let p = glam::DVec3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]));
     let q = camera.pose.world_to_camera(p);
-    let uv = camera.project(q)?;
-    (uv.x >= 0.0 && uv.y >= 0.0 && uv.x < w as f64 && uv.y < h as f64)
-        .then(|| (uv.y as usize * w + uv.x as usize, q.z))
+    camera.pixel_containing(q, w, h).map(|px| (px, q.z))
 }
 
 /// Options of the projected-centre candidates (the reference projector's).

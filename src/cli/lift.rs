@@ -26,6 +26,12 @@ pub struct LiftArgs {
     /// depth: --raycast, or --depth with --fuse); 0 = off.
     #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]
     city_gate_m: f32,
+    /// No centre gate of city votes: without this, a city-labelled pixel gives no vote to a
+    /// Gaussian whose centre projects onto a city label of another class in the same view (a
+    /// wall Gaussian straddling a door's outline takes no door votes); part of the depth gate
+    /// (off with it).
+    #[arg(long)]
+    no_centre_gate: bool,
     /// Every N-th view (sorted by name) is a test view, not voted on (3DGS --eval: 8); 0 = none.
     #[arg(long, default_value_t = 8)]
     test_every: usize,
@@ -127,6 +133,7 @@ pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
     let opts = LiftOptions {
         gamma: args.gamma,
         city_gate_m: args.city_gate_m,
+        centre_gate: !args.no_centre_gate,
     };
     opts.validate()?;
     let l = args.src.load(args.test_every)?;

@@ -36,6 +36,12 @@ pub struct RunArgs {
     /// surface its pixel's ray hits takes no vote from that surface's label; 0 = off.
     #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]
     pub city_gate_m: f32,
+    /// No centre gate of city votes: without this, a city-labelled pixel gives no vote to a
+    /// Gaussian whose centre projects onto a city label of another class in the same view (a
+    /// wall Gaussian straddling a door's outline takes no door votes); part of the depth gate
+    /// (off with it).
+    #[arg(long)]
+    pub no_centre_gate: bool,
     /// Longest contribution list per pixel in the cache (0 = no bound); with `--epsilon 0`
     /// the top-k by α·T.
     #[arg(long, default_value_t = crate::cache::TOP_K)]
@@ -131,6 +137,7 @@ impl RunArgs {
         let lift = LiftOptions {
             gamma: self.gamma,
             city_gate_m: self.city_gate_m,
+            centre_gate: !self.no_centre_gate,
         };
         lift.validate()?;
         if self.top_k > crate::cache::MAX_LIST {
@@ -166,6 +173,7 @@ impl RunArgs {
         let train = crate::train::TrainOptions {
             iterations: self.iterations,
             city_gate_m: self.city_gate_m,
+            centre_gate: !self.no_centre_gate,
             ..d.train
         };
         train.validate()?;

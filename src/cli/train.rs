@@ -76,6 +76,9 @@ pub struct TrainArgs {
     /// Depth gate of the initial vote's city votes, metres (as `lift`); 0 = off.
     #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]
     city_gate_m: f32,
+    /// No centre gate of the initial vote's city votes (as `lift`).
+    #[arg(long)]
+    no_centre_gate: bool,
     /// Stop when the windowed loss falls by less than this fraction twice in a row (0 = never).
     #[arg(long, default_value_t = TrainOptions::default().tol)]
     tol: f64,
@@ -124,6 +127,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         },
         gamma: args.gamma,
         city_gate_m: args.city_gate_m,
+        centre_gate: !args.no_centre_gate,
         window: args.window,
         tol: args.tol,
         seed: args.seed,

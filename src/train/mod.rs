@@ -127,6 +127,9 @@ pub struct TrainOptions {
     /// Depth gate of the initial vote's city votes, metres (as `lift`; 0 = off).
     #[serde(default = "default_city_gate")]
     pub city_gate_m: f32,
+    /// The centre gate of the initial vote's city votes (as `lift`).
+    #[serde(default = "yes")]
+    pub centre_gate: bool,
     /// Iterations per loss window (progress, history, stopping rule).
     pub window: usize,
     /// Stop when the mean loss of two consecutive windows fell by less than this fraction
@@ -140,6 +143,10 @@ pub struct TrainOptions {
     /// Weight μ of the class-level term of the 2D loss (0 = labels only; see
     /// `model::cross_entropy_mixed`).
     pub class_weight: f64,
+}
+
+fn yes() -> bool {
+    true
 }
 
 fn default_city_gate() -> f32 {
@@ -165,6 +172,7 @@ impl Default for TrainOptions {
             init_scale: 8.0,
             gamma: None,
             city_gate_m: crate::vote::CITY_GATE_M,
+            centre_gate: true,
             window: 200,
             tol: 0.005,
             seed: 0,
@@ -208,6 +216,7 @@ impl TrainOptions {
         VoteOptions {
             gamma: self.gamma,
             city_gate_m: self.city_gate_m,
+            centre_gate: self.centre_gate,
         }
         .validate()?;
         Ok(())
@@ -658,7 +667,7 @@ pub fn run(
     let mut timing = TrainTiming::default();
 
     let t = Instant::now();
-    let gate = crate::vote::CityGate::for_inputs(inp, opts.city_gate_m)?;
+    let gate = crate::vote::CityGate::for_inputs(inp, opts.city_gate_m, opts.centre_gate)?;
     let pool = pool::build(
         inp.cache,
         inp.train,

@@ -188,7 +188,9 @@ pub fn build(
                 });
             }
         }
-        let g = gate.map(|g| g.view(v, c.width, c.height)).transpose()?;
+        let g = gate
+            .map(|g| g.view(v, c.width, c.height, &labels))
+            .transpose()?;
         Ok((c, labels, g))
     };
     let (mut load_s, mut vote_s) = (0.0, 0.0);
