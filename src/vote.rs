@@ -239,7 +239,7 @@ impl CityGate {
                 let q = pose.world_to_camera(p);
                 // The class of the city label under the centre (i32::MIN: none to compare).
                 let class = self.classes.as_ref().and_then(|t| {
-                    let l = labels[v.camera.pixel_containing(q, width, height)?];
+                    let l = *labels.get(v.camera.pixel_containing(q, width, height)?)?;
                     city(l).then(|| t.class_of(l))
                 });
                 (q.z as f32, class.unwrap_or(i32::MIN))
