@@ -230,29 +230,42 @@ impl CityGate {
     ) -> Result<GateView, IdMapError> {
         let depth = crate::idmap::read_depth(&self.raycast, &v.stem(), width, height)?;
         let pose = v.camera.pose;
-        let city = |l: i32| (0..self.city_below).contains(&l);
-        let (z, centre): (Vec<f32>, Vec<i32>) = self
-            .centres
-            .par_iter()
-            .map(|c| {
-                let p = glam::DVec3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]));
-                let q = pose.world_to_camera(p);
-                // The class of the city label under the centre (i32::MIN: none to compare).
-                let class = self.classes.as_ref().and_then(|t| {
-                    let l = *labels.get(v.camera.pixel_containing(q, width, height)?)?;
-                    city(l).then(|| t.class_of(l))
-                });
-                (q.z as f32, class.unwrap_or(i32::MIN))
-            })
-            .unzip();
-        let on = self.classes.is_some();
+        let cam = |c: &[f32; 3]| {
+            pose.world_to_camera(glam::DVec3::new(
+                f64::from(c[0]),
+                f64::from(c[1]),
+                f64::from(c[2]),
+            ))
+        };
+        let (z, centre, pclass) = match &self.classes {
+            None => {
+                let z = self.centres.par_iter().map(|c| cam(c).z as f32).collect();
+                (z, Vec::new(), Vec::new())
+            }
+            Some(t) => {
+                let city = |l: i32| (0..self.city_below).contains(&l);
+                let (z, centre) = self
+                    .centres
+                    .par_iter()
+                    .map(|c| {
+                        let q = cam(c);
+                        // The class of the city label under the centre (i32::MIN: none).
+                        let class = v
+                            .camera
+                            .pixel_containing(q, width, height)
+                            .and_then(|px| labels.get(px).copied())
+                            .filter(|&l| city(l))
+                            .map_or(i32::MIN, |l| t.class_of(l));
+                        (q.z as f32, class)
+                    })
+                    .unzip();
+                (z, centre, labels.iter().map(|&l| t.class_of(l)).collect())
+            }
+        };
         Ok(GateView {
             z,
-            centre: if on { centre } else { Vec::new() },
-            pclass: match &self.classes {
-                Some(t) => labels.iter().map(|&l| t.class_of(l)).collect(),
-                None => Vec::new(),
-            },
+            centre,
+            pclass,
             depth,
             tol: self.tol as f32,
             city_below: self.city_below,
