@@ -18,6 +18,7 @@
 //!   tile list is ordered by `(depth, Gaussian index)`.
 pub mod blend;
 pub mod cache;
+pub mod cull;
 pub mod project;
 pub mod tile;
 
@@ -118,6 +119,9 @@ pub struct PreparedScene {
     /// position, scale, opacity or SH value (e.g. hidden by [`crate::splat::ply::hide_invalid`]),
     /// or a covariance that overflows `f32`.
     pub skipped: usize,
+    /// The per-view cull's cells ([`cull::CellIndex`]), built by the first render; the
+    /// fields above must not change after [`PreparedScene::new`].
+    cells: std::sync::OnceLock<cull::CellIndex>,
 }
 
 impl PreparedScene {
@@ -173,6 +177,7 @@ impl PreparedScene {
             features: Vec::new(),
             channels: 0,
             skipped,
+            cells: std::sync::OnceLock::new(),
         })
     }
 
@@ -283,6 +288,8 @@ fn check_camera(camera: &Camera) -> Result<(), String> {
 thread_local! {
     /// Scratch of [`render_view`]: the projected Gaussians of the last view.
     static PROJECTED: std::cell::Cell<Vec<Projected>> = const { std::cell::Cell::new(Vec::new()) };
+    /// Scratch of [`render_view`]: the Gaussians the cell cull left.
+    static CANDIDATES: std::cell::Cell<Vec<u32>> = const { std::cell::Cell::new(Vec::new()) };
 }
 
 /// Renders one camera.
@@ -291,6 +298,17 @@ pub fn render_view(
     camera: &Camera,
     options: &RenderOptions,
 ) -> Result<RenderOutput, RenderError> {
+    render_view_with(scene, camera, options, true)
+}
+
+/// [`render_view`], with or without the cull of whole cells ([`cull`]; the output is the
+/// same either way).
+fn render_view_with(
+    scene: &PreparedScene,
+    camera: &Camera,
+    options: &RenderOptions,
+    cull_cells: bool,
+) -> Result<RenderOutput, RenderError> {
     check_camera(camera).map_err(|why| RenderError::Camera {
         view: String::new(),
         why,
@@ -298,20 +316,45 @@ pub fn render_view(
     let t0 = Instant::now();
     let v = ViewParams::new(camera);
     let n = scene.len();
+    // The Gaussians left after the cell cull, in index order (so that depth ties keep
+    // breaking by index in `tile::bin`).
+    let mut candidates = CANDIDATES.take();
+    candidates.clear();
+    if cull_cells {
+        let cells = scene.cells.get_or_init(|| cull::CellIndex::new(scene));
+        let mut keep = vec![0u64; n.div_ceil(64)];
+        candidates.reserve(cells.mark_visible(&v, &mut keep));
+        for (w, &bits) in keep.iter().enumerate() {
+            let mut b = bits;
+            while b != 0 {
+                candidates.push((w * 64) as u32 + b.trailing_zeros());
+                b &= b - 1;
+            }
+        }
+    } else {
+        candidates.extend(0..n as u32);
+    }
     // Indexed collect: rayon writes every slot in place (no concatenation copy); culled
     // Gaussians get an empty tile rectangle and are never binned.
     // The array is reused from the previous view on this thread (taken, so that a nested
     // render gets a fresh one): a new n × 80-byte allocation per view costs a page fault per
     // 4 KB (BENCHMARKS.md, "Render: allocation").
     let mut projected = PROJECTED.take();
-    (0..n)
-        .into_par_iter()
+    candidates
+        .par_iter()
         .with_min_len(4096)
-        .map(|i| {
-            project::project(scene, i, &v, options.antialiased, options.max_sh_degree)
-                .unwrap_or(Projected::CULLED)
+        .map(|&i| {
+            project::project(
+                scene,
+                i as usize,
+                &v,
+                options.antialiased,
+                options.max_sh_degree,
+            )
+            .unwrap_or(Projected::CULLED)
         })
         .collect_into_vec(&mut projected);
+    CANDIDATES.set(candidates);
     let t1 = Instant::now();
     let bins = tile::bin(&projected, v.grid_x, v.grid_y);
     let t2 = Instant::now();
@@ -556,4 +599,118 @@ pub fn render_to_dir(
         summary.render_s + summary.write_s,
     );
     Ok(summary)
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::camera::{Intrinsics, Pose};
+    use glam::{DMat3, DVec3};
+    use rand::{Rng, SeedableRng};
+
+    /// A random scene around the origin: centres within ±`extent` m, scales from 2 mm to
+    /// 7 m (needles and blobs), random rotations and opacities, a few NaN centres and zero
+    /// quaternions (never drawn).
+    pub(crate) fn random_scene(n: usize, extent: f32, seed: u64) -> PreparedScene {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let mut r = |lo: f32, hi: f32| lo + (hi - lo) * rng.random::<f32>();
+        let mut g = Gaussians {
+            positions: Vec::new(),
+            normals: None,
+            sh_degree: 0,
+            f_dc: Vec::new(),
+            f_rest: Vec::new(),
+            opacity: Vec::new(),
+            scale: Vec::new(),
+            rotation: Vec::new(),
+            extras: Vec::new(),
+        };
+        for i in 0..n {
+            let mut p = [r(-extent, extent), r(-extent, extent), r(-extent, extent)];
+            if i % 997 == 5 {
+                p[1] = f32::NAN;
+            }
+            g.positions.push(p);
+            g.f_dc.push([r(-1.0, 1.0), r(-1.0, 1.0), r(-1.0, 1.0)]);
+            g.opacity.push(r(-7.0, 6.0));
+            let s = r(-6.0, 2.0);
+            g.scale.push([s, s + r(-3.0, 0.5), s + r(-3.0, 0.5)]);
+            g.rotation.push(if i % 1009 == 7 {
+                [0.0; 4]
+            } else {
+                [r(-1.0, 1.0), r(-1.0, 1.0), r(-1.0, 1.0), r(-1.0, 1.0)]
+            });
+        }
+        PreparedScene::new(&g).expect("valid scene")
+    }
+
+    /// A camera at `centre` looking along yaw/pitch, `w × h`, focal `f`.
+    pub(crate) fn camera_at(centre: DVec3, yaw: f64, pitch: f64, w: u32, h: u32, f: f64) -> Camera {
+        let rot = DMat3::from_rotation_x(pitch) * DMat3::from_rotation_y(yaw);
+        Camera {
+            intrinsics: Intrinsics {
+                width: w,
+                height: h,
+                fx: f,
+                fy: f * 1.1,
+                cx: f64::from(w) / 2.0 + 3.0,
+                cy: f64::from(h) / 2.0 - 2.0,
+                distortion: Distortion::None,
+            },
+            pose: Pose {
+                rotation: rot,
+                translation: -(rot * centre),
+            },
+        }
+    }
+
+    #[test]
+    fn the_cell_cull_changes_no_output() {
+        let scene = random_scene(20_000, 30.0, 17);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for k in 0..6 {
+            let c = DVec3::new(
+                rng.random_range(-20.0..20.0),
+                rng.random_range(-20.0..20.0),
+                rng.random_range(-20.0..20.0),
+            );
+            // Narrow to very wide fields of view (focal 25 px at 96 px: the Jacobian clamp).
+            let f = [25.0, 60.0, 120.0, 400.0, 80.0, 1500.0][k];
+            let cam = camera_at(
+                c,
+                rng.random_range(-3.1..3.1),
+                rng.random_range(-1.5..1.5),
+                96,
+                72,
+                f,
+            );
+            for mode in [
+                ContributionMode::All,
+                ContributionMode::Mass {
+                    epsilon: 0.05,
+                    cap: 32,
+                },
+            ] {
+                let opts = RenderOptions {
+                    antialiased: k % 2 == 0,
+                    contributions: mode,
+                    ..RenderOptions::default()
+                };
+                let a = render_view_with(&scene, &cam, &opts, true).unwrap();
+                let b = render_view_with(&scene, &cam, &opts, false).unwrap();
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&a.rgb), bits(&b.rgb), "view {k}");
+                assert_eq!(bits(&a.alpha), bits(&b.alpha));
+                assert_eq!(bits(&a.depth_acc), bits(&b.depth_acc));
+                assert_eq!(bits(&a.median_depth), bits(&b.median_depth));
+                assert_eq!(a.contributions, b.contributions);
+                assert_eq!(a.stats.projected, b.stats.projected);
+                assert_eq!(a.stats.tile_pairs, b.stats.tile_pairs);
+                assert!(
+                    b.stats.projected > 0,
+                    "view {k} sees nothing: the test would be empty"
+                );
+            }
+        }
+    }
 }

@@ -137,13 +137,22 @@ fn jacobian_and_mean(v: &ViewParams, t: DVec3) -> (DVec3, DVec3, [f64; 2]) {
 /// (+ 1 px) outside the grid gets an empty rectangle in [`rect`]; NaN never culls here.
 fn outside_grid(mean: [f64; 2], j0: &DVec3, j1: &DVec3, s: &[f64; 6], v: &ViewParams) -> bool {
     let jf = j0.length_squared() + j1.length_squared();
-    let sf =
-        (s[0] * s[0] + s[3] * s[3] + s[5] * s[5] + 2.0 * (s[1] * s[1] + s[2] * s[2] + s[4] * s[4]))
-            .sqrt();
-    let l = jf * sf + LOW_PASS;
-    let r = (3.0 * (2.0 * l + 0.32).sqrt() + 1.0) * (1.0 + 1e-9) + 1.0;
+    let r = radius_bound(jf * frobenius(s));
     let (wx, wy) = ((v.grid_x * TILE) as f64, (v.grid_y * TILE) as f64);
     mean[0] + r < 0.0 || mean[1] + r < 0.0 || mean[0] - r > wx || mean[1] - r > wy
+}
+
+/// `‖Σ‖_F` of a symmetric 3×3 matrix stored as `xx xy xz yy yz zz`.
+pub fn frobenius(s: &[f64; 6]) -> f64 {
+    (s[0] * s[0] + s[3] * s[3] + s[5] * s[5] + 2.0 * (s[1] * s[1] + s[2] * s[2] + s[4] * s[4]))
+        .sqrt()
+}
+
+/// [`outside_grid`]'s bound on INRIA's screen radius (+ 1 px) given `‖J‖²_F·‖Σ‖_F`;
+/// increasing in its argument.
+pub fn radius_bound(jf_sf: f64) -> f64 {
+    let l = jf_sf + LOW_PASS;
+    (3.0 * (2.0 * l + 0.32).sqrt() + 1.0) * (1.0 + 1e-9) + 1.0
 }
 
 /// Half extents `[ex, ey]` of the ellipse where `α ≥ 1/255` is possible: the blend skips a

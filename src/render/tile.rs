@@ -22,7 +22,7 @@ impl TileBins {
     }
 }
 
-/// Stable LSD radix sort of `(depth_bits << 32) | index` keys on the upper 32 bits
+/// Stable LSD radix sort of `(k << 32) | index` keys (`k`: a depth's bits, a Morton code) on the upper 32 bits
 /// (three passes of 11/11/10 bits). The keys start in index order, so equal depths stay
 /// in index order: the result equals a full sort of the 64-bit keys.
 pub fn radix_sort_depth(keys: &mut Vec<u64>) {
