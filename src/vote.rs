@@ -8,7 +8,6 @@
 //! bias `γ` is added to the background entry, and the argmax is taken (ties: the smaller id).
 //! Views are processed in name order and pixels in raster order, so the result does not depend
 //! on the thread count.
-use std::collections::HashMap;
 use std::path::Path;
 use std::time::Instant;
 
@@ -219,36 +218,65 @@ impl CityGate {
         }
     }
 
-    /// The gate of view `v` (`width × height`, the cached view's size) whose per-pixel labels
-    /// are `labels` (used by the centre gate only).
-    pub fn view(
-        &self,
-        v: &View,
-        width: usize,
-        height: usize,
-        labels: &[i32],
-    ) -> Result<GateView, IdMapError> {
+    /// The gate of view `v` with its cached lists `c` and per-pixel labels `labels` (the
+    /// centre gate reads them). Only the Gaussians that `c` lists at a pixel the gate applies to
+    /// (a city label over a finite surface depth: the pixels [`Votes::accumulate_gated`] gates)
+    /// are projected; no other Gaussian's depth or centre is ever looked up.
+    pub fn view(&self, v: &View, c: &ViewContrib, labels: &[i32]) -> Result<GateView, IdMapError> {
+        let (width, height) = (c.width, c.height);
         let depth = crate::idmap::read_depth(&self.raycast, &v.stem(), width, height)?;
+        let tol = self.tol as f32;
+        let n = self.centres.len();
+        // One bit per Gaussian (ids the cache reader checked; any beyond `n` are left out).
+        let mut bits = vec![0u64; n.div_ceil(64)];
+        for (p, &label) in labels.iter().enumerate() {
+            let gated = label >= 0
+                && label < self.city_below
+                && depth.get(p).is_some_and(|&d| (d - tol).is_finite());
+            if gated {
+                for &g in c.pixel(p).0 {
+                    if let Some(w) = bits.get_mut(g as usize / 64) {
+                        *w |= 1u64 << (g % 64);
+                    }
+                }
+            }
+        }
+        let mut listed = Vec::new();
+        for (w, &b) in bits.iter().enumerate() {
+            let mut b = b;
+            while b != 0 {
+                let g = (w * 64) as u32 + b.trailing_zeros();
+                if (g as usize) < n {
+                    listed.push(g);
+                }
+                b &= b - 1;
+            }
+        }
         let pose = v.camera.pose;
-        let cam = |c: &[f32; 3]| {
+        let cam = |g: u32| {
+            let c = &self.centres[g as usize];
             pose.world_to_camera(glam::DVec3::new(
                 f64::from(c[0]),
                 f64::from(c[1]),
                 f64::from(c[2]),
             ))
         };
-        let (z, centre, pclass) = match &self.classes {
+        // Entries of Gaussians the view does not list at a gated pixel are never read.
+        let mut z = vec![f32::NAN; n];
+        let (centre, pclass) = match &self.classes {
             None => {
-                let z = self.centres.par_iter().map(|c| cam(c).z as f32).collect();
-                (z, Vec::new(), Vec::new())
+                let zs: Vec<f32> = listed.par_iter().map(|&g| cam(g).z as f32).collect();
+                for (&g, zg) in listed.iter().zip(zs) {
+                    z[g as usize] = zg;
+                }
+                (Vec::new(), Vec::new())
             }
             Some(t) => {
                 let city = |l: i32| (0..self.city_below).contains(&l);
-                let (z, centre) = self
-                    .centres
+                let zc: Vec<(f32, i32)> = listed
                     .par_iter()
-                    .map(|c| {
-                        let q = cam(c);
+                    .map(|&g| {
+                        let q = cam(g);
                         // The class of the city label under the centre (i32::MIN: none).
                         let class = v
                             .camera
@@ -258,8 +286,13 @@ impl CityGate {
                             .map_or(i32::MIN, |l| t.class_of(l));
                         (q.z as f32, class)
                     })
-                    .unzip();
-                (z, centre, labels.iter().map(|&l| t.class_of(l)).collect())
+                    .collect();
+                let mut centre = vec![i32::MIN; n];
+                for (&g, (zg, cg)) in listed.iter().zip(zc) {
+                    z[g as usize] = zg;
+                    centre[g as usize] = cg;
+                }
+                (centre, labels.iter().map(|&l| t.class_of(l)).collect())
             }
         };
         Ok(GateView {
@@ -278,7 +311,8 @@ impl CityGate {
 /// a Gaussian can collect millions of small terms.
 pub struct Votes {
     slots: Vec<[(i32, f64); SLOTS]>,
-    overflow: HashMap<u32, Vec<(i32, f64)>>,
+    /// Keyed by Gaussian; Fx hashing (the map's order is never read: [`Votes::of`] sorts).
+    overflow: rustc_hash::FxHashMap<u32, Vec<(i32, f64)>>,
 }
 
 const SLOTS: usize = 4;
@@ -289,7 +323,7 @@ impl Votes {
     pub fn new(n: usize) -> Votes {
         Votes {
             slots: vec![[(EMPTY, 0.0); SLOTS]; n],
-            overflow: HashMap::new(),
+            overflow: rustc_hash::FxHashMap::default(),
         }
     }
 
@@ -478,9 +512,7 @@ pub fn vote(
     let load = |v: &View, s: &mut Slot| -> Result<(), VoteError> {
         cache.load_into(&v.stem(), &mut s.0, &mut s.1)?;
         s.2 = maps.read(&v.stem(), s.0.width, s.0.height)?;
-        s.3 = gate
-            .map(|g| g.view(v, s.0.width, s.0.height, &s.2))
-            .transpose()?;
+        s.3 = gate.map(|g| g.view(v, &s.0, &s.2)).transpose()?;
         Ok(())
     };
     let mut slots: [Slot; 2] =
@@ -665,9 +697,9 @@ mod tests {
             depth: vec![1.0; 4],
         };
         let mut gate = CityGate::new(centres, &dir, 0.5, delta);
-        let off = gate.view(&view, 4, 1, &labels).unwrap();
+        let off = gate.view(&view, &c, &labels).unwrap();
         gate.classes = Some(table);
-        let on = gate.view(&view, 4, 1, &labels).unwrap();
+        let on = gate.view(&view, &c, &labels).unwrap();
         let mut v = Votes::new(4);
         let (gated, total) = v.accumulate_gated(&c, &labels, Some(&on));
         // Gaussian 0 (centre on the wall) loses its door vote, 1 (centre on the door) its wall

@@ -188,9 +188,7 @@ pub fn build(
                 });
             }
         }
-        let g = gate
-            .map(|g| g.view(v, c.width, c.height, &labels))
-            .transpose()?;
+        let g = gate.map(|g| g.view(v, &c, &labels)).transpose()?;
         Ok((c, labels, g))
     };
     let (mut load_s, mut vote_s) = (0.0, 0.0);
