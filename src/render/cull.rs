@@ -9,7 +9,7 @@
 //!   value over the box is taken at a corner; every member has `z ≤ NEAR`;
 //! * **outside the tile grid**: with every corner in front (`z > NEAR`), a member's projected
 //!   mean `f·x/z + c − ½` is a linear-fractional function of its centre, whose extremes over
-//!   the box are taken at corners; its screen radius is at most [`project::outside_grid`]'s
+//!   the box are taken at corners; its screen radius is at most the projection's cull
 //!   bound with `‖J‖²_F ≤ (f_x²(1 + l_x²) + f_y²(1 + l_y²))/z_min²` (the Jacobian's clamp
 //!   `|x/z| ≤ l_x = 1.3·tan fov_x`) and the cell's largest `‖Σ‖_F`, so a mean that far (plus
 //!   a pixel) outside the grid is culled there.

@@ -148,7 +148,7 @@ pub fn frobenius(s: &[f64; 6]) -> f64 {
         .sqrt()
 }
 
-/// [`outside_grid`]'s bound on INRIA's screen radius (+ 1 px) given `‖J‖²_F·‖Σ‖_F`;
+/// The bound on INRIA's screen radius that the projection's grid cull uses (+ 1 px) given `‖J‖²_F·‖Σ‖_F`;
 /// increasing in its argument.
 pub fn radius_bound(jf_sf: f64) -> f64 {
     let l = jf_sf + LOW_PASS;
