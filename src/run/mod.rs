@@ -238,7 +238,7 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     };
     let pred_dir = vote_steps(&mut r, &cache, &sup, cm.alignment.scale, opts)?;
     let eval = eval_step(&mut r, &cache, &pred_dir, out, opts)?;
-    finish(r, out, opts, &pred_dir, eval, sup)
+    finish(r, out, opts, &pred_dir, eval, sup, &cache)
 }
 
 /// The command line of this process, each word quoted for a POSIX shell where needed.
@@ -823,6 +823,7 @@ fn finish(
     pred_dir: &Path,
     eval: Option<EvalSummary>,
     sup: Supervised,
+    cache: &Cache,
 ) -> Result<RunSummary, RunError> {
     let mut warnings = r.check_warnings.clone();
     warnings.extend(sup.warnings);
@@ -842,6 +843,7 @@ fn finish(
         masks: sup.masks.as_ref(),
         warnings: &warnings,
         choices: &sup.choices,
+        cache: Some(cache),
     })?;
     let summary = RunSummary {
         scene: r.scene.root.clone(),

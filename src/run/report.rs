@@ -1,8 +1,9 @@
 //! `report.html` of a run: the exact command line, a link to `semantic.ply`, the metrics tables
 //! and the confusion matrix, a per-building table (Gaussians per class, the building's CityGML
-//! attributes), the time per stage, and per test view the image, a render of the semantic
-//! Gaussians painted in their class colours, the ground-truth class overlay and the predicted
-//! class overlay side by side, under a legend whose swatches are outlined (visible on white).
+//! attributes), the time per stage, and per test view the image, the semantic Gaussians in
+//! their class colours (composited from the run's contributions cache), the
+//! ground-truth class overlay and the predicted class overlay side by side, under a legend whose
+//! swatches are outlined (visible on white).
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -35,6 +36,8 @@ pub enum ReportError {
     Ply(#[from] crate::splat::PlyError),
     #[error(transparent)]
     Render(#[from] crate::render::RenderError),
+    #[error(transparent)]
+    Cache(#[from] crate::cache::CacheError),
 }
 
 /// Blends class colours over an image (α = 0.55 where a class is set).
@@ -89,6 +92,10 @@ pub struct ReportInputs<'a> {
     pub semantic_ply: Option<&'a Path>,
     /// The run's per-Gaussian semantics (the class-coloured renders and the per-building table).
     pub semantics: Option<&'a crate::selection::SemanticRun>,
+    /// The run's contributions cache: the class-coloured panels are composited from it
+    /// (each pixel's kept list of α·T times its Gaussians' colours); without it the scene is
+    /// read and rendered again.
+    pub cache: Option<&'a crate::cache::Cache>,
 }
 
 /// Quotes a command-line word for a POSIX shell when it needs it.
@@ -181,6 +188,65 @@ fn confusion_table(c: &crate::eval::Confusion) -> String {
 
 /// The scene's Gaussians painted in their class colours (the renderer's input for the
 /// class-coloured panels).
+/// Where the class-coloured panels come from.
+enum Painter<'a> {
+    /// The run's contributions cache ([`composite`]), with each Gaussian's class.
+    Cache(&'a crate::cache::Cache, &'a [i32]),
+    /// The scene re-rendered with every Gaussian painted in its class colour.
+    Render(crate::render::PreparedScene),
+}
+
+/// The class-coloured image of a cached view, composited from its lists instead of rendering
+/// the scene again: per pixel `Σ α·T·colour` over the kept list, scaled to the pixel's whole
+/// mass (kept + dropped: the dropped share, ≤ ε of it, takes the kept entries' mean colour),
+/// plus `T` of white. The colour of a Gaussian is what the renderer shows for a Gaussian
+/// painted in its class colour (SH degree 0 of `paint`'s DC term), so with complete lists the
+/// image is the render's up to the cache's half-float weights.
+fn composite(c: &crate::cache::ViewContrib, class_of: &[i32]) -> Array3<u8> {
+    let colour = |class: i32| -> [f32; 3] {
+        let dc = crate::splat::transform::dc_of_color(classes::color(class));
+        crate::render::project::sh_color(&[dc], 0, glam::DVec3::Z)
+    };
+    // Class ids are small: one colour per id seen (−1 and any unknown id: `classes::color`).
+    let mut table: std::collections::BTreeMap<i32, [f32; 3]> = Default::default();
+    for &k in class_of {
+        table.entry(k).or_insert_with(|| colour(k));
+    }
+    let (w, h) = (c.width, c.height);
+    let mut out = Array3::<u8>::zeros((h, w, 3));
+    for (p, px) in out
+        .as_slice_mut()
+        .expect("a fresh array is contiguous")
+        .chunks_exact_mut(3)
+        .enumerate()
+    {
+        let (ids, ws) = c.pixel(p);
+        let (mut acc, mut kept) = ([0.0f32; 3], 0.0f32);
+        for (&g, &wt) in ids.iter().zip(ws) {
+            let col = class_of
+                .get(g as usize)
+                .and_then(|k| table.get(k))
+                .copied()
+                .unwrap_or([0.0; 3]);
+            for (a, v) in acc.iter_mut().zip(col) {
+                *a += wt * v;
+            }
+            kept += wt;
+        }
+        let dropped = c.lists.residual.get(p).copied().unwrap_or(0.0);
+        let scale = if kept > 0.0 {
+            (kept + dropped) / kept
+        } else {
+            0.0
+        };
+        let t = 1.0 - c.alpha[p];
+        for (o, a) in px.iter_mut().zip(acc) {
+            *o = ((a * scale + t).clamp(0.0, 1.0) * 255.0).round() as u8;
+        }
+    }
+    out
+}
+
 fn class_scene(
     scene: &Scene,
     sr: &crate::selection::SemanticRun,
@@ -309,8 +375,21 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
         );
     }
     html.push_str("</p>");
-    let painted = match r.semantics {
-        Some(sr) if !r.views.is_empty() => Some(class_scene(scene, sr)?),
+    let painted = match (r.semantics, r.cache) {
+        (Some(sr), Some(cache)) if !r.views.is_empty() => {
+            if cache.summary.gaussians != sr.class_of.len() {
+                return Err(ReportError::Data {
+                    path: cache.dir.clone(),
+                    why: format!(
+                        "the cache indexes {} Gaussians, the run labels {}",
+                        cache.summary.gaussians,
+                        sr.class_of.len()
+                    ),
+                });
+            }
+            Some(Painter::Cache(cache, &sr.class_of))
+        }
+        (Some(sr), None) if !r.views.is_empty() => Some(Painter::Render(class_scene(scene, sr)?)),
         _ => None,
     };
     // Painted Gaussians have no view-dependent colour (degree 0 renders the same image).
@@ -344,8 +423,21 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             _ => vec![-1; w * h],
         };
         let mut panels = vec![img.clone()];
-        if let Some(p) = &painted {
-            panels.push(crate::render::render_view(p, &v.camera, &white)?.rgb8());
+        match &painted {
+            Some(Painter::Render(p)) => {
+                panels.push(crate::render::render_view(p, &v.camera, &white)?.rgb8())
+            }
+            Some(Painter::Cache(cache, class_of)) => {
+                let c = cache.load(stem)?;
+                if (c.width, c.height) != (w, h) {
+                    return Err(ReportError::Data {
+                        path: crate::cache::cache_file(&cache.dir, stem),
+                        why: format!("{}×{} pixels, the camera has {w}×{h}", c.width, c.height),
+                    });
+                }
+                panels.push(composite(&c, class_of));
+            }
+            None => {}
         }
         panels.extend([overlay(&img, &gt), overlay(&img, &pred)]);
         crate::imageio::write_png(&dir.join(format!("{stem}.png")), &hstack(&panels))?;
@@ -430,4 +522,92 @@ fn completeness_table(html: &mut String, out: &Path) {
         );
     }
     html.push_str("</table>");
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cache::CacheOptions;
+    use crate::render::tests::{camera_at, random_scene};
+
+    /// The panel composited from the cache against the scene painted and rendered again (the
+    /// reference): with complete lists only the half-float weights differ; with the default
+    /// mass rule the dropped mass takes the kept mean colour.
+    #[test]
+    fn the_cached_panel_matches_the_painted_render() {
+        let scene = random_scene(6000, 6.0, 23);
+        let n = scene.len();
+        let class_of: Vec<i32> = (0..n).map(|i| (i % 9) as i32 - 1).collect();
+        // The reference: every Gaussian painted in its class colour, rendered on white.
+        let mut painted = scene.clone();
+        for (i, &k) in class_of.iter().enumerate() {
+            painted.sh[i * painted.coeffs] =
+                crate::splat::transform::dc_of_color(classes::color(k));
+            for c in 1..painted.coeffs {
+                painted.sh[i * painted.coeffs + c] = [0.0; 3];
+            }
+        }
+        let white = crate::render::RenderOptions {
+            background: [1.0; 3],
+            features: false,
+            max_sh_degree: 0,
+            ..Default::default()
+        };
+        let mut checked = 0;
+        for (k, yaw) in [0.3f64, 2.0, -1.2].into_iter().enumerate() {
+            let camera = camera_at(
+                glam::DVec3::new(0.5, -0.3, -14.0),
+                yaw * 0.1,
+                0.05 * k as f64,
+                120,
+                90,
+                110.0,
+            );
+            let view = View {
+                image_id: k as u32,
+                camera_id: 1,
+                name: format!("v{k}.png"),
+                camera,
+            };
+            let reference = crate::render::render_view(&painted, &camera, &white)
+                .unwrap()
+                .rgb8();
+            for (opts, max_levels, mean_levels) in [
+                (
+                    CacheOptions {
+                        top_k: 0,
+                        epsilon: 0.0,
+                    },
+                    2,
+                    0.05,
+                ),
+                (
+                    CacheOptions {
+                        top_k: 32,
+                        epsilon: 0.05,
+                    },
+                    16,
+                    2.5,
+                ),
+            ] {
+                let c = crate::render::cache::contrib(&scene, &view, &opts).unwrap();
+                let got = composite(&c, &class_of);
+                assert_eq!(got.dim(), reference.dim());
+                let d: Vec<i32> = got
+                    .iter()
+                    .zip(reference.iter())
+                    .map(|(&a, &b)| (i32::from(a) - i32::from(b)).abs())
+                    .collect();
+                let max = *d.iter().max().unwrap();
+                let mean = d.iter().map(|&x| f64::from(x)).sum::<f64>() / d.len() as f64;
+                assert!(
+                    max <= max_levels && mean <= mean_levels,
+                    "view {k}, {opts:?}: max {max}, mean {mean}"
+                );
+                checked += d.iter().filter(|&&x| x == 0).count();
+            }
+        }
+        // The views see the scene: most values agree exactly, and not all are the background.
+        assert!(checked > 3 * 2 * 120 * 90 * 3 / 2, "{checked}");
+    }
 }
