@@ -843,7 +843,7 @@ fn finish(
         masks: sup.masks.as_ref(),
         warnings: &warnings,
         choices: &sup.choices,
-        cache: Some(cache),
+        cache,
     })?;
     let summary = RunSummary {
         scene: r.scene.root.clone(),

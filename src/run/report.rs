@@ -33,10 +33,6 @@ pub enum ReportError {
     #[error("{path}: {why}")]
     Data { path: PathBuf, why: String },
     #[error(transparent)]
-    Ply(#[from] crate::splat::PlyError),
-    #[error(transparent)]
-    Render(#[from] crate::render::RenderError),
-    #[error(transparent)]
     Cache(#[from] crate::cache::CacheError),
 }
 
@@ -90,12 +86,11 @@ pub struct ReportInputs<'a> {
     pub command: &'a str,
     /// The run's semantic PLY, when written (linked relative to `out`).
     pub semantic_ply: Option<&'a Path>,
-    /// The run's per-Gaussian semantics (the class-coloured renders and the per-building table).
+    /// The run's per-Gaussian semantics (the class-coloured panels and the per-building table).
     pub semantics: Option<&'a crate::selection::SemanticRun>,
     /// The run's contributions cache: the class-coloured panels are composited from it
-    /// (each pixel's kept list of α·T times its Gaussians' colours); without it the scene is
-    /// read and rendered again.
-    pub cache: Option<&'a crate::cache::Cache>,
+    /// (each pixel's kept list of α·T times its Gaussians' colours).
+    pub cache: &'a crate::cache::Cache,
 }
 
 /// Quotes a command-line word for a POSIX shell when it needs it.
@@ -186,15 +181,6 @@ fn confusion_table(c: &crate::eval::Confusion) -> String {
     html
 }
 
-/// Where the class-coloured panels come from.
-enum Painter<'a> {
-    /// The run's contributions cache ([`composite`]), with each Gaussian's colour
-    /// ([`class_colours`]).
-    Cache(&'a crate::cache::Cache, Vec<[f32; 3]>),
-    /// The scene re-rendered with every Gaussian painted in its class colour.
-    Render(crate::render::PreparedScene),
-}
-
 /// The class-coloured image of a cached view, composited from its lists instead of rendering
 /// the scene again: per pixel `Σ α·T·colour` over the kept list, scaled to the pixel's whole
 /// mass (kept + dropped: the dropped share, ≤ ε of it, takes the kept entries' mean colour),
@@ -247,30 +233,6 @@ fn class_colours(class_of: &[i32]) -> Vec<[f32; 3]> {
             })
         })
         .collect()
-}
-
-/// The scene's Gaussians painted in their class colours (the renderer's input for the
-/// class-coloured panels when no cache is given).
-fn class_scene(
-    scene: &Scene,
-    sr: &crate::selection::SemanticRun,
-) -> Result<crate::render::PreparedScene, ReportError> {
-    let (mut g, _) = crate::splat::read_ply(&scene.ply, &crate::splat::ReadOptions::KEEP)?;
-    if g.len() != sr.class_of.len() {
-        return Err(ReportError::Data {
-            path: scene.ply.clone(),
-            why: format!(
-                "{} Gaussians, the run labels {}",
-                g.len(),
-                sr.class_of.len()
-            ),
-        });
-    }
-    crate::splat::ply::hide_invalid(&mut g);
-    for (i, &c) in sr.class_of.iter().enumerate() {
-        crate::splat::transform::paint(&mut g, i, classes::color(c));
-    }
-    Ok(crate::render::PreparedScene::new(&g)?)
 }
 
 /// Writes `out/report.html` and `out/report/<stem>.png`; returns the report path.
@@ -367,7 +329,7 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
     }
     completeness_table(&mut html, r.out);
     html.push_str(if r.semantics.is_some() {
-        "<h2>Test views: image | semantic Gaussians rendered in class colours | ground truth | prediction</h2><p>"
+        "<h2>Test views: image | semantic Gaussians in class colours (from the contributions cache) | ground truth | prediction</h2><p>"
     } else {
         "<h2>Test views: image | ground truth | prediction</h2><p>"
     });
@@ -379,8 +341,10 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
         );
     }
     html.push_str("</p>");
-    let painted = match (r.semantics, r.cache) {
-        (Some(sr), Some(cache)) if !r.views.is_empty() => {
+    let cache = r.cache;
+    // Each Gaussian's class colour, when the run has per-Gaussian semantics.
+    let colours = match r.semantics {
+        Some(sr) if !r.views.is_empty() => {
             if cache.summary.gaussians != sr.class_of.len() {
                 return Err(ReportError::Data {
                     path: cache.dir.clone(),
@@ -391,20 +355,12 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
                     ),
                 });
             }
-            Some(Painter::Cache(cache, class_colours(&sr.class_of)))
+            Some(class_colours(&sr.class_of))
         }
-        (Some(sr), None) if !r.views.is_empty() => Some(Painter::Render(class_scene(scene, sr)?)),
         _ => None,
     };
-    // Painted Gaussians have no view-dependent colour (degree 0 renders the same image).
-    let white = crate::render::RenderOptions {
-        background: [1.0; 3],
-        features: false,
-        max_sh_degree: 0,
-        ..Default::default()
-    };
-    // One panel per test view (image | class-coloured render | truth | prediction), views
-    // side by side (each render is parallel too); the HTML lists them in view order.
+    // One panel per test view (image | class colours | truth | prediction), views side by
+    // side; the HTML lists them in view order.
     let panel = |v: &View| -> Result<(), ReportError> {
         let stem = &v.stem();
         let (w, h) = (
@@ -427,28 +383,22 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             _ => vec![-1; w * h],
         };
         let mut panels = vec![img.clone()];
-        match &painted {
-            Some(Painter::Render(p)) => {
-                panels.push(crate::render::render_view(p, &v.camera, &white)?.rgb8())
+        if let Some(colours) = &colours {
+            let c = cache.load(stem)?;
+            if (c.width, c.height) != (w, h) {
+                return Err(ReportError::Data {
+                    path: crate::cache::cache_file(&cache.dir, stem),
+                    why: format!("{}×{} pixels, the camera has {w}×{h}", c.width, c.height),
+                });
             }
-            Some(Painter::Cache(cache, colours)) => {
-                let c = cache.load(stem)?;
-                if (c.width, c.height) != (w, h) {
-                    return Err(ReportError::Data {
-                        path: crate::cache::cache_file(&cache.dir, stem),
-                        why: format!("{}×{} pixels, the camera has {w}×{h}", c.width, c.height),
-                    });
-                }
-                panels.push(composite(&c, colours));
-            }
-            None => {}
+            panels.push(composite(&c, colours));
         }
         panels.extend([overlay(&img, &gt), overlay(&img, &pred)]);
         crate::imageio::write_png(&dir.join(format!("{stem}.png")), &hstack(&panels))?;
         Ok(())
     };
-    // Two views at once (each render holds its projected Gaussians); the first failing view
-    // in view order is the one reported.
+    // Two views at once (each holds its decoded cache view); the first failing view in view
+    // order is the one reported.
     for pair in r.views.chunks(2) {
         let done: Vec<Result<(), ReportError>> = pair.par_iter().map(panel).collect();
         done.into_iter().collect::<Result<Vec<()>, _>>()?;
