@@ -300,7 +300,7 @@ impl CityGate {
             centre,
             pclass,
             depth,
-            tol: self.tol as f32,
+            tol,
             city_below: self.city_below,
         })
     }
