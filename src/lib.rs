@@ -2,7 +2,7 @@
 //! city scenes (the GS4City method), CPU-only.
 //!
 //! Readers and formats (depend on no stage): [`citygml`], [`colmap`], [`splat`] (3DGS PLY),
-//! [`mesh`], [`ply`] (the PLY format under `splat` and `mesh`), [`npy`], [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
+//! [`mesh`], [`ply`] (the PLY format under `splat` and `mesh`), [`npy`], [`onnxproto`] (keeping a subset of an ONNX graph's outputs), [`camera`], [`imageio`], [`sam`] (SAM JSON / COCO RLE, mask and prompt features; `synth::masks` simulates them for the synthetic benchmark).
 //! Stages: [`citymodel`], [`refine`], [`raycast`], [`render`], [`masks`], [`associate`], [`fuse`], [`lift`], [`train`], [`eval`], [`query`]. See ARCHITECTURE.md for the data flow.
 #![deny(unsafe_code)]
 
@@ -37,6 +37,7 @@ pub mod maskfile;
 pub mod masks;
 pub mod mesh;
 pub mod npy;
+pub mod onnxproto;
 pub mod openings;
 pub mod ply;
 pub mod prediction;

@@ -311,6 +311,67 @@ fn corrupt_or_wrong_model_file_is_named() {
     assert!(!s.join("masks/v000.json").exists());
 }
 
+/// The decoder without SAM's `masks` tail (`onnxproto::keep_outputs`, what `segment` loads)
+/// gives `iou_predictions` and `low_res_masks` bit for bit as the whole graph does, for the
+/// same inputs, and has fewer nodes; ONNX Runtime runs both.
+#[test]
+fn the_pruned_decoder_gives_the_same_outputs_bit_for_bit() {
+    const TEST: &str = "segment::the_pruned_decoder_gives_the_same_outputs_bit_for_bit";
+    if !python_can_import(TEST, PY) {
+        return;
+    }
+    use gs4city::segment::model;
+    let path = tiny_model().join("decoder.onnx");
+    let bytes = std::fs::read(&path).unwrap();
+    let (pruned, dropped) =
+        gs4city::onnxproto::keep_outputs(&bytes, &["iou_predictions", "low_res_masks"]).unwrap();
+    assert_eq!(dropped, vec!["masks".to_string()]);
+    assert!(pruned.len() < bytes.len());
+    let mut whole = model::open_session(&path, 1).unwrap();
+    let mut cut = model::open_session_from(&path, Some(&pruned), 1).unwrap();
+    let names = |s: &ort::session::Session| -> Vec<String> {
+        s.outputs().iter().map(|o| o.name().to_string()).collect()
+    };
+    assert_eq!(names(&whole), ["masks", "iou_predictions", "low_res_masks"]);
+    assert_eq!(names(&cut), ["iou_predictions", "low_res_masks"]);
+    // inputs independent of the code under test: a fixed pseudo-random embedding and prompts
+    let b = 5usize;
+    let mut state = 12345u64;
+    let mut next = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+    };
+    let emb: Vec<f32> = (0..256 * 64 * 64).map(|_| next()).collect();
+    let coords: Vec<f32> = (0..b * 4).map(|_| (next() + 1.0) * 500.0).collect();
+    let labels: Vec<f32> = (0..b).flat_map(|_| [1.0, -1.0]).collect();
+    let mut outputs = Vec::new();
+    for session in [&mut whole, &mut cut] {
+        let inputs = ort::inputs![
+            "image_embeddings" => model::tensor(&[1, 256, 64, 64], emb.clone(), &path).unwrap(),
+            "point_coords" => model::tensor(&[b, 2, 2], coords.clone(), &path).unwrap(),
+            "point_labels" => model::tensor(&[b, 2], labels.clone(), &path).unwrap(),
+            "mask_input" => model::tensor(&[1, 1, 256, 256], vec![0.0; 256 * 256], &path).unwrap(),
+            "has_mask_input" => model::tensor(&[1], vec![0.0], &path).unwrap(),
+            "orig_im_size" => model::tensor(&[2], vec![247.0, 330.0], &path).unwrap(),
+        ];
+        let out = session.run(inputs).unwrap();
+        let get = |n: &str| -> Vec<u32> {
+            let (_, v) = out[n].try_extract_tensor::<f32>().unwrap();
+            v.iter().map(|x| x.to_bits()).collect()
+        };
+        outputs.push((get("iou_predictions"), get("low_res_masks")));
+    }
+    assert_eq!(outputs[0].0.len(), b * 4);
+    assert_eq!(outputs[0].1.len(), b * 4 * 256 * 256);
+    assert!(outputs[0].1.iter().any(|&x| x != 0));
+    assert!(
+        outputs[0] == outputs[1],
+        "the pruned decoder's outputs differ"
+    );
+}
+
 /// `gs4city run --model-dir`: a scene without masks (SIMULATED synth small preset, its masks/
 /// and features/ removed) is segmented first — every image gets masks/<stem>.json in the SAM
 /// format the masks stage reads — and the whole pipeline runs on those masks.

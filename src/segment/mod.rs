@@ -187,7 +187,16 @@ impl Segmenter {
         let encoder_path = dir.join("encoder.onnx");
         let decoder_path = dir.join("decoder.onnx");
         let encoder = model::open_session(&encoder_path, threads)?;
-        let decoder = model::open_session(&decoder_path, threads)?;
+        // SAM's export computes `masks` after `low_res_masks`; a graph without that tail gives
+        // `iou_predictions` and `low_res_masks` bit for bit with less work. A model that cannot
+        // be pruned (no such outputs, control flow, external data) is loaded as it is.
+        let pruned = std::fs::read(&decoder_path).ok().and_then(|b| {
+            crate::onnxproto::keep_outputs(&b, &["iou_predictions", "low_res_masks"])
+                .ok()
+                .filter(|(_, dropped)| dropped.iter().any(|d| d == "masks"))
+        });
+        let decoder =
+            model::open_session_from(&decoder_path, pruned.as_ref().map(|p| &p.0[..]), threads)?;
         let enc_in = encoder
             .inputs()
             .first()
@@ -216,7 +225,9 @@ impl Segmenter {
         ] {
             model::input_shape(&decoder, &decoder_path, name)?;
         }
-        model::require_outputs(&decoder, &decoder_path, &["masks", "iou_predictions"])?;
+        if pruned.is_none() {
+            model::require_outputs(&decoder, &decoder_path, &["masks", "iou_predictions"])?;
+        }
         let pc = model::input_shape(&decoder, &decoder_path, "point_coords")?;
         let fixed_batch = pc.first().copied().filter(|&b| b > 0).map(|b| b as usize);
         let low_res = decoder
@@ -307,7 +318,8 @@ impl Segmenter {
             );
         // With the low-resolution outputs only, the export's post-processing (upsampling to
         // 1024², the crop to the resized image, the upsampling to `orig_im_size`) produces
-        // `masks`, which is not read but still computed (ONNX Runtime runs the whole graph): a
+        // `masks`, which is not read. It is normally pruned from the graph (`open`); where it
+        // could not be, ONNX Runtime still computes it (it runs the whole graph), and a
         // 1 × 1024 "original" makes the crop one row and the last upsampling trivial. Neither
         // `low_res_masks` nor `iou_predictions` depends on it (SAM's export applies it after
         // the decoder).

@@ -87,6 +87,16 @@ fn environment() -> Result<&'static ort::environment::Environment, SegmentError>
 
 /// Opens one ONNX file on `threads` intra-op threads (0 = ONNX Runtime's choice).
 pub fn open_session(path: &Path, threads: usize) -> Result<Session, SegmentError> {
+    open_session_from(path, None, threads)
+}
+
+/// Opens the ONNX file `path`, or, given `bytes`, that model in memory (errors still name
+/// `path`), on `threads` intra-op threads (0 = ONNX Runtime's choice).
+pub fn open_session_from(
+    path: &Path,
+    bytes: Option<&[u8]>,
+    threads: usize,
+) -> Result<Session, SegmentError> {
     let env = environment()?;
     let bad = |e: ort::Error| SegmentError::Model {
         path: path.to_path_buf(),
@@ -102,7 +112,10 @@ pub fn open_session(path: &Path, threads: usize) -> Result<Session, SegmentError
         .with_intra_op_spinning(false)
         .map_err(|e| bad(e.into()))?;
     let mut builder = builder;
-    builder.commit_from_file(path).map_err(bad)
+    match bytes {
+        Some(b) => builder.commit_from_memory(b).map_err(bad),
+        None => builder.commit_from_file(path).map_err(bad),
+    }
 }
 
 /// The declared shape of input `name` (`-1` = dynamic), or an error naming the file.
