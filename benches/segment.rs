@@ -5,7 +5,7 @@
 //! weights' values). The models are generated into `target/bench-models/` on first use.
 //!
 //! ```text
-//! cargo bench --bench segment [-- --image PATH.png] [--sizes mobilesam,vit_b] [--grids 16,32] [--threads N]
+//! cargo bench --bench segment [-- --image PATH.png] [--sizes mobilesam,vit_b,mobilesam-b1] [--grids 16,32] [--threads N]
 //! ```
 
 mod common;
@@ -33,7 +33,17 @@ fn main() {
     );
     println!("|---|---|---|---|---|---|---|---|");
     for size in sizes.split(',') {
-        let dir = common::model(size, &["--size", size], "model.json");
+        // `NAME-b1`: the same network with SAM's own export's fixed batch of 1 (one prompt per
+        // decoder call, decoded by single-threaded workers side by side)
+        let (net, fixed) = match size.strip_suffix("-b1") {
+            Some(n) => (n, true),
+            None => (size, false),
+        };
+        let mut gen_args = vec!["--size", net];
+        if fixed {
+            gen_args.push("--fixed-batch");
+        }
+        let dir = common::model(size, &gen_args, "model.json");
         let mut seg = Segmenter::open(&dir, threads).expect("model");
         for grid in grids.split(',') {
             let o = SegmentOptions {

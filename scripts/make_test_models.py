@@ -107,6 +107,13 @@ class G:
         b = self.const((0.1 * self.rng.normal(size=shape)).astype(np.float32), "ln_b")
         return self.op("Add", [self.op("Mul", [y, g]), b])
 
+    def layernorm_op(self, x, dim):
+        """nn.LayerNorm over the last axis as torch exports it at opset ≥ 17: one
+        LayerNormalization node (eps 1e-5, torch's default)."""
+        g = self.const((1.0 + 0.1 * self.rng.normal(size=[dim])).astype(np.float32), "ln_g")
+        b = self.const((0.1 * self.rng.normal(size=[dim])).astype(np.float32), "ln_b")
+        return self.op("LayerNormalization", [x, g, b], axis=-1, epsilon=1e-5)
+
     def gelu(self, x):
         e = self.op("Erf", [self.op("Div", [x, self.f32(math.sqrt(2.0))])])
         return self.op("Mul", [self.op("Mul", [x, self.op("Add", [e, self.f32(1.0)])]), self.f32(0.5)])
@@ -228,7 +235,7 @@ def encoder(size, seed):
     return graph
 
 
-def decoder(size, seed):
+def decoder(size, seed, fixed_batch=False):
     g = G(seed + 1)
     D = 256
     depth, ds, up1, up2, mlp = (1, 8, 16, 8, 256) if size == "tiny" else (2, 2, 64, 32, 2048)
@@ -277,18 +284,18 @@ def decoder(size, seed):
         else:
             q = g.op("Add", [queries, qpe])
             queries = g.op("Add", [queries, g.attention(q, q, queries, D, heads)])
-        queries = g.layernorm(queries, D)
+        queries = g.layernorm_op(queries, D)
         q = g.op("Add", [queries, qpe])
         k = g.op("Add", [keys, key_pe])
-        queries = g.layernorm(g.op("Add", [queries, g.attention(q, k, keys, D, heads, D // ds)]), D)
+        queries = g.layernorm_op(g.op("Add", [queries, g.attention(q, k, keys, D, heads, D // ds)]), D)
         hid = g.op("Relu", [g.linear(queries, D, mlp)])
-        queries = g.layernorm(g.op("Add", [queries, g.linear(hid, mlp, D)]), D)
+        queries = g.layernorm_op(g.op("Add", [queries, g.linear(hid, mlp, D)]), D)
         q = g.op("Add", [queries, qpe])
         k = g.op("Add", [keys, key_pe])
-        keys = g.layernorm(g.op("Add", [keys, g.attention(k, q, queries, D, heads, D // ds)]), D)
+        keys = g.layernorm_op(g.op("Add", [keys, g.attention(k, q, queries, D, heads, D // ds)]), D)
     q = g.op("Add", [queries, qpe])
     k = g.op("Add", [keys, key_pe])
-    queries = g.layernorm(g.op("Add", [queries, g.attention(q, k, keys, D, heads, D // ds)]), D)
+    queries = g.layernorm_op(g.op("Add", [queries, g.attention(q, k, keys, D, heads, D // ds)]), D)
     # keys may still be [1,4096,256] when nothing made them per-prompt: expand to B
     keys = g.op("Expand", [keys, g.op("Concat", [bshape, g.i64([4096, D])], axis=0)])
     img = g.reshape(g.op("Transpose", [keys], perm=[0, 2, 1]), [-1, D, 64, 64])
@@ -323,10 +330,12 @@ def decoder(size, seed):
                  coordinate_transformation_mode="half_pixel")
     for src_name, dst in ((masks, "masks"), (iou, "iou_predictions"), (low, "low_res_masks")):
         g.nodes.append(helper.make_node("Identity", [src_name], [dst]))
+    # SAM's own export traces one prompt per call (dynamic `num_points` only): --fixed-batch
+    batch = 1 if fixed_batch else "batch"
     inputs = [
         helper.make_tensor_value_info("image_embeddings", TensorProto.FLOAT, [1, 256, 64, 64]),
-        helper.make_tensor_value_info("point_coords", TensorProto.FLOAT, ["batch", "num_points", 2]),
-        helper.make_tensor_value_info("point_labels", TensorProto.FLOAT, ["batch", "num_points"]),
+        helper.make_tensor_value_info("point_coords", TensorProto.FLOAT, [batch, "num_points", 2]),
+        helper.make_tensor_value_info("point_labels", TensorProto.FLOAT, [batch, "num_points"]),
         helper.make_tensor_value_info("mask_input", TensorProto.FLOAT, [1, 1, 256, 256]),
         helper.make_tensor_value_info("has_mask_input", TensorProto.FLOAT, [1]),
         helper.make_tensor_value_info("orig_im_size", TensorProto.FLOAT, [2]),
@@ -466,6 +475,8 @@ def main():
     ap.add_argument("--clip", choices=sorted(CLIP_SIZES))
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--fixed-batch", action="store_true",
+                    help="decoder inputs with batch 1, as SAM's own export (one prompt per call)")
     a = ap.parse_args()
     if (a.size is None) == (a.clip is None):
         ap.error("give one of --size (SAM family) and --clip")
@@ -476,7 +487,7 @@ def main():
         save(clip_text(a.clip, a.seed, CLIP_SIZES[a.clip]["vocab"] or n), os.path.join(a.out, "clip_text.onnx"))
         return
     save(encoder(a.size, a.seed), os.path.join(a.out, "encoder.onnx"))
-    save(decoder(a.size, a.seed), os.path.join(a.out, "decoder.onnx"))
+    save(decoder(a.size, a.seed, a.fixed_batch), os.path.join(a.out, "decoder.onnx"))
     family = {"tiny": "test", "mobilesam": "mobile_sam", "vit_b": "sam"}[a.size]
     with open(os.path.join(a.out, "model.json"), "w") as f:
         json.dump({"family": family, "size": a.size, "generated": True,

@@ -136,46 +136,7 @@ fn masks_match_the_numpy_reference() {
             "{}",
             String::from_utf8_lossy(&out.stderr)
         );
-        let reference = s.join("reference.json");
-        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/sam_amg_reference.py");
-        let r = Command::new("python3")
-            .arg(&script)
-            .arg("--model")
-            .arg(&model)
-            .arg("--image")
-            .arg(&npy)
-            .arg("--out")
-            .arg(&reference)
-            .args(opts)
-            .output()
-            .unwrap();
-        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
-        let ours = sam::read_sam_json_sized(&s.join("masks/v000.json"), Some([247, 330])).unwrap();
-        let theirs = sam::read_sam_json_sized(&reference, Some([247, 330])).unwrap();
-        assert!(
-            !ours.is_empty(),
-            "config {i}: no masks: the test would prove nothing"
-        );
-        assert_eq!(ours.len(), theirs.len(), "config {i}: mask counts differ");
-        for (k, (a, b)) in ours.iter().zip(&theirs).enumerate() {
-            let (ma, mb) = (
-                a.segmentation.decode().unwrap(),
-                b.segmentation.decode().unwrap(),
-            );
-            let inter = ma.iter().zip(mb.iter()).filter(|(x, y)| **x && **y).count();
-            let union = ma.iter().zip(mb.iter()).filter(|(x, y)| **x || **y).count();
-            let iou = inter as f64 / union.max(1) as f64;
-            assert!(iou >= 0.99, "config {i} mask {k}: IoU {iou}");
-            assert!(
-                (a.predicted_iou - b.predicted_iou).abs() < 1e-3,
-                "config {i} mask {k}"
-            );
-            assert!(
-                (a.stability_score - b.stability_score).abs() < 0.01,
-                "config {i} mask {k}"
-            );
-            assert_eq!(a.point_coords, b.point_coords, "config {i} mask {k}");
-        }
+        assert_matches_reference(&s, &model, &npy, opts, &format!("config {i}"));
         // resumable: a second run skips the image and leaves its file alone
         let before = std::fs::read(s.join("masks/v000.json")).unwrap();
         let again = gs4city(&args, &[]);
@@ -187,6 +148,117 @@ fn masks_match_the_numpy_reference() {
         );
         assert_eq!(std::fs::read(s.join("masks/v000.json")).unwrap(), before);
     }
+}
+
+/// `s/masks/v000.json` against `scripts/sam_amg_reference.py` run with the same options: the
+/// same mask count and order, each with IoU ≥ 0.99 (RLE decoded), the same predicted IoU and
+/// stability score, the same point.
+fn assert_matches_reference(s: &Path, model: &Path, npy: &Path, opts: &[&str], tag: &str) {
+    let reference = s.join("reference.json");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/sam_amg_reference.py");
+    let r = Command::new("python3")
+        .arg(&script)
+        .arg("--model")
+        .arg(model)
+        .arg("--image")
+        .arg(npy)
+        .arg("--out")
+        .arg(&reference)
+        .args(opts)
+        .output()
+        .unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let ours = sam::read_sam_json_sized(&s.join("masks/v000.json"), Some([247, 330])).unwrap();
+    let theirs = sam::read_sam_json_sized(&reference, Some([247, 330])).unwrap();
+    assert!(
+        !ours.is_empty(),
+        "{tag}: no masks: the test would prove nothing"
+    );
+    assert_eq!(ours.len(), theirs.len(), "{tag}: mask counts differ");
+    for (k, (a, b)) in ours.iter().zip(&theirs).enumerate() {
+        let (ma, mb) = (
+            a.segmentation.decode().unwrap(),
+            b.segmentation.decode().unwrap(),
+        );
+        let inter = ma.iter().zip(mb.iter()).filter(|(x, y)| **x && **y).count();
+        let union = ma.iter().zip(mb.iter()).filter(|(x, y)| **x || **y).count();
+        let iou = inter as f64 / union.max(1) as f64;
+        assert!(iou >= 0.99, "{tag} mask {k}: IoU {iou}");
+        assert!(
+            (a.predicted_iou - b.predicted_iou).abs() < 1e-3,
+            "{tag} mask {k}"
+        );
+        assert!(
+            (a.stability_score - b.stability_score).abs() < 0.01,
+            "{tag} mask {k}"
+        );
+        assert_eq!(a.point_coords, b.point_coords, "{tag} mask {k}");
+    }
+}
+
+/// A decoder with a fixed batch of 1 (as SAM's own export: one prompt per call) is decoded by
+/// single-threaded workers side by side: the masks file is byte-identical for 1 and 3 workers
+/// and matches the NumPy reference decoding one prompt per call.
+#[test]
+fn a_fixed_batch_decoder_gives_the_same_masks_on_any_number_of_workers() {
+    const TEST: &str =
+        "segment::a_fixed_batch_decoder_gives_the_same_masks_on_any_number_of_workers";
+    if !python_can_import(TEST, PY) {
+        return;
+    }
+    let model = root().join("tiny-fixed-batch");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/make_test_models.py");
+    let out = Command::new("python3")
+        .arg(&script)
+        .args(["--size", "tiny", "--seed", "3", "--fixed-batch", "--out"])
+        .arg(&model)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let opts = [
+        "--points-per-side",
+        "4",
+        "--pred-iou-thresh",
+        "0.86",
+        "--stability-score-thresh",
+        "0.8",
+        "--box-nms-thresh",
+        "1.0",
+    ];
+    let mut files = Vec::new();
+    for threads in ["1", "3"] {
+        let (s, npy) = scene(&format!("fixed{threads}"));
+        let mut args = vec![
+            "segment",
+            "--scene",
+            s.to_str().unwrap(),
+            "--model",
+            model.to_str().unwrap(),
+            "--threads",
+            threads,
+        ];
+        args.extend_from_slice(&opts);
+        let out = gs4city(&args, &[]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        files.push(std::fs::read(s.join("masks/v000.json")).unwrap());
+        if threads == "3" {
+            let mut ref_opts = opts.to_vec();
+            ref_opts.extend_from_slice(&["--points-per-batch", "1"]);
+            assert_matches_reference(&s, &model, &npy, &ref_opts, "fixed batch, 3 workers");
+        }
+    }
+    assert!(
+        files[0] == files[1],
+        "the masks depend on the number of workers"
+    );
 }
 
 /// No model folder content: one line naming the expected files and where the weights are.

@@ -34,7 +34,7 @@ pub struct SegmentArgs {
     /// Downscale factor of the images before segmentation (the reference pipeline's default_scale).
     #[arg(long, default_value_t = SegmentOptions::default().scale)]
     scale: f64,
-    /// ONNX Runtime threads (0 = its default).
+    /// Encoder threads and decoder workers (0 = every core).
     #[arg(long, default_value_t = 0)]
     threads: usize,
 }

@@ -85,7 +85,9 @@ pub struct SegmentOptions {
     pub min_mask_region_area: usize,
     /// The image is downscaled by this factor before segmentation (reference: 0.25).
     pub scale: f64,
-    /// ONNX Runtime intra-op threads (0 = its default).
+    /// ONNX Runtime intra-op threads of the encoder and of a dynamic-batch decoder, and the
+    /// number of single-threaded workers of a fixed-batch decoder (SAM's own export); 0 = ONNX
+    /// Runtime's default, and one worker per core.
     pub threads: usize,
 }
 
@@ -153,7 +155,12 @@ pub struct Timings {
 pub struct Segmenter {
     pub info: ModelInfo,
     encoder: Session,
-    decoder: Session,
+    /// The decoder sessions. A decoder with a fixed batch (SAM's own export: one prompt per
+    /// call) gets one single-threaded session per worker, decoding side by side (faster than
+    /// one session's intra-op threads on its small tensors, and each prompt's result is
+    /// independent of the number of workers); a dynamic-batch decoder gets one session on
+    /// `threads` intra-op threads.
+    decoders: Vec<Session>,
     encoder_path: PathBuf,
     decoder_path: PathBuf,
     /// The decoder's fixed batch size, if it has one.
@@ -195,8 +202,13 @@ impl Segmenter {
                 .ok()
                 .filter(|(_, dropped)| dropped.iter().any(|d| d == "masks"))
         });
+        let workers = if threads > 0 {
+            threads
+        } else {
+            std::thread::available_parallelism().map_or(1, |n| n.get())
+        };
         let decoder =
-            model::open_session_from(&decoder_path, pruned.as_ref().map(|p| &p.0[..]), threads)?;
+            model::open_session_from(&decoder_path, pruned.as_ref().map(|p| &p.0[..]), 1)?;
         let enc_in = encoder
             .inputs()
             .first()
@@ -234,10 +246,25 @@ impl Segmenter {
             .outputs()
             .iter()
             .any(|o| o.name() == "low_res_masks");
+        let bytes = pruned.as_ref().map(|p| &p.0[..]);
+        let decoders = if fixed_batch.is_some() {
+            // SAM's own export (batch 1): single-threaded sessions side by side
+            let mut d = vec![decoder];
+            while d.len() < workers {
+                d.push(model::open_session_from(&decoder_path, bytes, 1)?);
+            }
+            d
+        } else {
+            // A dynamic batch holds `--points-per-batch` prompts' tensors per call (≈ 4 GB at
+            // 64 with SAM's decoder): one session, on ONNX Runtime's intra-op threads, keeps
+            // that once (side-by-side sessions gained nothing measurable here and doubled it).
+            drop(decoder);
+            vec![model::open_session_from(&decoder_path, bytes, threads)?]
+        };
         Ok(Segmenter {
             info,
             encoder,
-            decoder,
+            decoders,
             encoder_path,
             decoder_path,
             fixed_batch,
@@ -297,134 +324,73 @@ impl Segmenter {
             .collect();
         let batch = self.fixed_batch.unwrap_or(o.points_per_batch);
         let (sx, sy) = (nw as f64 / w as f64, nh as f64 / h as f64);
-        struct Cand {
-            mask: Vec<bool>,
-            iou: f32,
-            stability: f64,
-            point: [f64; 2],
-        }
-        let mut cands: Vec<Cand> = Vec::new();
         // SAM's export post-processing per axis: 256 → 1024 → the resized image → h × w
-        let (rows, cols) = (
-            amg::AxisMap::new(LOW_RES, nh, h),
-            amg::AxisMap::new(LOW_RES, nw, w),
-        );
-        let low_res_only = ort::session::RunOptions::new()
-            .map_err(|e| run_err(&self.decoder_path, e))?
-            .with_outputs(
-                ort::session::OutputSelector::no_default()
-                    .with("iou_predictions")
-                    .with("low_res_masks"),
-            );
-        // With the low-resolution outputs only, the export's post-processing (upsampling to
-        // 1024², the crop to the resized image, the upsampling to `orig_im_size`) produces
-        // `masks`, which is not read. It is normally pruned from the graph (`open`); where it
-        // could not be, ONNX Runtime still computes it (it runs the whole graph), and a
-        // 1 × 1024 "original" makes the crop one row and the last upsampling trivial. Neither
-        // `low_res_masks` nor `iou_predictions` depends on it (SAM's export applies it after
-        // the decoder).
-        let orig_im_size: [f32; 2] = if self.low_res {
-            [1.0, 1024.0]
-        } else {
-            [h as f32, w as f32]
+        let ctx = ChunkContext {
+            path: &self.decoder_path,
+            low_res: self.low_res,
+            embeddings: &embeddings,
+            scale: (sx, sy),
+            size: (h, w),
+            axes: (
+                amg::AxisMap::new(LOW_RES, nh, h),
+                amg::AxisMap::new(LOW_RES, nw, w),
+            ),
+            options: o,
         };
-        for chunk in points.chunks(batch) {
-            let t1 = Instant::now();
-            let b = chunk.len();
-            let mut coords = vec![0f32; b * 4];
-            let mut labels = vec![0f32; b * 2];
-            for (i, p) in chunk.iter().enumerate() {
-                coords[i * 4] = (p[0] * sx) as f32;
-                coords[i * 4 + 1] = (p[1] * sy) as f32;
-                labels[i * 2] = 1.0;
-                labels[i * 2 + 1] = -1.0;
-            }
-            let dp = &self.decoder_path;
-            let emb = model::tensor(&[1, 256, 64, 64], embeddings.clone(), dp)?;
-            let inputs = ort::inputs![
-                "image_embeddings" => emb,
-                "point_coords" => model::tensor(&[b, 2, 2], coords, dp)?,
-                "point_labels" => model::tensor(&[b, 2], labels, dp)?,
-                "mask_input" => model::tensor(&[1, 1, 256, 256], vec![0.0; 256 * 256], dp)?,
-                "has_mask_input" => model::tensor(&[1], vec![0.0], dp)?,
-                "orig_im_size" => model::tensor(&[2], orig_im_size.to_vec(), dp)?,
-            ];
-            let out = if self.low_res {
-                self.decoder
-                    .run_with_options(inputs, &low_res_only)
-                    .map_err(|e| run_err(dp, e))?
-            } else {
-                self.decoder.run(inputs).map_err(|e| run_err(dp, e))?
-            };
-            let mask_name = if self.low_res {
-                "low_res_masks"
-            } else {
-                "masks"
-            };
-            let (mshape, masks) = out[mask_name]
-                .try_extract_tensor::<f32>()
-                .map_err(|e| run_err(dp, e))?;
-            let (ishape, ious) = out["iou_predictions"]
-                .try_extract_tensor::<f32>()
-                .map_err(|e| run_err(dp, e))?;
-            let ms: Vec<i64> = mshape.iter().copied().collect();
-            let is: Vec<i64> = ishape.iter().copied().collect();
-            let (mh, mw) = if self.low_res {
-                (LOW_RES as i64, LOW_RES as i64)
-            } else {
-                (h as i64, w as i64)
-            };
-            if ms.len() != 4
-                || ms[0] != b as i64
-                || ms[2] != mh
-                || ms[3] != mw
-                || is.len() != 2
-                || is[0] != b as i64
-                || is[1] != ms[1]
-                || !matches!(ms[1], 1 | 3 | 4)
-            {
-                return Err(SegmentError::Model {
-                    path: dp.clone(),
-                    why: format!(
-                        "outputs {mask_name} {ms:?} and iou_predictions {is:?} for {b} prompts on a {w}×{h} image; expected [{b}, 4, {mh}, {mw}] and [{b}, 4]"
-                    ),
-                });
-            }
-            let k_all = ms[1] as usize;
-            // SAM's multimask outputs: tokens 1..4 of 4 (token 0 is the single-mask output)
-            let first = usize::from(k_all == 4);
-            t.decoder_s += t1.elapsed().as_secs_f64();
-            let t2 = Instant::now();
-            let plane = (mh * mw) as usize;
-            for (i, p) in chunk.iter().enumerate() {
-                for k in first..k_all {
-                    let iou = ious[i * k_all + k];
-                    // NaN scores fail too
-                    if iou.partial_cmp(&o.pred_iou_thresh) != Some(std::cmp::Ordering::Greater) {
-                        continue;
-                    }
-                    let raw = &masks[(i * k_all + k) * plane..(i * k_all + k + 1) * plane];
-                    let up;
-                    let lg = if self.low_res {
-                        up = amg::upscale_logits(raw, LOW_RES, &rows, &cols);
-                        &up[..]
-                    } else {
-                        raw
-                    };
-                    let stability = amg::stability_score(lg, o.stability_score_offset);
-                    if stability < o.stability_score_thresh {
-                        continue;
-                    }
-                    cands.push(Cand {
-                        mask: lg.iter().map(|&v| v > 0.0).collect(),
-                        iou,
-                        stability,
-                        point: *p,
-                    });
-                }
-            }
-            t.post_s += t2.elapsed().as_secs_f64();
+        // The batches are decoded by the workers side by side, each taking the next batch not
+        // yet taken; the candidates are put back in batch order, so the result is the same
+        // for any number of workers.
+        let chunks: Vec<&[[f64; 2]]> = points.chunks(batch).collect();
+        let next = std::sync::atomic::AtomicUsize::new(0);
+        let t1 = Instant::now();
+        type Decoded = Result<(usize, Vec<Cand>, f64, f64), SegmentError>;
+        let mut decoded: Vec<Decoded> = std::thread::scope(|sc| {
+            let handles: Vec<_> = self
+                .decoders
+                .iter_mut()
+                .map(|session| {
+                    let (ctx, chunks, next) = (&ctx, &chunks, &next);
+                    sc.spawn(move || -> Vec<Decoded> {
+                        let mut out = Vec::new();
+                        loop {
+                            let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            let Some(chunk) = chunks.get(i) else { break };
+                            let r = decode_chunk(session, ctx, chunk);
+                            let failed = r.is_err();
+                            out.push(r.map(|(c, d, p)| (i, c, d, p)));
+                            if failed {
+                                // stop taking batches; the others finish theirs
+                                next.store(chunks.len(), std::sync::atomic::Ordering::Relaxed);
+                                break;
+                            }
+                        }
+                        out
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .flat_map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+                .collect()
+        });
+        let wall = t1.elapsed().as_secs_f64();
+        if let Some(pos) = decoded.iter().position(Result::is_err) {
+            return Err(decoded.swap_remove(pos).err().expect("an error"));
         }
+        let mut parts: Vec<(usize, Vec<Cand>, f64, f64)> =
+            decoded.into_iter().filter_map(Result::ok).collect();
+        parts.sort_by_key(|p| p.0);
+        // the phase's wall time, split between decoding and filtering as the workers spent it
+        let (dec, post): (f64, f64) = parts
+            .iter()
+            .map(|p| (p.2, p.3))
+            .fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
+        let busy = dec + post;
+        if busy > 0.0 {
+            t.decoder_s += wall * dec / busy;
+            t.post_s += wall * post / busy;
+        }
+        let cands: Vec<Cand> = parts.into_iter().flat_map(|p| p.1).collect();
         let t3 = Instant::now();
         let boxes: Vec<[f64; 4]> = cands.iter().map(|c| amg::mask_box(&c.mask, h, w)).collect();
         let scores: Vec<f64> = cands.iter().map(|c| f64::from(c.iou)).collect();
@@ -464,6 +430,153 @@ impl Segmenter {
         t.post_s += t3.elapsed().as_secs_f64();
         Ok((out, t))
     }
+}
+
+/// A mask that passed the predicted-IoU and stability filters, before NMS.
+struct Cand {
+    mask: Vec<bool>,
+    iou: f32,
+    stability: f64,
+    point: [f64; 2],
+}
+
+/// What every batch of prompts of one image shares.
+struct ChunkContext<'a> {
+    path: &'a Path,
+    low_res: bool,
+    embeddings: &'a [f32],
+    /// Downscaled image → 1024 frame, per axis.
+    scale: (f64, f64),
+    /// The downscaled image's `(h, w)`.
+    size: (usize, usize),
+    /// SAM's export post-processing per axis: 256 → 1024 → the resized image → h × w.
+    axes: (amg::AxisMap, amg::AxisMap),
+    options: &'a SegmentOptions,
+}
+
+/// Decodes one batch of prompts and keeps the masks that pass the filters; returns them with
+/// the seconds spent decoding and filtering.
+fn decode_chunk(
+    session: &mut Session,
+    ctx: &ChunkContext<'_>,
+    chunk: &[[f64; 2]],
+) -> Result<(Vec<Cand>, f64, f64), SegmentError> {
+    let t1 = Instant::now();
+    let (o, dp) = (ctx.options, ctx.path);
+    let ((sx, sy), (h, w)) = (ctx.scale, ctx.size);
+    let b = chunk.len();
+    let mut coords = vec![0f32; b * 4];
+    let mut labels = vec![0f32; b * 2];
+    for (i, p) in chunk.iter().enumerate() {
+        coords[i * 4] = (p[0] * sx) as f32;
+        coords[i * 4 + 1] = (p[1] * sy) as f32;
+        labels[i * 2] = 1.0;
+        labels[i * 2 + 1] = -1.0;
+    }
+    // With the low-resolution outputs only, the export's post-processing (upsampling to
+    // 1024², the crop to the resized image, the upsampling to `orig_im_size`) produces
+    // `masks`, which is not read. It is normally pruned from the graph (`open`); where it
+    // could not be, ONNX Runtime still computes it (it runs the whole graph), and a 1 × 1024
+    // "original" makes the crop one row and the last upsampling trivial. Neither
+    // `low_res_masks` nor `iou_predictions` depends on it (SAM's export applies it after the
+    // decoder).
+    let orig_im_size: [f32; 2] = if ctx.low_res {
+        [1.0, 1024.0]
+    } else {
+        [h as f32, w as f32]
+    };
+    let emb = model::tensor(&[1, 256, 64, 64], ctx.embeddings.to_vec(), dp)?;
+    let inputs = ort::inputs![
+        "image_embeddings" => emb,
+        "point_coords" => model::tensor(&[b, 2, 2], coords, dp)?,
+        "point_labels" => model::tensor(&[b, 2], labels, dp)?,
+        "mask_input" => model::tensor(&[1, 1, 256, 256], vec![0.0; 256 * 256], dp)?,
+        "has_mask_input" => model::tensor(&[1], vec![0.0], dp)?,
+        "orig_im_size" => model::tensor(&[2], orig_im_size.to_vec(), dp)?,
+    ];
+    let low_res_only = ort::session::RunOptions::new()
+        .map_err(|e| run_err(dp, e))?
+        .with_outputs(
+            ort::session::OutputSelector::no_default()
+                .with("iou_predictions")
+                .with("low_res_masks"),
+        );
+    let out = if ctx.low_res {
+        session
+            .run_with_options(inputs, &low_res_only)
+            .map_err(|e| run_err(dp, e))?
+    } else {
+        session.run(inputs).map_err(|e| run_err(dp, e))?
+    };
+    let mask_name = if ctx.low_res {
+        "low_res_masks"
+    } else {
+        "masks"
+    };
+    let (mshape, masks) = out[mask_name]
+        .try_extract_tensor::<f32>()
+        .map_err(|e| run_err(dp, e))?;
+    let (ishape, ious) = out["iou_predictions"]
+        .try_extract_tensor::<f32>()
+        .map_err(|e| run_err(dp, e))?;
+    let ms: Vec<i64> = mshape.iter().copied().collect();
+    let is: Vec<i64> = ishape.iter().copied().collect();
+    let (mh, mw) = if ctx.low_res {
+        (LOW_RES as i64, LOW_RES as i64)
+    } else {
+        (h as i64, w as i64)
+    };
+    if ms.len() != 4
+        || ms[0] != b as i64
+        || ms[2] != mh
+        || ms[3] != mw
+        || is.len() != 2
+        || is[0] != b as i64
+        || is[1] != ms[1]
+        || !matches!(ms[1], 1 | 3 | 4)
+    {
+        return Err(SegmentError::Model {
+            path: dp.to_path_buf(),
+            why: format!(
+                "outputs {mask_name} {ms:?} and iou_predictions {is:?} for {b} prompts on a {w}×{h} image; expected [{b}, 4, {mh}, {mw}] and [{b}, 4]"
+            ),
+        });
+    }
+    let k_all = ms[1] as usize;
+    // SAM's multimask outputs: tokens 1..4 of 4 (token 0 is the single-mask output)
+    let first = usize::from(k_all == 4);
+    let decode_s = t1.elapsed().as_secs_f64();
+    let t2 = Instant::now();
+    let plane = (mh * mw) as usize;
+    let mut cands = Vec::new();
+    for (i, p) in chunk.iter().enumerate() {
+        for k in first..k_all {
+            let iou = ious[i * k_all + k];
+            // NaN scores fail too
+            if iou.partial_cmp(&o.pred_iou_thresh) != Some(std::cmp::Ordering::Greater) {
+                continue;
+            }
+            let raw = &masks[(i * k_all + k) * plane..(i * k_all + k + 1) * plane];
+            let up;
+            let lg = if ctx.low_res {
+                up = amg::upscale_logits(raw, LOW_RES, &ctx.axes.0, &ctx.axes.1);
+                &up[..]
+            } else {
+                raw
+            };
+            let stability = amg::stability_score(lg, o.stability_score_offset);
+            if stability < o.stability_score_thresh {
+                continue;
+            }
+            cands.push(Cand {
+                mask: lg.iter().map(|&v| v > 0.0).collect(),
+                iou,
+                stability,
+                point: *p,
+            });
+        }
+    }
+    Ok((cands, decode_s, t2.elapsed().as_secs_f64()))
 }
 
 fn run_err(path: &Path, e: ort::Error) -> SegmentError {
