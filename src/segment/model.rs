@@ -14,7 +14,7 @@ use super::SegmentError;
 
 /// Where the published weights are and how a model folder is laid out (part of the
 /// no-weights error).
-pub const LAYOUT_HELP: &str = "a SAM-family model folder holds encoder.onnx (image [1,3,1024,1024], SAM-normalised and zero-padded → image_embeddings [1,256,64,64]), decoder.onnx (SAM's ONNX export, segment_anything/scripts/export_onnx_model.py without --return-single-mask: image_embeddings, point_coords, point_labels, mask_input, has_mask_input, orig_im_size → masks, iou_predictions, low_res_masks) and model.json ({\"family\": \"sam\"|\"mobile_sam\"|…}); the published weights are SAM's ViT-B/L/H checkpoints (github.com/facebookresearch/segment-anything) and MobileSAM's mobile_sam.pt (github.com/ChaoningZhang/MobileSAM); export both networks to ONNX as docs/segment.md describes";
+pub const LAYOUT_HELP: &str = "a SAM-family model folder holds encoder.onnx (image [1,3,1024,1024], SAM-normalised and zero-padded → image_embeddings [1,256,64,64]), decoder.onnx (SAM's ONNX export, segment_anything/scripts/export_onnx_model.py without --return-single-mask: image_embeddings, point_coords, point_labels, mask_input, has_mask_input, orig_im_size → masks, iou_predictions, low_res_masks) and model.json ({\"family\": \"sam\"|\"mobile_sam\"|…}); the published weights are SAM's ViT-B/L/H checkpoints (github.com/facebookresearch/segment-anything) and MobileSAM's mobile_sam.pt (github.com/ChaoningZhang/MobileSAM); export both networks to ONNX with the gs4city repository's scripts/export_sam_model.py --checkpoint FILE --model-type vit_b|vit_l|vit_h|vit_t --out DIR (needs torch; docs/segment.md)";
 
 /// `model.json` of a model folder.
 #[derive(Debug, Clone, serde::Deserialize, serde::Serialize)]
