@@ -20,27 +20,45 @@ fn root() -> PathBuf {
     d
 }
 
+/// Runs `python SCRIPT args --out root()/name` (a model generator) and returns the folder.
+fn generate(python: &str, script: &str, args: &[&str], name: &str) -> PathBuf {
+    let dir = root().join(name);
+    let out = Command::new(python)
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join(script))
+        .args(args)
+        .arg("--out")
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    dir
+}
+
 /// The tiny random-weight model, generated once per test binary.
 pub(crate) fn tiny_model() -> PathBuf {
     static M: OnceLock<PathBuf> = OnceLock::new();
     M.get_or_init(|| {
-        let dir = root().join("tiny");
-        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/make_test_models.py");
-        let out = Command::new("python3")
-            .arg(&script)
-            .args(["--size", "tiny", "--seed", "3", "--out"])
-            .arg(&dir)
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        dir
+        let args = ["--size", "tiny", "--seed", "3"];
+        generate("python3", "scripts/make_test_models.py", &args, "tiny")
     })
     .clone()
 }
+
+/// Options under which the tiny model keeps several masks and NMS keeps them all.
+const NMS_OFF: [&str; 8] = [
+    "--points-per-side",
+    "4",
+    "--pred-iou-thresh",
+    "0.86",
+    "--stability-score-thresh",
+    "0.8",
+    "--box-nms-thresh",
+    "1.0",
+];
 
 /// A 330×247 test image (gradient, rectangles, a disc) as PNG in `scene/images/` and as .npy.
 pub(crate) fn scene(name: &str) -> (PathBuf, PathBuf) {
@@ -93,16 +111,7 @@ fn masks_match_the_numpy_reference() {
     }
     let model = tiny_model();
     for (i, opts) in [
-        &[
-            "--points-per-side",
-            "4",
-            "--pred-iou-thresh",
-            "0.86",
-            "--stability-score-thresh",
-            "0.8",
-            "--box-nms-thresh",
-            "1.0",
-        ][..],
+        &NMS_OFF[..],
         &[
             "--points-per-side",
             "3",
@@ -122,20 +131,8 @@ fn masks_match_the_numpy_reference() {
     .enumerate()
     {
         let (s, npy) = scene(&format!("ref{i}"));
-        let mut args = vec![
-            "segment",
-            "--scene",
-            s.to_str().unwrap(),
-            "--model",
-            model.to_str().unwrap(),
-        ];
-        args.extend_from_slice(opts);
-        let out = gs4city(&args, &[]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let args = segment_ok(&s, &model, opts);
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
         assert_matches_reference(&s, &model, &npy, opts, &format!("config {i}"));
         // resumable: a second run skips the image and leaves its file alone
         let before = std::fs::read(s.join("masks/v000.json")).unwrap();
@@ -148,6 +145,23 @@ fn masks_match_the_numpy_reference() {
         );
         assert_eq!(std::fs::read(s.join("masks/v000.json")).unwrap(), before);
     }
+}
+
+/// `gs4city segment --scene s --model model OPTS`, which must succeed; returns its arguments.
+fn segment_ok(s: &Path, model: &Path, opts: &[&str]) -> Vec<String> {
+    let mut args: Vec<String> = ["segment", "--scene"].map(String::from).to_vec();
+    args.push(s.to_str().unwrap().into());
+    args.push("--model".into());
+    args.push(model.to_str().unwrap().into());
+    args.extend(opts.iter().map(|o| o.to_string()));
+    let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+    let out = gs4city(&refs, &[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    args
 }
 
 /// `s/masks/v000.json` against `scripts/sam_amg_reference.py` run with the same options: the
@@ -206,48 +220,20 @@ fn a_fixed_batch_decoder_gives_the_same_masks_on_any_number_of_workers() {
     if !python_can_import(TEST, PY) {
         return;
     }
-    let model = root().join("tiny-fixed-batch");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/make_test_models.py");
-    let out = Command::new("python3")
-        .arg(&script)
-        .args(["--size", "tiny", "--seed", "3", "--fixed-batch", "--out"])
-        .arg(&model)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let args = ["--size", "tiny", "--seed", "3", "--fixed-batch"];
+    let model = generate(
+        "python3",
+        "scripts/make_test_models.py",
+        &args,
+        "tiny-fixed-batch",
     );
-    let opts = [
-        "--points-per-side",
-        "4",
-        "--pred-iou-thresh",
-        "0.86",
-        "--stability-score-thresh",
-        "0.8",
-        "--box-nms-thresh",
-        "1.0",
-    ];
+    let opts = NMS_OFF;
     let mut files = Vec::new();
     for threads in ["1", "3"] {
         let (s, npy) = scene(&format!("fixed{threads}"));
-        let mut args = vec![
-            "segment",
-            "--scene",
-            s.to_str().unwrap(),
-            "--model",
-            model.to_str().unwrap(),
-            "--threads",
-            threads,
-        ];
-        args.extend_from_slice(&opts);
-        let out = gs4city(&args, &[]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let mut with_threads = opts.to_vec();
+        with_threads.extend_from_slice(&["--threads", threads]);
+        segment_ok(&s, &model, &with_threads);
         files.push(std::fs::read(s.join("masks/v000.json")).unwrap());
         if threads == "3" {
             let mut ref_opts = opts.to_vec();
@@ -272,18 +258,12 @@ fn a_fixed_batch_decoder_gives_the_same_masks_on_any_number_of_workers() {
 #[ignore = "needs torch + segment-anything; see the doc comment for the command"]
 fn sams_own_export_matches_the_reference() {
     let python = std::env::var("GS4CITY_TORCH_PYTHON").unwrap_or_else(|_| "python3".into());
-    let model = root().join("sam-vit-b-export");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/export_sam_model.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .args(["--model-type", "vit_b", "--random-init", "--out"])
-        .arg(&model)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let args = ["--model-type", "vit_b", "--random-init"];
+    let model = generate(
+        &python,
+        "scripts/export_sam_model.py",
+        &args,
+        "sam-vit-b-export",
     );
     let (s, npy) = scene("sam-export");
     let opts = [
@@ -296,20 +276,7 @@ fn sams_own_export_matches_the_reference() {
         "--box-nms-thresh",
         "1.0",
     ];
-    let mut args = vec![
-        "segment",
-        "--scene",
-        s.to_str().unwrap(),
-        "--model",
-        model.to_str().unwrap(),
-    ];
-    args.extend_from_slice(&opts);
-    let out = gs4city(&args, &[]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    segment_ok(&s, &model, &opts);
     let mut ref_opts = opts.to_vec();
     ref_opts.extend_from_slice(&["--points-per-batch", "1"]);
     assert_matches_reference(&s, &model, &npy, &ref_opts, "SAM's own export");
