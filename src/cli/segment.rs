@@ -34,7 +34,7 @@ pub struct SegmentArgs {
     /// Downscale factor of the images before segmentation (the reference pipeline's default_scale).
     #[arg(long, default_value_t = SegmentOptions::default().scale)]
     scale: f64,
-    /// Encoder threads and decoder workers (0 = every core).
+    /// Encoder threads and decoder workers (0 = every core, at most 8 decoder workers).
     #[arg(long, default_value_t = 0)]
     threads: usize,
 }

@@ -63,6 +63,9 @@ const PIXEL_MEAN: [f64; 3] = [123.675, 116.28, 103.53];
 const PIXEL_STD: [f64; 3] = [58.395, 57.12, 57.375];
 /// The encoder's input side.
 pub const IMAGE_SIDE: usize = 1024;
+/// The most decoder workers `threads = 0` starts for a fixed-batch decoder.
+const DEFAULT_MAX_WORKERS: usize = 8;
+
 /// The side of the decoder's low-resolution masks.
 const LOW_RES: usize = 256;
 
@@ -87,7 +90,7 @@ pub struct SegmentOptions {
     pub scale: f64,
     /// ONNX Runtime intra-op threads of the encoder and of a dynamic-batch decoder, and the
     /// number of single-threaded workers of a fixed-batch decoder (SAM's own export); 0 = ONNX
-    /// Runtime's default, and one worker per core.
+    /// Runtime's default, and one worker per core (at most 8).
     pub threads: usize,
 }
 
@@ -202,10 +205,14 @@ impl Segmenter {
                 .ok()
                 .filter(|(_, dropped)| dropped.iter().any(|d| d == "masks"))
         });
+        // Each extra worker holds its own session (≈ 100 MB with SAM's decoder): by default one
+        // per core, at most `DEFAULT_MAX_WORKERS`; `--threads N` asks for exactly N.
         let workers = if threads > 0 {
             threads
         } else {
-            std::thread::available_parallelism().map_or(1, |n| n.get())
+            std::thread::available_parallelism()
+                .map_or(1, |n| n.get())
+                .min(DEFAULT_MAX_WORKERS)
         };
         let decoder =
             model::open_session_from(&decoder_path, pruned.as_ref().map(|p| &p.0[..]), 1)?;
