@@ -18,7 +18,7 @@ use crate::imageio::{self, Resample};
 
 /// Where the published weights are and how a CLIP model folder is laid out (part of the
 /// no-weights error).
-pub const CLIP_LAYOUT_HELP: &str = "a CLIP model folder holds clip_image.onnx (pixel_values [B,3,224,224], CLIP-normalised → image_embeds [B,D]), clip_text.onnx (input_ids [B,77] int64, optional attention_mask → text_embeds [B,D]) and CLIP's BPE files vocab.json + merges.txt (or OpenAI's bpe_simple_vocab_16e6.txt, gunzipped); the published weights are OpenAI's CLIP ViT-B/32 (github.com/openai/CLIP; as ONNX: the vision and text models with projection of openai/clip-vit-base-patch32 on the Hugging Face hub, e.g. exported with `optimum-cli export onnx`, whose folder also has vocab.json and merges.txt); lay them out as docs/features.md describes";
+pub const CLIP_LAYOUT_HELP: &str = "a CLIP model folder holds clip_image.onnx (pixel_values [B,3,224,224], CLIP-normalised → image_embeds [B,D]), clip_text.onnx (input_ids [B,77] int64, optional attention_mask → text_embeds [B,D]) and CLIP's BPE files vocab.json + merges.txt (or OpenAI's bpe_simple_vocab_16e6.txt, gunzipped); the published weights are OpenAI's CLIP ViT-B/32 (github.com/openai/CLIP; as ONNX: the vision and text models with projection of openai/clip-vit-base-patch32 on the Hugging Face hub, e.g. exported with `optimum-cli export onnx`, whose folder also has vocab.json and merges.txt); or lay the folder out with the gs4city repository's scripts/export_clip_model.py --checkpoint DIR --out DIR (needs torch and transformers; docs/features.md)";
 
 /// CLIP's pixel mean and standard deviation (RGB, 0..1).
 pub const CLIP_MEAN: [f64; 3] = [0.481_454_66, 0.457_827_5, 0.408_210_73];
