@@ -23,8 +23,13 @@ fn root() -> PathBuf {
 }
 
 fn make_model(args: &[&str], dir: &Path) {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/make_test_models.py");
-    let out = Command::new("python3")
+    run_script("python3", "scripts/make_test_models.py", args, dir);
+}
+
+/// `python SCRIPT args --out dir`, which must succeed.
+fn run_script(python: &str, script: &str, args: &[&str], dir: &Path) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join(script);
+    let out = Command::new(python)
         .arg(&script)
         .args(args)
         .arg("--out")
@@ -243,20 +248,9 @@ fn assert_matches_reference(s: &Path, npy: &Path, model: &Path, dim: usize) -> s
 fn hugging_face_clip_exports_match_the_reference() {
     let python = std::env::var("GS4CITY_TORCH_PYTHON").unwrap_or_else(|_| "python3".into());
     let model = root().join("hf-clip");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/export_clip_model.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .args(["--random-init", "--vocab-from"])
-        .arg(tiny_clip())
-        .arg("--out")
-        .arg(&model)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let vocab = tiny_clip();
+    let args = ["--random-init", "--vocab-from", vocab.to_str().unwrap()];
+    run_script(&python, "scripts/export_clip_model.py", &args, &model);
     let (s, npy) = scene("hf");
     let args = [
         "features",
