@@ -359,10 +359,19 @@ impl Segmenter {
                     let (ctx, chunks, next) = (&ctx, &chunks, &next);
                     sc.spawn(move || -> Vec<Decoded> {
                         let mut out = Vec::new();
+                        // the inputs every call of this image shares, built once per worker
+                        let shared = match SharedInputs::new(ctx) {
+                            Ok(s) => s,
+                            Err(e) => {
+                                next.store(chunks.len(), std::sync::atomic::Ordering::Relaxed);
+                                out.push(Err(e));
+                                return out;
+                            }
+                        };
                         loop {
                             let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                             let Some(chunk) = chunks.get(i) else { break };
-                            let r = decode_chunk(session, ctx, chunk);
+                            let r = decode_chunk(session, ctx, &shared, chunk);
                             let failed = r.is_err();
                             out.push(r.map(|(c, d, p)| (i, c, d, p)));
                             if failed {
@@ -461,11 +470,55 @@ struct ChunkContext<'a> {
     options: &'a SegmentOptions,
 }
 
+/// The decoder inputs that every call of one image shares (the image's embeddings, no mask
+/// prompt, `orig_im_size`) and the run options, built once per worker and image instead of
+/// once per call (the embeddings are 4 MB).
+struct SharedInputs {
+    embeddings: ort::value::Tensor<f32>,
+    mask_input: ort::value::Tensor<f32>,
+    has_mask_input: ort::value::Tensor<f32>,
+    orig_im_size: ort::value::Tensor<f32>,
+    low_res_only: ort::session::RunOptions<ort::session::HasSelectedOutputs>,
+}
+
+impl SharedInputs {
+    fn new(ctx: &ChunkContext<'_>) -> Result<SharedInputs, SegmentError> {
+        let dp = ctx.path;
+        let (h, w) = ctx.size;
+        // With the low-resolution outputs only, the export's post-processing (upsampling to
+        // 1024², the crop to the resized image, the upsampling to `orig_im_size`) produces
+        // `masks`, which is not read. It is normally pruned from the graph (`open`); where it
+        // could not be, ONNX Runtime still computes it (it runs the whole graph), and a
+        // 1 × 1024 "original" makes the crop one row and the last upsampling trivial. Neither
+        // `low_res_masks` nor `iou_predictions` depends on it (SAM's export applies it after
+        // the decoder).
+        let orig_im_size: [f32; 2] = if ctx.low_res {
+            [1.0, 1024.0]
+        } else {
+            [h as f32, w as f32]
+        };
+        Ok(SharedInputs {
+            embeddings: model::tensor(&[1, 256, 64, 64], ctx.embeddings.to_vec(), dp)?,
+            mask_input: model::tensor(&[1, 1, 256, 256], vec![0.0; 256 * 256], dp)?,
+            has_mask_input: model::tensor(&[1], vec![0.0], dp)?,
+            orig_im_size: model::tensor(&[2], orig_im_size.to_vec(), dp)?,
+            low_res_only: ort::session::RunOptions::new()
+                .map_err(|e| run_err(dp, e))?
+                .with_outputs(
+                    ort::session::OutputSelector::no_default()
+                        .with("iou_predictions")
+                        .with("low_res_masks"),
+                ),
+        })
+    }
+}
+
 /// Decodes one batch of prompts and keeps the masks that pass the filters; returns them with
 /// the seconds spent decoding and filtering.
 fn decode_chunk(
     session: &mut Session,
     ctx: &ChunkContext<'_>,
+    shared: &SharedInputs,
     chunk: &[[f64; 2]],
 ) -> Result<(Vec<Cand>, f64, f64), SegmentError> {
     let t1 = Instant::now();
@@ -480,37 +533,17 @@ fn decode_chunk(
         labels[i * 2] = 1.0;
         labels[i * 2 + 1] = -1.0;
     }
-    // With the low-resolution outputs only, the export's post-processing (upsampling to
-    // 1024², the crop to the resized image, the upsampling to `orig_im_size`) produces
-    // `masks`, which is not read. It is normally pruned from the graph (`open`); where it
-    // could not be, ONNX Runtime still computes it (it runs the whole graph), and a 1 × 1024
-    // "original" makes the crop one row and the last upsampling trivial. Neither
-    // `low_res_masks` nor `iou_predictions` depends on it (SAM's export applies it after the
-    // decoder).
-    let orig_im_size: [f32; 2] = if ctx.low_res {
-        [1.0, 1024.0]
-    } else {
-        [h as f32, w as f32]
-    };
-    let emb = model::tensor(&[1, 256, 64, 64], ctx.embeddings.to_vec(), dp)?;
     let inputs = ort::inputs![
-        "image_embeddings" => emb,
+        "image_embeddings" => &shared.embeddings,
         "point_coords" => model::tensor(&[b, 2, 2], coords, dp)?,
         "point_labels" => model::tensor(&[b, 2], labels, dp)?,
-        "mask_input" => model::tensor(&[1, 1, 256, 256], vec![0.0; 256 * 256], dp)?,
-        "has_mask_input" => model::tensor(&[1], vec![0.0], dp)?,
-        "orig_im_size" => model::tensor(&[2], orig_im_size.to_vec(), dp)?,
+        "mask_input" => &shared.mask_input,
+        "has_mask_input" => &shared.has_mask_input,
+        "orig_im_size" => &shared.orig_im_size,
     ];
-    let low_res_only = ort::session::RunOptions::new()
-        .map_err(|e| run_err(dp, e))?
-        .with_outputs(
-            ort::session::OutputSelector::no_default()
-                .with("iou_predictions")
-                .with("low_res_masks"),
-        );
     let out = if ctx.low_res {
         session
-            .run_with_options(inputs, &low_res_only)
+            .run_with_options(inputs, &shared.low_res_only)
             .map_err(|e| run_err(dp, e))?
     } else {
         session.run(inputs).map_err(|e| run_err(dp, e))?
