@@ -23,24 +23,7 @@ fn root() -> PathBuf {
 }
 
 fn make_model(args: &[&str], dir: &Path) {
-    run_script("python3", "scripts/make_test_models.py", args, dir);
-}
-
-/// `python SCRIPT args --out dir`, which must succeed.
-fn run_script(python: &str, script: &str, args: &[&str], dir: &Path) {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join(script);
-    let out = Command::new(python)
-        .arg(&script)
-        .args(args)
-        .arg("--out")
-        .arg(dir)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    crate::common::python_script("python3", "scripts/make_test_models.py", args, dir);
 }
 
 /// The tiny random-weight CLIP, generated once per test binary.
@@ -184,9 +167,6 @@ fn cos(a: &[f32], b: &[f32]) -> f64 {
     d / (n(a) * n(b))
 }
 
-/// The features and prompt vectors agree with the reference (cosine ≥ 0.999 per row), are unit
-/// vectors and differ between masks; a second run skips the image; prompts.json is rewritten
-/// alone when it is missing.
 /// `s/features/` (eight masks of `scene`) against `scripts/clip_features_reference.py` on the
 /// same model: every row a unit vector with cosine ≥ 0.999 to the reference's, rows that differ
 /// between masks, and every prompt vector with cosine ≥ 0.999; returns the prompts file.
@@ -250,7 +230,7 @@ fn hugging_face_clip_exports_match_the_reference() {
     let model = root().join("hf-clip");
     let vocab = tiny_clip();
     let args = ["--random-init", "--vocab-from", vocab.to_str().unwrap()];
-    run_script(&python, "scripts/export_clip_model.py", &args, &model);
+    crate::common::python_script(&python, "scripts/export_clip_model.py", &args, &model);
     let (s, npy) = scene("hf");
     let args = [
         "features",
@@ -268,6 +248,9 @@ fn hugging_face_clip_exports_match_the_reference() {
     assert_matches_reference(&s, &npy, &model, 512);
 }
 
+/// The features and prompt vectors agree with the reference (cosine ≥ 0.999 per row), are unit
+/// vectors and differ between masks; a second run skips the image; prompts.json is rewritten
+/// alone when it is missing.
 #[test]
 fn features_match_the_numpy_reference() {
     const TEST: &str = "features::features_match_the_numpy_reference";

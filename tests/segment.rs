@@ -23,18 +23,7 @@ fn root() -> PathBuf {
 /// Runs `python SCRIPT args --out root()/name` (a model generator) and returns the folder.
 fn generate(python: &str, script: &str, args: &[&str], name: &str) -> PathBuf {
     let dir = root().join(name);
-    let out = Command::new(python)
-        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join(script))
-        .args(args)
-        .arg("--out")
-        .arg(&dir)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    crate::common::python_script(python, script, args, &dir);
     dir
 }
 

@@ -184,6 +184,23 @@ pub fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
     out
 }
 
+/// Runs `python SCRIPT args --out out` (SCRIPT relative to the crate root), which must
+/// succeed: the model generators and exporters of the segment and features tests.
+pub fn python_script(python: &str, script: &str, args: &[&str], out: &Path) {
+    let result = std::process::Command::new(python)
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join(script))
+        .args(args)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(
+        result.status.success(),
+        "{script}: {}",
+        String::from_utf8_lossy(&result.stderr)
+    );
+}
+
 /// Whether `python3` can import every module of `modules` (the packages of a Python
 /// cross-check named `test`). When it cannot, the cross-check must not pass silently: with `CI`
 /// or `GS4CITY_REQUIRE_PY` set (`scripts/test.sh` sets the latter once `scripts/setup.sh` has
