@@ -390,6 +390,20 @@ fn corrupt_or_wrong_model_file_is_named() {
     let out = gs4city(&args, &[]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("model.json"), "{err}");
+    // a truncated decoder: the pruning cannot read it either, and the file is named
+    std::fs::copy(model.join("model.json"), bad.join("model.json")).unwrap();
+    let dec = std::fs::read(model.join("decoder.onnx")).unwrap();
+    std::fs::write(bad.join("decoder.onnx"), &dec[..dec.len() / 2]).unwrap();
+    let out = gs4city(&args, &[]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains(&format!(
+            "model file {}",
+            bad.join("decoder.onnx").display()
+        )),
+        "{err}"
+    );
     assert!(!s.join("masks/v000.json").exists());
 }
 
