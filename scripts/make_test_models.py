@@ -58,13 +58,15 @@ class G:
         self.n += 1
         return f"{p}_{self.n}"
 
-    def const(self, arr, p="c"):
-        n = self.name(p)
+    def const(self, arr, p="c", exact=None):
+        """An initializer; `exact` names it as torch.onnx.export names a module's parameter
+        (`mask_decoder.….bias`), which gs4city's native SAM decoder reads weights by."""
+        n = exact or self.name(p)
         self.inits.append(numpy_helper.from_array(np.asarray(arr), n))
         return n
 
-    def w(self, shape, std):
-        return self.const(self.rng.normal(0.0, std, size=shape).astype(np.float32), "w")
+    def w(self, shape, std, exact=None):
+        return self.const(self.rng.normal(0.0, std, size=shape).astype(np.float32), "w", exact)
 
     def op(self, t, ins, p=None, **attrs):
         out = self.name(p or t.lower())
@@ -78,11 +80,18 @@ class G:
         return self.const(np.array(v, dtype=np.float32), "f")
 
     # layers
-    def linear(self, x, din, dout, bias=True, gain=1.0, bias_value=None):
+    def linear(self, x, din, dout, bias=True, gain=1.0, bias_value=None, path=None):
+        """x·W + b as torch exports nn.Linear on a 3-D input: MatMul with the folded [in, out]
+        weight, then Add of the bias (named `path.bias` when a module path is given)."""
         y = self.op("MatMul", [x, self.w((din, dout), gain / math.sqrt(din))])
         if bias:
-            b = np.zeros(dout, np.float32) if bias_value is None else bias_value
-            y = self.op("Add", [y, self.const(np.asarray(b, np.float32), "b")])
+            if bias_value is None:
+                # small random biases (zeros would hide a bias read from the wrong place)
+                b = (0.02 * self.rng.normal(size=dout)).astype(np.float32) if path else np.zeros(dout, np.float32)
+            else:
+                b = bias_value
+            y = self.op("Add", [y, self.const(np.asarray(b, np.float32), "b",
+                                              f"{path}.bias" if path else None)])
         return y
 
     def conv(self, x, cin, cout, k, stride=1, pad=0, groups=1):
@@ -91,27 +100,32 @@ class G:
         return self.op("Conv", [x, w, b], kernel_shape=[k, k], strides=[stride, stride],
                        pads=[pad] * 4, group=groups)
 
-    def conv_t(self, x, cin, cout):
-        w = self.w((cin, cout, 2, 2), 1.0 / math.sqrt(cin))
-        b = self.const(np.zeros(cout, np.float32), "b")
+    def conv_t(self, x, cin, cout, path=None):
+        w = self.w((cin, cout, 2, 2), 1.0 / math.sqrt(cin), f"{path}.weight" if path else None)
+        b = self.const((0.02 * self.rng.normal(size=cout)).astype(np.float32), "b",
+                       f"{path}.bias" if path else None)
         return self.op("ConvTranspose", [x, w, b], kernel_shape=[2, 2], strides=[2, 2])
 
-    def layernorm(self, x, dim, axis=-1):
+    def layernorm(self, x, dim, axis=-1, path=None):
         """LayerNorm over `axis` written out (ReduceMean, Sub, Mul, Sqrt, Div)."""
         mu = self.op("ReduceMean", [x], axes=[axis], keepdims=1)
         d = self.op("Sub", [x, mu])
         var = self.op("ReduceMean", [self.op("Mul", [d, d])], axes=[axis], keepdims=1)
         y = self.op("Div", [d, self.op("Sqrt", [self.op("Add", [var, self.f32(1e-6)])])])
         shape = [dim] if axis == -1 else [dim, 1, 1]
-        g = self.const((1.0 + 0.1 * self.rng.normal(size=shape)).astype(np.float32), "ln_g")
-        b = self.const((0.1 * self.rng.normal(size=shape)).astype(np.float32), "ln_b")
+        g = self.const((1.0 + 0.1 * self.rng.normal(size=shape)).astype(np.float32), "ln_g",
+                       f"{path}.weight" if path else None)
+        b = self.const((0.1 * self.rng.normal(size=shape)).astype(np.float32), "ln_b",
+                       f"{path}.bias" if path else None)
         return self.op("Add", [self.op("Mul", [y, g]), b])
 
-    def layernorm_op(self, x, dim):
+    def layernorm_op(self, x, dim, path=None):
         """nn.LayerNorm over the last axis as torch exports it at opset ≥ 17: one
         LayerNormalization node (eps 1e-5, torch's default)."""
-        g = self.const((1.0 + 0.1 * self.rng.normal(size=[dim])).astype(np.float32), "ln_g")
-        b = self.const((0.1 * self.rng.normal(size=[dim])).astype(np.float32), "ln_b")
+        g = self.const((1.0 + 0.1 * self.rng.normal(size=[dim])).astype(np.float32), "ln_g",
+                       f"{path}.weight" if path else None)
+        b = self.const((0.1 * self.rng.normal(size=[dim])).astype(np.float32), "ln_b",
+                       f"{path}.bias" if path else None)
         return self.op("LayerNormalization", [x, g, b], axis=-1, epsilon=1e-5)
 
     def gelu(self, x):
@@ -121,14 +135,16 @@ class G:
     def reshape(self, x, shape):
         return self.op("Reshape", [x, self.i64(shape)])
 
-    def attention(self, q_in, k_in, v_in, dim, heads, inner=None, qlen=-1, klen=-1, mask=None):
+    def attention(self, q_in, k_in, v_in, dim, heads, inner=None, qlen=-1, klen=-1, mask=None,
+                  path=None):
         """Multi-head attention on [B, L, dim] inputs (B may be broadcast); projections to `inner`;
         `mask` an additive [L, L] constant (CLIP's causal text mask)."""
         inner = inner or dim
         dh = inner // heads
-        q = self.linear(q_in, dim, inner)
-        k = self.linear(k_in, dim, inner)
-        v = self.linear(v_in, dim, inner)
+        sub = (lambda n: f"{path}.{n}") if path else (lambda n: None)
+        q = self.linear(q_in, dim, inner, path=sub("q_proj"))
+        k = self.linear(k_in, dim, inner, path=sub("k_proj"))
+        v = self.linear(v_in, dim, inner, path=sub("v_proj"))
 
         def split(t, n):
             return self.op("Transpose", [self.reshape(t, [0, n, heads, dh])], perm=[0, 2, 1, 3])
@@ -140,7 +156,7 @@ class G:
             s = self.op("Add", [s, mask])
         a = self.op("Softmax", [s], axis=-1)
         o = self.op("Transpose", [self.op("MatMul", [a, v])], perm=[0, 2, 1, 3])
-        return self.linear(self.reshape(o, [0, qlen, inner]), inner, dim)
+        return self.linear(self.reshape(o, [0, qlen, inner]), inner, dim, path=sub("out_proj"))
 
     def vit_block(self, x, h, w, dim, heads, window, mlp_ratio=4.0, mask=None):
         """Pre-norm transformer block on x [1, h*w, dim] (any batch with window 0); window 0 =
@@ -235,13 +251,17 @@ def encoder(size, seed):
     return graph
 
 
-def decoder(size, seed, fixed_batch=False):
+def decoder(size, seed, fixed_batch=False, depth=None):
     g = G(seed + 1)
     D = 256
-    depth, ds, up1, up2, mlp = (1, 8, 16, 8, 256) if size == "tiny" else (2, 2, 64, 32, 2048)
+    d0, ds, up1, up2, mlp = (1, 8, 16, 8, 256) if size == "tiny" else (2, 2, 64, 32, 2048)
+    depth = depth or d0
     heads = 8
     # prompt encoder: random Fourier features of the points
-    gauss = g.const(g.rng.normal(size=(2, D // 2)).astype(np.float32), "pe_gauss")
+    # parameters carry the names torch.onnx.export keeps for SAM's modules (SamOnnxModel)
+    PE, MD = "model.prompt_encoder", "mask_decoder"
+    gauss = g.const(g.rng.normal(size=(2, D // 2)).astype(np.float32), "pe_gauss",
+                    f"{PE}.pe_layer.positional_encoding_gaussian_matrix")
     c = g.op("Div", [g.op("Add", ["point_coords", g.f32(0.5)]), g.f32(1024.0)])
     c = g.op("Sub", [g.op("Mul", [c, g.f32(2.0)]), g.f32(1.0)])
     c = g.op("Mul", [g.op("MatMul", [c, gauss]), g.f32(2 * math.pi)])
@@ -253,8 +273,9 @@ def decoder(size, seed, fixed_batch=False):
 
     pad = is_label(-1.0)
     sparse = g.op("Mul", [pe, g.op("Sub", [g.f32(1.0), pad])])
-    for v, nm in ((-1.0, "not_a_point"), (0.0, "neg"), (1.0, "pos")):
-        emb = g.w((D,), 1.0)
+    for v, nm in ((-1.0, "not_a_point_embed"), (0.0, "point_embeddings.0"),
+                  (1.0, "point_embeddings.1")):
+        emb = g.w((D,), 1.0, f"{PE}.{nm}.weight")
         sparse = g.op("Add", [sparse, g.op("Mul", [is_label(v), emb])])
     # dense prompt: mask_input (downscaling convs) or the no-mask embedding
     m = g.gelu(g.conv("mask_input", 1, 4, 2, stride=2))
@@ -279,42 +300,53 @@ def decoder(size, seed, fixed_batch=False):
     tokens = g.op("Concat", [out_tokens, sparse], axis=1)  # [B,5+N,256]
     queries, qpe = tokens, tokens
     for layer in range(depth):
+        L = f"{MD}.transformer.layers.{layer}"
         if layer == 0:
-            queries = g.attention(queries, queries, queries, D, heads)
+            queries = g.attention(queries, queries, queries, D, heads, path=f"{L}.self_attn")
         else:
             q = g.op("Add", [queries, qpe])
-            queries = g.op("Add", [queries, g.attention(q, q, queries, D, heads)])
-        queries = g.layernorm_op(queries, D)
+            queries = g.op("Add", [queries, g.attention(q, q, queries, D, heads,
+                                                        path=f"{L}.self_attn")])
+        queries = g.layernorm_op(queries, D, f"{L}.norm1")
         q = g.op("Add", [queries, qpe])
         k = g.op("Add", [keys, key_pe])
-        queries = g.layernorm_op(g.op("Add", [queries, g.attention(q, k, keys, D, heads, D // ds)]), D)
-        hid = g.op("Relu", [g.linear(queries, D, mlp)])
-        queries = g.layernorm_op(g.op("Add", [queries, g.linear(hid, mlp, D)]), D)
+        queries = g.layernorm_op(g.op("Add", [queries, g.attention(
+            q, k, keys, D, heads, D // ds, path=f"{L}.cross_attn_token_to_image")]), D, f"{L}.norm2")
+        hid = g.op("Relu", [g.linear(queries, D, mlp, path=f"{L}.mlp.lin1")])
+        queries = g.layernorm_op(g.op("Add", [queries, g.linear(hid, mlp, D, path=f"{L}.mlp.lin2")]),
+                                 D, f"{L}.norm3")
         q = g.op("Add", [queries, qpe])
         k = g.op("Add", [keys, key_pe])
-        keys = g.layernorm_op(g.op("Add", [keys, g.attention(k, q, queries, D, heads, D // ds)]), D)
+        keys = g.layernorm_op(g.op("Add", [keys, g.attention(
+            k, q, queries, D, heads, D // ds, path=f"{L}.cross_attn_image_to_token")]), D, f"{L}.norm4")
     q = g.op("Add", [queries, qpe])
     k = g.op("Add", [keys, key_pe])
-    queries = g.layernorm_op(g.op("Add", [queries, g.attention(q, k, keys, D, heads, D // ds)]), D)
+    queries = g.layernorm_op(g.op("Add", [queries, g.attention(
+        q, k, keys, D, heads, D // ds, path=f"{MD}.transformer.final_attn_token_to_image")]),
+        D, f"{MD}.transformer.norm_final_attn")
     # keys may still be [1,4096,256] when nothing made them per-prompt: expand to B
     keys = g.op("Expand", [keys, g.op("Concat", [bshape, g.i64([4096, D])], axis=0)])
     img = g.reshape(g.op("Transpose", [keys], perm=[0, 2, 1]), [-1, D, 64, 64])
-    up = g.gelu(g.layernorm(g.conv_t(img, D, up1), up1, axis=1))
-    up = g.gelu(g.conv_t(up, up1, up2))  # [B,up2,256,256]
+    up = g.gelu(g.layernorm(g.conv_t(img, D, up1, f"{MD}.output_upscaling.0"), up1, axis=1,
+                            path=f"{MD}.output_upscaling.1"))
+    up = g.gelu(g.conv_t(up, up1, up2, f"{MD}.output_upscaling.3"))  # [B,up2,256,256]
     up = g.reshape(up, [0, up2, 65536])
     mask_tok = g.op("Slice", [queries, g.i64([1]), g.i64([5]), g.i64([1])])  # [B,4,256]
     hyper = []
     for i in range(4):
         t = g.op("Slice", [mask_tok, g.i64([i]), g.i64([i + 1]), g.i64([1])])
-        t = g.op("Relu", [g.linear(t, D, D)])
-        t = g.op("Relu", [g.linear(t, D, D)])
-        hyper.append(g.linear(t, D, up2, gain=16.0))
+        H = f"{MD}.output_hypernetworks_mlps.{i}.layers"
+        t = g.op("Relu", [g.linear(t, D, D, path=f"{H}.0")])
+        t = g.op("Relu", [g.linear(t, D, D, path=f"{H}.1")])
+        hyper.append(g.linear(t, D, up2, gain=16.0, path=f"{H}.2"))
     hyper = g.op("Concat", hyper, axis=1)  # [B,4,up2]
     low = g.reshape(g.op("MatMul", [hyper, up]), [0, 4, 256, 256])
     iou_tok = g.op("Slice", [queries, g.i64([0]), g.i64([1]), g.i64([1])])
-    t = g.op("Relu", [g.linear(iou_tok, D, D)])
-    t = g.op("Relu", [g.linear(t, D, D)])
-    iou = g.reshape(g.linear(t, D, 4, gain=0.08, bias_value=np.full(4, 0.88, np.float32)), [-1, 4])
+    I = f"{MD}.iou_prediction_head.layers"
+    t = g.op("Relu", [g.linear(iou_tok, D, D, path=f"{I}.0")])
+    t = g.op("Relu", [g.linear(t, D, D, path=f"{I}.1")])
+    iou = g.reshape(g.linear(t, D, 4, gain=0.08, bias_value=np.full(4, 0.88, np.float32),
+                             path=f"{I}.2"), [-1, 4])
     # SAM's export post-processing: bilinear to 1024, crop to the resized size, bilinear to orig
     big = g.op("Resize", [low, "", "", g.op("Concat", [g.op("Shape", [low], start=0, end=2),
                                                        g.i64([1024, 1024])], axis=0)],
@@ -477,6 +509,8 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--fixed-batch", action="store_true",
                     help="decoder inputs with batch 1, as SAM's own export (one prompt per call)")
+    ap.add_argument("--decoder-depth", type=int,
+                    help="two-way transformer layers (default: 1 tiny, 2 as SAM otherwise)")
     a = ap.parse_args()
     if (a.size is None) == (a.clip is None):
         ap.error("give one of --size (SAM family) and --clip")
@@ -487,7 +521,7 @@ def main():
         save(clip_text(a.clip, a.seed, CLIP_SIZES[a.clip]["vocab"] or n), os.path.join(a.out, "clip_text.onnx"))
         return
     save(encoder(a.size, a.seed), os.path.join(a.out, "encoder.onnx"))
-    save(decoder(a.size, a.seed, a.fixed_batch), os.path.join(a.out, "decoder.onnx"))
+    save(decoder(a.size, a.seed, a.fixed_batch, a.decoder_depth), os.path.join(a.out, "decoder.onnx"))
     family = {"tiny": "test", "mobilesam": "mobile_sam", "vit_b": "sam"}[a.size]
     with open(os.path.join(a.out, "model.json"), "w") as f:
         json.dump({"family": family, "size": a.size, "generated": True,

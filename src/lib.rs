@@ -21,6 +21,7 @@ pub mod colmap;
 pub mod crs;
 pub mod embree;
 pub mod eval;
+pub mod fastmath;
 pub mod fsutil;
 pub mod fuse;
 pub mod glb;

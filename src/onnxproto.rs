@@ -7,6 +7,10 @@
 //! image size) after the `low_res_masks` that `segment` reads; a graph without that tail computes
 //! the same two outputs, bit for bit, with less work (docs/segment.md).
 //!
+//! [`read_graph`] reads the nodes (names, operators, inputs, outputs) and the `float`
+//! initializers of a graph, for code that computes a known network natively from an export's
+//! weights (`segment`'s SAM decoder).
+//!
 //! Protobuf wire format: each field is a varint key `(number << 3) | type` followed by a varint
 //! (type 0), 8 bytes (1), a varint length and that many bytes (2) or 4 bytes (5). Field numbers
 //! are those of `onnx.proto3`: `ModelProto.graph` 7; `GraphProto.node` 1, `initializer` 5,
@@ -29,6 +33,135 @@ pub enum OnnxError {
     Subgraph,
     #[error("an initializer's data is stored outside the model file")]
     ExternalData,
+    #[error("initializer `{name}`: {why}")]
+    Tensor { name: String, why: String },
+}
+
+/// A graph node as [`read_graph`] gives it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct GraphNode {
+    pub name: String,
+    pub op_type: String,
+    pub inputs: Vec<String>,
+    pub outputs: Vec<String>,
+}
+
+/// A `float` initializer: its dimensions and values (row-major).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FloatTensor {
+    pub dims: Vec<usize>,
+    pub data: Vec<f32>,
+}
+
+/// The nodes and `float` initializers of a model's graph (initializers of other types are
+/// left out).
+#[derive(Debug, Clone, Default)]
+pub struct Graph {
+    pub nodes: Vec<GraphNode>,
+    pub initializers: std::collections::HashMap<String, FloatTensor>,
+}
+
+/// The largest initializer [`read_graph`] accepts (elements), checked before allocating.
+const MAX_TENSOR: usize = 1 << 30;
+
+/// The nodes and `float` initializers of `model`. Sizes are checked against the data before
+/// anything is allocated; external data, a wrong data length or a truncated message are
+/// errors.
+pub fn read_graph(model: &[u8]) -> Result<Graph, OnnxError> {
+    let top = fields(model)?;
+    let graphs = bytes_of(model, &top, 7);
+    let [graph] = graphs.as_slice() else {
+        return Err(OnnxError::NoGraph);
+    };
+    let gfs = fields(graph)?;
+    let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+    let mut out = Graph::default();
+    for nb in bytes_of(graph, &gfs, 1) {
+        let nfs = fields(nb)?;
+        out.nodes.push(GraphNode {
+            name: bytes_of(nb, &nfs, 3)
+                .last()
+                .map(|b| text(b))
+                .unwrap_or_default(),
+            op_type: bytes_of(nb, &nfs, 4)
+                .last()
+                .map(|b| text(b))
+                .unwrap_or_default(),
+            inputs: bytes_of(nb, &nfs, 1).into_iter().map(text).collect(),
+            outputs: bytes_of(nb, &nfs, 2).into_iter().map(text).collect(),
+        });
+    }
+    for tb in bytes_of(graph, &gfs, 5) {
+        let tfs = fields(tb)?;
+        let name = bytes_of(tb, &tfs, 8)
+            .last()
+            .map(|b| text(b))
+            .unwrap_or_default();
+        let bad = |why: &str| OnnxError::Tensor {
+            name: name.clone(),
+            why: why.to_string(),
+        };
+        let mut data_type = 0u64;
+        let mut dims = Vec::new();
+        for f in &tfs {
+            let mut p = f.payload.0;
+            match (f.number, f.wire) {
+                (2, 0) => data_type = varint(tb, &mut p)?,
+                (1, 0) => dims.push(varint(tb, &mut p)?),
+                (1, 2) => {
+                    while p < f.payload.1 {
+                        dims.push(varint(&tb[..f.payload.1], &mut p)?);
+                    }
+                }
+                (13, _) => return Err(OnnxError::ExternalData),
+                (14, 0) if varint(tb, &mut p)? == 1 => return Err(OnnxError::ExternalData),
+                _ => {}
+            }
+        }
+        if data_type != 1 {
+            continue; // not FLOAT
+        }
+        let dims: Vec<usize> = dims
+            .into_iter()
+            .map(|d| usize::try_from(d).map_err(|_| bad("dimension out of range")))
+            .collect::<Result<_, _>>()?;
+        let count = dims
+            .iter()
+            .try_fold(1usize, |a, &d| a.checked_mul(d))
+            .filter(|&c| c <= MAX_TENSOR)
+            .ok_or_else(|| bad("too many elements"))?;
+        let raw = bytes_of(tb, &tfs, 9);
+        let data: Vec<f32> = if let Some(r) = raw.last() {
+            if r.len() != count * 4 {
+                return Err(bad(&format!(
+                    "{} bytes of raw data for {count} values",
+                    r.len()
+                )));
+            }
+            r.chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
+        } else {
+            // float_data (field 4): packed (wire 2) or one fixed32 per value (wire 5)
+            let mut v = Vec::new();
+            for f in tfs.iter().filter(|f| f.number == 4) {
+                let b = &tb[f.payload.0..f.payload.1];
+                if b.len() % 4 != 0 || v.len() + b.len() / 4 > count {
+                    return Err(bad("float_data does not match the dimensions"));
+                }
+                v.extend(
+                    b.chunks_exact(4)
+                        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])),
+                );
+            }
+            if v.len() != count {
+                return Err(bad(&format!("{} values for {count}", v.len())));
+            }
+            v
+        };
+        out.initializers.insert(name, FloatTensor { dims, data });
+    }
+    Ok(out)
 }
 
 /// One field of a message: its number, wire type and the byte range of the whole field (key
@@ -381,5 +514,70 @@ mod tests {
             keep_outputs(&ext, &["b"]).unwrap_err(),
             OnnxError::ExternalData
         );
+    }
+
+    fn tensor(name: &str, dims: &[u64], raw: Option<&[f32]>, floats: Option<&[f32]>) -> Vec<u8> {
+        let mut t = Vec::new();
+        for &d in dims {
+            put_varint(&mut t, 1 << 3);
+            put_varint(&mut t, d);
+        }
+        put_varint(&mut t, 2 << 3); // data_type FLOAT
+        put_varint(&mut t, 1);
+        if let Some(v) = floats {
+            let b: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+            field_bytes(&mut t, 4, &b);
+        }
+        field_bytes(&mut t, 8, name.as_bytes());
+        if let Some(v) = raw {
+            let b: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+            field_bytes(&mut t, 9, &b);
+        }
+        t
+    }
+
+    fn graph_model(inits: &[Vec<u8>]) -> Vec<u8> {
+        let mut g = Vec::new();
+        let mut n = node_proto(&["x", "w"], &["y"], "MatMul");
+        field_bytes(&mut n, 3, b"/lin/MatMul");
+        field_bytes(&mut g, 1, &n);
+        for t in inits {
+            field_bytes(&mut g, 5, t);
+        }
+        let mut m = Vec::new();
+        field_bytes(&mut m, 7, &g);
+        m
+    }
+
+    #[test]
+    fn the_graph_reader_gives_nodes_and_float_initializers() {
+        let m = graph_model(&[
+            tensor("w", &[2, 3], Some(&[1.0, 2.0, 3.0, 4.0, 5.0, -6.5]), None),
+            tensor("b", &[3], None, Some(&[0.5, 0.25, -1.0])),
+        ]);
+        let g = read_graph(&m).unwrap();
+        assert_eq!(
+            g.nodes,
+            vec![GraphNode {
+                name: "/lin/MatMul".into(),
+                op_type: "MatMul".into(),
+                inputs: vec!["x".into(), "w".into()],
+                outputs: vec!["y".into()],
+            }]
+        );
+        assert_eq!(g.initializers["w"].dims, vec![2, 3]);
+        assert_eq!(
+            g.initializers["w"].data,
+            vec![1.0, 2.0, 3.0, 4.0, 5.0, -6.5]
+        );
+        assert_eq!(g.initializers["b"].data, vec![0.5, 0.25, -1.0]);
+        // data that does not fill the dimensions, or a size past the limit, is refused
+        let short = graph_model(&[tensor("w", &[2, 3], Some(&[1.0; 5]), None)]);
+        assert!(matches!(read_graph(&short), Err(OnnxError::Tensor { .. })));
+        let huge = graph_model(&[tensor("w", &[1 << 20, 1 << 20], Some(&[1.0]), None)]);
+        assert!(matches!(read_graph(&huge), Err(OnnxError::Tensor { .. })));
+        for cut in [3, m.len() / 2, m.len() - 1] {
+            assert!(read_graph(&m[..cut]).is_err(), "cut at {cut}");
+        }
     }
 }

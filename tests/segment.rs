@@ -530,3 +530,155 @@ pub(crate) fn run_without_masks(
     );
     (s, r, out)
 }
+
+/// SAM's decoder computed natively from the export's weights (`segment::native`) gives the
+/// export's outputs as ONNX Runtime computes them from the graph: every predicted IoU and
+/// every low-resolution logit of every mask, for prompts of one or two points (foreground,
+/// background and padding labels) on a pseudo-random embedding; with one and with three
+/// two-way transformer layers (the upscaling is unrolled through each layer's LayerNorm).
+#[test]
+fn the_native_decoder_computes_the_exports_outputs() {
+    const TEST: &str = "segment::the_native_decoder_computes_the_exports_outputs";
+    if !python_can_import(TEST, PY) {
+        return;
+    }
+    use gs4city::segment::{model, native};
+    for depth in ["1", "3"] {
+        let dir = generate(
+            "python3",
+            "scripts/make_test_models.py",
+            &["--size", "tiny", "--seed", "5", "--decoder-depth", depth],
+            &format!("native-depth{depth}"),
+        );
+        let path = dir.join("decoder.onnx");
+        let graph = gs4city::onnxproto::read_graph(&std::fs::read(&path).unwrap()).unwrap();
+        let dec = native::SamDecoder::from_graph(&graph).unwrap();
+        let mut session = model::open_session(&path, 1).unwrap();
+        let mut state = 777u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        };
+        let emb: Vec<f32> = (0..256 * 64 * 64).map(|_| 1.5 * next()).collect();
+        let prep = dec.prepare(&emb);
+        for (k, labels) in [[1.0f32, -1.0], [0.0, -1.0], [1.0, 0.0], [1.0, 1.0]]
+            .iter()
+            .enumerate()
+        {
+            let pts: Vec<[f32; 2]> = (0..2)
+                .map(|_| [(next() + 1.0) * 511.0, (next() + 1.0) * 511.0])
+                .collect();
+            let coords: Vec<f32> = pts.iter().flatten().copied().collect();
+            let inputs = ort::inputs![
+                "image_embeddings" => model::tensor(&[1, 256, 64, 64], emb.clone(), &path).unwrap(),
+                "point_coords" => model::tensor(&[1, 2, 2], coords, &path).unwrap(),
+                "point_labels" => model::tensor(&[1, 2], labels.to_vec(), &path).unwrap(),
+                "mask_input" => model::tensor(&[1, 1, 256, 256], vec![0.0; 256 * 256], &path).unwrap(),
+                "has_mask_input" => model::tensor(&[1], vec![0.0], &path).unwrap(),
+                "orig_im_size" => model::tensor(&[2], vec![247.0, 330.0], &path).unwrap(),
+            ];
+            let out = session.run(inputs).unwrap();
+            let (_, iou) = out["iou_predictions"].try_extract_tensor::<f32>().unwrap();
+            let (_, low) = out["low_res_masks"].try_extract_tensor::<f32>().unwrap();
+            let d = dec.decode(&prep, &pts, labels);
+            let all: Vec<usize> = (0..dec.masks()).collect();
+            let ours = dec.low_res(&prep, &d, &all);
+            assert_eq!(d.iou.len(), iou.len());
+            let scale = low.iter().fold(1f32, |m, v| m.max(v.abs()));
+            for (a, b) in d.iou.iter().zip(iou.iter()) {
+                assert!(
+                    (a - b).abs() <= 1e-4,
+                    "depth {depth} prompt {k}: IoU {a} vs {b}"
+                );
+            }
+            let worst = ours
+                .iter()
+                .flatten()
+                .zip(low.iter())
+                .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                worst <= 2e-5 * scale,
+                "depth {depth} prompt {k}: logits differ by {worst} (largest {scale})"
+            );
+            // the logits are not all alike (the comparison would prove little)
+            let (lo, hi) = low
+                .iter()
+                .fold((f32::MAX, f32::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+            assert!(hi - lo > 1.0, "depth {depth} prompt {k}: logits {lo}..{hi}");
+            eprintln!("depth {depth} prompt {k}: max |Δ logit| {worst:.2e} of {scale:.2e}");
+        }
+    }
+}
+
+/// A decoder the native path does not reproduce (its token MLP's ReLU swapped for a sigmoid:
+/// the weights are all found, the probe against ONNX Runtime disagrees) is decoded by ONNX
+/// Runtime, and the command says so; `--onnx-decoder` forces ONNX Runtime, with the same masks
+/// as the native decoder.
+#[test]
+fn a_decoder_the_native_path_does_not_reproduce_stays_on_onnx_runtime() {
+    const TEST: &str =
+        "segment::a_decoder_the_native_path_does_not_reproduce_stays_on_onnx_runtime";
+    if !python_can_import(TEST, PY) {
+        return;
+    }
+    let model = tiny_model();
+    let odd = root().join("odd-decoder");
+    std::fs::create_dir_all(&odd).unwrap();
+    for f in ["encoder.onnx", "model.json"] {
+        std::fs::copy(model.join(f), odd.join(f)).unwrap();
+    }
+    let py = format!(
+        "import onnx\nm = onnx.load('{}')\nn = [n for n in m.graph.node if n.op_type == 'Relu'][0]\nn.op_type = 'Sigmoid'\nonnx.save(m, '{}')\n",
+        model.join("decoder.onnx").display(),
+        odd.join("decoder.onnx").display()
+    );
+    let r = Command::new("python3").args(["-c", &py]).output().unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let run = |m: &Path, extra: &[&str], name: &str| -> (String, Vec<u8>) {
+        let (s, _) = scene(name);
+        let mut args = vec![
+            "segment".to_string(),
+            "--scene".into(),
+            s.to_str().unwrap().into(),
+            "--model".into(),
+            m.to_str().unwrap().into(),
+        ];
+        args.extend(NMS_OFF.iter().map(|o| o.to_string()));
+        args.extend(extra.iter().map(|o| o.to_string()));
+        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        let out = gs4city(&refs, &[]);
+        let err = String::from_utf8_lossy(&out.stderr).to_string();
+        assert!(out.status.success(), "{err}");
+        (err, std::fs::read(s.join("masks/v000.json")).unwrap())
+    };
+    let (err, _) = run(&odd, &[], "odd");
+    assert!(
+        err.contains("onnxruntime (the native decoder differs from the export"),
+        "{err}"
+    );
+    let (err, native) = run(&model, &[], "native");
+    assert!(err.contains("(native)"), "{err}");
+    let (err, onnx) = run(&model, &["--onnx-decoder"], "onnx");
+    assert!(err.contains("onnxruntime (ONNX Runtime asked for"), "{err}");
+    let a = sam::read_sam_json_sized(&root().join("native/masks/v000.json"), Some([247, 330]));
+    let b = sam::read_sam_json_sized(&root().join("onnx/masks/v000.json"), Some([247, 330]));
+    let (a, b) = (a.unwrap(), b.unwrap());
+    assert!(!a.is_empty());
+    assert_eq!(
+        a.len(),
+        b.len(),
+        "native and ONNX Runtime keep different masks"
+    );
+    for (x, y) in a.iter().zip(&b) {
+        let (mx, my) = (
+            x.segmentation.decode().unwrap(),
+            y.segmentation.decode().unwrap(),
+        );
+        let inter = mx.iter().zip(my.iter()).filter(|(p, q)| **p && **q).count();
+        let union = mx.iter().zip(my.iter()).filter(|(p, q)| **p || **q).count();
+        assert!(inter as f64 / union.max(1) as f64 >= 0.99);
+    }
+    let _ = (native, onnx);
+}

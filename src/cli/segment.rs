@@ -37,6 +37,10 @@ pub struct SegmentArgs {
     /// Encoder threads and decoder workers (0 = every core, at most 8 decoder workers).
     #[arg(long, default_value_t = 0)]
     threads: usize,
+    /// Decode every prompt with ONNX Runtime; by default SAM's decoder is computed natively
+    /// from the export's weights when they are found and agree with ONNX Runtime on a probe.
+    #[arg(long)]
+    onnx_decoder: bool,
 }
 
 impl SegmentArgs {
@@ -51,6 +55,7 @@ impl SegmentArgs {
             min_mask_region_area: self.min_mask_region_area,
             scale: self.scale,
             threads: self.threads,
+            onnx_decoder: self.onnx_decoder,
             ..SegmentOptions::default()
         };
         o.validate()?;
@@ -65,12 +70,17 @@ pub fn run(args: &SegmentArgs) -> anyhow::Result<()> {
     crate::progress::done(
         "segment",
         &format!(
-            "{} images segmented ({} masks), {} skipped (masks exist); encoder {:.1} s, decoder {:.1} s, post-processing {:.1} s",
+            "{} images segmented ({} masks), {} skipped (masks exist); encoder {:.1} s, decoder {:.1} s ({}), post-processing {:.1} s",
             s.segmented,
             s.masks,
             s.skipped,
             s.timings.encoder_s,
             s.timings.decoder_s,
+            if s.decoder.is_empty() {
+                "-"
+            } else {
+                &s.decoder
+            },
             s.timings.post_s
         ),
         t.elapsed().as_secs_f64(),

@@ -92,23 +92,7 @@ struct Slot {
     c: Contribution,
 }
 
-/// `e^x` for `x ≤ 0` in `f32` without a library call, so that a row of pixels vectorises:
-/// Cody–Waite reduction `x = n·ln 2 + r` and Cephes' degree-6 polynomial for `e^r` (within
-/// 2 ulp of the correctly rounded value for `x ∈ [−87, 0]`; below, 0 is returned).
-#[inline(always)]
-pub fn exp_neg(x: f32) -> f32 {
-    let xc = x.clamp(-87.0, 0.0);
-    let n = (xc * std::f32::consts::LOG2_E + 0.5).floor();
-    let r = xc - n * 0.693_359_4 + n * 2.121_944_4e-4;
-    let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
-        + 1.666_666_5e-1)
-        * r
-        + 0.5;
-    let e = p * r * r + r + 1.0;
-    // n ∈ [−126, 0]: 2^n is a normal f32 built from its exponent bits.
-    let scale = f32::from_bits(((n as i32 + 127) as u32) << 23);
-    if x < -87.0 { 0.0 } else { e * scale }
-}
+use crate::fastmath::exp_neg;
 
 /// The α of 8 pixels of a row, `x = x0..x0 + 8`, at vertical offset `dy` from the mean: INRIA's
 /// `power = −½(a·dx² + c·dy²) − b·dx·dy`, `α = min(0.99, o·e^power)`; returns the lanes that
@@ -452,20 +436,6 @@ fn push_topk(slots: &mut Vec<Slot>, min: &mut usize, residual: &mut f32, k: usiz
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn exp_neg_is_within_2_ulp_of_the_f64_exponential() {
-        let mut x = -87.0f32;
-        while x <= 0.0 {
-            let want = f64::from(x).exp();
-            let got = f64::from(exp_neg(x));
-            let ulp = f64::from(f32::from_bits((want as f32).to_bits() + 1) - want as f32);
-            assert!((got - want).abs() <= 2.0 * ulp, "e^{x}: {got} vs {want}");
-            x += 0.000_37;
-        }
-        assert_eq!(exp_neg(0.0), 1.0);
-        assert_eq!(exp_neg(-100.0), 0.0);
-    }
 
     #[test]
     fn topk_keeps_largest_earliest_on_ties_and_counts_the_rest() {

@@ -344,8 +344,7 @@ mod tests {
             let takes = |x: f32, y: f32| {
                 let (dx, dy) = (mx - x, my - y);
                 let power = -0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy;
-                let alpha =
-                    super::super::blend::ALPHA_MAX.min(o * super::super::blend::exp_neg(power));
+                let alpha = super::super::blend::ALPHA_MAX.min(o * crate::fastmath::exp_neg(power));
                 !(power > 0.0 || power < pmin || alpha < ALPHA_MIN)
             };
             let (x0, x1) = ((mx - ex).ceil(), (mx + ex).floor());

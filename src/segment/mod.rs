@@ -12,6 +12,7 @@ pub mod bpe;
 pub mod clip;
 pub mod features;
 pub mod model;
+pub mod native;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -67,7 +68,9 @@ pub const IMAGE_SIDE: usize = 1024;
 const DEFAULT_MAX_WORKERS: usize = 8;
 
 /// The side of the decoder's low-resolution masks.
-const LOW_RES: usize = 256;
+const LOW_RES: usize = native::LOW;
+/// Prompts a worker takes at a time from the native decoder.
+const NATIVE_CHUNK: usize = 4;
 
 /// The options of automatic mask generation (SAM's `SamAutomaticMaskGenerator` names).
 #[derive(Debug, Clone, serde::Serialize)]
@@ -92,6 +95,8 @@ pub struct SegmentOptions {
     /// number of single-threaded workers of a fixed-batch decoder (SAM's own export); 0 = ONNX
     /// Runtime's default, and one worker per core (at most 8).
     pub threads: usize,
+    /// Decode every prompt with ONNX Runtime, never natively ([`native`]).
+    pub onnx_decoder: bool,
 }
 
 impl Default for SegmentOptions {
@@ -106,6 +111,7 @@ impl Default for SegmentOptions {
             min_mask_region_area: 0,
             scale: 0.25,
             threads: 0,
+            onnx_decoder: false,
         }
     }
 }
@@ -171,12 +177,24 @@ pub struct Segmenter {
     /// Whether the decoder has `low_res_masks`: then only it and `iou_predictions` are asked
     /// for, and the masks that pass the IoU filter are upscaled here (`amg::upscale_logits`).
     low_res: bool,
+    /// SAM's decoder computed natively from the export's weights ([`native`]), where they were
+    /// found and agreed with ONNX Runtime on a probe; `None`: ONNX Runtime decodes.
+    native: Option<native::SamDecoder>,
+    /// Why the native decoder is not used (for the summary), when it is not.
+    pub native_note: Option<String>,
+    /// Workers decoding prompts side by side.
+    workers: usize,
 }
 
 impl Segmenter {
     /// Opens `dir/encoder.onnx`, `dir/decoder.onnx` and `dir/model.json`: every missing file is
     /// named with the layout; a corrupt or mismatched file is named with what is wrong.
     pub fn open(dir: &Path, threads: usize) -> Result<Segmenter, SegmentError> {
+        Segmenter::open_with(dir, threads, true)
+    }
+
+    /// [`Segmenter::open`]; `native` false keeps every prompt on ONNX Runtime.
+    pub fn open_with(dir: &Path, threads: usize, native: bool) -> Result<Segmenter, SegmentError> {
         let names = ["encoder.onnx", "decoder.onnx", "model.json"];
         let missing: Vec<&str> = names
             .iter()
@@ -268,7 +286,7 @@ impl Segmenter {
             drop(decoder);
             vec![model::open_session_from(&decoder_path, bytes, threads)?]
         };
-        Ok(Segmenter {
+        let mut seg = Segmenter {
             info,
             encoder,
             decoders,
@@ -276,7 +294,93 @@ impl Segmenter {
             decoder_path,
             fixed_batch,
             low_res,
-        })
+            native: None,
+            native_note: None,
+            workers,
+        };
+        if native {
+            match seg.try_native() {
+                Ok(d) => seg.native = Some(d),
+                Err(why) => seg.native_note = Some(why),
+            }
+        } else {
+            seg.native_note = Some("ONNX Runtime asked for (--onnx-decoder)".into());
+        }
+        Ok(seg)
+    }
+
+    /// Whether prompts are decoded natively ([`native`]) rather than by ONNX Runtime.
+    pub fn native(&self) -> bool {
+        self.native.is_some()
+    }
+
+    /// SAM's decoder read from the export's weights, if it reproduces the export on a probe
+    /// (two prompts on a fixed pseudo-random embedding: every IoU and low-resolution logit
+    /// within 10⁻³ of the largest magnitude); else why not.
+    fn try_native(&mut self) -> Result<native::SamDecoder, String> {
+        if !self.low_res {
+            return Err("the decoder has no low_res_masks output".into());
+        }
+        let bytes = std::fs::read(&self.decoder_path).map_err(|e| e.to_string())?;
+        let graph = crate::onnxproto::read_graph(&bytes).map_err(|e| e.to_string())?;
+        let dec = native::SamDecoder::from_graph(&graph).map_err(|e| e.to_string())?;
+        // a fixed pseudo-random embedding (xorshift), values in [−2, 2)
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let emb: Vec<f32> = (0..256 * 64 * 64)
+            .map(|_| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                ((x >> 40) as f32 / (1u64 << 24) as f32) * 4.0 - 2.0
+            })
+            .collect();
+        let o = SegmentOptions::default();
+        let ctx = ChunkContext {
+            path: &self.decoder_path,
+            low_res: true,
+            embeddings: &emb,
+            scale: (1.0, 1.0),
+            size: (IMAGE_SIDE, IMAGE_SIDE),
+            axes: (
+                amg::AxisMap::new(LOW_RES, IMAGE_SIDE, IMAGE_SIDE),
+                amg::AxisMap::new(LOW_RES, IMAGE_SIDE, IMAGE_SIDE),
+            ),
+            options: &o,
+        };
+        let shared = SharedInputs::new(&ctx).map_err(|e| e.to_string())?;
+        let prep = dec.prepare(&emb);
+        for p in [[301.25f64, 199.5], [911.0, 37.75]] {
+            let raw =
+                ort_raw(&mut self.decoders[0], &ctx, &shared, &[p]).map_err(|e| e.to_string())?;
+            let pts = [[p[0] as f32, p[1] as f32], [0.0, 0.0]];
+            let d = dec.decode(&prep, &pts, &[1.0, -1.0]);
+            if raw.k != dec.masks() {
+                return Err(format!("{} masks per prompt, not {}", raw.k, dec.masks()));
+            }
+            let all: Vec<usize> = (0..raw.k).collect();
+            let lows = dec.low_res(&prep, &d, &all);
+            let scale = raw
+                .masks
+                .iter()
+                .chain(&raw.ious)
+                .fold(1f32, |m, v| m.max(v.abs()));
+            // a NaN on either side counts as a difference
+            let worst = d
+                .iou
+                .iter()
+                .zip(&raw.ious)
+                .chain(lows.iter().flatten().zip(&raw.masks))
+                .fold(0f32, |m, (a, b)| {
+                    let e = (a - b).abs();
+                    if e.is_nan() { f32::INFINITY } else { m.max(e) }
+                });
+            if worst > 1e-3 * scale {
+                return Err(format!(
+                    "the native decoder differs from the export by {worst:.3e} (scale {scale:.3e})"
+                ));
+            }
+        }
+        Ok(dec)
     }
 
     /// Automatic masks of one RGB image (`H×W×3`), at the image's full size.
@@ -329,7 +433,13 @@ impl Segmenter {
             .into_iter()
             .map(|[x, y]| [x * w as f64, y * h as f64])
             .collect();
-        let batch = self.fixed_batch.unwrap_or(o.points_per_batch);
+        // the native decoder's per-image work (once), then prompts one by one per worker
+        let prep = self.native.as_ref().map(|n| n.prepare(&embeddings));
+        let batch = match (&self.native, self.fixed_batch) {
+            (Some(_), _) => NATIVE_CHUNK,
+            (None, Some(b)) => b,
+            (None, None) => o.points_per_batch,
+        };
         let (sx, sy) = (nw as f64 / w as f64, nh as f64 / h as f64);
         // SAM's export post-processing per axis: 256 → 1024 → the resized image → h × w
         let ctx = ChunkContext {
@@ -350,28 +460,41 @@ impl Segmenter {
         let chunks: Vec<&[[f64; 2]]> = points.chunks(batch).collect();
         let next = std::sync::atomic::AtomicUsize::new(0);
         let t1 = Instant::now();
+        let native = self.native.as_ref().zip(prep.as_ref());
+        let sessions: Vec<Option<&mut Session>> = if native.is_some() {
+            (0..self.workers).map(|_| None).collect()
+        } else {
+            self.decoders.iter_mut().map(Some).collect()
+        };
         type Decoded = Result<(usize, Vec<Cand>, f64, f64), SegmentError>;
         let mut decoded: Vec<Decoded> = std::thread::scope(|sc| {
-            let handles: Vec<_> = self
-                .decoders
-                .iter_mut()
+            let handles: Vec<_> = sessions
+                .into_iter()
                 .map(|session| {
                     let (ctx, chunks, next) = (&ctx, &chunks, &next);
                     sc.spawn(move || -> Vec<Decoded> {
                         let mut out = Vec::new();
                         // the inputs every call of this image shares, built once per worker
-                        let shared = match SharedInputs::new(ctx) {
-                            Ok(s) => s,
-                            Err(e) => {
+                        let shared = match session.as_ref().map(|_| SharedInputs::new(ctx)) {
+                            Some(Err(e)) => {
                                 next.store(chunks.len(), std::sync::atomic::Ordering::Relaxed);
                                 out.push(Err(e));
                                 return out;
                             }
+                            Some(Ok(s)) => Some(s),
+                            None => None,
                         };
+                        let mut session = session;
                         loop {
                             let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                             let Some(chunk) = chunks.get(i) else { break };
-                            let r = decode_chunk(session, ctx, &shared, chunk);
+                            let r = match (session.as_deref_mut(), &shared, native) {
+                                (Some(s), Some(sh), _) => decode_chunk(s, ctx, sh, chunk),
+                                (_, _, Some((dec, prep))) => {
+                                    Ok(decode_chunk_native(dec, prep, ctx, chunk))
+                                }
+                                _ => unreachable!("a worker has a session or the native decoder"),
+                            };
                             let failed = r.is_err();
                             out.push(r.map(|(c, d, p)| (i, c, d, p)));
                             if failed {
@@ -513,16 +636,23 @@ impl SharedInputs {
     }
 }
 
-/// Decodes one batch of prompts and keeps the masks that pass the filters; returns them with
-/// the seconds spent decoding and filtering.
-fn decode_chunk(
+/// The decoder's outputs for a batch of prompts: the predicted IoUs (`b × k`) and the masks
+/// (`b × k × plane`, low-resolution or at the image's size).
+struct RawOut {
+    ious: Vec<f32>,
+    masks: Vec<f32>,
+    k: usize,
+    plane: usize,
+}
+
+/// Runs ONNX Runtime's decoder on one batch of prompts (each a point and the padding point).
+fn ort_raw(
     session: &mut Session,
     ctx: &ChunkContext<'_>,
     shared: &SharedInputs,
     chunk: &[[f64; 2]],
-) -> Result<(Vec<Cand>, f64, f64), SegmentError> {
-    let t1 = Instant::now();
-    let (o, dp) = (ctx.options, ctx.path);
+) -> Result<RawOut, SegmentError> {
+    let dp = ctx.path;
     let ((sx, sy), (h, w)) = (ctx.scale, ctx.size);
     let b = chunk.len();
     let mut coords = vec![0f32; b * 4];
@@ -582,41 +712,90 @@ fn decode_chunk(
             ),
         });
     }
-    let k_all = ms[1] as usize;
-    // SAM's multimask outputs: tokens 1..4 of 4 (token 0 is the single-mask output)
-    let first = usize::from(k_all == 4);
+    Ok(RawOut {
+        ious: ious.to_vec(),
+        masks: masks.to_vec(),
+        k: ms[1] as usize,
+        plane: (mh * mw) as usize,
+    })
+}
+
+/// The masks of a prompt whose IoU the filter passes: SAM's multimask outputs are tokens
+/// 1..4 of 4 (token 0 is the single-mask output); NaN scores fail too.
+fn passing(ious: &[f32], o: &SegmentOptions) -> Vec<usize> {
+    let first = usize::from(ious.len() == 4);
+    (first..ious.len())
+        .filter(|&k| ious[k].partial_cmp(&o.pred_iou_thresh) == Some(std::cmp::Ordering::Greater))
+        .collect()
+}
+
+/// A mask that passed the IoU filter, upscaled (low-resolution logits) and kept if stable.
+fn candidate(ctx: &ChunkContext<'_>, raw: &[f32], iou: f32, point: [f64; 2]) -> Option<Cand> {
+    let o = ctx.options;
+    let up;
+    let lg = if ctx.low_res {
+        up = amg::upscale_logits(raw, LOW_RES, &ctx.axes.0, &ctx.axes.1);
+        &up[..]
+    } else {
+        raw
+    };
+    let stability = amg::stability_score(lg, o.stability_score_offset);
+    (stability >= o.stability_score_thresh).then(|| Cand {
+        mask: lg.iter().map(|&v| v > 0.0).collect(),
+        iou,
+        stability,
+        point,
+    })
+}
+
+/// Decodes one batch of prompts and keeps the masks that pass the filters; returns them with
+/// the seconds spent decoding and filtering.
+fn decode_chunk(
+    session: &mut Session,
+    ctx: &ChunkContext<'_>,
+    shared: &SharedInputs,
+    chunk: &[[f64; 2]],
+) -> Result<(Vec<Cand>, f64, f64), SegmentError> {
+    let t1 = Instant::now();
+    let raw = ort_raw(session, ctx, shared, chunk)?;
     let decode_s = t1.elapsed().as_secs_f64();
     let t2 = Instant::now();
-    let plane = (mh * mw) as usize;
     let mut cands = Vec::new();
     for (i, p) in chunk.iter().enumerate() {
-        for k in first..k_all {
-            let iou = ious[i * k_all + k];
-            // NaN scores fail too
-            if iou.partial_cmp(&o.pred_iou_thresh) != Some(std::cmp::Ordering::Greater) {
-                continue;
-            }
-            let raw = &masks[(i * k_all + k) * plane..(i * k_all + k + 1) * plane];
-            let up;
-            let lg = if ctx.low_res {
-                up = amg::upscale_logits(raw, LOW_RES, &ctx.axes.0, &ctx.axes.1);
-                &up[..]
-            } else {
-                raw
-            };
-            let stability = amg::stability_score(lg, o.stability_score_offset);
-            if stability < o.stability_score_thresh {
-                continue;
-            }
-            cands.push(Cand {
-                mask: lg.iter().map(|&v| v > 0.0).collect(),
-                iou,
-                stability,
-                point: *p,
-            });
+        let ious = &raw.ious[i * raw.k..(i + 1) * raw.k];
+        for k in passing(ious, ctx.options) {
+            let m = &raw.masks[(i * raw.k + k) * raw.plane..(i * raw.k + k + 1) * raw.plane];
+            cands.extend(candidate(ctx, m, ious[k], *p));
         }
     }
     Ok((cands, decode_s, t2.elapsed().as_secs_f64()))
+}
+
+/// [`decode_chunk`] on the native decoder: the upscaling runs only for the masks that pass
+/// the IoU filter.
+fn decode_chunk_native(
+    dec: &native::SamDecoder,
+    prep: &native::ImagePrep,
+    ctx: &ChunkContext<'_>,
+    chunk: &[[f64; 2]],
+) -> (Vec<Cand>, f64, f64) {
+    let (mut decode_s, mut post_s) = (0.0, 0.0);
+    let (sx, sy) = ctx.scale;
+    let mut cands = Vec::new();
+    for p in chunk {
+        let t1 = Instant::now();
+        let pts = [[(p[0] * sx) as f32, (p[1] * sy) as f32], [0.0, 0.0]];
+        let d = dec.decode(prep, &pts, &[1.0, -1.0]);
+        let keep = passing(&d.iou, ctx.options);
+        let lows = dec.low_res(prep, &d, &keep);
+        decode_s += t1.elapsed().as_secs_f64();
+        let t2 = Instant::now();
+        for (k, m) in keep.iter().zip(&lows) {
+            cands.extend(candidate(ctx, m, d.iou[*k], *p));
+        }
+        post_s += t2.elapsed().as_secs_f64();
+    }
+    (cands, decode_s, post_s)
 }
 
 fn run_err(path: &Path, e: ort::Error) -> SegmentError {
@@ -637,6 +816,9 @@ pub struct SegmentSummary {
     pub masks: usize,
     /// Seconds per part, summed over the images segmented now.
     pub timings: Timings,
+    /// Which decoder ran: `native` (SAM's decoder computed here from the export's weights) or
+    /// `onnxruntime` with the reason; empty when nothing was segmented.
+    pub decoder: String,
 }
 
 /// The images of `dir` (png, jpg, jpeg; sorted by name).
@@ -685,7 +867,11 @@ pub fn run(
     if todo.is_empty() {
         return Ok(summary);
     }
-    let mut seg = Segmenter::open(model_dir, o.threads)?;
+    let mut seg = Segmenter::open_with(model_dir, o.threads, !o.onnx_decoder)?;
+    summary.decoder = match &seg.native_note {
+        None => "native".into(),
+        Some(why) => format!("onnxruntime ({why})"),
+    };
     crate::fsutil::create_dir(&masks_dir)?;
     let bar = crate::progress::Bar::new("segment", todo.len() as u64, "images");
     for path in todo {
