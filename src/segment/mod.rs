@@ -218,8 +218,9 @@ impl Segmenter {
         // SAM's export computes `masks` after `low_res_masks`; a graph without that tail gives
         // `iou_predictions` and `low_res_masks` bit for bit with less work. A model that cannot
         // be pruned (no such outputs, control flow, external data) is loaded as it is.
-        let pruned = std::fs::read(&decoder_path).ok().and_then(|b| {
-            crate::onnxproto::keep_outputs(&b, &["iou_predictions", "low_res_masks"])
+        let decoder_bytes = std::fs::read(&decoder_path).ok();
+        let pruned = decoder_bytes.as_ref().and_then(|b| {
+            crate::onnxproto::keep_outputs(b, &["iou_predictions", "low_res_masks"])
                 .ok()
                 .filter(|(_, dropped)| dropped.iter().any(|d| d == "masks"))
         });
@@ -299,7 +300,7 @@ impl Segmenter {
             workers,
         };
         if native {
-            match seg.try_native() {
+            match seg.try_native(decoder_bytes.as_deref()) {
                 Ok(d) => seg.native = Some(d),
                 Err(why) => seg.native_note = Some(why),
             }
@@ -317,12 +318,12 @@ impl Segmenter {
     /// SAM's decoder read from the export's weights, if it reproduces the export on a probe
     /// (two prompts on a fixed pseudo-random embedding: every IoU and low-resolution logit
     /// within 10⁻³ of the largest magnitude); else why not.
-    fn try_native(&mut self) -> Result<native::SamDecoder, String> {
+    fn try_native(&mut self, bytes: Option<&[u8]>) -> Result<native::SamDecoder, String> {
         if !self.low_res {
             return Err("the decoder has no low_res_masks output".into());
         }
-        let bytes = std::fs::read(&self.decoder_path).map_err(|e| e.to_string())?;
-        let graph = crate::onnxproto::read_graph(&bytes).map_err(|e| e.to_string())?;
+        let bytes = bytes.ok_or("the decoder file could not be read")?;
+        let graph = crate::onnxproto::read_graph(bytes).map_err(|e| e.to_string())?;
         let dec = native::SamDecoder::from_graph(&graph).map_err(|e| e.to_string())?;
         // a fixed pseudo-random embedding (xorshift), values in [−2, 2)
         let mut x = 0x9e37_79b9_7f4a_7c15u64;

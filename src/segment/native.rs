@@ -34,7 +34,7 @@ use std::collections::HashMap;
 use faer::{Accum, MatMut, MatRef, Par};
 
 use crate::fastmath::{exp_neg, gelu_in_place, simd, softmax_groups};
-use crate::onnxproto::{FloatTensor, Graph};
+use crate::onnxproto::{FloatTensor, Graph, GraphNode};
 
 /// Image tokens per side.
 const SIDE: usize = 64;
@@ -253,6 +253,8 @@ struct Lookup<'a> {
     real: HashMap<String, &'a str>,
     /// By the graph's name (initializers and `Identity` copies of them).
     by_real: HashMap<&'a str, &'a FloatTensor>,
+    /// The node that computes each value.
+    producers: HashMap<&'a str, &'a GraphNode>,
     g: &'a Graph,
 }
 
@@ -283,10 +285,16 @@ impl<'a> Lookup<'a> {
             by_name.insert(key.to_string(), t);
             real.insert(key.to_string(), name);
         }
+        let producers = g
+            .nodes
+            .iter()
+            .flat_map(|n| n.outputs.iter().map(move |o| (o.as_str(), n)))
+            .collect();
         Lookup {
             by_name,
             real,
             by_real,
+            producers,
             g,
         }
     }
@@ -342,12 +350,6 @@ impl<'a> Lookup<'a> {
             });
         }
         let bias_name = self.real[&format!("{path}.bias")];
-        let producers: HashMap<&str, &crate::onnxproto::GraphNode> = self
-            .g
-            .nodes
-            .iter()
-            .flat_map(|n| n.outputs.iter().map(move |o| (o.as_str(), n)))
-            .collect();
         for add in self
             .g
             .nodes
@@ -355,7 +357,7 @@ impl<'a> Lookup<'a> {
             .filter(|n| n.op_type == "Add" && n.inputs.iter().any(|i| i == bias_name))
         {
             for other in add.inputs.iter().filter(|i| *i != bias_name) {
-                let Some(mm) = producers.get(other.as_str()) else {
+                let Some(mm) = self.producers.get(other.as_str()) else {
                     continue;
                 };
                 if mm.op_type != "MatMul" {
@@ -701,7 +703,8 @@ impl SamDecoder {
     }
 
     /// The prompt tokens of points in the 1024 frame with labels (1 foreground, 0 background,
-    /// −1 padding), as SAM's export embeds them.
+    /// −1 padding), as SAM's export embeds them. Box corners (labels 2 and 3) are not read
+    /// from the export and must not be given.
     fn prompt_tokens(&self, points: &[[f32; 2]], labels: &[f32]) -> Vec<f32> {
         let d = self.d;
         let mut t = self.tokens.clone();
@@ -727,7 +730,7 @@ impl SamDecoder {
     }
 
     /// Decodes one prompt up to the tokens: the predicted IoU of each mask, and what
-    /// [`SamDecoder::low_res`] needs.
+    /// [`SamDecoder::low_res`] needs. `labels` are 1, 0 or −1 (no box corners).
     pub fn decode(&self, prep: &ImagePrep, points: &[[f32; 2]], labels: &[f32]) -> Decoded {
         let d = self.d;
         let tok = self.prompt_tokens(points, labels);
