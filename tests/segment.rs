@@ -407,6 +407,18 @@ fn corrupt_or_wrong_model_file_is_named() {
     assert!(!s.join("masks/v000.json").exists());
 }
 
+/// Pseudo-random values in [−1, 1) from a 64-bit linear congruential generator: test inputs
+/// independent of the code under test.
+fn lcg(seed: u64) -> impl FnMut() -> f32 {
+    let mut state = seed;
+    move || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+    }
+}
+
 /// The inputs of SAM's decoder export for `b` prompts (no mask prompt).
 fn decoder_inputs(
     path: &Path,
@@ -474,13 +486,7 @@ fn the_pruned_decoder_gives_the_same_outputs_bit_for_bit() {
     assert_eq!(names(&cut), ["iou_predictions", "low_res_masks"]);
     // inputs independent of the code under test: a fixed pseudo-random embedding and prompts
     let b = 5usize;
-    let mut state = 12345u64;
-    let mut next = || {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-    };
+    let mut next = lcg(12345);
     let emb: Vec<f32> = (0..256 * 64 * 64).map(|_| next()).collect();
     let coords: Vec<f32> = (0..b * 4).map(|_| (next() + 1.0) * 500.0).collect();
     let labels: Vec<f32> = (0..b).flat_map(|_| [1.0, -1.0]).collect();
@@ -589,13 +595,7 @@ fn the_native_decoder_computes_the_exports_outputs() {
         let graph = gs4city::onnxproto::read_graph(&std::fs::read(&path).unwrap()).unwrap();
         let dec = native::SamDecoder::from_graph(&graph).unwrap();
         let mut session = model::open_session(&path, 1).unwrap();
-        let mut state = 777u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        };
+        let mut next = lcg(777);
         let emb: Vec<f32> = (0..256 * 64 * 64).map(|_| 1.5 * next()).collect();
         let prep = dec.prepare(&emb);
         for (k, labels) in [[1.0f32, -1.0], [0.0, -1.0], [1.0, 0.0], [1.0, 1.0]]
