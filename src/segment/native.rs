@@ -6,21 +6,25 @@
 //! `TwoWayTransformer`): `T = 5 + points` tokens attend to the 64×64 = 4096 image tokens and the
 //! image tokens attend back, twice; the image tokens are then upscaled (two 2×2 transposed
 //! convolutions with a channel LayerNorm and GELUs) and dotted with one hypernetwork vector per
-//! mask. The export repeats that image side for every prompt (≈ 1.8 GMAC). Here:
-//! - the first layer's projections of the image tokens (keys and values of the token→image
-//!   attention, queries of the image→token attention) are computed once per image;
-//! - an image→token attention's output for image token `i` is `Σ_{h,j} a_hij·U_hj + b` with
-//!   `U_hj` = token `j`'s head-`h` value through the head's rows of the output projection: one
-//!   `(N × 8T)·(8T × 256)` product instead of two `N × 256 × 128` ones;
-//! - a token→image attention of a later layer scores `(keys + pe)·R` with `R = W_k,h·q_hj`
-//!   and takes its values as `(Σ_i p_hji·keys_i)·W_v,h` (the softmax weights sum to 1), never
-//!   projecting the 4096 image tokens;
-//! - the first transposed convolution of the final image tokens is unrolled through the
-//!   LayerNorms: with `x_l = keys_l + A_l·U_l + b_l` and `keys_{l+1} = γ_l ⊙ (x_l − μ_l)/σ_l +
-//!   β_l`, `keys_{l+1}·W = (x_l·diag(γ_l)·W − μ_l·γ_l·W)/σ_l + β_l·W`, so `keys_L·W` is the
-//!   image's `keys_0·diag(Πγ)·W` (once per image) plus one `(N × 8T)` product per layer;
-//! - the upscaling runs only for a prompt with a mask that the caller keeps (its predicted IoU
-//!   passes the filter), and the hypernetwork product only for those masks.
+//! mask. The export repeats that image side for every prompt (≈ 1.8 GMAC). Here the image
+//! tokens of a prompt are never materialised:
+//! - after layer `l` they are `K_l = diag(σ)·k0·M_l + E·B`: `k0` the image's own tokens,
+//!   `M_l = Π C·diag(γ)` the LayerNorms' centring (`C = I − 11ᵀ/d`) and scalings (fixed per
+//!   model), `σ` the product of the rows' `1/std`, `E` (`N × m`) the earlier image→token
+//!   attention weights (and the per-row scales of the bias vectors), `B` (`m × d`) the
+//!   tokens' values through the output projections (and the bias vectors), carried to the
+//!   same frame. `m` grows by `8T + 2` per layer, far below `d = 256`;
+//! - every projection an attention takes of the image tokens, `K_l·W`, is `diag(σ)·(k0·M_l·W)`
+//!   (once per image) plus `E·(B·W)`, and it is only ever needed against a few tokens, so the
+//!   products are folded with them first: a score matrix costs `N·(inner + m)·8T` instead of
+//!   `N·d·inner`;
+//! - a LayerNorm needs each row's variance `|X·C|²/d` of `X = K_l + A·U + b`:
+//!   `σ²·|k0·M_l·C|²` (once per image) `+ 2σ·E·(k0·M_l·C·Bᵀ)` (per image up to the prompt's
+//!   `8T`-wide values) `+ E·(B·C·Bᵀ)·Eᵀ` (an `N × m × m/2` product);
+//! - the first transposed convolution of the final tokens is `diag(σ)·(k0·M_L·W) + E·(B·W)`,
+//!   and the upscaling runs only for a prompt with a mask that the caller keeps (its predicted
+//!   IoU passes the filter), a few rows of tokens at a time, with the hypernetwork product only
+//!   for those masks.
 //!
 //! The result equals the export's up to the rounding of the reassociated sums; `Segmenter`
 //! compares the two on a probe before it uses this path, and keeps ONNX Runtime when they
@@ -31,9 +35,10 @@
 //! the `MatMul` whose output its bias is added to.
 use std::collections::HashMap;
 
+use faer::linalg::matmul::triangular::BlockStructure;
 use faer::{Accum, MatMut, MatRef, Par};
 
-use crate::fastmath::{exp_neg, gelu_in_place, simd, softmax_groups};
+use crate::fastmath::{exp_neg, gelu_in_place, simd};
 use crate::onnxproto::{FloatTensor, Graph, GraphNode};
 
 /// Image tokens per side.
@@ -46,6 +51,8 @@ const HEADS: usize = 8;
 const IMG: f32 = 1024.0;
 /// The low-resolution mask side.
 pub const LOW: usize = 4 * SIDE;
+/// Rows of image tokens the upscaling takes at a time (its buffers stay in the core's cache).
+const UP_ROWS: usize = 4;
 
 /// Why an export's weights cannot be read as SAM's decoder.
 #[derive(Debug, thiserror::Error)]
@@ -179,14 +186,28 @@ struct Layer {
     norm4: Norm,
 }
 
-/// The weights-only terms of the upscaling's unrolled first convolution for one layer `l`:
-/// `W_l' = diag(γ_l ⋯ γ_{L−1})·W`, `b_l·W_l'`, `1·W_l'` and `β_l·W_{l+1}'`.
+/// A projection `W` (`d × k`) that an attention applies to the image tokens, carried to the
+/// frame of one level: `M_l·W`, and `pe·W` where the projection reads the positional
+/// encoding too.
 #[derive(Debug, Clone)]
-struct Unroll {
-    w: Vec<f32>,
-    bias_w: Vec<f32>,
-    ones_w: Vec<f32>,
-    beta_w: Vec<f32>,
+struct Consumer {
+    /// `M_l·W`, `d × k`.
+    mw: Vec<f32>,
+    k: usize,
+    /// `pe·W`, `N × k`, column-major.
+    pe: Option<Vec<f32>>,
+}
+
+/// What the LayerNorm after layer `l`'s image→token attention needs of the image: the row
+/// norms' cross terms `M_l·C·Qᵀ`, with `Q` the rows a prompt's low-rank part is built from
+/// (each earlier layer's output projection and bias vectors, carried to this level's frame).
+#[derive(Debug, Clone)]
+struct LnLevel {
+    /// `M_l·C·[Q blocks]`, `d × width`.
+    hmat: Vec<f32>,
+    width: usize,
+    /// `M_l·C`, `d × d` (the image part's own squared norms).
+    mc: Vec<f32>,
 }
 
 /// SAM's prompt encoder (points only, no mask prompt) and mask decoder.
@@ -204,9 +225,8 @@ pub struct SamDecoder {
     not_a_point: Vec<f32>,
     point_embed: Vec<Vec<f32>>,
     no_mask: Vec<f32>,
-    /// The image positional encoding, `N × d`.
-    image_pe: Vec<f32>,
     /// First transposed convolution as `d × 4·c1`, column `s·c1 + c` (`s = 2·ky + kx`).
+    up1_w: Vec<f32>,
     up1_b: Vec<f32>,
     c1: usize,
     ln2d: Norm,
@@ -214,36 +234,55 @@ pub struct SamDecoder {
     up2_w: Vec<f32>,
     up2_b: Vec<f32>,
     c2: usize,
-    unroll: Vec<Unroll>,
     hyper: Vec<Vec<Linear>>,
     iou_head: Vec<Linear>,
+    /// Per layer: the token→image keys and values, the image→token queries.
+    t2i_k: Vec<Consumer>,
+    t2i_v: Vec<Consumer>,
+    i2t_q: Vec<Consumer>,
+    /// The final attention's keys and values, and the first convolution (level `L`).
+    fin_k: Consumer,
+    fin_v: Consumer,
+    up: Consumer,
+    ln: Vec<LnLevel>,
 }
 
-/// What one image gives every prompt.
+/// What one image gives every prompt: the image tokens `k0` through every consumer's
+/// `M_l·W` (`N × k`, column-major; at level 0 with `pe·W` added) and through each LayerNorm
+/// level's terms.
 pub struct ImagePrep {
-    k0: Vec<f32>,
-    /// First layer: token→image keys and values, image→token queries (`N × inner`).
-    kt: Vec<f32>,
-    vt: Vec<f32>,
-    qi: Vec<f32>,
-    /// `keys_0·W_0'` of the unrolled first convolution, `N × 4·c1`.
+    pk: Vec<Vec<f32>>,
+    pv: Vec<Vec<f32>>,
+    pq: Vec<Vec<f32>>,
+    fk: Vec<f32>,
+    fv: Vec<f32>,
+    /// `k0·M_L·W_up1`, `N × 4·c1`.
     c0: Vec<f32>,
+    /// Per level: `k0·hmat` (`N × width`, column-major) and the squared row norms of
+    /// `k0·M_l·C`.
+    h: Vec<Vec<f32>>,
+    n: Vec<Vec<f32>>,
 }
 
-/// One layer's image→token attention, kept for the upscaling.
-struct LayerTrace {
-    a: Vec<f32>,
-    u: Vec<f32>,
-    mu: Vec<f32>,
-    s: Vec<f32>,
+/// A prompt's image tokens at some level `l`, never materialised:
+/// `K_l = diag(σ)·k0·M_l + E·B` (before the positional encoding), with `E` (`N × m`,
+/// column-major) the attention weights of the earlier image→token attentions and the
+/// per-row scale columns of bias vectors, and `B` (`m × d`) their rows in this level's frame.
+struct Side {
+    /// `None`: all ones (level 0).
+    sigma: Option<Vec<f32>>,
+    e: Vec<f32>,
+    b: Vec<f32>,
+    m: usize,
+    /// Each layer's image→token values (`t × inner`), for the LayerNorms' cross terms.
+    vv: Vec<Vec<f32>>,
 }
 
 /// A decoded prompt: the predicted IoU of each mask and what the upscaling needs.
 pub struct Decoded {
     pub iou: Vec<f32>,
     hyper: Vec<Vec<f32>>,
-    traces: Vec<LayerTrace>,
-    ht: usize,
+    side: Side,
 }
 
 struct Lookup<'a> {
@@ -600,37 +639,99 @@ impl SamDecoder {
         if final_attn.q.din != d || final_attn.o.dout != d {
             return err("the final attention has unexpected widths");
         }
-        // the unrolled first convolution: W_l' = diag(γ_l ⋯ γ_{L−1})·W
-        let nl = layers.len();
-        let c4 = 4 * c1;
-        let mut wl = vec![up1_w.clone(); nl + 1];
-        for l in (0..nl).rev() {
-            let g = &layers[l].norm4.g;
-            for i in 0..d {
-                for k in 0..c4 {
-                    wl[l][i * c4 + k] = g[i] * wl[l + 1][i * c4 + k];
-                }
+        // the image's positional encoding: the Fourier features of the token centres
+        let mut image_pe = vec![0f32; N * d];
+        for y in 0..SIDE {
+            for x in 0..SIDE {
+                let c = [
+                    ((x as f32 + 0.5) / SIDE as f32) * 2.0 - 1.0,
+                    ((y as f32 + 0.5) / SIDE as f32) * 2.0 - 1.0,
+                ];
+                let i = y * SIDE + x;
+                fourier_features(&gauss, c, &mut image_pe[i * d..(i + 1) * d]);
             }
         }
-        let vec_mat = |v: &[f32], m: &[f32]| {
-            let mut out = vec![0f64; c4];
-            for (i, &vi) in v.iter().enumerate() {
-                for k in 0..c4 {
-                    out[k] += f64::from(vi) * f64::from(m[i * c4 + k]);
-                }
-            }
-            out.into_iter().map(|x| x as f32).collect::<Vec<f32>>()
-        };
-        let ones = vec![1f32; d];
-        let unroll = (0..nl)
-            .map(|l| Unroll {
-                bias_w: vec_mat(&layers[l].i2t.o.b, &wl[l]),
-                ones_w: vec_mat(&ones, &wl[l]),
-                beta_w: vec_mat(&layers[l].norm4.b, &wl[l + 1]),
-                w: wl[l].clone(),
+        // the LayerNorms' frames (module docs): M_0 = I, M_{l+1} = M_l·C·diag(γ_l)
+        let nl = layers.len();
+        let eye: Vec<f64> = (0..d * d)
+            .map(|k| if k / d == k % d { 1.0 } else { 0.0 })
+            .collect();
+        let centre: Vec<f64> = eye.iter().map(|v| v - 1.0 / d as f64).collect();
+        let cg: Vec<Vec<f64>> = layers
+            .iter()
+            .map(|l| {
+                (0..d * d)
+                    .map(|k| centre[k] * f64::from(l.norm4.g[k % d]))
+                    .collect()
             })
             .collect();
-        let mut dec = SamDecoder {
+        let mut ms = vec![eye.clone()];
+        for l in 0..nl {
+            let next = mul64(&ms[l], &cg[l], d, d, d);
+            ms.push(next);
+        }
+        // F(l, m) = C·diag(γ_m) ⋯ C·diag(γ_{l−1}): a row added after layer m, in level l's frame
+        let frame =
+            |l: usize, m: usize| (m..l).fold(eye.clone(), |f, k| mul64(&f, &cg[k], d, d, d));
+        let consumer = |m: &[f64], w: &[f32], k: usize, pe: bool| Consumer {
+            mw: to32(&mul64(m, &to64(w), d, d, k)),
+            k,
+            pe: pe.then(|| {
+                let mut o = vec![0f32; N * k];
+                mm_views(
+                    cm_mut(&mut o, N, k),
+                    rm(&image_pe, N, d),
+                    rm(w, d, k),
+                    false,
+                );
+                o
+            }),
+        };
+        let lin = |m: &[f64], l: &Linear, pe: bool| consumer(m, &l.w, l.dout, pe);
+        let t2i_k = (0..nl)
+            .map(|l| lin(&ms[l], &layers[l].t2i.k, true))
+            .collect();
+        let t2i_v = (0..nl)
+            .map(|l| lin(&ms[l], &layers[l].t2i.v, false))
+            .collect();
+        let i2t_q = (0..nl)
+            .map(|l| lin(&ms[l], &layers[l].i2t.q, true))
+            .collect();
+        let fin_k = lin(&ms[nl], &final_attn.k, true);
+        let fin_v = lin(&ms[nl], &final_attn.v, false);
+        let up = consumer(&ms[nl], &up1_w, 4 * c1, false);
+        let ln = (0..nl)
+            .map(|l| {
+                // the rows of a prompt's low-rank part at layer l's LayerNorm, in the order
+                // `Side` appends them: per layer m its output projection and bias, then (m < l)
+                // its LayerNorm's β
+                let mut cols: Vec<Vec<f64>> = Vec::new();
+                for m in 0..=l {
+                    let f = frame(l, m);
+                    let o = &layers[m].i2t.o;
+                    let wf = mul64(&to64(&o.w), &f, o.din, d, d);
+                    cols.extend(wf.chunks_exact(d).map(<[f64]>::to_vec));
+                    cols.push(mul64(&to64(&o.b), &f, 1, d, d));
+                    if m < l {
+                        cols.push(mul64(&to64(&layers[m].norm4.b), &frame(l, m + 1), 1, d, d));
+                    }
+                }
+                let width = cols.len();
+                let mut q = vec![0f64; d * width];
+                for (c, col) in cols.iter().enumerate() {
+                    for i in 0..d {
+                        q[i * width + c] = col[i];
+                    }
+                }
+                let mc = mul64(&ms[l], &centre, d, d, d);
+                LnLevel {
+                    hmat: to32(&mul64(&mc, &q, d, d, width)),
+                    width,
+                    mc: to32(&mc),
+                }
+            })
+            .collect();
+        Ok(SamDecoder {
             d,
             layers,
             final_attn,
@@ -641,30 +742,23 @@ impl SamDecoder {
             not_a_point,
             point_embed,
             no_mask,
-            image_pe: Vec::new(),
+            up1_w,
             up1_b,
             c1,
             ln2d,
             up2_w,
             up2_b,
             c2,
-            unroll,
             hyper,
             iou_head,
-        };
-        // the image's positional encoding: the Fourier features of the token centres
-        let mut pe = vec![0f32; N * d];
-        for y in 0..SIDE {
-            for x in 0..SIDE {
-                let c = [
-                    ((x as f32 + 0.5) / SIDE as f32) * 2.0 - 1.0,
-                    ((y as f32 + 0.5) / SIDE as f32) * 2.0 - 1.0,
-                ];
-                dec.fourier(c, &mut pe[(y * SIDE + x) * d..(y * SIDE + x + 1) * d]);
-            }
-        }
-        dec.image_pe = pe;
-        Ok(dec)
+            t2i_k,
+            t2i_v,
+            i2t_q,
+            fin_k,
+            fin_v,
+            up,
+            ln,
+        })
     }
 
     /// Masks per prompt.
@@ -674,12 +768,7 @@ impl SamDecoder {
 
     /// SAM's random Fourier features of a point in `[−1, 1]²`.
     fn fourier(&self, c: [f32; 2], out: &mut [f32]) {
-        let h = self.d / 2;
-        for k in 0..h {
-            let f = 2.0 * std::f32::consts::PI * (c[0] * self.gauss[k] + c[1] * self.gauss[h + k]);
-            out[k] = f.sin();
-            out[h + k] = f.cos();
-        }
+        fourier_features(&self.gauss, c, out);
     }
 
     /// The per-image work: `embeddings` is the encoder's `[256, 64, 64]` output.
@@ -691,15 +780,45 @@ impl SamDecoder {
                 k0[i * d + c] = embeddings[c * N + i] + self.no_mask[c];
             }
         }
-        let kp0: Vec<f32> = k0.iter().zip(&self.image_pe).map(|(a, b)| a + b).collect();
-        let l0 = &self.layers[0];
-        let kt = l0.t2i.k.apply(&kp0, N);
-        let vt = l0.t2i.v.apply(&k0, N);
-        let qi = l0.i2t.q.apply(&kp0, N);
-        let c4 = 4 * self.c1;
-        let mut c0 = vec![0f32; N * c4];
-        mm(&mut c0, &k0, &self.unroll[0].w, N, d, c4, false);
-        ImagePrep { k0, kt, vt, qi, c0 }
+        // column-major, so that a head's columns are one contiguous block
+        let times = |w: &[f32], k: usize| {
+            let mut p = vec![0f32; N * k];
+            mm_views(cm_mut(&mut p, N, k), rm(&k0, N, d), rm(w, d, k), false);
+            p
+        };
+        // level 0 reads `k0 + pe` directly: its positional term is added here
+        let through = |c: &Consumer, level0: bool| {
+            let mut p = times(&c.mw, c.k);
+            if let (true, Some(pe)) = (level0, &c.pe) {
+                add_in_place(&mut p, pe);
+            }
+            p
+        };
+        let nl = self.layers.len();
+        ImagePrep {
+            pk: (0..nl).map(|l| through(&self.t2i_k[l], l == 0)).collect(),
+            pv: (0..nl).map(|l| through(&self.t2i_v[l], l == 0)).collect(),
+            pq: (0..nl).map(|l| through(&self.i2t_q[l], l == 0)).collect(),
+            fk: through(&self.fin_k, false),
+            fv: through(&self.fin_v, false),
+            c0: {
+                let mut c0 = vec![0f32; N * self.up.k];
+                mm(&mut c0, &k0, &self.up.mw, N, d, self.up.k, false);
+                c0
+            },
+            h: self.ln.iter().map(|lv| times(&lv.hmat, lv.width)).collect(),
+            n: self
+                .ln
+                .iter()
+                .map(|lv| {
+                    let mut x = vec![0f32; N * d];
+                    mm(&mut x, &k0, &lv.mc, N, d, d, false);
+                    x.chunks_exact(d)
+                        .map(|r| r.iter().map(|&v| f64::from(v) * f64::from(v)).sum::<f64>() as f32)
+                        .collect()
+                })
+                .collect(),
+        }
     }
 
     /// The prompt tokens of points in the 1024 frame with labels (1 foreground, 0 background,
@@ -736,25 +855,34 @@ impl SamDecoder {
         let tok = self.prompt_tokens(points, labels);
         let t = tok.len() / d;
         let mut q = tok.clone();
-        let mut keys: Option<Vec<f32>> = None; // keys_l for l ≥ 1
-        let mut kp: Option<Vec<f32>> = None;
-        let mut traces = Vec::with_capacity(self.layers.len());
+        // E and B grow by HEADS·t + 2 columns and rows per layer
+        let cap = self.layers.len() * (HEADS * t + 2);
+        let mut side = Side {
+            sigma: None,
+            e: Vec::with_capacity(N * cap),
+            b: Vec::with_capacity(d * cap),
+            m: 0,
+            vv: Vec::new(),
+        };
         for (l, layer) in self.layers.iter().enumerate() {
+            // the positional terms of a later level are not folded into the image's projections
+            let later = |c: &Consumer| c.pe.is_some() && l > 0;
             // self-attention (the first layer without positional terms or residual)
             if l == 0 {
                 q = self_attention(&layer.self_attn, &q, &q, &q, t);
             } else {
-                let qq: Vec<f32> = q.iter().zip(&tok).map(|(a, b)| a + b).collect();
+                let qq = plus(&q, &tok);
                 let a = self_attention(&layer.self_attn, &qq, &qq, &q, t);
                 add_in_place(&mut q, &a);
             }
             layer.norm1.rows(&mut q);
             // token → image
-            let qq: Vec<f32> = q.iter().zip(&tok).map(|(a, b)| a + b).collect();
-            let a = match (&keys, &kp) {
-                (Some(k), Some(kp)) => self.token_to_image(&layer.t2i, &qq, t, t, k, kp),
-                _ => token_to_image_first(&layer.t2i, &qq, t, &prep.kt, &prep.vt),
-            };
+            let qq = plus(&q, &tok);
+            let pe = self.t2i_k[l]
+                .pe
+                .as_deref()
+                .filter(|_| later(&self.t2i_k[l]));
+            let a = self.token_to_image(&layer.t2i, &qq, t, &side, (&prep.pk[l], &prep.pv[l]), pe);
             add_in_place(&mut q, &a);
             layer.norm2.rows(&mut q);
             // MLP
@@ -763,86 +891,33 @@ impl SamDecoder {
             let m = layer.mlp2.apply(&h, t);
             add_in_place(&mut q, &m);
             layer.norm3.rows(&mut q);
-            // image → token
-            let qq: Vec<f32> = q.iter().zip(&tok).map(|(a, b)| a + b).collect();
+            // image → token: the image tokens' queries against the tokens' keys, softmax over
+            // the tokens of each head
+            let qq = plus(&q, &tok);
             let att = &layer.i2t;
-            let (inner, dh) = (att.inner(), att.head());
-            let kk = att.k.apply(&qq, t);
+            let scale = 1.0 / (att.head() as f32).sqrt();
+            let mut kk = att.k.apply(&qq, t);
+            kk.iter_mut().for_each(|v| *v *= scale);
             let vv = att.v.apply(&q, t);
-            let ht = HEADS * t;
-            let scale = 1.0 / (dh as f32).sqrt();
-            let mut a = vec![0f32; N * ht];
-            match &kp {
-                None => {
-                    // per head: qi_h (N × dh) · kk_hᵀ (dh × t)
-                    for h in 0..HEADS {
-                        mm_views(
-                            MatMut::from_row_major_slice_mut(&mut a, N, ht).subcols_mut(h * t, t),
-                            MatRef::from_row_major_slice(&prep.qi, N, inner).subcols(h * dh, dh),
-                            MatRef::from_row_major_slice(&kk, t, inner)
-                                .subcols(h * dh, dh)
-                                .transpose(),
-                            false,
-                        );
-                    }
-                    a.iter_mut().for_each(|v| *v *= scale);
-                }
-                Some(kp) => {
-                    // (keys + pe)·R with R = W_q,h·kk_hᵀ, plus b_q,h·kk_h
-                    let (r, rb) = fold_query_side(&att.q, &kk, t, scale);
-                    for row in a.chunks_exact_mut(ht) {
-                        row.copy_from_slice(&rb);
-                    }
-                    mm(&mut a, kp, &r, N, d, ht, true);
-                }
-            }
-            // softmax over the t tokens of each head
-            softmax_groups(&mut a, t);
-            // U_hj = vv_hj · W_o[h rows]
-            let mut u = vec![0f32; ht * d];
-            for h in 0..HEADS {
-                mm_views(
-                    MatMut::from_row_major_slice_mut(&mut u, ht, d).subrows_mut(h * t, t),
-                    MatRef::from_row_major_slice(&vv, t, inner).subcols(h * dh, dh),
-                    MatRef::from_row_major_slice(&att.o.w, inner, d).subrows(h * dh, dh),
-                    false,
-                );
-            }
-            // x = keys + A·U + b_o, LayerNorm → keys_{l+1}
-            let mut x = match keys.take() {
-                Some(k) => k,
-                None => prep.k0.clone(),
-            };
-            simd(
-                #[inline(always)]
-                || {
-                    for row in x.chunks_exact_mut(d) {
-                        add_in_place(row, &att.o.b);
-                    }
-                },
-            );
-            mm(&mut x, &a, &u, N, ht, d, true);
-            let mut mu = vec![0f32; N];
-            let mut s = vec![0f32; N];
-            layer.norm4.rows_with_stats(&mut x, Some((&mut mu, &mut s)));
-            let mut p = kp.take().unwrap_or_else(|| vec![0f32; N * d]);
-            simd(
-                #[inline(always)]
-                || {
-                    for ((o, a), b) in p.iter_mut().zip(&x).zip(&self.image_pe) {
-                        *o = a + b;
-                    }
-                },
-            );
-            keys = Some(x);
-            kp = Some(p);
-            traces.push(LayerTrace { a, u, mu, s });
+            let pe = self.i2t_q[l]
+                .pe
+                .as_deref()
+                .filter(|_| later(&self.i2t_q[l]));
+            let mut a = self.scores(&side, &prep.pq[l], pe, &att.q, &kk, t);
+            softmax_heads(&mut a, t);
+            self.norm_step(&mut side, l, a, vv, t, (&prep.h[l], &prep.n[l]));
         }
         // final token → image attention, for the output tokens only
         let to = 1 + self.masks;
-        let qq: Vec<f32> = q[..to * d].iter().zip(&tok).map(|(a, b)| a + b).collect();
-        let (k, p) = (keys.expect("one layer"), kp.expect("one layer"));
-        let a = self.token_to_image(&self.final_attn, &qq, to, to, &k, &p);
+        let qq = plus(&q[..to * d], &tok[..to * d]);
+        let a = self.token_to_image(
+            &self.final_attn,
+            &qq,
+            to,
+            &side,
+            (&prep.fk, &prep.fv),
+            self.fin_k.pe.as_deref(),
+        );
         let mut out = q[..to * d].to_vec();
         add_in_place(&mut out, &a);
         self.norm_final.rows(&mut out);
@@ -850,130 +925,363 @@ impl SamDecoder {
         let hyper = (0..self.masks)
             .map(|m| mlp(&self.hyper[m], &out[(1 + m) * d..(2 + m) * d]))
             .collect();
-        Decoded {
-            iou,
-            hyper,
-            traces,
-            ht: HEADS * t,
-        }
+        Decoded { iou, hyper, side }
     }
 
-    /// Token→image attention of a later layer on materialised keys: scores `(keys + pe)·R`,
-    /// values `(Σ_i p_i·keys_i)·W_v,h + b_v,h`; returns the output projection, `rows × d`.
+    /// Token→image attention of `rows` query tokens `qq` on the image tokens `side`, whose
+    /// projections by the keys' and values' weights are `kv.0` and `kv.1` (`k0·M_l·W`; `pe`
+    /// the keys' positional term where it is not in `kv.0`); returns the output projection,
+    /// `rows × d`.
     fn token_to_image(
         &self,
         att: &Attn,
         qq: &[f32],
         rows: usize,
-        t: usize,
-        keys: &[f32],
-        kp: &[f32],
+        side: &Side,
+        kv: (&[f32], &[f32]),
+        pe: Option<&[f32]>,
     ) -> Vec<f32> {
-        let d = self.d;
-        let (inner, dh) = (att.inner(), att.head());
-        let scale = 1.0 / (dh as f32).sqrt();
-        let qp = att.q.apply(qq, rows);
-        let (r, rb) = fold_query_side(&att.k, &qp, t, scale);
-        let ht = HEADS * t;
-        let mut s = vec![0f32; N * ht];
-        for row in s.chunks_exact_mut(ht) {
-            row.copy_from_slice(&rb);
-        }
-        mm(&mut s, kp, &r, N, d, ht, true);
-        softmax_columns(&mut s, ht);
-        // Σ_i p_hji keys_i : (ht × N)·(N × d)
-        let mut pk = vec![0f32; ht * d];
-        mm_views(
-            MatMut::from_row_major_slice_mut(&mut pk, ht, d),
-            MatRef::from_row_major_slice(&s, N, ht).transpose(),
-            MatRef::from_row_major_slice(keys, N, d),
-            false,
-        );
-        let mut o = vec![0f32; rows * inner];
-        for h in 0..HEADS {
-            for j in 0..rows {
-                let dst = &mut o[j * inner + h * dh..j * inner + (h + 1) * dh];
-                dst.copy_from_slice(&att.v.b[h * dh..(h + 1) * dh]);
-            }
-            mm_views(
-                MatMut::from_row_major_slice_mut(&mut o, rows, inner).subcols_mut(h * dh, dh),
-                MatRef::from_row_major_slice(&pk, ht, d).subrows(h * t, rows),
-                MatRef::from_row_major_slice(&att.v.w, d, inner).subcols(h * dh, dh),
-                true,
-            );
-        }
+        let scale = 1.0 / (att.head() as f32).sqrt();
+        let mut qs = att.q.apply(qq, rows);
+        qs.iter_mut().for_each(|v| *v *= scale);
+        let mut s = self.scores(side, kv.0, pe, &att.k, &qs, rows);
+        softmax_columns(&mut s);
+        let o = self.values(side, kv.1, &att.v, &s, rows);
         att.o.apply(&o, rows)
     }
 
-    /// The low-resolution (`256 × 256`) logits of masks `which` of a decoded prompt.
+    /// Attention scores of the image tokens `side` projected by `lin` (`p` = `k0·M_l·W`,
+    /// `pe` = `pe·W` where not in `p`) against `rows` projected, scaled tokens `qs`
+    /// (`rows × inner`): column-major `N × HEADS·rows`, column `h·rows + j`. With
+    /// `K_l = diag(σ)·k0·M_l + E·B`: `diag(σ)·p_h·qs_hᵀ + pe_h·qs_hᵀ + E·(B·W_h·qs_hᵀ) + b_h·qs_h`.
+    fn scores(
+        &self,
+        side: &Side,
+        p: &[f32],
+        pe: Option<&[f32]>,
+        lin: &Linear,
+        qs: &[f32],
+        rows: usize,
+    ) -> Vec<f32> {
+        let d = self.d;
+        let inner = lin.dout;
+        let dh = inner / HEADS;
+        let hr = HEADS * rows;
+        let qv = rm(qs, rows, inner);
+        let mut s = vec![0f32; N * hr];
+        for (src, add) in [(Some(p), false), (pe, true)] {
+            let Some(src) = src else { continue };
+            for h in 0..HEADS {
+                mm_views(
+                    cm_mut(&mut s, N, hr).subcols_mut(h * rows, rows),
+                    cm(src, N, inner).subcols(h * dh, dh),
+                    qv.subcols(h * dh, dh).transpose(),
+                    add,
+                );
+            }
+            if let (false, Some(sig)) = (add, &side.sigma) {
+                scale_columns(&mut s, sig);
+            }
+        }
+        if side.m > 0 {
+            let mut r = vec![0f32; d * hr];
+            for h in 0..HEADS {
+                mm_views(
+                    rm_mut(&mut r, d, hr).subcols_mut(h * rows, rows),
+                    rm(&lin.w, d, inner).subcols(h * dh, dh),
+                    qv.subcols(h * dh, dh).transpose(),
+                    false,
+                );
+            }
+            let mut br = vec![0f32; side.m * hr];
+            mm(&mut br, &side.b, &r, side.m, d, hr, false);
+            mm_views(
+                cm_mut(&mut s, N, hr),
+                cm(&side.e, N, side.m),
+                rm(&br, side.m, hr),
+                true,
+            );
+        }
+        for h in 0..HEADS {
+            for j in 0..rows {
+                let c: f32 = (0..dh)
+                    .map(|c| lin.b[h * dh + c] * qs[j * inner + h * dh + c])
+                    .sum();
+                let col = h * rows + j;
+                s[col * N..(col + 1) * N].iter_mut().for_each(|v| *v += c);
+            }
+        }
+        s
+    }
+
+    /// The values a token→image attention takes with weights `p` (column-major
+    /// `N × HEADS·rows`, each column summing to 1): `Σ_i p_i·(K_l·W_v + b_v)` per head,
+    /// `rows × inner`, with `pv` = `k0·M_l·W_v`.
+    fn values(&self, side: &Side, pv: &[f32], lin: &Linear, p: &[f32], rows: usize) -> Vec<f32> {
+        let d = self.d;
+        let inner = lin.dout;
+        let dh = inner / HEADS;
+        let hr = HEADS * rows;
+        let mut o = vec![0f32; rows * inner];
+        let scaled;
+        let ps = match &side.sigma {
+            Some(sig) => {
+                let mut x = p.to_vec();
+                scale_columns(&mut x, sig);
+                scaled = x;
+                &scaled[..]
+            }
+            None => p,
+        };
+        for h in 0..HEADS {
+            mm_views(
+                rm_mut(&mut o, rows, inner).subcols_mut(h * dh, dh),
+                cm(ps, N, hr).subcols(h * rows, rows).transpose(),
+                cm(pv, N, inner).subcols(h * dh, dh),
+                false,
+            );
+        }
+        if side.m > 0 {
+            let mut g = vec![0f32; hr * side.m];
+            mm_views(
+                rm_mut(&mut g, hr, side.m),
+                cm(p, N, hr).transpose(),
+                cm(&side.e, N, side.m),
+                false,
+            );
+            let mut bw = vec![0f32; side.m * inner];
+            mm(&mut bw, &side.b, &lin.w, side.m, d, inner, false);
+            for h in 0..HEADS {
+                mm_views(
+                    rm_mut(&mut o, rows, inner).subcols_mut(h * dh, dh),
+                    rm(&g, hr, side.m).subrows(h * rows, rows),
+                    rm(&bw, side.m, inner).subcols(h * dh, dh),
+                    true,
+                );
+            }
+        }
+        for row in o.chunks_exact_mut(inner) {
+            add_in_place(row, &lin.b);
+        }
+        o
+    }
+
+    /// Layer `l`'s image→token update and LayerNorm on `side`: `X = K_l + A·U + 1·b_oᵀ`
+    /// (`a` the attention weights, column-major `N × HEADS·t`; `U` the tokens' values `vv`
+    /// through the output projection), `K_{l+1} = diag(s)·X·C·diag(γ) + 1·βᵀ` with `1/s` the
+    /// rows' standard deviations from `|X·C|² = σ²·|k0·M_l·C|² + 2σ·E·(k0·M_l·C·Bᵀ) +
+    /// E·(B·C·Bᵀ)·Eᵀ` (`ln` = the image's `k0·hmat` and `|k0·M_l·C|²`).
+    fn norm_step(
+        &self,
+        side: &mut Side,
+        l: usize,
+        a: Vec<f32>,
+        vv: Vec<f32>,
+        t: usize,
+        ln: (&[f32], &[f32]),
+    ) {
+        let d = self.d;
+        let layer = &self.layers[l];
+        let att = &layer.i2t;
+        let (inner, dh) = (att.inner(), att.head());
+        let ht = HEADS * t;
+        let mut u = vec![0f32; ht * d];
+        for h in 0..HEADS {
+            mm_views(
+                rm_mut(&mut u, ht, d).subrows_mut(h * t, t),
+                rm(&vv, t, inner).subcols(h * dh, dh),
+                rm(&att.o.w, inner, d).subrows(h * dh, dh),
+                false,
+            );
+        }
+        side.e.extend_from_slice(&a);
+        side.e.extend(std::iter::repeat_n(1f32, N));
+        side.b.extend_from_slice(&u);
+        side.b.extend_from_slice(&att.o.b);
+        side.m += ht + 1;
+        side.vv.push(vv);
+        let m = side.m;
+        // the cross terms, block by block in the order of E's columns
+        let (hk, n) = ln;
+        let width = self.ln[l].width;
+        let hm = cm(hk, N, width);
+        let mut cross = vec![0f32; N];
+        let mut tmp = vec![0f32; N * t];
+        let (mut ec, mut hc) = (0, 0);
+        for (k, vvk) in side.vv.iter().enumerate() {
+            let o = &self.layers[k].i2t;
+            let (ik, dk) = (o.inner(), o.head());
+            for h in 0..HEADS {
+                mm_views(
+                    cm_mut(&mut tmp, N, t),
+                    hm.subcols(hc + h * dk, dk),
+                    rm(vvk, t, ik).subcols(h * dk, dk).transpose(),
+                    false,
+                );
+                for j in 0..t {
+                    let c = ec + h * t + j;
+                    fma_into(
+                        &mut cross,
+                        &side.e[c * N..(c + 1) * N],
+                        &tmp[j * N..(j + 1) * N],
+                    );
+                }
+            }
+            ec += ht;
+            hc += ik;
+            for _ in 0..if k < l { 2 } else { 1 } {
+                fma_into(
+                    &mut cross,
+                    &side.e[ec * N..(ec + 1) * N],
+                    &hk[hc * N..(hc + 1) * N],
+                );
+                ec += 1;
+                hc += 1;
+            }
+        }
+        debug_assert!(ec == m && hc == width);
+        // B·C, its Gram matrix and the quadratic term
+        let mut bc = std::mem::take(&mut side.b);
+        for row in bc.chunks_exact_mut(d) {
+            let mu = row.iter().map(|&v| f64::from(v)).sum::<f64>() as f32 / d as f32;
+            row.iter_mut().for_each(|v| *v -= mu);
+        }
+        let mut gram = vec![0f32; m * m];
+        mm_views(
+            rm_mut(&mut gram, m, m),
+            rm(&bc, m, d),
+            rm(&bc, m, d).transpose(),
+            false,
+        );
+        // e·G·eᵀ = e·T·eᵀ with T = G's diagonal plus twice its strict upper triangle
+        for i in 0..m {
+            for j in 0..m {
+                gram[i * m + j] *= match i.cmp(&j) {
+                    std::cmp::Ordering::Less => 2.0,
+                    std::cmp::Ordering::Equal => 1.0,
+                    std::cmp::Ordering::Greater => 0.0,
+                };
+            }
+        }
+        let mut eg = vec![0f32; N * m];
+        faer::linalg::matmul::triangular::matmul(
+            cm_mut(&mut eg, N, m),
+            BlockStructure::Rectangular,
+            Accum::Replace,
+            cm(&side.e, N, m),
+            BlockStructure::Rectangular,
+            rm(&gram, m, m),
+            BlockStructure::TriangularUpper,
+            1.0f32,
+            Par::Seq,
+        );
+        let mut quad = vec![0f32; N];
+        for (e, g) in side.e.chunks_exact(N).zip(eg.chunks_exact(N)) {
+            fma_into(&mut quad, e, g);
+        }
+        let eps = f64::from(layer.norm4.eps);
+        let s: Vec<f32> = (0..N)
+            .map(|r| {
+                let sg = side.sigma.as_ref().map_or(1.0, |s| f64::from(s[r]));
+                let sq =
+                    sg * sg * f64::from(n[r]) + 2.0 * sg * f64::from(cross[r]) + f64::from(quad[r]);
+                (1.0 / ((sq / d as f64).max(0.0) + eps).sqrt()) as f32
+            })
+            .collect();
+        // K_{l+1} = diag(s)·X·C·diag(γ) + 1·βᵀ
+        scale_columns(&mut side.e, &s);
+        side.sigma = Some(match side.sigma.take() {
+            Some(mut sg) => {
+                mul_in_place(&mut sg, &s);
+                sg
+            }
+            None => s,
+        });
+        for row in bc.chunks_exact_mut(d) {
+            mul_in_place(row, &layer.norm4.g);
+        }
+        side.b = bc;
+        side.e.extend(std::iter::repeat_n(1f32, N));
+        side.b.extend_from_slice(&layer.norm4.b);
+        side.m += 1;
+    }
+
+    /// The low-resolution (`256 × 256`) logits of masks `which` of a decoded prompt, computed
+    /// one row of 64 image tokens at a time.
     pub fn low_res(&self, prep: &ImagePrep, dec: &Decoded, which: &[usize]) -> Vec<Vec<f32>> {
         if which.is_empty() {
             return Vec::new();
         }
-        let (c1, c2) = (self.c1, self.c2);
+        let (d, c1, c2) = (self.d, self.c1, self.c2);
         let c4 = 4 * c1;
-        // keys_L·W through the LayerNorms (module docs)
-        let mut out = prep.c0.clone();
-        let mut tmp = vec![0f32; N * c4];
-        let mut uw = vec![0f32; dec.ht * c4];
-        for (tr, un) in dec.traces.iter().zip(&self.unroll) {
-            mm(&mut uw, &tr.u, &un.w, dec.ht, self.d, c4, false);
-            mm(&mut tmp, &tr.a, &uw, N, dec.ht, c4, false);
-            simd(
-                #[inline(always)]
-                || {
-                    for i in 0..N {
-                        let (mu, s) = (tr.mu[i], tr.s[i]);
-                        let o = &mut out[i * c4..(i + 1) * c4];
-                        let t = &tmp[i * c4..(i + 1) * c4];
-                        for k in 0..c4 {
-                            o[k] =
-                                s * (o[k] + t[k] + un.bias_w[k] - mu * un.ones_w[k]) + un.beta_w[k];
-                        }
-                    }
-                },
-            );
-        }
-        // bias, channel LayerNorm, GELU: rows (token, sub-pixel) of c1 channels
-        simd(
-            #[inline(always)]
-            || {
-                for row in out.chunks_exact_mut(c4) {
-                    add_in_place(row, &self.up1_b);
-                }
-            },
-        );
-        self.ln2d.rows(&mut out);
-        gelu_in_place(&mut out);
-        // second convolution: (4N × c1)·(c1 × 4·c2), bias, GELU
-        let rows = 4 * N;
-        let mut v = vec![0f32; rows * 4 * c2];
-        for row in v.chunks_exact_mut(4 * c2) {
-            row.copy_from_slice(&self.up2_b);
-        }
-        mm(&mut v, &out, &self.up2_w, rows, c1, 4 * c2, true);
-        gelu_in_place(&mut v);
-        // the hypernetwork product: (16N × c2)·(c2 × masks)
+        let side = &dec.side;
+        let m = side.m;
+        let ones;
+        let sig = match &side.sigma {
+            Some(s) => &s[..],
+            None => {
+                ones = vec![1f32; N];
+                &ones[..]
+            }
+        };
+        // K_L·W = diag(σ)·k0·M_L·W + E·(B·W)
+        let mut bw = vec![0f32; m * c4];
+        mm(&mut bw, &side.b, &self.up1_w, m, d, c4, false);
         let nm = which.len();
         let mut hy = vec![0f32; c2 * nm];
-        for (k, &m) in which.iter().enumerate() {
+        for (k, &mi) in which.iter().enumerate() {
             for c in 0..c2 {
-                hy[c * nm + k] = dec.hyper[m][c];
+                hy[c * nm + k] = dec.hyper[mi][c];
             }
         }
-        let mut lg = vec![0f32; 16 * N * nm];
-        mm(&mut lg, &v, &hy, 16 * N, c2, nm, false);
-        // row (token i, s1, s2) → pixel (4y + 2·ky1 + ky2, 4x + 2·kx1 + kx2)
         let mut masks = vec![vec![0f32; LOW * LOW]; nm];
-        for i in 0..N {
-            let (y, x) = (i / SIDE, i % SIDE);
-            for s1 in 0..4 {
-                for s2 in 0..4 {
-                    let py = 4 * y + 2 * (s1 / 2) + s2 / 2;
-                    let px = 4 * x + 2 * (s1 % 2) + s2 % 2;
-                    let r = (i * 4 + s1) * 4 + s2;
-                    for (k, m) in masks.iter_mut().enumerate() {
-                        m[py * LOW + px] = lg[r * nm + k];
+        let bt = UP_ROWS * SIDE;
+        let mut out = vec![0f32; bt * c4];
+        let mut v = vec![0f32; 4 * bt * 4 * c2];
+        let mut lg = vec![0f32; 16 * bt * nm];
+        for y0 in (0..SIDE).step_by(UP_ROWS) {
+            let i0 = y0 * SIDE;
+            for (r, row) in out.chunks_exact_mut(c4).enumerate() {
+                let i = i0 + r;
+                let s = sig[i];
+                for ((o, c), b) in row
+                    .iter_mut()
+                    .zip(&prep.c0[i * c4..(i + 1) * c4])
+                    .zip(&self.up1_b)
+                {
+                    *o = s * c + b;
+                }
+            }
+            if m > 0 {
+                mm_views(
+                    rm_mut(&mut out, bt, c4),
+                    cm(&side.e, N, m).subrows(i0, bt),
+                    rm(&bw, m, c4),
+                    true,
+                );
+            }
+            // channel LayerNorm and GELU: rows (token, sub-pixel) of c1 channels
+            self.ln2d.rows(&mut out);
+            gelu_in_place(&mut out);
+            // second convolution: (4·bt × c1)·(c1 × 4·c2), bias, GELU
+            for row in v.chunks_exact_mut(4 * c2) {
+                row.copy_from_slice(&self.up2_b);
+            }
+            mm(&mut v, &out, &self.up2_w, 4 * bt, c1, 4 * c2, true);
+            gelu_in_place(&mut v);
+            // the hypernetwork product: (16·bt × c2)·(c2 × masks)
+            mm(&mut lg, &v, &hy, 16 * bt, c2, nm, false);
+            // row (token (y, x), s1, s2) → pixel (4y + 2·ky1 + ky2, 4x + 2·kx1 + kx2)
+            for r in 0..bt {
+                let (y, x) = (y0 + r / SIDE, r % SIDE);
+                for s1 in 0..4 {
+                    for s2 in 0..4 {
+                        let py = 4 * y + 2 * (s1 / 2) + s2 / 2;
+                        let px = 4 * x + 2 * (s1 % 2) + s2 % 2;
+                        let k = (r * 4 + s1) * 4 + s2;
+                        for (j, mk) in masks.iter_mut().enumerate() {
+                            mk[py * LOW + px] = lg[k * nm + j];
+                        }
                     }
                 }
             }
@@ -982,100 +1290,151 @@ impl SamDecoder {
     }
 }
 
-/// `R = W_h·pᵀ_h` per head (`din × HEADS·t`, column `h·t + j`) and `b_h·p_hj`, both scaled:
-/// a projection `W` applied to the image side, folded into the scores against the
-/// per-prompt projected tokens `p` (`t × inner`).
-fn fold_query_side(lin: &Linear, p: &[f32], t: usize, scale: f32) -> (Vec<f32>, Vec<f32>) {
-    let (din, inner) = (lin.din, lin.dout);
-    let dh = inner / HEADS;
-    let ht = HEADS * t;
-    let mut r = vec![0f32; din * ht];
-    for h in 0..HEADS {
-        mm_views(
-            MatMut::from_row_major_slice_mut(&mut r, din, ht).subcols_mut(h * t, t),
-            MatRef::from_row_major_slice(&lin.w, din, inner).subcols(h * dh, dh),
-            MatRef::from_row_major_slice(p, p.len() / inner, inner)
-                .subrows(0, t)
-                .subcols(h * dh, dh)
-                .transpose(),
-            false,
-        );
-    }
-    r.iter_mut().for_each(|v| *v *= scale);
-    let mut rb = vec![0f32; ht];
-    for h in 0..HEADS {
-        for j in 0..t {
-            let s: f32 = (0..dh)
-                .map(|c| lin.b[h * dh + c] * p[j * inner + h * dh + c])
-                .sum();
-            rb[h * t + j] = s * scale;
-        }
-    }
-    (r, rb)
+/// A row-major `rows × cols` view.
+fn rm(s: &[f32], rows: usize, cols: usize) -> MatRef<'_, f32> {
+    MatRef::from_row_major_slice(s, rows, cols)
 }
 
-/// Softmax down each column of an `N × cols` row-major matrix.
-fn softmax_columns(s: &mut [f32], cols: usize) {
+fn rm_mut(s: &mut [f32], rows: usize, cols: usize) -> MatMut<'_, f32> {
+    MatMut::from_row_major_slice_mut(s, rows, cols)
+}
+
+/// A column-major `rows × cols` view.
+fn cm(s: &[f32], rows: usize, cols: usize) -> MatRef<'_, f32> {
+    MatRef::from_column_major_slice(s, rows, cols)
+}
+
+fn cm_mut(s: &mut [f32], rows: usize, cols: usize) -> MatMut<'_, f32> {
+    MatMut::from_column_major_slice_mut(s, rows, cols)
+}
+
+/// `a (m×k) · b (k×n)` in `f64`, row-major (the weights' frames, once per model).
+fn mul64(a: &[f64], b: &[f64], m: usize, k: usize, n: usize) -> Vec<f64> {
+    let mut c = vec![0f64; m * n];
+    faer::linalg::matmul::matmul(
+        MatMut::from_row_major_slice_mut(&mut c, m, n),
+        Accum::Replace,
+        MatRef::from_row_major_slice(a, m, k),
+        MatRef::from_row_major_slice(b, k, n),
+        1.0f64,
+        Par::Seq,
+    );
+    c
+}
+
+fn to64(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| f64::from(x)).collect()
+}
+
+fn to32(v: &[f64]) -> Vec<f32> {
+    v.iter().map(|&x| x as f32).collect()
+}
+
+/// SAM's random Fourier features (`gauss`: `2 × d/2`) of a point in `[−1, 1]²`.
+fn fourier_features(gauss: &[f32], c: [f32; 2], out: &mut [f32]) {
+    let h = gauss.len() / 2;
+    for k in 0..h {
+        let f = 2.0 * std::f32::consts::PI * (c[0] * gauss[k] + c[1] * gauss[h + k]);
+        out[k] = f.sin();
+        out[h + k] = f.cos();
+    }
+}
+
+fn plus(a: &[f32], b: &[f32]) -> Vec<f32> {
+    a.iter().zip(b).map(|(x, y)| x + y).collect()
+}
+
+/// `acc += a ⊙ b`.
+fn fma_into(acc: &mut [f32], a: &[f32], b: &[f32]) {
     simd(
         #[inline(always)]
-        || softmax_columns_inner(s, cols),
+        || {
+            for ((x, y), z) in acc.iter_mut().zip(a).zip(b) {
+                *x += y * z;
+            }
+        },
     )
 }
 
-#[inline(always)]
-fn softmax_columns_inner(s: &mut [f32], cols: usize) {
-    let mut mx = vec![f32::NEG_INFINITY; cols];
-    for row in s.chunks_exact(cols) {
-        for (m, &v) in mx.iter_mut().zip(row) {
-            *m = m.max(v);
-        }
-    }
-    let mut sum = vec![0f32; cols];
-    for row in s.chunks_exact_mut(cols) {
-        for ((v, &m), acc) in row.iter_mut().zip(&mx).zip(sum.iter_mut()) {
-            *v = exp_neg(*v - m);
-            *acc += *v;
-        }
-    }
-    let inv: Vec<f32> = sum.iter().map(|&x| 1.0 / x).collect();
-    for row in s.chunks_exact_mut(cols) {
-        for (v, &k) in row.iter_mut().zip(&inv) {
-            *v *= k;
-        }
+fn mul_in_place(a: &mut [f32], b: &[f32]) {
+    simd(
+        #[inline(always)]
+        || {
+            for (x, y) in a.iter_mut().zip(b) {
+                *x *= y;
+            }
+        },
+    )
+}
+
+/// Each `N`-long column of a column-major matrix times `s` elementwise.
+fn scale_columns(x: &mut [f32], s: &[f32]) {
+    for col in x.chunks_exact_mut(N) {
+        mul_in_place(col, s);
     }
 }
 
-/// The first layer's token→image attention on the image's precomputed keys and values.
-fn token_to_image_first(att: &Attn, qq: &[f32], t: usize, kt: &[f32], vt: &[f32]) -> Vec<f32> {
-    let (inner, dh) = (att.inner(), att.head());
-    let scale = 1.0 / (dh as f32).sqrt();
-    let qp = att.q.apply(qq, t);
-    let ht = HEADS * t;
-    let mut s = vec![0f32; N * ht];
-    for h in 0..HEADS {
-        mm_views(
-            MatMut::from_row_major_slice_mut(&mut s, N, ht).subcols_mut(h * t, t),
-            MatRef::from_row_major_slice(kt, N, inner).subcols(h * dh, dh),
-            MatRef::from_row_major_slice(&qp, t, inner)
-                .subcols(h * dh, dh)
-                .transpose(),
-            false,
-        );
+/// Softmax down each `N`-long column of a column-major matrix.
+fn softmax_columns(s: &mut [f32]) {
+    simd(
+        #[inline(always)]
+        || {
+            for col in s.chunks_exact_mut(N) {
+                let m = max8(col);
+                col.iter_mut().for_each(|v| *v = exp_neg(*v - m));
+                let inv = 1.0 / sum8(col, |v| v);
+                col.iter_mut().for_each(|v| *v *= inv);
+            }
+        },
+    )
+}
+
+/// Softmax over each head's `t` columns, row by row, of a column-major `N × HEADS·t`
+/// matrix.
+fn softmax_heads(s: &mut [f32], t: usize) {
+    simd(
+        #[inline(always)]
+        || {
+            let mut mx = vec![0f32; N];
+            let mut sum = vec![0f32; N];
+            for head in s.chunks_exact_mut(N * t) {
+                mx.copy_from_slice(&head[..N]);
+                for col in head.chunks_exact(N).skip(1) {
+                    for (m, &v) in mx.iter_mut().zip(col) {
+                        *m = m.max(v);
+                    }
+                }
+                sum.iter_mut().for_each(|v| *v = 0.0);
+                for col in head.chunks_exact_mut(N) {
+                    for ((v, &m), z) in col.iter_mut().zip(&mx).zip(sum.iter_mut()) {
+                        *v = exp_neg(*v - m);
+                        *z += *v;
+                    }
+                }
+                sum.iter_mut().for_each(|v| *v = 1.0 / *v);
+                for col in head.chunks_exact_mut(N) {
+                    mul_in_place(col, &sum);
+                }
+            }
+        },
+    )
+}
+
+/// The largest value of a row in eight interleaved lanes (vectorises).
+#[inline(always)]
+fn max8(row: &[f32]) -> f32 {
+    let mut acc = [f32::NEG_INFINITY; 8];
+    let chunks = row.chunks_exact(8);
+    let rest = chunks
+        .remainder()
+        .iter()
+        .fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+    for c in chunks {
+        for k in 0..8 {
+            acc[k] = acc[k].max(c[k]);
+        }
     }
-    s.iter_mut().for_each(|v| *v *= scale);
-    softmax_columns(&mut s, ht);
-    let mut o = vec![0f32; t * inner];
-    for h in 0..HEADS {
-        mm_views(
-            MatMut::from_row_major_slice_mut(&mut o, t, inner).subcols_mut(h * dh, dh),
-            MatRef::from_row_major_slice(&s, N, ht)
-                .subcols(h * t, t)
-                .transpose(),
-            MatRef::from_row_major_slice(vt, N, inner).subcols(h * dh, dh),
-            false,
-        );
-    }
-    att.o.apply(&o, t)
+    acc.iter().fold(rest, |m, &v| m.max(v))
 }
 
 /// Multi-head attention among the `t` tokens.
