@@ -706,14 +706,14 @@ impl SamDecoder {
                 // `Side` appends them: per layer m its output projection and bias, then (m < l)
                 // its LayerNorm's β
                 let mut cols: Vec<Vec<f64>> = Vec::new();
-                for m in 0..=l {
+                for (m, lm) in layers.iter().enumerate().take(l + 1) {
                     let f = frame(l, m);
-                    let o = &layers[m].i2t.o;
+                    let o = &lm.i2t.o;
                     let wf = mul64(&to64(&o.w), &f, o.din, d, d);
                     cols.extend(wf.chunks_exact(d).map(<[f64]>::to_vec));
                     cols.push(mul64(&to64(&o.b), &f, 1, d, d));
                     if m < l {
-                        cols.push(mul64(&to64(&layers[m].norm4.b), &frame(l, m + 1), 1, d, d));
+                        cols.push(mul64(&to64(&lm.norm4.b), &frame(l, m + 1), 1, d, d));
                     }
                 }
                 let width = cols.len();
