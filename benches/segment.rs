@@ -45,6 +45,11 @@ fn main() {
         }
         let dir = common::model(size, &gen_args, "model.json");
         let mut seg = Segmenter::open(&dir, threads).expect("model");
+        // which decoder runs (a fallback to ONNX Runtime changes the timings by 2–3×)
+        match &seg.native_note {
+            None => eprintln!("{size}: decoder native"),
+            Some(why) => eprintln!("{size}: decoder onnxruntime ({why})"),
+        }
         for grid in grids.split(',') {
             let o = SegmentOptions {
                 points_per_side: grid.parse().expect("grid"),

@@ -12,23 +12,36 @@ pub fn arg(name: &str) -> Option<String> {
 }
 
 /// `target/bench-models/<name>/`, written by `scripts/make_test_models.py <gen…>` unless `check`
-/// is there already.
+/// is there already from the same script and arguments (a stamp of both is kept beside it: a
+/// model left by an older generator is made again, not timed).
 pub fn model(name: &str, gen_args: &[&str], check: &str) -> PathBuf {
+    use std::hash::{Hash, Hasher};
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = root.join("target/bench-models").join(name);
-    if !dir.join(check).is_file() {
+    let script = root.join("scripts/make_test_models.py");
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    std::fs::read(&script)
+        .expect("scripts/make_test_models.py")
+        .hash(&mut h);
+    gen_args.hash(&mut h);
+    let stamp = format!("{:016x}\n", h.finish());
+    let stamp_file = dir.join("generator.stamp");
+    let current = std::fs::read_to_string(&stamp_file).is_ok_and(|s| s == stamp);
+    if !(current && dir.join(check).is_file()) {
         eprintln!(
             "generating the random-weight {name} model in {}",
             dir.display()
         );
+        let _ = std::fs::remove_dir_all(&dir);
         let ok = Command::new("python3")
-            .arg(root.join("scripts/make_test_models.py"))
+            .arg(&script)
             .args(gen_args)
             .arg("--out")
             .arg(&dir)
             .status()
             .expect("python3");
         assert!(ok.success(), "make_test_models.py failed");
+        std::fs::write(&stamp_file, stamp).expect("generator stamp");
     }
     dir
 }
