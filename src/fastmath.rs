@@ -1,5 +1,6 @@
 //! Elementary functions in `f32` without library calls, branch-free so that loops over slices
-//! vectorise: `e^x` for `x ≤ 0` (the rasterizer's α, softmax) and `erf`/GELU (SAM's decoder).
+//! vectorise: `e^x` for `x ≤ 0` (the rasterizer's α, SAM's decoder's softmaxes) and `erf`/GELU
+//! (SAM's decoder).
 
 /// `e^x` for `x ≤ 0` in `f32` without a library call, so that a row of pixels vectorises:
 /// Cody–Waite reduction `x = n·ln 2 + r` and Cephes' degree-6 polynomial for `e^r` (within
@@ -45,25 +46,6 @@ pub fn gelu(x: f32) -> f32 {
 #[inline(always)]
 pub fn simd<R>(f: impl FnOnce() -> R) -> R {
     pulp::Arch::new().dispatch(f)
-}
-
-/// Softmax over each run of `t` consecutive values, in place.
-pub fn softmax_groups(v: &mut [f32], t: usize) {
-    simd(
-        #[inline(always)]
-        || {
-            for g in v.chunks_exact_mut(t) {
-                let m = g.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-                let mut s = 0f32;
-                for x in g.iter_mut() {
-                    *x = exp_neg(*x - m);
-                    s += *x;
-                }
-                let inv = 1.0 / s;
-                g.iter_mut().for_each(|x| *x *= inv);
-            }
-        },
-    )
 }
 
 /// [`gelu`] of every value, under the widest instruction set the CPU has (`pulp`'s dispatch).

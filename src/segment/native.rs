@@ -109,21 +109,12 @@ struct Norm {
 impl Norm {
     /// LayerNorm of each row (as wide as the weights) in place.
     fn rows(&self, x: &mut [f32]) {
-        self.rows_with_stats(x, None);
-    }
-
-    /// [`Norm::rows`], also giving each row's mean and `1/σ`.
-    fn rows_with_stats(&self, x: &mut [f32], mut out: Option<(&mut [f32], &mut [f32])>) {
         let w = self.g.len();
         simd(
             #[inline(always)]
             || {
-                for (i, row) in x.chunks_exact_mut(w).enumerate() {
+                for row in x.chunks_exact_mut(w) {
                     let (mu, s) = stats(row, self.eps);
-                    if let Some((m, si)) = out.as_mut() {
-                        m[i] = mu;
-                        si[i] = s;
-                    }
                     for ((v, g), b) in row.iter_mut().zip(&self.g).zip(&self.b) {
                         *v = (*v - mu) * s * g + b;
                     }
@@ -196,6 +187,14 @@ struct Consumer {
     k: usize,
     /// `pe·W`, `N × k`, column-major.
     pe: Option<Vec<f32>>,
+}
+
+impl Consumer {
+    /// The positional term a prompt adds at level `l`: at level 0 it is already in the
+    /// image's projection ([`SamDecoder::prepare`]).
+    fn pe_after(&self, l: usize) -> Option<&[f32]> {
+        self.pe.as_deref().filter(|_| l > 0)
+    }
 }
 
 /// What the LayerNorm after layer `l`'s image→token attention needs of the image: the row
@@ -865,8 +864,6 @@ impl SamDecoder {
             vv: Vec::new(),
         };
         for (l, layer) in self.layers.iter().enumerate() {
-            // the positional terms of a later level are not folded into the image's projections
-            let later = |c: &Consumer| c.pe.is_some() && l > 0;
             // self-attention (the first layer without positional terms or residual)
             if l == 0 {
                 q = self_attention(&layer.self_attn, &q, &q, &q, t);
@@ -878,10 +875,7 @@ impl SamDecoder {
             layer.norm1.rows(&mut q);
             // token → image
             let qq = plus(&q, &tok);
-            let pe = self.t2i_k[l]
-                .pe
-                .as_deref()
-                .filter(|_| later(&self.t2i_k[l]));
+            let pe = self.t2i_k[l].pe_after(l);
             let a = self.token_to_image(&layer.t2i, &qq, t, &side, (&prep.pk[l], &prep.pv[l]), pe);
             add_in_place(&mut q, &a);
             layer.norm2.rows(&mut q);
@@ -899,10 +893,7 @@ impl SamDecoder {
             let mut kk = att.k.apply(&qq, t);
             kk.iter_mut().for_each(|v| *v *= scale);
             let vv = att.v.apply(&q, t);
-            let pe = self.i2t_q[l]
-                .pe
-                .as_deref()
-                .filter(|_| later(&self.i2t_q[l]));
+            let pe = self.i2t_q[l].pe_after(l);
             let mut a = self.scores(&side, &prep.pq[l], pe, &att.q, &kk, t);
             softmax_heads(&mut a, t);
             self.norm_step(&mut side, l, a, vv, t, (&prep.h[l], &prep.n[l]));
