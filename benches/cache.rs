@@ -6,7 +6,8 @@
 //! (default 24): the first N training views by name.
 //!
 //! For each rule (top-k for k = 4, 8, 16, 32, all; the mass rule for ε = 0.02, 0.05, 0.1 with no
-//! bound and with at most 32 entries), every chosen view is rendered with its lists (nothing
+//! bound and with at most 32 entries; ε 0.05 ≤ 32 with the blend stopped early at T < 0.001,
+//! 0.005, 0.01, 0.02, 0.05), every chosen view is rendered with its lists (nothing
 //! written: the bytes of the version 3 file are counted, ids coded), and the city-model vote of
 //! `lift` runs over them. `GS4CITY_RULES=a,b` keeps the rows whose label is listed.
 //! Errors are measured against the complete lists with unrounded f32 weights ("all, f32": what
@@ -59,7 +60,15 @@ fn main() {
         rayon::current_num_threads()
     );
     // (options, weights rounded to half as stored); the first row is the reference.
-    let opt = |top_k, epsilon| CacheOptions { top_k, epsilon };
+    let opt = |top_k, epsilon| CacheOptions {
+        top_k,
+        epsilon,
+        t_stop: 0.0,
+    };
+    let stop = |t_stop| CacheOptions {
+        t_stop,
+        ..opt(32, 0.05)
+    };
     let only: Option<Vec<String>> = std::env::var("GS4CITY_RULES")
         .ok()
         .map(|v| v.split(',').map(str::to_string).collect());
@@ -76,6 +85,11 @@ fn main() {
         (opt(32, 0.02), true),
         (opt(32, 0.05), true),
         (opt(32, 0.1), true),
+        (stop(0.001), true),
+        (stop(0.005), true),
+        (stop(0.01), true),
+        (stop(0.02), true),
+        (stop(0.05), true),
     ]
     .into_iter()
     .enumerate()
@@ -195,6 +209,13 @@ fn read_speed(run: &std::path::Path) {
 
 /// A rule's row label: `all, f32`, `all`, `16`, `ε 0.05`, `ε 0.05 ≤ 32`.
 fn label(o: &CacheOptions, rounded: bool) -> String {
+    if o.t_stop > 0.0 {
+        return format!(
+            "{} / T < {}",
+            label(&CacheOptions { t_stop: 0.0, ..*o }, rounded),
+            o.t_stop
+        );
+    }
     match (rounded, o.epsilon > 0.0, o.top_k) {
         (false, ..) => "all, f32".into(),
         (true, false, 0) => "all".into(),

@@ -604,10 +604,18 @@ pub struct CacheOptions {
     /// α·T mass (at most `top_k`); 0 = off (top-k lists). Absent in caches before version 3.
     #[serde(default)]
     pub epsilon: f32,
+    /// Early stop: a pixel stops blending once its transmittance T falls below this after a
+    /// contribution, so the Gaussians behind it (together at most `t_stop` of the pixel's
+    /// mass) are neither listed nor counted in `residual`, `alpha` or `depth`. 0 (and in
+    /// caches before it existed) = the rasterizer's own stop only (T < 10⁻⁴, before adding).
+    #[serde(default)]
+    pub t_stop: f32,
 }
 
 /// The cache's default mass share ε (BENCHMARKS.md, "Adaptive contribution lists").
 pub const EPSILON: f32 = 0.05;
+/// The cache's default early stop (BENCHMARKS.md, "Early stop of the cache's blend").
+pub const T_STOP: f32 = 0.02;
 /// The cache's default bound on a list's length.
 pub const TOP_K: usize = 32;
 
@@ -616,6 +624,7 @@ impl Default for CacheOptions {
         CacheOptions {
             top_k: TOP_K,
             epsilon: EPSILON,
+            t_stop: T_STOP,
         }
     }
 }
@@ -623,11 +632,16 @@ impl Default for CacheOptions {
 impl CacheOptions {
     /// Today's lists in words, e.g. "top-16 lists" or "lists to 1 − 0.05 of the mass (≤ 32)".
     pub fn describe(&self) -> String {
-        match (self.epsilon > 0.0, self.top_k) {
+        let lists = match (self.epsilon > 0.0, self.top_k) {
             (false, 0) => "complete lists".into(),
             (false, k) => format!("top-{k} lists"),
             (true, 0) => format!("lists to 1 − {} of the mass", self.epsilon),
             (true, k) => format!("lists to 1 − {} of the mass (≤ {k})", self.epsilon),
+        };
+        if self.t_stop > 0.0 {
+            format!("{lists}, blending stopped at T < {}", self.t_stop)
+        } else {
+            lists
         }
     }
 }

@@ -42,6 +42,7 @@ fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
         &CacheOptions {
             top_k,
             epsilon: 0.0,
+            t_stop: 0.0,
         },
         &dir.join("cache"),
     )

@@ -283,6 +283,7 @@ fn fixture(name: &str, with_features: bool) -> Fixture {
         options: CacheOptions {
             top_k: 16,
             epsilon: 0.0,
+            t_stop: 0.0,
         },
         views: vec![CachedView {
             name: format!("{STEM}.png"),

@@ -341,6 +341,7 @@ fn fixture(name: &str, fused: bool, ply: PlyEncoding) -> Fixture {
             options: CacheOptions {
                 top_k: 16,
                 epsilon: 0.0,
+                t_stop: 0.0,
             },
             views: cached,
             bytes: 0,

@@ -69,6 +69,7 @@ impl Fixture {
             &CacheOptions {
                 top_k: 16,
                 epsilon: 0.0,
+                t_stop: 0.0,
             },
             &dir.join("cache"),
         )

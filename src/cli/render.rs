@@ -43,6 +43,11 @@ pub struct RenderArgs {
     /// mass (at most --top-k); 0 = plain top-k lists.
     #[arg(long, default_value_t = crate::cache::EPSILON, requires = "cache")]
     epsilon: f32,
+    /// Early stop of the cache's blend: a pixel stops once its transmittance falls below T
+    /// (what lies behind, at most T of its mass, is not listed); 0 = the rasterizer's own
+    /// stop only (exact lists).
+    #[arg(long, value_name = "T", default_value_t = crate::cache::T_STOP, requires = "cache")]
+    t_stop: f32,
     /// Output folder.
     #[arg(long)]
     out: PathBuf,
@@ -105,6 +110,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             &crate::cache::CacheOptions {
                 top_k: args.top_k,
                 epsilon: args.epsilon,
+                t_stop: args.t_stop,
             },
             &args.out,
         )?;

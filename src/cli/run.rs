@@ -50,6 +50,11 @@ pub struct RunArgs {
     /// mass (at most --top-k); 0 = plain top-k lists.
     #[arg(long, default_value_t = crate::cache::EPSILON)]
     pub epsilon: f32,
+    /// Early stop of the cache's blend: a pixel stops once its transmittance falls below T
+    /// (what lies behind, at most T of its mass, is not listed); 0 = the rasterizer's own
+    /// stop only (exact lists).
+    #[arg(long, value_name = "T", default_value_t = crate::cache::T_STOP)]
+    pub t_stop: f32,
     /// Every N-th view (by name) is held back as a test view, not voted on and predicted as a
     /// novel view (default 8, 3DGS --eval); 0 = every view trains (a capture without ground
     /// truth loses nothing to evaluation then). The split never depends on gt/.
@@ -150,6 +155,9 @@ impl RunArgs {
         if !(0.0..1.0).contains(&self.epsilon) {
             anyhow::bail!("--epsilon must lie in [0, 1), got {}", self.epsilon);
         }
+        if !(0.0..1.0).contains(&self.t_stop) {
+            anyhow::bail!("--t-stop must lie in [0, 1), got {}", self.t_stop);
+        }
         let d = RunOptions::default();
         let masks = crate::masks::MasksOptions {
             source: self.masks_source,
@@ -195,6 +203,7 @@ impl RunArgs {
             single_pass: self.single_pass,
             top_k: self.top_k,
             epsilon: self.epsilon,
+            t_stop: self.t_stop,
             lift,
             supervision: self.supervision,
             masks,

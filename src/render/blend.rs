@@ -7,7 +7,8 @@
 //! widest instruction set the CPU has (`pulp`'s runtime dispatch: AVX2 + FMA where present).
 //! Also accumulates depth (`Σ w·z`), the median depth, feature channels (no background)
 //! and the per-pixel contribution lists (all, the top-k by weight, or the largest weights
-//! up to a share `1 − ε` of the pixel's mass; plus the residual).
+//! up to a share `1 − ε` of the pixel's mass; plus the residual). An optional early stop
+//! (`t_stop`) ends a pixel after the contribution that takes its T below it.
 use super::project::{ALPHA_MIN, Projected, TILE};
 
 const PIX: usize = TILE * TILE;
@@ -83,6 +84,9 @@ pub struct BlendInput<'a> {
     /// Accumulate the colour and the median depth ([`super::RenderOptions::images`]).
     pub images: bool,
     pub mode: ContributionMode,
+    /// A pixel stops after a contribution that takes its T below this
+    /// ([`super::RenderOptions::t_stop`]; 0 = never, INRIA's own stop only).
+    pub t_stop: f32,
 }
 
 /// Top-k slot: insertion sequence, contribution.
@@ -276,6 +280,10 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                                 seq = seq.wrapping_add(1);
                             }
                         }
+                    }
+                    if t_new < input.t_stop {
+                        *live_row &= !(1u32 << x);
+                        alive -= 1;
                     }
                 }
             }

@@ -59,6 +59,7 @@ pub fn contrib_unrounded(
         max_sh_degree: 0,
         images: false,
         contributions: mode,
+        t_stop: opts.t_stop,
         ..Default::default()
     };
     let out = super::render_view(scene, &view.camera, &opts).map_err(|e| match e {
@@ -97,6 +98,12 @@ pub fn build(
         return Err(RenderError::Scene(format!(
             "epsilon must lie in [0, 1), got {}",
             opts.epsilon
+        )));
+    }
+    if !(0.0..1.0).contains(&opts.t_stop) {
+        return Err(RenderError::Scene(format!(
+            "t-stop must lie in [0, 1), got {}",
+            opts.t_stop
         )));
     }
     let t0 = Instant::now();

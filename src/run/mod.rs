@@ -128,6 +128,10 @@ pub struct RunOptions {
     /// before it existed) = plain top-k lists.
     #[serde(default)]
     pub epsilon: f32,
+    /// The cache's early stop (`cache::CacheOptions::t_stop`); 0 (and in run.json files
+    /// before it existed) = the rasterizer's own stop only.
+    #[serde(default)]
+    pub t_stop: f32,
     pub lift: LiftOptions,
     /// Where the labels come from (city model alone, or fused with the masks).
     pub supervision: Supervision,
@@ -165,6 +169,7 @@ impl Default for RunOptions {
             single_pass: false,
             top_k: cache::TOP_K,
             epsilon: cache::EPSILON,
+            t_stop: cache::T_STOP,
             lift: LiftOptions::default(),
             supervision: Supervision::Fused,
             masks: MasksOptions::default(),
@@ -477,6 +482,7 @@ fn render_step(r: &mut Running, opts: &RunOptions) -> Result<Cache, RunError> {
     let co = CacheOptions {
         top_k: opts.top_k,
         epsilon: opts.epsilon,
+        t_stop: opts.t_stop,
     };
     let mut inputs = vec![r.scene.ply.clone()];
     inputs.extend(r.sparse_files.iter().cloned());

@@ -537,6 +537,7 @@ mod tests {
                     CacheOptions {
                         top_k: 0,
                         epsilon: 0.0,
+                        t_stop: 0.0,
                     },
                     2,
                     0.05,
@@ -545,6 +546,7 @@ mod tests {
                     CacheOptions {
                         top_k: 32,
                         epsilon: 0.05,
+                        t_stop: 0.0,
                     },
                     16,
                     2.5,

@@ -37,6 +37,7 @@ pub fn label_view(
         features: false,
         images: true,
         contributions: ContributionMode::TopK(1),
+        t_stop: 0.0,
     };
     let r = render_view(scene, camera, &opts)?;
     let n = r.width * r.height;

@@ -224,6 +224,7 @@ pub fn build(name: &str, skip: impl Fn(usize, usize) -> bool) -> Built {
         &CacheOptions {
             top_k: 16,
             epsilon: 0.0,
+            t_stop: 0.0,
         },
         &dir.join("cache"),
     )
