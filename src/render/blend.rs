@@ -445,6 +445,77 @@ fn push_topk(slots: &mut Vec<Slot>, min: &mut usize, residual: &mut f32, k: usiz
 mod tests {
     use super::*;
 
+    /// The mass rule computed the plain way: indices sorted by weight (descending, the
+    /// earlier first on ties), summed until the target or the cap, kept in depth order; a
+    /// lone entry is always kept.
+    fn keep_mass_by_sorting(list: &[Contribution], epsilon: f32, cap: usize) -> (Vec<u32>, f32) {
+        let cap = if cap == 0 { usize::MAX } else { cap };
+        if list.len() <= 1 {
+            return (list.iter().map(|c| c.id).collect(), 0.0);
+        }
+        let total: f32 = list.iter().map(|c| c.weight).sum();
+        let mut order: Vec<usize> = (0..list.len()).collect();
+        order.sort_by(|&a, &b| list[b].weight.total_cmp(&list[a].weight).then(a.cmp(&b)));
+        let mut keep = vec![false; list.len()];
+        let mut kept = 0.0f32;
+        for (m, &j) in order.iter().enumerate() {
+            if m >= cap || kept >= (1.0 - epsilon) * total {
+                break;
+            }
+            kept += list[j].weight;
+            keep[j] = true;
+        }
+        let ids = (0..list.len()).filter(|&j| keep[j]).map(|j| list[j].id).collect();
+        let dropped = (0..list.len())
+            .filter(|&j| !keep[j])
+            .map(|j| list[j].weight)
+            .sum();
+        (ids, dropped)
+    }
+
+    #[test]
+    fn keep_mass_keeps_what_sorting_keeps() {
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        let (mut keys, mut out) = (Vec::new(), Vec::new());
+        let mut partial = 0;
+        for case in 0..6000 {
+            let n = match case % 5 {
+                0 => (next() % 4) as usize,
+                1 => (next() % 24) as usize,
+                2 => 40 + (next() % 400) as usize,
+                _ => (next() % 64) as usize,
+            };
+            let list: Vec<Contribution> = (0..n)
+                .map(|j| Contribution {
+                    id: j as u32 * 7 + 1,
+                    weight: match case % 5 {
+                        // Few distinct weights: ties decide.
+                        3 => [0.25f32, 0.125, 0.004][(next() % 3) as usize],
+                        // A long tail of tiny weights, as behind an opaque surface.
+                        4 if j > 3 => (next() % 1000) as f32 * 1e-7 + 1e-6,
+                        _ => (next() % 1_000_000) as f32 * 1e-6 + 1e-4,
+                    },
+                })
+                .collect();
+            let epsilon = [0.0f32, 0.02, 0.05, 0.1, 0.5, 0.99][(next() % 6) as usize];
+            let cap = [0usize, 1, 4, 16, 32][(next() % 5) as usize];
+            out.clear();
+            let dropped = keep_mass(&list, epsilon, cap, &mut keys, &mut out);
+            let (ids, want) = keep_mass_by_sorting(&list, epsilon, cap);
+            let got: Vec<u32> = out.iter().map(|c| c.id).collect();
+            assert_eq!(got, ids, "case {case}: n {n}, epsilon {epsilon}, cap {cap}");
+            assert!(dropped == want, "case {case}: {dropped} vs {want}");
+            partial += usize::from(!got.is_empty() && got.len() < n);
+        }
+        assert!(partial > 2000, "{partial}");
+    }
+
     #[test]
     fn topk_keeps_largest_earliest_on_ties_and_counts_the_rest() {
         let (mut slots, mut min, mut residual) = (Vec::new(), 0, 0.0f32);
