@@ -104,7 +104,7 @@ use crate::fastmath::exp_neg;
 /// lanes vectorise; each lane computes exactly the scalar expression.
 #[inline(always)]
 fn row_alpha(
-    out: &mut [f32],
+    out: &mut [f32; 8],
     x0: usize,
     [mx, dy]: [f32; 2],
     conic: [f32; 3],
@@ -112,18 +112,18 @@ fn row_alpha(
     pmin: f32,
 ) -> u32 {
     let [ca, cb, cc] = conic;
-    for (i, a) in out.iter_mut().enumerate() {
+    // Lane i's bit where it passes, in the same vector loop (an OR of the lanes after it is
+    // a vector reduction; bits drawn from the stored α one at a time stayed scalar).
+    let mut bits = [0u32; 8];
+    for (i, (a, bit)) in out.iter_mut().zip(bits.iter_mut()).enumerate() {
         let dx = mx - (x0 + i) as f32;
         let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
         let alpha = ALPHA_MAX.min(o * exp_neg(power));
         let skip = power > 0.0 || power < pmin || alpha < ALPHA_MIN;
         *a = if skip { 0.0 } else { alpha };
+        *bit = if skip { 0 } else { 1 << i };
     }
-    let mut pass = 0u32;
-    for (i, &a) in out.iter().enumerate() {
-        pass |= u32::from(a > 0.0) << i;
-    }
-    pass
+    bits.iter().fold(0, |x, &y| x | y)
 }
 
 /// Blends tile `t` given its depth-sorted list of indices into `input.projected`, with the
@@ -227,7 +227,7 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                 // The α of the row's pixels, 8 lanes at a time (0 where the pixel is skipped).
                 let mut alphas = [0.0f32; TILE];
                 let mut pass = 0u32;
-                for (half, lanes) in alphas.chunks_exact_mut(8).enumerate() {
+                for (half, lanes) in alphas.as_chunks_mut::<8>().0.iter_mut().enumerate() {
                     if halves[half] {
                         pass |=
                             row_alpha(lanes, half * 8, [mx, dy], p.conic, o, pmin) << (half * 8);
