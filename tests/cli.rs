@@ -287,6 +287,25 @@ fn citymodel_raycast_render_lift_through_the_binary() {
         &d("x"),
     ]);
     assert!(!ok && log.contains("nope"), "{log}");
+    for (flag, bad) in [("--t-stop", "1.5"), ("--t-stop", "NaN"), ("--epsilon", "1")] {
+        let (ok, log) = gs4city(&[
+            "render",
+            "--ply",
+            &d("scene.ply"),
+            "--colmap",
+            &d("sparse"),
+            "--cache",
+            flag,
+            bad,
+            "--out",
+            &d("x"),
+        ]);
+        assert!(
+            !ok && log.contains(flag) && log.contains("[0, 1)") && log.lines().count() == 1,
+            "{log}"
+        );
+        assert!(!dir.join("x").exists(), "nothing written for {flag} {bad}");
+    }
     let (ok, log) = gs4city(&[
         "raycast",
         "--citymodel",

@@ -61,6 +61,11 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             args.background
         );
     }
+    for (flag, v) in [("--epsilon", args.epsilon), ("--t-stop", args.t_stop)] {
+        if !(0.0..1.0).contains(&v) {
+            bail!("{flag} must lie in [0, 1), got {v}");
+        }
+    }
     let mut views = colmap::read_model(&args.colmap)?;
     if !args.views.is_empty() {
         let wanted: Vec<&str> = args.views.iter().map(|s| s.trim()).collect();

@@ -225,14 +225,15 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                 }
                 let dy = my - y as f32;
                 // The α of the row's pixels, 8 lanes at a time (0 where the pixel is skipped).
-                let mut alphas = [0.0f32; TILE];
+                let mut halves_alpha = [[0.0f32; 8]; TILE / 8];
                 let mut pass = 0u32;
-                for (half, lanes) in alphas.as_chunks_mut::<8>().0.iter_mut().enumerate() {
+                for (half, lanes) in halves_alpha.iter_mut().enumerate() {
                     if halves[half] {
                         pass |=
                             row_alpha(lanes, half * 8, [mx, dy], p.conic, o, pmin) << (half * 8);
                     }
                 }
+                let alphas = halves_alpha.as_flattened();
                 let mut hits = row & pass;
                 while hits != 0 {
                     let x = hits.trailing_zeros() as usize;
@@ -465,7 +466,10 @@ mod tests {
             kept += list[j].weight;
             keep[j] = true;
         }
-        let ids = (0..list.len()).filter(|&j| keep[j]).map(|j| list[j].id).collect();
+        let ids = (0..list.len())
+            .filter(|&j| keep[j])
+            .map(|j| list[j].id)
+            .collect();
         let dropped = (0..list.len())
             .filter(|&j| !keep[j])
             .map(|j| list[j].weight)
