@@ -630,6 +630,20 @@ impl Default for CacheOptions {
 }
 
 impl CacheOptions {
+    /// Checks the options (the wording of [`crate::check::range`]): `top_k` at most
+    /// [`MAX_LIST`], `epsilon` and `t_stop` in `[0, 1)`.
+    pub fn validate(&self) -> Result<(), String> {
+        use crate::check::{End, range};
+        if self.top_k > MAX_LIST {
+            return Err(format!(
+                "top_k {} exceeds the longest possible list ({MAX_LIST}); 0 keeps complete lists",
+                self.top_k
+            ));
+        }
+        range("epsilon", self.epsilon, End::Closed(0.0), End::Open(1.0))?;
+        range("t_stop", self.t_stop, End::Closed(0.0), End::Open(1.0))
+    }
+
     /// Today's lists in words, e.g. "top-16 lists" or "lists to 1 − 0.05 of the mass (≤ 32)".
     pub fn describe(&self) -> String {
         let lists = match (self.epsilon > 0.0, self.top_k) {

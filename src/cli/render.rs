@@ -61,10 +61,15 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             args.background
         );
     }
-    for (flag, v) in [("--epsilon", args.epsilon), ("--t-stop", args.t_stop)] {
-        if !(0.0..1.0).contains(&v) {
-            bail!("{flag} must lie in [0, 1), got {v}");
-        }
+    let cache_options = crate::cache::CacheOptions {
+        top_k: args.top_k,
+        epsilon: args.epsilon,
+        t_stop: args.t_stop,
+    };
+    if args.cache {
+        cache_options
+            .validate()
+            .map_err(|e| anyhow::anyhow!("cache options: {e}"))?;
     }
     let mut views = colmap::read_model(&args.colmap)?;
     if !args.views.is_empty() {
@@ -109,16 +114,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     let mut scene = PreparedScene::new(&gaussians)
         .with_context(|| format!("preparing {}", args.ply.display()))?;
     if args.cache {
-        let s = render::cache::build(
-            &scene,
-            &views,
-            &crate::cache::CacheOptions {
-                top_k: args.top_k,
-                epsilon: args.epsilon,
-                t_stop: args.t_stop,
-            },
-            &args.out,
-        )?;
+        let s = render::cache::build(&scene, &views, &cache_options, &args.out)?;
         println!(
             "cached the contributions of {} views ({}, {:.0} MB) in {:.2} s → {}",
             s.views.len(),

@@ -145,19 +145,13 @@ impl RunArgs {
             centre_gate: !self.no_centre_gate,
         };
         lift.validate()?;
-        if self.top_k > crate::cache::MAX_LIST {
-            anyhow::bail!(
-                "--top-k {} exceeds the longest possible contribution list ({}); 0 keeps all",
-                self.top_k,
-                crate::cache::MAX_LIST
-            );
+        crate::cache::CacheOptions {
+            top_k: self.top_k,
+            epsilon: self.epsilon,
+            t_stop: self.t_stop,
         }
-        if !(0.0..1.0).contains(&self.epsilon) {
-            anyhow::bail!("--epsilon must lie in [0, 1), got {}", self.epsilon);
-        }
-        if !(0.0..1.0).contains(&self.t_stop) {
-            anyhow::bail!("--t-stop must lie in [0, 1), got {}", self.t_stop);
-        }
+        .validate()
+        .map_err(|e| anyhow::anyhow!("cache options: {e}"))?;
         let d = RunOptions::default();
         let masks = crate::masks::MasksOptions {
             source: self.masks_source,

@@ -8,8 +8,8 @@ use rayon::prelude::*;
 
 use super::{ContributionMode, PreparedScene, RenderError, RenderOptions};
 use crate::cache::{
-    CacheError, CacheOptions, CacheSummary, CachedView, DEPTH_MIN_ALPHA, MAX_LIST, ViewContrib,
-    cache_file, round_weights,
+    CacheError, CacheOptions, CacheSummary, CachedView, DEPTH_MIN_ALPHA, ViewContrib, cache_file,
+    round_weights,
 };
 use crate::camera::View;
 use crate::fsutil;
@@ -88,24 +88,7 @@ pub fn build(
     opts: &CacheOptions,
     out_dir: &Path,
 ) -> Result<CacheSummary, RenderError> {
-    if opts.top_k > MAX_LIST {
-        return Err(RenderError::Scene(format!(
-            "top-k {} exceeds the longest possible list ({MAX_LIST}); use 0 for complete lists",
-            opts.top_k
-        )));
-    }
-    if !(0.0..1.0).contains(&opts.epsilon) {
-        return Err(RenderError::Scene(format!(
-            "epsilon must lie in [0, 1), got {}",
-            opts.epsilon
-        )));
-    }
-    if !(0.0..1.0).contains(&opts.t_stop) {
-        return Err(RenderError::Scene(format!(
-            "t-stop must lie in [0, 1), got {}",
-            opts.t_stop
-        )));
-    }
+    opts.validate().map_err(RenderError::Options)?;
     let t0 = Instant::now();
     fsutil::create_dir(out_dir)?;
     let _ = std::fs::remove_file(out_dir.join("summary.json"));

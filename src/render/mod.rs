@@ -45,6 +45,8 @@ use crate::splat::Gaussians;
 pub enum RenderError {
     #[error("invalid scene: {0}")]
     Scene(String),
+    #[error("cache options: {0}")]
+    Options(String),
     #[error("features: {found} values for {gaussians} Gaussians × {channels} channels")]
     Features {
         found: usize,
