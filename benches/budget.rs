@@ -2,8 +2,13 @@
 //! "Loss budget"). Benchmarks may read the simulation truth; no stage does.
 //!
 //! ```text
-//! cargo bench --bench budget -- --scene S --run NAME=RUN [--run NAME=RUN …] [--every 8] [--abstain 0.5,0.7]
+//! cargo bench --bench budget -- --scene S --run NAME=RUN [--run NAME=RUN …] [--every 8] [--abstain 0.5,0.7] [--refuse TMP]
 //! ```
+//! `--refuse TMP` adds, per run, the re-fusion of issue 23 (the vote as a prior): the run's
+//! voted labels (`lift/gaussians.npy`) are rendered into every training view with the
+//! pipeline's pixel rule, the fused pixels no label covers take the rendered label (only an
+//! image group's, then any), the repaired maps are written under `TMP/NAME`, and the gated
+//! vote of `lift` runs again over them; next to it, the same vote over the run's own maps.
 //! `--abstain θ,…` adds, per run and θ, the test views predicted with the Gaussians whose
 //! `label_confidence` (`lift/semantic.ply`) is below θ abstaining: their weight leaves the
 //! pixel's competition instead of voting for their class (per-Gaussian "unknown", issue 23).
@@ -41,6 +46,7 @@ struct Args {
     runs: Vec<(String, PathBuf)>,
     every: usize,
     abstain: Vec<f32>,
+    refuse: Option<PathBuf>,
 }
 
 fn parse() -> Args {
@@ -49,6 +55,7 @@ fn parse() -> Args {
         runs: Vec::new(),
         every: 8,
         abstain: Vec::new(),
+        refuse: None,
     };
     let v: Vec<String> = std::env::args().skip(1).collect();
     let mut i = 0;
@@ -61,6 +68,7 @@ fn parse() -> Args {
                 a.runs.push((n.to_string(), r.into()));
             }
             "--every" => a.every = val.parse().expect("number"),
+            "--refuse" => a.refuse = Some(val.into()),
             "--abstain" => {
                 a.abstain = val
                     .split(',')
@@ -245,6 +253,88 @@ fn supervision(run: &Path) -> Supervision {
     }
 }
 
+/// Re-fusion with the vote as a prior (issue 23): the run's voted labels are rendered into
+/// every training view (the pipeline's pixel rule), fused pixels no label covers take the
+/// rendered label (`images_only`: only an image group's, i.e. person, car, tree), and the
+/// gated vote runs again over the repaired maps (written under `tmp`). Returns the per-Gaussian
+/// classes of the vote over the run's own maps and over the repaired ones, and the number of
+/// repaired pixels.
+fn refused(
+    scene: &Path,
+    run: &Path,
+    split: &Split,
+    cache: &Cache,
+    s: &Supervision,
+    tmp: &Path,
+    images_only: bool,
+) -> (Vec<i32>, Vec<i32>, u64) {
+    let (_, table) = gs4city::npy::read::<i32>(&run.join("lift/gaussians.npy"))
+        .expect("the run's lift/gaussians.npy");
+    let label0: Vec<i32> = table.chunks(2).map(|r| r[0]).collect();
+    let pick = |a: &str, b: &str| {
+        let p = run.join(a);
+        if p.exists() { p } else { run.join(b) }
+    };
+    let entities =
+        gs4city::semantics::read(&pick("openings/semantics.json", "citymodel/semantics.json"))
+            .expect("semantics.json");
+    let raycast = pick("openings/raycast", "raycast");
+    let cm: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("citymodel/summary.json")).unwrap())
+            .unwrap();
+    let scale = cm["scale"].as_f64().unwrap_or(1.0);
+    std::fs::create_dir_all(tmp).unwrap();
+    let mut changed = 0u64;
+    for v in &split.train {
+        let c = cache.load(&v.stem()).expect("cached training view");
+        let fused = s
+            .maps
+            .read(&v.stem(), c.width, c.height)
+            .expect("label map");
+        let rendered = predict_map(&c, &label0);
+        let repaired: Vec<i32> = fused
+            .iter()
+            .zip(&rendered)
+            .map(|(&f, &r)| {
+                if f < 0 && r >= 0 && (!images_only || r >= s.table.delta) {
+                    changed += 1;
+                    r
+                } else {
+                    f
+                }
+            })
+            .collect();
+        gs4city::npy::write(
+            &tmp.join(format!("{}.ids.npy", v.stem())),
+            &[c.height, c.width],
+            &repaired,
+        )
+        .unwrap();
+    }
+    let ply = scene.join("point_cloud.ply");
+    let run_vote = |maps: &LabelMaps| -> Vec<i32> {
+        let inp = gs4city::vote::VoteInputs {
+            ply: &ply,
+            cache,
+            train: &split.train,
+            test: &split.test,
+            maps,
+            labels: &s.table,
+            entities: &entities,
+            city_depth: Some((&raycast, scale)),
+        };
+        let opts = gs4city::vote::VoteOptions::default();
+        let gate = gs4city::vote::CityGate::for_inputs(&inp, opts.city_gate_m, opts.centre_gate)
+            .expect("gate");
+        let (asg, _) =
+            gs4city::vote::vote(cache, &split.train, maps, gate.as_ref(), &opts).expect("vote");
+        asg.iter().map(|a| s.table.class_of(a.label)).collect()
+    };
+    let before = run_vote(&s.maps);
+    let after = run_vote(&LabelMaps::Fused(tmp.to_path_buf()));
+    (before, after, changed)
+}
+
 fn main() {
     let a = parse();
     let views = gs4city::colmap::read_model(&a.scene.join("sparse/0")).expect("colmap");
@@ -355,6 +445,38 @@ fn main() {
                 let abstained = conf.iter().filter(|&&x| x > 0.0 && x < th).count();
                 row(
                     &format!("{name}: test, confidence < {th} abstains ({abstained} Gaussians)"),
+                    &rows,
+                    lk,
+                );
+            }
+        }
+        if let Some(tmp) = &a.refuse {
+            for images_only in [true, false] {
+                let (before, after, changed) = refused(
+                    &a.scene,
+                    run,
+                    &split,
+                    &cache,
+                    &s,
+                    &tmp.join(name),
+                    images_only,
+                );
+                let (rows, lk) = scored(&cache, &test_views, |c| predict_map(c, &before));
+                row(
+                    &format!("{name}: test, today's vote over the run's maps"),
+                    &rows,
+                    lk,
+                );
+                let (rows, lk) = scored(&cache, &test_views, |c| predict_map(c, &after));
+                let what = if images_only {
+                    "image groups"
+                } else {
+                    "any label"
+                };
+                row(
+                    &format!(
+                        "{name}: test, re-fused ({changed} unlabelled training pixels take the rendered vote's label, {what})"
+                    ),
                     &rows,
                     lk,
                 );
