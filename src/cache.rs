@@ -485,8 +485,20 @@ fn encode_ids(v: &ViewContrib) -> (Vec<u8>, Vec<u64>) {
         let mut base = 0i64;
         for p in y * v.width..(y + 1) * v.width {
             let list = &ids[off[p] as usize..off[p + 1] as usize];
+            // Neighbouring lists mostly hold the same Gaussians in the same order: the entry
+            // after the last one found is tried first (any index of the id is a valid code;
+            // the renderer's lists never repeat an id).
+            let mut next = 0usize;
             for &id in list {
-                match prev.iter().position(|&q| q == id) {
+                let found = if prev.get(next) == Some(&id) {
+                    Some(next)
+                } else {
+                    prev.iter().position(|&q| q == id)
+                };
+                if let Some(j) = found {
+                    next = j + 1;
+                }
+                match found {
                     Some(j) => put_varint(&mut code, j as u64),
                     None => {
                         let d = i64::from(id) - base;
@@ -1103,6 +1115,28 @@ mod tests {
         // 5 → zz 10; 6 − 5 → 2; then n = 2: 6 is entry 1 → 1; 300 − 6 = 294 → zz 588, + 2 =
         // 590 = 0b100_1001110 → [0xce, 0x04]; 5 is entry 0 → 0.
         assert_eq!(code, vec![10, 2, 1, 0xce, 0x04, 0]);
+        let r = ViewContrib::from_bytes(Path::new("x"), &v.to_bytes()).unwrap();
+        assert_eq!(r.lists, v.lists);
+        // The same ids in the same order, one shifted by an insertion, one dropped:
+        // [3, 8, 9] then [3, 8, 9] → indices 0, 1, 2; then [1, 3, 9]: 1 − 9 = −8 → zz 15,
+        // + 3 = 18; 3 is entry 0; 9 is entry 2.
+        let v = ViewContrib {
+            width: 3,
+            height: 1,
+            k: 0,
+            gaussians: 400,
+            lists: Contributions {
+                offsets: vec![0, 3, 6, 9],
+                ids: vec![3, 8, 9, 3, 8, 9, 1, 3, 9],
+                weights: vec![0.5; 9],
+                residual: vec![0.0; 3],
+            },
+            alpha: vec![1.0; 3],
+            depth: vec![1.0; 3],
+        };
+        let (code, _) = encode_ids(&v);
+        // 3 → zz 6; 8 − 3 → 10; 9 − 8 → 2.
+        assert_eq!(code, vec![6, 10, 2, 0, 1, 2, 18, 0, 2]);
         let r = ViewContrib::from_bytes(Path::new("x"), &v.to_bytes()).unwrap();
         assert_eq!(r.lists, v.lists);
     }
