@@ -253,86 +253,113 @@ fn supervision(run: &Path) -> Supervision {
     }
 }
 
-/// Re-fusion with the vote as a prior (issue 23): the run's voted labels are rendered into
-/// every training view (the pipeline's pixel rule), fused pixels no label covers take the
-/// rendered label (`images_only`: only an image group's, i.e. person, car, tree), and the
-/// gated vote runs again over the repaired maps (written under `tmp`). Returns the per-Gaussian
-/// classes of the vote over the run's own maps and over the repaired ones, and the number of
-/// repaired pixels.
-fn refused(
-    scene: &Path,
-    run: &Path,
-    split: &Split,
-    cache: &Cache,
-    s: &Supervision,
-    tmp: &Path,
-    images_only: bool,
-) -> (Vec<i32>, Vec<i32>, u64) {
+/// The run's voted labels and their classes (`lift/gaussians.npy`, one row per Gaussian).
+fn run_labels(run: &Path) -> (Vec<i32>, Vec<i32>) {
     let (_, table) = gs4city::npy::read::<i32>(&run.join("lift/gaussians.npy"))
         .expect("the run's lift/gaussians.npy");
-    let label0: Vec<i32> = table.chunks(2).map(|r| r[0]).collect();
-    let pick = |a: &str, b: &str| {
-        let p = run.join(a);
-        if p.exists() { p } else { run.join(b) }
-    };
-    let entities =
-        gs4city::semantics::read(&pick("openings/semantics.json", "citymodel/semantics.json"))
-            .expect("semantics.json");
-    let raycast = pick("openings/raycast", "raycast");
-    let cm: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(run.join("citymodel/summary.json")).unwrap())
-            .unwrap();
-    let scale = cm["scale"].as_f64().unwrap_or(1.0);
-    std::fs::create_dir_all(tmp).unwrap();
-    let mut changed = 0u64;
-    for v in &split.train {
-        let c = cache.load(&v.stem()).expect("cached training view");
-        let fused = s
-            .maps
-            .read(&v.stem(), c.width, c.height)
-            .expect("label map");
-        let rendered = predict_map(&c, &label0);
-        let repaired: Vec<i32> = fused
-            .iter()
-            .zip(&rendered)
-            .map(|(&f, &r)| {
-                if f < 0 && r >= 0 && (!images_only || r >= s.table.delta) {
-                    changed += 1;
-                    r
-                } else {
-                    f
-                }
-            })
-            .collect();
-        gs4city::npy::write(
-            &tmp.join(format!("{}.ids.npy", v.stem())),
-            &[c.height, c.width],
-            &repaired,
-        )
-        .unwrap();
-    }
-    let ply = scene.join("point_cloud.ply");
-    let run_vote = |maps: &LabelMaps| -> Vec<i32> {
-        let inp = gs4city::vote::VoteInputs {
-            ply: &ply,
+    table.chunks(2).map(|r| (r[0], r[1])).unzip()
+}
+
+/// `lift`'s gated vote (default options) over a run's training views, for re-fusion.
+struct Revote<'a> {
+    ply: PathBuf,
+    cache: &'a Cache,
+    split: &'a Split,
+    s: &'a Supervision,
+    entities: Vec<gs4city::semantics::Entity>,
+    raycast: PathBuf,
+    scale: f64,
+}
+
+impl<'a> Revote<'a> {
+    fn new(
+        scene: &Path,
+        run: &Path,
+        split: &'a Split,
+        cache: &'a Cache,
+        s: &'a Supervision,
+    ) -> Self {
+        // The model the run lifted with: the openings stage's, where it completed the model.
+        let pick = |a: &str, b: &str| {
+            let p = run.join(a);
+            if p.exists() { p } else { run.join(b) }
+        };
+        let cm: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(run.join("citymodel/summary.json")).unwrap())
+                .unwrap();
+        Revote {
+            ply: gs4city::scene::Scene::open(scene).expect("scene").ply,
             cache,
-            train: &split.train,
-            test: &split.test,
+            split,
+            s,
+            entities: gs4city::semantics::read(&pick(
+                "openings/semantics.json",
+                "citymodel/semantics.json",
+            ))
+            .expect("semantics.json"),
+            raycast: pick("openings/raycast", "raycast"),
+            scale: cm["scale"].as_f64().unwrap_or(1.0),
+        }
+    }
+
+    /// The per-Gaussian classes of the vote over `maps`.
+    fn classes(&self, maps: &LabelMaps) -> Vec<i32> {
+        let inp = gs4city::vote::VoteInputs {
+            ply: &self.ply,
+            cache: self.cache,
+            train: &self.split.train,
+            test: &self.split.test,
             maps,
-            labels: &s.table,
-            entities: &entities,
-            city_depth: Some((&raycast, scale)),
+            labels: &self.s.table,
+            entities: &self.entities,
+            city_depth: Some((&self.raycast, self.scale)),
         };
         let opts = gs4city::vote::VoteOptions::default();
         let gate = gs4city::vote::CityGate::for_inputs(&inp, opts.city_gate_m, opts.centre_gate)
             .expect("gate");
         let (asg, _) =
-            gs4city::vote::vote(cache, &split.train, maps, gate.as_ref(), &opts).expect("vote");
-        asg.iter().map(|a| s.table.class_of(a.label)).collect()
-    };
-    let before = run_vote(&s.maps);
-    let after = run_vote(&LabelMaps::Fused(tmp.to_path_buf()));
-    (before, after, changed)
+            gs4city::vote::vote(self.cache, &self.split.train, maps, gate.as_ref(), &opts)
+                .expect("vote");
+        asg.iter().map(|a| self.s.table.class_of(a.label)).collect()
+    }
+
+    /// Re-fusion with the vote as a prior (issue 23): `label` (the run's vote) is rendered
+    /// into every training view with the pipeline's pixel rule, and a fused pixel no label
+    /// covers takes the rendered label (`images_only`: only an image group's, i.e. person,
+    /// car, tree). Writes the repaired maps into `tmp` and returns their number of repaired
+    /// pixels.
+    fn repair(&self, label: &[i32], tmp: &Path, images_only: bool) -> u64 {
+        std::fs::create_dir_all(tmp).unwrap();
+        let mut changed = 0u64;
+        for v in &self.split.train {
+            let c = self.cache.load(&v.stem()).expect("cached training view");
+            let fused = self
+                .s
+                .maps
+                .read(&v.stem(), c.width, c.height)
+                .expect("label map");
+            let rendered = predict_map(&c, label);
+            let repaired: Vec<i32> = fused
+                .iter()
+                .zip(&rendered)
+                .map(|(&f, &r)| {
+                    if f < 0 && r >= 0 && (!images_only || r >= self.s.table.delta) {
+                        changed += 1;
+                        r
+                    } else {
+                        f
+                    }
+                })
+                .collect();
+            gs4city::npy::write(
+                &tmp.join(format!("{}.ids.npy", v.stem())),
+                &[c.height, c.width],
+                &repaired,
+            )
+            .unwrap();
+        }
+        changed
+    }
 }
 
 fn main() {
@@ -418,18 +445,14 @@ fn main() {
         }
         row(&format!("{name}: test (vote)"), &test, lk);
         {
-            let (_, table) = gs4city::npy::read::<i32>(&run.join("lift/gaussians.npy"))
-                .expect("the run's lift/gaussians.npy");
-            let class: Vec<i32> = table.chunks(2).map(|r| r[1]).collect();
+            let (_, class) = run_labels(run);
             let (rows, lk) = scored(&cache, &test_views, |c| heaviest(c, &class));
             row(&format!("{name}: test (vote), top-1 rule"), &rows, lk);
             let (rows, lk) = scored(&cache, &test_views, |c| median_rule(c, &class));
             row(&format!("{name}: test (vote), median rule"), &rows, lk);
         }
         if !a.abstain.is_empty() {
-            let (_, table) = gs4city::npy::read::<i32>(&run.join("lift/gaussians.npy"))
-                .expect("the run's lift/gaussians.npy");
-            let class: Vec<i32> = table.chunks(2).map(|r| r[1]).collect();
+            let (_, class) = run_labels(run);
             let (g, _) =
                 gs4city::splat::read_ply(&run.join("lift/semantic.ply"), &Default::default())
                     .expect("the run's lift/semantic.ply");
@@ -451,22 +474,19 @@ fn main() {
             }
         }
         if let Some(tmp) = &a.refuse {
+            let revote = Revote::new(&a.scene, run, &split, &cache, &s);
+            let before = revote.classes(&s.maps);
+            let (rows, lk) = scored(&cache, &test_views, |c| predict_map(c, &before));
+            row(
+                &format!("{name}: test, today's vote over the run's maps"),
+                &rows,
+                lk,
+            );
+            let (label, _) = run_labels(run);
             for images_only in [true, false] {
-                let (before, after, changed) = refused(
-                    &a.scene,
-                    run,
-                    &split,
-                    &cache,
-                    &s,
-                    &tmp.join(name),
-                    images_only,
-                );
-                let (rows, lk) = scored(&cache, &test_views, |c| predict_map(c, &before));
-                row(
-                    &format!("{name}: test, today's vote over the run's maps"),
-                    &rows,
-                    lk,
-                );
+                let dir = tmp.join(format!("{name}-{images_only}"));
+                let changed = revote.repair(&label, &dir, images_only);
+                let after = revote.classes(&LabelMaps::Fused(dir));
                 let (rows, lk) = scored(&cache, &test_views, |c| predict_map(c, &after));
                 let what = if images_only {
                     "image groups"

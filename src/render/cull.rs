@@ -194,7 +194,7 @@ fn skipped(c: &Cell, v: &ViewParams) -> bool {
 mod tests {
     use super::*;
 
-    use crate::render::tests::{camera_at, random_scene};
+    use crate::render::tests::{camera_at, random_centre, random_scene};
     use rand::{Rng, SeedableRng};
 
     /// Every Gaussian the cull leaves out is one the projection culls; the cull leaves out
@@ -206,11 +206,7 @@ mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         let (mut skipped_total, mut kept_total) = (0usize, 0usize);
         for k in 0..40 {
-            let c = DVec3::new(
-                rng.random_range(-30.0..30.0),
-                rng.random_range(-30.0..30.0),
-                rng.random_range(-30.0..30.0),
-            );
+            let c = random_centre(&mut rng, 30.0);
             let f = rng.random_range(15.0..2000.0);
             let cam = camera_at(
                 c,

@@ -654,6 +654,15 @@ pub(crate) mod tests {
     }
 
     /// A camera at `centre` looking along yaw/pitch, `w × h`, focal `f`.
+    /// A point drawn uniformly from the cube `[−half, half]³` (a test camera's centre).
+    pub(crate) fn random_centre(rng: &mut impl Rng, half: f64) -> DVec3 {
+        DVec3::new(
+            rng.random_range(-half..half),
+            rng.random_range(-half..half),
+            rng.random_range(-half..half),
+        )
+    }
+
     pub(crate) fn camera_at(centre: DVec3, yaw: f64, pitch: f64, w: u32, h: u32, f: f64) -> Camera {
         let rot = DMat3::from_rotation_x(pitch) * DMat3::from_rotation_y(yaw);
         Camera {
@@ -679,11 +688,7 @@ pub(crate) mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
         let (mut cut, mut unsure) = (0usize, 0usize);
         for k in 0..4 {
-            let c = DVec3::new(
-                rng.random_range(-20.0..20.0),
-                rng.random_range(-20.0..20.0),
-                rng.random_range(-20.0..20.0),
-            );
+            let c = random_centre(&mut rng, 20.0);
             let cam = camera_at(c, rng.random_range(-3.1..3.1), 0.3, 96, 72, 80.0);
             let opts = |t_stop| RenderOptions {
                 contributions: ContributionMode::All,
@@ -740,11 +745,7 @@ pub(crate) mod tests {
         let scene = random_scene(20_000, 30.0, 17);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
         for k in 0..6 {
-            let c = DVec3::new(
-                rng.random_range(-20.0..20.0),
-                rng.random_range(-20.0..20.0),
-                rng.random_range(-20.0..20.0),
-            );
+            let c = random_centre(&mut rng, 20.0);
             // Narrow to very wide fields of view (focal 25 px at 96 px: the Jacobian clamp).
             let f = [25.0, 60.0, 120.0, 400.0, 80.0, 1500.0][k];
             let cam = camera_at(
