@@ -295,7 +295,7 @@ fn check_camera(camera: &Camera) -> Result<(), String> {
 
 thread_local! {
     /// Scratch of [`render_view`]: the projected Gaussians of the last view.
-    static PROJECTED: std::cell::Cell<Vec<Projected>> = const { std::cell::Cell::new(Vec::new()) };
+    static PROJECTED: std::cell::Cell<Vec<[Projected; project::LANES]>> = const { std::cell::Cell::new(Vec::new()) };
     /// Scratch of [`render_view`]: the Gaussians the cell cull left.
     static CANDIDATES: std::cell::Cell<Vec<u32>> = const { std::cell::Cell::new(Vec::new()) };
 }
@@ -347,28 +347,35 @@ fn render_view_with(
     // The array is reused from the previous view on this thread (taken, so that a nested
     // render gets a fresh one): a new n × 80-byte allocation per view costs a page fault per
     // 4 KB (BENCHMARKS.md, "Render: allocation").
-    let mut projected = PROJECTED.take();
-    candidates
-        .par_iter()
-        .with_min_len(4096)
-        .map(|&i| {
-            project::project(
+    let mut batches = PROJECTED.take();
+    // Resized, not refilled: every batch is written below.
+    batches.resize(
+        candidates.len().div_ceil(project::LANES),
+        [Projected::CULLED; project::LANES],
+    );
+    const BATCHES: usize = 256;
+    batches
+        .par_chunks_mut(BATCHES)
+        .zip(candidates.par_chunks(BATCHES * project::LANES))
+        .for_each(|(out, ids)| {
+            project::project_into(
                 scene,
-                i as usize,
+                ids,
                 &v,
                 options.antialiased,
                 options.max_sh_degree,
+                out,
             )
-            .unwrap_or(Projected::CULLED)
-        })
-        .collect_into_vec(&mut projected);
+        });
+    // The last batch's padding is culled; the array is the candidates', in order.
+    let projected = &batches.as_flattened()[..candidates.len()];
     CANDIDATES.set(candidates);
     let t1 = Instant::now();
-    let bins = tile::bin(&projected, v.grid_x, v.grid_y);
+    let bins = tile::bin(projected, v.grid_x, v.grid_y);
     let t2 = Instant::now();
     let channels = if options.features { scene.channels } else { 0 };
     let input = BlendInput {
-        projected: &projected,
+        projected,
         features: if channels > 0 { &scene.features } else { &[] },
         channels,
         width: v.width,
@@ -383,7 +390,7 @@ fn render_view_with(
         .into_par_iter()
         .map(|t| blend::blend_tile(&input, t, bins.tile(t)))
         .collect();
-    PROJECTED.set(projected);
+    PROJECTED.set(batches);
     let mut out = assemble(&tiles, v.width, v.height, channels, options.contributions);
     let t3 = Instant::now();
     out.stats = RenderStats {
@@ -520,6 +527,44 @@ pub struct RenderSummary {
     pub warnings: Vec<String>,
 }
 
+/// What a render to disk needs before it writes anything: views, each with its own non-empty
+/// output stem, and at least one Gaussian that can be drawn.
+pub fn check_inputs(scene: &PreparedScene, views: &[View]) -> Result<(), RenderError> {
+    if views.is_empty() {
+        return Err(RenderError::Scene(
+            "no views to render: the COLMAP model lists no images (or --views chose none)".into(),
+        ));
+    }
+    if scene.is_empty() {
+        return Err(RenderError::Scene(
+            "the PLY holds no Gaussians (vertex count 0)".into(),
+        ));
+    }
+    if scene.skipped == scene.len() {
+        return Err(RenderError::Scene(format!(
+            "none of the {} Gaussians can be drawn (each has a zero quaternion or a non-finite \
+             position, scale, opacity or colour): nothing to render",
+            scene.len()
+        )));
+    }
+    let mut stems = std::collections::BTreeSet::new();
+    for v in views {
+        let stem = v.stem();
+        if stem.is_empty() {
+            return Err(RenderError::Camera {
+                view: v.name.clone(),
+                why: "the image name has no file stem".into(),
+            });
+        }
+        if !stems.insert(stem) {
+            return Err(RenderError::Camera {
+                view: v.name.clone(),
+                why: format!("two views share the output stem `{}`", v.stem()),
+            });
+        }
+    }
+    Ok(())
+}
 /// Renders every view into `out_dir`: `<stem>.png` (8-bit RGB), `<stem>.depth.npy`
 /// (`float32` H×W expected depth, NaN where alpha < `DEPTH_MIN_ALPHA`) and, when the scene
 /// has feature channels and `options.features` is set, `<stem>.features.npy`
@@ -530,6 +575,7 @@ pub fn render_to_dir(
     out_dir: &Path,
     options: &RenderOptions,
 ) -> Result<RenderSummary, RenderError> {
+    check_inputs(scene, views)?;
     fsutil::create_dir(out_dir)?;
     let opts = RenderOptions {
         contributions: ContributionMode::None,
@@ -548,16 +594,9 @@ pub fn render_to_dir(
     };
     let _ = std::fs::remove_file(out_dir.join("summary.json"));
     let bar = crate::progress::Bar::new("render", views.len() as u64, "views");
-    let mut stems = std::collections::HashSet::new();
     for view in views {
         bar.inc(1);
         let stem = view.stem();
-        if !stems.insert(stem.clone()) {
-            return Err(RenderError::Camera {
-                view: view.name.clone(),
-                why: format!("two views share the output stem `{stem}`"),
-            });
-        }
         if view.camera.intrinsics.distortion != Distortion::None {
             summary.warnings.push(format!(
                 "{}: lens distortion ignored (pinhole render)",
