@@ -23,6 +23,19 @@ use glam::{DMat3, DQuat, DVec2, DVec3};
 
 /// Largest accepted coordinate magnitude of the scene frame, in scene units (module docs).
 pub const SCENE_COORD_LIMIT: f64 = 1.0e6;
+
+/// Why a point in the scene frame cannot be used (not finite, or beyond
+/// [`SCENE_COORD_LIMIT`]), or `None` when it can.
+pub fn outside_scene_frame(s: DVec3) -> Option<String> {
+    if s.is_finite() && s.abs().max_element() <= SCENE_COORD_LIMIT {
+        return None;
+    }
+    Some(format!(
+        "a vertex lands at ({:e}, {:e}, {:e}) in the scene frame, beyond ±{SCENE_COORD_LIMIT:e} (camera::SCENE_COORD_LIMIT, the f32 frame's limit): check the coordinates and the alignment's scale and translation",
+        s.x, s.y, s.z
+    ))
+}
+
 /// Largest accepted image side, in pixels.
 pub const MAX_IMAGE_SIDE: u32 = 32_768;
 /// Largest accepted image area: 160 megapixels (a 150 MP aerial camera fits; raycasting

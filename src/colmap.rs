@@ -68,6 +68,20 @@ pub enum ColmapError {
         first: u32,
         second: u32,
     },
+    #[error(
+        "{path}: image {image_id} ({name:?}): the name has no file stem (an image file name such as frame_0001.png is required)"
+    )]
+    NoStem {
+        path: PathBuf,
+        image_id: u32,
+        name: String,
+    },
+    #[error("{path}: {extra} bytes after the last {what} (a damaged or concatenated file)")]
+    Trailing {
+        path: PathBuf,
+        extra: usize,
+        what: &'static str,
+    },
     #[error("cannot write COLMAP model: {0}")]
     Write(#[from] FsError),
 }
@@ -271,6 +285,17 @@ impl<'a> BinReader<'a> {
         }
         Ok(out)
     }
+    /// Ends the file: nothing may follow the last record.
+    fn end(&self, what: &'static str) -> Result<(), ColmapError> {
+        match self.bytes.len() - self.pos {
+            0 => Ok(()),
+            extra => Err(ColmapError::Trailing {
+                path: self.path.to_path_buf(),
+                extra,
+                what,
+            }),
+        }
+    }
     fn count(&mut self, elem: usize, what: &dyn Fn() -> String) -> Result<usize, ColmapError> {
         let n = self.u64(what)?;
         // A count that cannot fit in the rest of the file is a truncation, not an allocation.
@@ -324,6 +349,7 @@ fn parse_cameras_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ColmapCamera>, Col
         })?;
         out.push(cam);
     }
+    r.end("camera")?;
     Ok(out)
 }
 
@@ -405,6 +431,7 @@ fn parse_images_bin(path: &Path, bytes: &[u8]) -> Result<Vec<RawImage>, ColmapEr
             pose,
         });
     }
+    r.end("image")?;
     Ok(out)
 }
 
@@ -432,6 +459,7 @@ fn parse_points_bin(path: &Path, bytes: &[u8]) -> Result<Vec<Point3D>, ColmapErr
             error,
         });
     }
+    r.end("3D point")?;
     Ok(out)
 }
 
@@ -674,6 +702,22 @@ pub fn parse_model(
     let mut names: std::collections::HashMap<String, u32> = Default::default();
     let mut views = Vec::with_capacity(images.len());
     for img in images {
+        if !seen.insert(img.image_id) {
+            return Err(ColmapError::Duplicate {
+                path: img_path,
+                what: "image",
+                id: img.image_id.into(),
+            });
+        }
+        // `View::stem` names every per-view file: it must not be empty.
+        let file = img.name.rsplit('/').next().unwrap_or(&img.name);
+        if file.is_empty() || file == "." {
+            return Err(ColmapError::NoStem {
+                path: img_path,
+                image_id: img.image_id,
+                name: img.name,
+            });
+        }
         if let Some(&first) = names.get(&img.name) {
             return Err(ColmapError::DuplicateName {
                 path: img_path,
@@ -683,13 +727,6 @@ pub fn parse_model(
             });
         }
         names.insert(img.name.clone(), img.image_id);
-        if !seen.insert(img.image_id) {
-            return Err(ColmapError::Duplicate {
-                path: img_path,
-                what: "image",
-                id: img.image_id.into(),
-            });
-        }
         let cam = by_id
             .get(&img.camera_id)
             .ok_or_else(|| ColmapError::MissingCamera {

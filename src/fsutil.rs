@@ -85,13 +85,19 @@ pub fn write_json<T: Serialize + ?Sized>(path: &Path, value: &T) -> Result<(), F
     write_bytes(path, &text)
 }
 
+/// `bytes` without a leading UTF-8 byte-order mark (editors on Windows write one; JSON
+/// readers must not trip over it).
+pub fn strip_bom(bytes: &[u8]) -> &[u8] {
+    bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes)
+}
+
 /// Reads a JSON file into `T` (an error names the file, and serde's message the line and column).
 pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, FsError> {
     let bytes = fs::read(path).map_err(|err| FsError::Read {
         path: path.to_path_buf(),
         err,
     })?;
-    serde_json::from_slice(&bytes).map_err(|err| FsError::Parse {
+    serde_json::from_slice(strip_bom(&bytes)).map_err(|err| FsError::Parse {
         path: path.to_path_buf(),
         err,
     })

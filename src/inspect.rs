@@ -12,7 +12,11 @@
 //!   non-finite position is an error, other invalid Gaussians are a warning (the pipeline keeps
 //!   them in place and labels them −1);
 //! * every CityGML file: parse errors, and the reader's warnings with their gml:ids; a city
-//!   object's gml:id used in two files;
+//!   object's gml:id used in two files; a vertex the alignment puts beyond the scene frame
+//!   (`camera::outside_scene_frame`, which `citymodel` refuses);
+//! * `masks/` and `features/`: every SAM list, per-mask feature array and `prompts.json`, read
+//!   and checked as the masks stage reads them (RLE, sizes, scores, row counts, dimensions,
+//!   finite non-zero features); a view without a SAM list is a warning (test views need none);
 //! * the alignment's plausibility: in how many views the aligned city model projects inside the
 //!   image, and the distances between opaque Gaussian centres and the nearest city-model
 //!   surface, in metres (median and lower quartile, [`AlignmentCheck::quartile_distance_m`]) —
@@ -199,6 +203,26 @@ impl Findings {
     fn error_of(&mut self, file: &Path, e: &dyn std::fmt::Display) {
         let text = e.to_string();
         let shown = file.display().to_string();
+        // An error about a file inside the folder `file` names that file: it becomes the
+        // finding's file (`S/sparse/0/images.txt: …`, not `S/sparse/0: S/sparse/0/images.txt: …`).
+        if let Some(inner) = text
+            .strip_prefix(&shown)
+            .filter(|t| t.starts_with('/'))
+            .and_then(|t| t.split_once(": ").or_else(|| t.split_once(':')))
+            .map(|(name, rest)| (format!("{shown}{name}"), rest.to_string()))
+        {
+            let (path, rest) = inner;
+            // `images.txt:1: why` keeps its line with the file.
+            let (path, rest) = match rest.split_once(": ") {
+                Some((line, why))
+                    if line.chars().all(|c| c.is_ascii_digit()) && !line.is_empty() =>
+                {
+                    (format!("{path}:{line}"), why.to_string())
+                }
+                _ => (path, rest),
+            };
+            return self.error(Path::new(&path), rest);
+        }
         let message = text
             .strip_prefix(&shown)
             .and_then(|t| t.strip_prefix(": "))
@@ -240,10 +264,13 @@ pub fn check(root: &Path, opts: &CheckOptions) -> CheckReport {
     report.gaussians = gaussians.as_ref().map_or(0, Gaussians::len);
     let models = read_citygml(&gml, &mut f);
     optional_parts(root, views.as_deref(), &mut f);
-    if let (Some(views), Some(g), Some(models), Some(a)) = (&views, &gaussians, &models, alignment)
-    {
+    if let (Some(models), Some(a)) = (&models, alignment) {
         let a = a.unwrap_or_else(|| local_alignment(models));
-        report.alignment = plausibility(root, views, g, models, &a, opts, &mut f);
+        if scene_frame(models, &a, &mut f)
+            && let (Some(views), Some(g)) = (&views, &gaussians)
+        {
+            report.alignment = plausibility(root, views, g, models, &a, opts, &mut f);
+        }
     }
     report.findings = f.0;
     report.seconds = t0.elapsed().as_secs_f64();
@@ -511,6 +538,17 @@ fn read_gaussians(root: &Path, f: &mut Findings) -> Option<Gaussians> {
         );
         return None;
     }
+    if r.kept_invalid == g.len() {
+        f.error(
+            &p,
+            format!(
+                "none of the {} Gaussians can be drawn (every one is invalid: nothing to render \
+                 or label), first: {first}",
+                g.len()
+            ),
+        );
+        return None;
+    }
     if r.kept_invalid > 0 {
         f.warn(
             &p,
@@ -581,34 +619,142 @@ fn read_citygml(gml: &[PathBuf], f: &mut Findings) -> Option<Vec<CityModel>> {
     ok.then_some(models)
 }
 
-/// Notes on masks/, features/ and gt/.
+/// masks/ and features/: notes on what the run will use, and every SAM list, feature array
+/// and prompts file read as the masks stage reads them (each problem an error naming its
+/// file; [`MAX_LISTED`] of them, then a count).
 fn optional_parts(root: &Path, views: Option<&[View]>, f: &mut Findings) {
+    use rayon::prelude::*;
     let masks = root.join("masks");
-    if masks.is_dir() {
-        if let Some(views) = views {
-            let with = views
-                .iter()
-                .filter(|v| masks.join(format!("{}.json", v.stem())).is_file())
-                .count();
-            f.note(
-                &masks,
-                format!("SAM lists for {with} of {} views", views.len()),
-            );
-        }
-    } else {
+    let features = root.join("features");
+    if !masks.is_dir() {
         f.note(
             &masks,
             "absent: the masks stage uses the mask-free source (components of the 3DGS scene in \
              front of the city model); README, \"Masks and features\"",
         );
+        return;
     }
-    let features = root.join("features");
-    if masks.is_dir() && !features.is_dir() {
+    if !features.is_dir() {
         f.note(
             &features,
             "absent: masks are associated by geometry alone, and text queries are not available",
         );
     }
+    let Some(views) = views else { return };
+    let with: Vec<&View> = views
+        .iter()
+        .filter(|v| masks.join(format!("{}.json", v.stem())).is_file())
+        .collect();
+    f.note(
+        &masks,
+        format!("SAM lists for {} of {} views", with.len(), views.len()),
+    );
+    if let Some(v) = views
+        .iter()
+        .find(|v| !masks.join(format!("{}.json", v.stem())).is_file())
+    {
+        f.warn(
+            &masks,
+            format!(
+                "no SAM list for {} of {} views (first: {}.json): the masks stage stops at a \
+                 training view without one",
+                views.len() - with.len(),
+                views.len(),
+                v.stem()
+            ),
+        );
+    }
+    // The prompts decide whether features are read, and their dimension.
+    let prompts = features.join("prompts.json");
+    let dim = if prompts.is_file() {
+        match crate::sam::read_prompts_json(&prompts) {
+            Ok(p) => Some(p.dim),
+            Err(e) => {
+                f.error_of(&prompts, &e);
+                None
+            }
+        }
+    } else {
+        None
+    };
+    let problems: Vec<(PathBuf, String)> = with
+        .par_iter()
+        .flat_map_iter(|v| {
+            let stem = v.stem();
+            let k = &v.camera.intrinsics;
+            let list = masks.join(format!("{stem}.json"));
+            let size = [k.height as usize, k.width as usize];
+            let mut out = Vec::new();
+            match crate::sam::read_sam_json_sized(&list, Some(size)) {
+                Err(e) => out.push((list, e.to_string())),
+                Ok(sam) => {
+                    if let Some(dim) = dim {
+                        let npy = features.join(format!("{stem}.npy"));
+                        if !npy.is_file() {
+                            out.push((
+                                npy,
+                                "missing: features/prompts.json exists, so every view with \
+                                 masks needs its per-mask features"
+                                    .into(),
+                            ));
+                        } else {
+                            match crate::sam::read_features(&npy, Some(sam.len())) {
+                                Err(e) => out.push((npy, e.to_string())),
+                                Ok((_, d, _)) if d != dim => out.push((
+                                    npy,
+                                    format!(
+                                        "feature dimension {d}, but {} has dimension {dim}",
+                                        prompts.display()
+                                    ),
+                                )),
+                                Ok(_) => {}
+                            }
+                        }
+                    }
+                }
+            }
+            out
+        })
+        .collect();
+    for (file, why) in problems.iter().take(MAX_LISTED) {
+        f.error_of(file, why);
+    }
+    if problems.len() > MAX_LISTED {
+        f.error(
+            &masks,
+            format!(
+                "{} more problems in masks/ and features/",
+                problems.len() - MAX_LISTED
+            ),
+        );
+    }
+}
+
+/// Every used polygon's vertices inside the scene frame once aligned, as `citymodel` requires
+/// (`camera::outside_scene_frame`; non-finite coordinates are the triangulator's to skip):
+/// the first polygon of each file that leaves it is an error. Whether all are inside.
+fn scene_frame(models: &[CityModel], a: &Alignment, f: &mut Findings) -> bool {
+    let mut ok = true;
+    for m in models {
+        let bad = m.used_polygons().find_map(|p| {
+            std::iter::once(&p.exterior)
+                .chain(&p.interiors)
+                .flat_map(|r| &r.points)
+                .filter(|q| q.is_finite())
+                .find_map(|q| crate::camera::outside_scene_frame(a.apply(*q)))
+                .map(|why| (p, why))
+        });
+        if let Some((p, why)) = bad {
+            let line = if p.line > 0 {
+                format!("line {}: ", p.line)
+            } else {
+                String::new()
+            };
+            f.error(&m.path, format!("{line}{}: {why}", p.name()));
+            ok = false;
+        }
+    }
+    ok
 }
 
 /// The local origin `citymodel` uses without an alignment: the whole-metre minimum corner.

@@ -134,13 +134,31 @@ pub enum SamError {
         path: PathBuf,
         err: serde_json::Error,
     },
+    #[error("{path}: mask {index}: \"{field}\" is {value:e}, outside {lo}..={hi}")]
+    Score {
+        path: PathBuf,
+        index: usize,
+        field: &'static str,
+        value: f64,
+        lo: f64,
+        hi: f64,
+    },
+    #[error("{path}: mask {index}: {why}")]
+    Mask {
+        path: PathBuf,
+        index: usize,
+        why: &'static str,
+    },
     #[error(transparent)]
     Fs(#[from] FsError),
 }
 
 /// The `counts` of an RLE: COCO's compressed string or the plain list of run lengths.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(untagged)]
+#[serde(
+    untagged,
+    expecting = "\"counts\" must be COCO's compressed RLE string or a list of non-negative run lengths"
+)]
 pub enum RleCounts {
     /// `rleToString` text (what SAM's `coco_rle` output holds).
     Compressed(String),
@@ -150,6 +168,9 @@ pub enum RleCounts {
 
 /// A COCO run-length encoded binary mask (`{"size": [h, w], "counts": ...}`).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(
+    expecting = "an RLE {\"size\": [h, w], \"counts\": …} (polygon segmentations are not read: write SAM's coco_rle output)"
+)]
 pub struct Rle {
     /// `[h, w]`.
     pub size: [usize; 2],
@@ -529,11 +550,19 @@ pub fn parse_sam_json(
     image_size: Option<[usize; 2]>,
 ) -> Result<Vec<SamMask>, SamError> {
     let p = || path.to_path_buf();
-    let items: Vec<serde_json::Value> =
-        serde_json::from_slice(bytes).map_err(|err| SamError::Json { path: p(), err })?;
+    let items: Vec<serde_json::Value> = serde_json::from_slice(crate::fsutil::strip_bom(bytes))
+        .map_err(|err| SamError::Json { path: p(), err })?;
     let mut out = Vec::with_capacity(items.len());
     let mut expected = image_size.map(|s| (s, "the image size"));
     for (index, item) in items.into_iter().enumerate() {
+        if item.get("segmentation").is_some_and(|s| s.is_array()) {
+            return Err(SamError::Mask {
+                path: p(),
+                index,
+                why: "\"segmentation\" is a polygon list: only RLE masks ({\"size\": [h, w], \
+                      \"counts\": …}) are read; write SAM's output with output_mode \"coco_rle\"",
+            });
+        }
         let m: SamMask = serde_json::from_value(item).map_err(|err| SamError::Field {
             path: p(),
             index,
@@ -575,6 +604,23 @@ pub fn parse_sam_json(
                 stated: m.area,
                 decoded,
             });
+        }
+        // SAM's IoU head is a regression (a small excess over 1 occurs); the stability score
+        // is a ratio of areas.
+        for (field, value, lo, hi) in [
+            ("predicted_iou", m.predicted_iou, -0.5, 1.5),
+            ("stability_score", m.stability_score, 0.0, 1.0),
+        ] {
+            if !(lo..=hi).contains(&value) {
+                return Err(SamError::Score {
+                    path: p(),
+                    index,
+                    field,
+                    value,
+                    lo,
+                    hi,
+                });
+            }
         }
         out.push(m);
     }
@@ -643,9 +689,11 @@ pub fn read_prompts_json(path: &Path) -> Result<Prompts, SamError> {
 
 /// Parses a prompts file: `dim ≥ 1`, every vector has `dim` finite values.
 pub fn parse_prompts_json(path: &Path, bytes: &[u8]) -> Result<Prompts, SamError> {
-    let p: Prompts = serde_json::from_slice(bytes).map_err(|err| SamError::Prompts {
-        path: path.to_path_buf(),
-        err,
+    let p: Prompts = serde_json::from_slice(crate::fsutil::strip_bom(bytes)).map_err(|err| {
+        SamError::Prompts {
+            path: path.to_path_buf(),
+            err,
+        }
     })?;
     let bad = |prompt: &str, why: String| SamError::Prompt {
         path: path.to_path_buf(),
@@ -676,7 +724,8 @@ pub fn parse_prompts_json(path: &Path, bytes: &[u8]) -> Result<Prompts, SamError
 }
 
 /// Reads per-mask features (`features/<stem>.npy`, float32 `N×D`): returns `(N, D, values
-/// row-major)`. Every value must be finite; `masks`, when given, must equal `N`.
+/// row-major)`. Every value must be finite and no row all zero; `masks`, when given, must
+/// equal `N`.
 pub fn read_features(
     path: &Path,
     masks: Option<usize>,
@@ -703,6 +752,14 @@ pub fn read_features(
             k / d.max(1),
             k % d.max(1),
             data[k]
+        )));
+    }
+    if d == 0 && n > 0 {
+        return Err(bad(format!("{n} rows of 0 values (no feature dimension)")));
+    }
+    if let Some(r) = (0..n).find(|&r| data[r * d..(r + 1) * d].iter().all(|&x| x == 0.0)) {
+        return Err(bad(format!(
+            "row {r} is all zero: a mask's feature must be a non-zero vector"
         )));
     }
     Ok((n, d, data))

@@ -258,15 +258,31 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
         Some(p) => parts.push(("point_cloud.ply".into(), p)),
         None => missing.push("point_cloud.ply".into()),
     }
-    // The COLMAP folder.
+    // The COLMAP folder, and why it is missing when it is.
+    let mut no_source = String::new();
     let source = match (&spec.source, &spec.model) {
         (Some(s), _) => Some(abs(s)?),
-        (None, Some(m)) => cfg_field(m, "source_path")
-            .map(PathBuf::from)
-            .filter(|p| p.is_dir())
-            .map(|p| abs(&p))
-            .transpose()?,
-        (None, None) => None,
+        (None, Some(m)) => match cfg_field(m, "source_path") {
+            None => {
+                no_source = format!(
+                    "{} holds no readable source_path='…': give --source",
+                    m.join("cfg_args").display()
+                );
+                None
+            }
+            Some(p) if !Path::new(&p).is_dir() => {
+                no_source = format!(
+                    "the source_path of {}, {p}, is not a folder here: give --source",
+                    m.join("cfg_args").display()
+                );
+                None
+            }
+            Some(p) => Some(abs(Path::new(&p))?),
+        },
+        (None, None) => {
+            no_source = "give --source (the COLMAP folder) or --model".into();
+            None
+        }
     };
     if let Some(src) = &source {
         let sparse = [src.join("sparse/0"), src.join("sparse")]
@@ -274,7 +290,10 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
             .find(|p| p.join("images.bin").is_file() || p.join("images.txt").is_file());
         match sparse {
             Some(p) => parts.push(("sparse/0".into(), p)),
-            None => missing.push("sparse/0".into()),
+            None => missing.push(format!(
+                "sparse/0 (no images.bin or images.txt in {0}/sparse/0 or {0}/sparse)",
+                src.display()
+            )),
         }
         let images = spec
             .model
@@ -283,10 +302,16 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
             .unwrap_or_else(|| "images".into());
         match Some(src.join(&images)).filter(|p| p.is_dir()) {
             Some(p) => parts.push(("images".into(), p)),
-            None => missing.push("images".into()),
+            None => missing.push(format!(
+                "images (no folder {})",
+                src.join(&images).display()
+            )),
         }
     } else {
-        missing.extend(["sparse/0".to_string(), "images".to_string()]);
+        missing.extend([
+            format!("sparse/0 ({no_source})"),
+            format!("images ({no_source})"),
+        ]);
     }
     // The city model.
     let mut gml = Vec::new();

@@ -136,6 +136,19 @@ fn check_names_each_defect_in_one_line_and_run_stops_before_any_stage() {
     };
     let img1 = img.clone();
     let img2 = img_b.clone();
+    let stem = views[2].stem();
+    let (stem1, stem2) = (stem.clone(), stem.clone());
+    let gml_name = std::fs::read_dir(base.join("citymodel"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "gml"))
+        .min()
+        .unwrap()
+        .file_name()
+        .unwrap()
+        .to_string_lossy()
+        .into_owned();
+    let gml1 = gml_name.clone();
     let cases: Vec<(&str, Vec<&str>, Change<'_>, Vec<String>)> = vec![
         (
             "missing-image",
@@ -174,6 +187,68 @@ fn check_names_each_defect_in_one_line_and_run_stops_before_any_stage() {
             vec![format!(
                 "point_cloud.ply: 1 of {n} Gaussians have a non-finite position"
             )],
+        ),
+        (
+            // Every Gaussian invalid (a log-scale far beyond exp's range): nothing to draw.
+            "no-drawable-gaussian",
+            vec!["point_cloud.ply"],
+            Box::new(move |d: &Path| {
+                let p = d.join("point_cloud.ply");
+                let mut b = std::fs::read(&p).unwrap();
+                let (start, stride, off) = ply_layout(&b, "scale_0");
+                for v in 0..n {
+                    let o = start + v * stride + off;
+                    b[o..o + 4].copy_from_slice(&1e30f32.to_le_bytes());
+                }
+                std::fs::write(&p, b).unwrap();
+            }),
+            vec![format!(
+                "point_cloud.ply: none of the {n} Gaussians can be drawn"
+            )],
+        ),
+        (
+            // A SAM list cut short (a partial copy): found by the check, not by the masks
+            // stage after the raycast and the render.
+            "truncated-masks",
+            vec!["masks"],
+            Box::new(move |d: &Path| {
+                let p = d.join(format!("masks/{stem1}.json"));
+                let b = std::fs::read(&p).unwrap();
+                std::fs::write(&p, &b[..b.len() / 2]).unwrap();
+            }),
+            vec![format!("masks/{stem}.json: not a JSON list of SAM masks")],
+        ),
+        (
+            "zero-feature-row",
+            vec!["features"],
+            Box::new(move |d: &Path| {
+                let p = d.join(format!("features/{stem2}.npy"));
+                let (n, dim, mut data) = gs4city::sam::read_features(&p, None).unwrap();
+                assert!(n > 1);
+                data[dim..2 * dim].fill(0.0);
+                let rows: Vec<Vec<f32>> = data.chunks(dim).map(<[f32]>::to_vec).collect();
+                gs4city::sam::write_features_npy(&p, dim, &rows).unwrap();
+            }),
+            vec![format!(
+                "features/{}.npy: row 1 is all zero",
+                views[2].stem()
+            )],
+        ),
+        (
+            // A mistyped exponent: the vertex lands far outside the scene frame, which the
+            // citymodel stage refuses; the check says so first.
+            "coordinate-beyond-the-frame",
+            vec!["citymodel"],
+            Box::new(move |d: &Path| {
+                let p = d.join("citymodel").join(&gml1);
+                let text = std::fs::read_to_string(&p).unwrap();
+                let at = text.find("<gml:posList").unwrap();
+                let open = at + text[at..].find('>').unwrap() + 1;
+                let first_end = open + text[open..].find(' ').unwrap();
+                let changed = format!("{}1e300{}", &text[..open], &text[first_end..]);
+                std::fs::write(&p, changed).unwrap();
+            }),
+            vec![format!("citymodel/{gml_name}: line ")],
         ),
         (
             "shifted-50m",
@@ -513,5 +588,49 @@ fn invalid_gaussians_stay_in_semantic_ply_and_class_query_masks_equal_the_class_
         compared += 1;
     }
     assert!(compared >= 1);
+    let _ = std::fs::remove_dir_all(&r);
+}
+
+/// `scene import` that cannot find the COLMAP folder says why (the training output's
+/// `cfg_args` has no readable `source_path`) and exits with an error, though the folder is
+/// written for the user to complete.
+#[test]
+fn an_import_with_problems_names_them_and_fails() {
+    let r = root("import-fails");
+    let model = r.join("output");
+    let it = model.join("point_cloud/iteration_10");
+    std::fs::create_dir_all(&it).unwrap();
+    std::fs::write(it.join("point_cloud.ply"), b"ply\nformat ascii 1.0\n").unwrap();
+    std::fs::write(model.join("cfg_args"), "not a namespace at all").unwrap();
+    let gml = r.join("lod3");
+    std::fs::create_dir_all(&gml).unwrap();
+    let out = r.join("S");
+    let (ok, stdout, err) = cli_in(
+        None,
+        &[
+            "scene",
+            "import",
+            "--model",
+            s(&model),
+            "--citygml",
+            s(&gml),
+            "--out",
+            s(&out),
+        ],
+    );
+    assert!(!ok, "{stdout}\n{err}");
+    let cfg = model.join("cfg_args");
+    assert!(
+        stdout.contains(&format!(
+            "not found: sparse/0 ({} holds no readable source_path",
+            cfg.display()
+        )),
+        "{stdout}"
+    );
+    assert!(
+        err.contains("problems must be fixed before `gs4city run`"),
+        "{err}"
+    );
+    assert!(out.join("point_cloud.ply").exists());
     let _ = std::fs::remove_dir_all(&r);
 }

@@ -320,6 +320,51 @@ fn xlinked_solid_polygons_are_counted_once_and_reversed_surfaces_flip() {
     assert_eq!(m.count(Class::WallSurface), 1);
 }
 
+/// A reference to a container whose members are themselves references (a CompositeSurface
+/// of xlinks, here in a cycle C1 → C2 → C1) is followed to the polygons they name, not
+/// reported as dangling; a container of references that name nothing is reported as such.
+#[test]
+fn nested_xlinks_are_followed_and_cycles_cut() {
+    let p9 = "<bldg:lod3MultiSurface><gml:MultiSurface><gml:surfaceMember><gml:Polygon gml:id=\"P9\"><gml:exterior><gml:LinearRing>\
+         <gml:pos>0 0 5</gml:pos><gml:pos>1 0 5</gml:pos><gml:pos>1 1 5</gml:pos><gml:pos>0 0 5</gml:pos></gml:LinearRing></gml:exterior></gml:Polygon>\
+         </gml:surfaceMember></gml:MultiSurface></bldg:lod3MultiSurface>";
+    let by_ref = |href: &str| {
+        format!(
+            "<bldg:boundedBy><bldg:WallSurface gml:id=\"W{href}\"><bldg:lod3MultiSurface><gml:MultiSurface>\
+             <gml:surfaceMember xlink:href=\"#{href}\"/></gml:MultiSurface></bldg:lod3MultiSurface></bldg:WallSurface></bldg:boundedBy>"
+        )
+    };
+    let snippet = format!(
+        "{HEAD}<bldg:lod3Solid><gml:Solid><gml:exterior><gml:CompositeSurface gml:id=\"C1\">\
+         <gml:surfaceMember xlink:href=\"#C2\"/></gml:CompositeSurface></gml:exterior></gml:Solid></bldg:lod3Solid>\
+         <bldg:lod4Solid><gml:Solid><gml:exterior><gml:CompositeSurface gml:id=\"C2\">\
+         <gml:surfaceMember xlink:href=\"#C1\"/><gml:surfaceMember xlink:href=\"#P9\"/></gml:CompositeSurface></gml:exterior></gml:Solid></bldg:lod4Solid>\
+         {p9}{}{TAIL}",
+        by_ref("C1")
+    );
+    let m = read(&snippet).unwrap();
+    assert_eq!(m.stats.xlinks_dangling, 0, "{:?}", m.warnings);
+    // #C1 (the wall's), #C2 (in C1), #C1 and #P9 (in C2): each names P9.
+    assert_eq!(m.stats.xlinks_shared, 4, "{:?}", m.stats);
+    // A container whose one member names nothing: that member and the reference to the
+    // container are both reported, the container's by what it holds.
+    let snippet = format!(
+        "{HEAD}<bldg:lod3Solid><gml:Solid><gml:exterior><gml:CompositeSurface gml:id=\"C3\">\
+         <gml:surfaceMember xlink:href=\"#nowhere\"/></gml:CompositeSurface></gml:exterior></gml:Solid></bldg:lod3Solid>\
+         {p9}{}{TAIL}",
+        by_ref("C3")
+    );
+    let m = read(&snippet).unwrap();
+    assert_eq!(m.stats.xlinks_dangling, 2);
+    assert!(
+        m.warnings
+            .iter()
+            .any(|w| w.message.contains("#C3") && w.message.contains("name no geometry")),
+        "{:?}",
+        m.warnings
+    );
+}
+
 #[test]
 fn lod2_fallback_is_named() {
     let snippet = format!(

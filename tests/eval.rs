@@ -241,6 +241,24 @@ fn all_wrong_is_all_zeros() {
     approx(&m, &["paper", "miou", "mean"], Some(0.0));
 }
 
+/// A prediction of another aspect ratio is another image: an error naming it, not a stretch.
+#[test]
+fn a_prediction_of_another_shape_is_refused() {
+    let t = TmpDir::new("shape");
+    put(&t.gt(), "v", [40, 60], &[WALL; 2400]);
+    put(&t.pred(), "v", [20, 60], &[WALL; 1200]);
+    let e = eval::evaluate_dirs(&t.pred(), &t.gt())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("v.class.npy") && e.contains("20×60 prediction for a 40×60"),
+        "{e}"
+    );
+    // Half the resolution, the same shape: resized.
+    put(&t.pred(), "v", [20, 30], &[WALL; 600]);
+    assert!(eval::evaluate_dirs(&t.pred(), &t.gt()).unwrap().images[0].resized());
+}
+
 /// Size mismatch: GT 2×4, prediction 1×2 (wall, tree) → resized to
 /// `wall wall tree tree` on both rows. GT: wall wall wall tree / window window tree tree.
 /// Coarse: GT building = 3 walls + 2 windows; predicted building = columns 0,1.

@@ -652,13 +652,13 @@ fn a_sam_list_of_another_size_is_an_error_naming_the_file() {
 fn features_with_the_wrong_rows_or_dimension_are_errors_naming_the_file() {
     let f = fixture("badfeat", true);
     let path = f.scene.join(format!("features/{STEM}.npy"));
-    sam::write_features_npy(&path, PROMPTS.len(), &vec![vec![0.0; PROMPTS.len()]; 3]).unwrap();
+    sam::write_features_npy(&path, PROMPTS.len(), &vec![vec![1.0; PROMPTS.len()]; 3]).unwrap();
     let e = err(&f, Test::Features, false);
     assert!(
         e.contains("features/v0.npy") && e.contains("3 feature rows") && e.contains("8 masks"),
         "{e}"
     );
-    sam::write_features_npy(&path, 4, &vec![vec![0.0; 4]; 8]).unwrap();
+    sam::write_features_npy(&path, 4, &vec![vec![1.0; 4]; 8]).unwrap();
     let e = err(&f, Test::Features, false);
     assert!(
         e.contains("features/v0.npy") && e.contains("dimension 4") && e.contains("prompts.json"),

@@ -75,7 +75,7 @@ pub fn decode_text<'a>(
     if let Some(body) = bytes.strip_prefix(b"\xFE\xFF") {
         return utf16(body, true);
     }
-    let bytes = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
+    let bytes = crate::fsutil::strip_bom(bytes);
     let declared = declared_encoding(bytes);
     let norm = declared
         .as_deref()

@@ -35,6 +35,9 @@ pub(super) struct Reference {
     line: u64,
 }
 
+/// Steps (gml:ids visited) a file's nested xlink references may take in all (`resolve_references`).
+const XLINK_BUDGET: usize = 1_000_000;
+
 const GEOM_CONTAINERS: &[&str] = &[
     "MultiSurface",
     "CompositeSurface",
@@ -229,8 +232,15 @@ impl Parser {
     }
 
     fn add_reference(&mut self, href: &str, line: u64) {
+        let href = href.trim_start_matches('#').to_string();
+        for cid in &self.container_ids {
+            self.container_refs
+                .entry(cid.clone())
+                .or_default()
+                .push(href.clone());
+        }
         self.references.push(Reference {
-            href: href.trim_start_matches('#').to_string(),
+            href,
             owner: self.current_object(),
             lod: self.lod,
             reversed: self.reversed_depth % 2 == 1,
@@ -377,17 +387,31 @@ impl Parser {
         self.polygons.push(poly);
     }
 
-    /// xlink references: geometry owned inline is the same geometry, counted once.
+    /// xlink references: geometry owned inline is the same geometry, counted once. A reference
+    /// to a container whose members are themselves references (a `CompositeSurface` of
+    /// xlinks) is followed through them, cycles cut; all such following shares one budget of
+    /// [`XLINK_BUDGET`] steps per file, beyond which a reference is skipped with a warning.
     pub(super) fn resolve_references(&mut self) {
+        let mut budget = XLINK_BUDGET;
         for r in std::mem::take(&mut self.references) {
-            match self.geometry_ids.get(&r.href) {
-                None => {
+            let found = match self.geometry_ids.get(&r.href) {
+                _ if self.container_refs.contains_key(&r.href) => {
+                    self.nested_targets(&r.href, &mut budget)
+                }
+                Some(t) => Ok(t.clone()),
+                None => Err(format!(
+                    "dangling xlink:href=\"#{}\": no geometry with that gml:id, reference skipped",
+                    r.href
+                )),
+            };
+            match found {
+                Err(why) => {
                     self.stats.xlinks_dangling += 1;
                     let id = r.owner.map(|o| self.objects[o].object_id.clone());
-                    self.warn(r.line, id, format!("dangling xlink:href=\"#{}\": no geometry with that gml:id, reference skipped", r.href));
+                    self.warn(r.line, id, why);
                 }
-                Some(targets) => {
-                    for &t in targets {
+                Ok(targets) => {
+                    for t in targets {
                         let poly = &mut self.polygons[t];
                         if poly.owner.is_some() || r.owner.is_none() {
                             self.stats.xlinks_shared += 1;
@@ -401,5 +425,39 @@ impl Parser {
                 }
             }
         }
+    }
+
+    /// The polygons of container `href` through its xlink members, breadth first, each
+    /// gml:id visited once (cycles cut); `Err` with the reason when none is found or the
+    /// budget runs out.
+    fn nested_targets(&self, href: &str, budget: &mut usize) -> Result<Vec<usize>, String> {
+        let mut seen: std::collections::HashSet<&str> = std::collections::HashSet::new();
+        let mut queue = std::collections::VecDeque::from([href]);
+        let mut out = Vec::new();
+        seen.insert(href);
+        while let Some(h) = queue.pop_front() {
+            if *budget == 0 {
+                return Err(format!(
+                    "xlink:href=\"#{href}\" names a container of xlinks nested beyond the reader's budget ({XLINK_BUDGET} steps per file), reference skipped"
+                ));
+            }
+            *budget -= 1;
+            if let Some(t) = self.geometry_ids.get(h) {
+                out.extend_from_slice(t);
+            }
+            for next in self.container_refs.get(h).into_iter().flatten() {
+                if seen.insert(next.as_str()) {
+                    queue.push_back(next.as_str());
+                }
+            }
+        }
+        out.sort_unstable();
+        out.dedup();
+        if out.is_empty() {
+            return Err(format!(
+                "xlink:href=\"#{href}\" names a container whose xlink members name no geometry, reference skipped"
+            ));
+        }
+        Ok(out)
     }
 }

@@ -156,6 +156,8 @@ pub(super) struct Parser {
     pub(super) polygons: Vec<Polygon>,
     /// id → polygon indices (a polygon's own id and ids of containers around it).
     pub(super) geometry_ids: HashMap<String, Vec<usize>>,
+    /// Container id → the hrefs of its xlink members (a `CompositeSurface` of references).
+    pub(super) container_refs: HashMap<String, Vec<String>>,
     pub(super) references: Vec<Reference>,
     pub(super) gen_attrs: Vec<GenAttrBuilder>,
     pub(super) gen_set: Vec<String>,
@@ -222,6 +224,7 @@ fn parse(path: &Path, text: &[u8]) -> Result<CityModel, CityGmlError> {
         collecting: false,
         polygons: Vec::new(),
         geometry_ids: HashMap::new(),
+        container_refs: HashMap::new(),
         references: Vec::new(),
         gen_attrs: Vec::new(),
         gen_set: Vec::new(),

@@ -53,7 +53,8 @@ fn json_err(path: &Path, line: u64, e: serde_json::Error) -> CityJsonError {
 /// A CityJSON document.
 pub(super) fn read_document(path: &Path, bytes: &[u8]) -> Result<CityModel, CityJsonError> {
     let at = At { path, line: None };
-    let doc: Value = serde_json::from_slice(bytes).map_err(|e| json_err(path, 1, e))?;
+    let doc: Value = serde_json::from_slice(crate::fsutil::strip_bom(bytes))
+        .map_err(|e| json_err(path, 1, e))?;
     let root = doc
         .as_object()
         .ok_or_else(|| at.err(None, "the top level is not a JSON object"))?;
@@ -94,7 +95,12 @@ pub(super) fn read_seq(path: &Path) -> Result<CityModel, CityJsonError> {
             path,
             line: Some(line),
         };
-        let v: Value = serde_json::from_str(&text).map_err(|e| json_err(path, line, e))?;
+        let body = if line == 1 {
+            text.trim_start_matches('\u{feff}')
+        } else {
+            &text
+        };
+        let v: Value = serde_json::from_str(body).map_err(|e| json_err(path, line, e))?;
         let obj = v
             .as_object()
             .ok_or_else(|| at.err(None, "the line is not a JSON object"))?;

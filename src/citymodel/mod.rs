@@ -11,7 +11,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::alignment::{AlignError, Alignment};
-use crate::camera::SCENE_COORD_LIMIT;
+use crate::camera::outside_scene_frame;
 use crate::citygml::{self, CityGmlError, CityModel, Class};
 use crate::cityjson::{self, CityJsonError};
 use crate::fsutil::{self, FsError};
@@ -38,15 +38,23 @@ pub enum CityModelError {
     NoInput,
     #[error("{path}: {why}")]
     Input { path: PathBuf, why: String },
-    #[error("{path}:{line}: {polygon}: {why}")]
+    #[error("{}: {polygon}: {why}", at_line(path, *line))]
     Frame {
         path: PathBuf,
         line: u64,
         polygon: String,
         why: String,
     },
-    #[error("no polygon of {0} could be triangulated: nothing to write")]
-    Empty(String),
+    #[error("no polygon of {files} could be triangulated: nothing to write ({why})")]
+    Empty { files: String, why: String },
+}
+
+/// `path:line`, or `path` where there is no line (CityJSON: line 0).
+fn at_line(path: &Path, line: u64) -> String {
+    match line {
+        0 => path.display().to_string(),
+        l => format!("{}:{l}", path.display()),
+    }
 }
 
 /// A polygon that produced no triangles.
@@ -537,7 +545,30 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
             .map(|f| f.display().to_string())
             .collect::<Vec<_>>()
             .join(", ");
-        return Err(CityModelError::Empty(names));
+        // Why: the first polygon the triangulator skipped, else the readers' first warning
+        // (dropped geometry: a dangling xlink, a non-finite coordinate, …).
+        let why = match skipped.first() {
+            Some(k) => format!(
+                "{} polygons skipped, first: {}: {}: {}",
+                skipped.len(),
+                at_line(Path::new(&k.file), k.line),
+                k.polygon
+                    .as_deref()
+                    .map_or("polygon without gml:id".into(), |id| format!(
+                        "polygon {id}"
+                    )),
+                k.reason
+            ),
+            None => models
+                .iter()
+                .flat_map(|m| m.warnings.iter().map(|w| w.to_string()))
+                .next()
+                .map_or_else(
+                    || "no polygon of a building, its surfaces or openings in LoD 1–3".into(),
+                    |w| format!("first reader warning: {w}"),
+                ),
+        };
+        return Err(CityModelError::Empty { files: names, why });
     }
 
     let summary = summarize(
@@ -721,16 +752,4 @@ fn show_warnings(items: &[String]) {
             items.len() - WARNINGS_SHOWN
         );
     }
-}
-
-/// Why a point in the scene frame cannot be used (not finite, or beyond
-/// [`SCENE_COORD_LIMIT`]), or `None` when it can.
-fn outside_scene_frame(s: DVec3) -> Option<String> {
-    if s.is_finite() && s.abs().max_element() <= SCENE_COORD_LIMIT {
-        return None;
-    }
-    Some(format!(
-        "a vertex lands at ({:e}, {:e}, {:e}) in the scene frame, beyond ±{SCENE_COORD_LIMIT:e} (camera::SCENE_COORD_LIMIT, the f32 frame's limit): check the coordinates and the alignment's scale and translation",
-        s.x, s.y, s.z
-    ))
 }

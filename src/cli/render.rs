@@ -113,6 +113,13 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     // Run.
     let mut scene = PreparedScene::new(&gaussians)
         .with_context(|| format!("preparing {}", args.ply.display()))?;
+    render::check_inputs(&scene, &views).with_context(|| {
+        format!(
+            "{} with the views of {}",
+            args.ply.display(),
+            args.colmap.display()
+        )
+    })?;
     if args.cache {
         let s = render::cache::build(&scene, &views, &cache_options, &args.out)?;
         println!(

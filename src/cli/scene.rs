@@ -82,7 +82,7 @@ fn import(a: &ImportArgs) -> anyhow::Result<()> {
         println!("{:<28} ← {}", part, src.display());
     }
     for m in &r.missing {
-        println!("{m:<28}   (not found)");
+        println!("not found: {m}");
     }
     // The check says what is missing or wrong, and what it is for.
     let report = crate::inspect::check(
@@ -95,12 +95,12 @@ fn import(a: &ImportArgs) -> anyhow::Result<()> {
     super::check::print_report(&report, log::log_enabled!(log::Level::Info));
     let errors = report.of(crate::inspect::Severity::Error).count();
     if errors > 0 {
-        println!(
-            "scene {}: written; {errors} problems to fix before `gs4city run` (above;              `gs4city check --scene {}` lists them again)",
+        anyhow::bail!(
+            "scene {}: written, but {errors} problems must be fixed before `gs4city run` \
+             (above; `gs4city check --scene {}` lists them again)",
             a.out.display(),
             a.out.display()
         );
-        return Ok(());
     }
     println!(
         "scene {}: ready (gs4city run --scene {} --out RUN)",

@@ -6,8 +6,10 @@
 //!
 //! Files: GT `<gt>/<stem>.class.npy` and prediction `<pred>/<stem>.class.npy`, int32 H×W
 //! (`docs/design.md`). A missing prediction is an error; a prediction without GT is a warning. A
-//! prediction of another size is resized to the GT size by nearest neighbour (pixel
-//! centres: source index `⌊(2i+1)·src/(2·dst)⌋`, as PIL `Image.NEAREST`), with a warning.
+//! prediction of another size but the same aspect ratio (within 1 % or one pixel's rounding)
+//! is resized to the GT size by nearest neighbour (pixel centres: source index
+//! `⌊(2i+1)·src/(2·dst)⌋`, as PIL `Image.NEAREST`), with a warning; another aspect ratio is an
+//! error (another image).
 //! The metric arithmetic lives in [`metrics`] (pure functions over arrays).
 pub mod by_query;
 pub mod metrics;
@@ -51,6 +53,16 @@ pub enum EvalError {
         value: i32,
         row: usize,
         col: usize,
+    },
+    #[error(
+        "{path}: a {}×{} prediction for a {}×{} ground truth: another aspect ratio, so another \
+         image (a prediction of another size is only resized when its shape is the ground truth's)",
+        pred[0], pred[1], gt[0], gt[1]
+    )]
+    Shape {
+        path: PathBuf,
+        pred: [usize; 2],
+        gt: [usize; 2],
     },
     #[error("no prediction for ground-truth view '{stem}': expected {path}")]
     MissingPrediction { stem: String, path: PathBuf },
@@ -109,6 +121,14 @@ impl ImageEval {
     }
 }
 
+/// Whether an `[h, w]` map is the ground truth's image at another resolution: the aspect
+/// ratios agree within 1 % or within the rounding of one pixel on either side.
+fn same_shape(pred: [usize; 2], gt: [usize; 2]) -> bool {
+    let (ph, pw, gh, gw) = (pred[0] as f64, pred[1] as f64, gt[0] as f64, gt[1] as f64);
+    let cross = (ph * gw - gh * pw).abs();
+    cross <= 0.01 * gh * pw || cross <= gw + pw
+}
+
 /// Evaluates one view from its files.
 pub fn evaluate_view(stem: &str, gt_path: &Path, pred_path: &Path) -> Result<ImageEval, EvalError> {
     let (gt_size, gt) = load_map(gt_path)?;
@@ -121,6 +141,13 @@ pub fn evaluate_view(stem: &str, gt_path: &Path, pred_path: &Path) -> Result<Ima
         });
     }
     let (pred_size, mut pred) = load_map(pred_path)?;
+    if !same_shape(pred_size, gt_size) {
+        return Err(EvalError::Shape {
+            path: pred_path.to_path_buf(),
+            pred: pred_size,
+            gt: gt_size,
+        });
+    }
     if pred_size != gt_size {
         pred = resize_nearest(&pred, pred_size, gt_size);
     }

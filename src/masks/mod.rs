@@ -699,7 +699,11 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
             .images
             .as_ref()
             .map(|d| d.join(&v.name))
-            .and_then(|p| imageio::read_rgb(&p).ok());
+            .and_then(|p| {
+                imageio::read_rgb(&p)
+                    .map_err(|e| log::warn!("masks: {e}: its overlay is drawn on grey"))
+                    .ok()
+            });
         overlay::write(&plan.out.join(overlay_name(&stem)), image, h, w, &kept)?;
     }
     let overlay_s = t3.elapsed().as_secs_f64();

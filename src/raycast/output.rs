@@ -134,8 +134,22 @@ pub fn run(
         let image = images_dir
             .map(|d| d.join(&v.name))
             .filter(|p| p.is_file())
-            .and_then(|p| imageio::read_rgb(&p).ok())
-            .filter(|img| img.dim() == (h, w, 3));
+            .and_then(|p| match imageio::read_rgb(&p) {
+                Ok(img) if img.dim() == (h, w, 3) => Some(img),
+                Ok(img) => {
+                    log::warn!(
+                        "raycast: {}: {}×{} pixels, the camera's are {w}×{h}: its overlay is drawn on grey",
+                        p.display(),
+                        img.dim().1,
+                        img.dim().0
+                    );
+                    None
+                }
+                Err(e) => {
+                    log::warn!("raycast: {e}: its overlay is drawn on grey");
+                    None
+                }
+            });
         imageio::write_png(
             &out_dir.join(format!("{stem}.overlay.png")),
             &overlay(ids, image.as_ref()),

@@ -89,18 +89,10 @@ pub fn build(
     out_dir: &Path,
 ) -> Result<CacheSummary, RenderError> {
     opts.validate().map_err(RenderError::Options)?;
+    super::check_inputs(scene, views)?;
     let t0 = Instant::now();
     fsutil::create_dir(out_dir)?;
     let _ = std::fs::remove_file(out_dir.join("summary.json"));
-    let mut stems = std::collections::BTreeSet::new();
-    for v in views {
-        if !stems.insert(v.stem()) {
-            return Err(RenderError::Camera {
-                view: v.name.clone(),
-                why: format!("two views share the output stem `{}`", v.stem()),
-            });
-        }
-    }
     let bar = Bar::new("render", views.len() as u64, "views");
     let mut summary = CacheSummary {
         gaussians: scene.len(),
