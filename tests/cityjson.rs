@@ -763,3 +763,24 @@ fn drop_openings_edits_the_model() {
     assert!(!a.is_empty() && a.len() < 19, "{} of 19 at 0.5", a.len());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A UTF-8 byte-order mark (Windows editors write one) is skipped: the document reads as
+/// without it.
+#[test]
+fn a_byte_order_mark_is_skipped() {
+    let dir = common::temp_dir().join(format!("gs4city-cj-bom-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let plain = write(&dir, "plain.city.json", &cube());
+    let bom = dir.join("bom.city.json");
+    let mut bytes = b"\xEF\xBB\xBF".to_vec();
+    bytes.extend(std::fs::read(&plain).unwrap());
+    std::fs::write(&bom, bytes).unwrap();
+    let (a, b) = (
+        cityjson::read_any(&plain).unwrap(),
+        cityjson::read_any(&bom).unwrap(),
+    );
+    assert_eq!(a.objects.len(), b.objects.len());
+    assert_eq!(a.polygons.len(), b.polygons.len());
+    assert!(!b.polygons.is_empty());
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -470,3 +470,29 @@ fn inside(p: DVec2, r: &[DVec2]) -> bool {
     }
     c
 }
+
+/// When nothing can be triangulated, the error says why: the first skipped polygon with its
+/// file, line and reason.
+#[test]
+fn nothing_triangulated_names_the_first_reason() {
+    let dir = crate::common::temp_dir().join(format!("gs4city-none-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let f = dir.join("nan.gml");
+    std::fs::write(
+        &f,
+        format!("{HEAD}{}{TAIL}", wall("0 0 0 NaN 0 0 4 0 3 0 0 0")),
+    )
+    .unwrap();
+    let e = citymodel::run(&[f], &Default::default())
+        .err()
+        .expect("nothing to write")
+        .to_string();
+    assert!(
+        e.contains("1 polygons skipped, first: ")
+            && e.contains("nan.gml:")
+            && e.contains("polygon P1")
+            && e.contains("non-finite"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

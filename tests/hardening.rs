@@ -1041,3 +1041,134 @@ fn fuzz_seeds_are_accepted() {
         }
     }
 }
+
+// ------------------------------------------------------------------ found by a bad-input sweep
+
+/// A COLMAP binary model with bytes after its last record, an image name without a file stem,
+/// or an image id used twice: one line naming the file and what is wrong.
+#[test]
+fn colmap_trailing_bytes_empty_names_and_repeated_ids_are_named() {
+    let dir = tmp("colmap-sweep");
+    let view = |id: u32, name: &str| gs4city::camera::View {
+        image_id: id,
+        camera_id: 1,
+        name: name.into(),
+        camera: Camera {
+            intrinsics: Intrinsics {
+                distortion: Distortion::None,
+                ..good_camera().intrinsics
+            },
+            ..good_camera()
+        },
+    };
+    let write = |views: &[gs4city::camera::View]| {
+        let d = dir.join("m");
+        let _ = std::fs::remove_dir_all(&d);
+        colmap::write_model(&d, views, true).unwrap();
+        d
+    };
+    let d = write(&[view(1, "a.png"), view(2, "b.png")]);
+    assert_eq!(colmap::read_model(&d).unwrap().len(), 2);
+    for file in ["cameras.bin", "images.bin"] {
+        let d = write(&[view(1, "a.png")]);
+        let p = d.join(file);
+        let mut b = std::fs::read(&p).unwrap();
+        b.extend([0u8; 24]);
+        std::fs::write(&p, b).unwrap();
+        let e = colmap::read_model(&d).unwrap_err();
+        let msg = check_message(&e, file);
+        assert!(msg.contains("24 bytes after the last"), "{msg}");
+    }
+    let d = write(&[view(1, "frames/")]);
+    let msg = check_message(&colmap::read_model(&d).unwrap_err(), "images.bin");
+    assert!(
+        msg.contains("image 1") && msg.contains("no file stem"),
+        "{msg}"
+    );
+    let d = write(&[view(1, "a.png"), view(1, "a.png")]);
+    let msg = check_message(&colmap::read_model(&d).unwrap_err(), "images.bin");
+    assert!(msg.contains("duplicate image id 1"), "{msg}");
+}
+
+/// SAM lists: scores out of range, polygon segmentations and a byte-order mark.
+#[test]
+fn sam_scores_polygons_and_a_bom_are_handled() {
+    let dir = tmp("sam-sweep");
+    let p = dir.join("v.json");
+    let m = ndarray::Array2::from_elem((4, 5), true);
+    // (predicted_iou, stability_score, what the error says; "" = read)
+    for (iou, stab, why) in [
+        (0.9, 0.95, ""),
+        (1.02, 1.0, ""),
+        (1e308, 0.9, "\"predicted_iou\" is 1e308, outside"),
+        (0.9, 1.5, "\"stability_score\" is 1.5e0, outside"),
+        // JSON has no NaN: it is written as null, which is not a number.
+        (f64::NAN, 0.9, "expected f64"),
+    ] {
+        sam::write_sam_json(&p, &[sam::SamMask::from_mask(&m, iou, stab, vec![])]).unwrap();
+        match sam::read_sam_json(&p) {
+            Ok(_) => assert!(why.is_empty(), "{iou} {stab} was read"),
+            Err(e) => {
+                let msg = check_message(&e, "v.json");
+                assert!(
+                    !why.is_empty() && msg.contains("mask 0") && msg.contains(why),
+                    "{msg}"
+                );
+            }
+        }
+    }
+    sam::write_sam_json(&p, &[sam::SamMask::from_mask(&m, 0.9, 0.9, vec![])]).unwrap();
+    let mut b = b"\xEF\xBB\xBF".to_vec();
+    b.extend(std::fs::read(&p).unwrap());
+    assert_eq!(sam::parse_sam_json(&p, &b, Some([4, 5])).unwrap().len(), 1);
+    let poly = br#"[{"segmentation": [[0, 0, 4, 0, 4, 3]], "area": 6, "bbox": [0, 0, 4, 3],
+        "predicted_iou": 0.9, "stability_score": 0.9, "point_coords": [[1, 1]], "crop_box": [0, 0, 5, 4]}]"#;
+    let e = sam::parse_sam_json(&p, poly, None).unwrap_err();
+    let msg = check_message(&e, "v.json");
+    assert!(
+        msg.contains("polygon list") && msg.contains("coco_rle"),
+        "{msg}"
+    );
+}
+
+/// Nothing to render — no views, no Gaussians, or none that can be drawn — is an error
+/// before any file is written.
+#[test]
+fn a_render_with_nothing_to_draw_is_refused() {
+    use gs4city::render::{self, PreparedScene};
+    let views = vec![gs4city::camera::View {
+        image_id: 1,
+        camera_id: 1,
+        name: "a.png".into(),
+        camera: good_camera(),
+    }];
+    let g = |scale: f32, n: usize| splat::Gaussians {
+        positions: vec![[0.0; 3]; n],
+        normals: None,
+        sh_degree: 0,
+        f_dc: vec![[0.0; 3]; n],
+        f_rest: Vec::new(),
+        opacity: vec![2.0; n],
+        scale: vec![[scale; 3]; n],
+        rotation: vec![[1.0, 0.0, 0.0, 0.0]; n],
+        extras: Vec::new(),
+    };
+    let ok = PreparedScene::new(&g(-2.0, 3)).unwrap();
+    render::check_inputs(&ok, &views).unwrap();
+    let e = render::check_inputs(&ok, &[]).unwrap_err().to_string();
+    assert!(e.contains("no views to render"), "{e}");
+    let empty = PreparedScene::new(&g(-2.0, 0)).unwrap();
+    let e = render::check_inputs(&empty, &views)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("no Gaussians"), "{e}");
+    let mut bad = g(-2.0, 3);
+    bad.rotation = vec![[0.0; 4]; 3];
+    let none = PreparedScene::new(&bad).unwrap();
+    let e = render::check_inputs(&none, &views).unwrap_err().to_string();
+    assert!(e.contains("none of the 3 Gaussians can be drawn"), "{e}");
+    let dir = tmp("render-nothing");
+    let out = dir.join("r");
+    assert!(render::render_to_dir(&none, &views, &out, &Default::default()).is_err());
+    assert!(!out.exists(), "a refused render leaves no folder");
+}
