@@ -302,7 +302,7 @@ struct Front<const L: usize> {
     tz: [f64; L],
     mean: [[f64; 2]; L],
     outside: [bool; L],
-    /// `(a, b, c)` after the low-pass.
+    /// `(a, b, c)` before the low-pass.
     abc: [[f64; 3]; L],
     det0: [f64; L],
     det: [f64; L],
@@ -401,10 +401,9 @@ impl<const L: usize> Front<L> {
             let a = (j0x[l] * cj0[0] + 0.0 * cj0[1]) + j0z[l] * cj0[2];
             let b = (j0x[l] * cj1[0] + 0.0 * cj1[1]) + j0z[l] * cj1[2];
             let c = (0.0 * cj1[0] + j1y[l] * cj1[1]) + j1z[l] * cj1[2];
-            det0[l] = a * c - b * b;
-            let (a, c) = (a + LOW_PASS, c + LOW_PASS);
             abc[l] = [a, b, c];
-            det[l] = a * c - b * b;
+            det0[l] = a * c - b * b;
+            det[l] = (a + LOW_PASS) * (c + LOW_PASS) - b * b;
         }
         Front {
             tz,
@@ -435,6 +434,7 @@ fn finish<const L: usize>(
     }
     let mean = front.mean[l];
     let [a, b, c] = front.abc[l];
+    let (a, c) = (a + LOW_PASS, c + LOW_PASS);
     let (det0, det) = (front.det0[l], front.det[l]);
     if det == 0.0 || !det.is_finite() {
         return None;
