@@ -502,66 +502,25 @@ mod tests {
         (j0, j1, mean)
     }
 
-    /// The projection written with glam's types, as it was before the lanes (the reference of
-    /// [`project_into`]'s bits).
-    fn reference(
+    /// The front of the projection written with glam's types, as it was before the lanes:
+    /// `(t.z, mean, outside_grid, (a, b, c), det0, det)`, the reference of [`Front`]'s bits.
+    #[allow(clippy::type_complexity)]
+    fn reference_front(
         scene: &PreparedScene,
         i: usize,
         v: &ViewParams,
-        antialiased: bool,
-    ) -> Option<Projected> {
+    ) -> (f64, [f64; 2], bool, [f64; 3], f64, f64) {
         let pw = DVec3::from_array(scene.positions[i].map(f64::from));
         let t = v.rot * pw + v.trans;
-        if t.z.is_nan() || t.z <= NEAR {
-            return None;
-        }
         let (j0, j1, mean) = jacobian_and_mean(v, t);
         let s = scene.cov3d[i].map(f64::from);
-        if outside_grid(mean, j0.length_squared() + j1.length_squared(), &s, v) {
-            return None;
-        }
+        let outside = outside_grid(mean, j0.length_squared() + j1.length_squared(), &s, v);
         let sigma = DMat3::from_cols_array(&[s[0], s[1], s[2], s[1], s[3], s[4], s[2], s[4], s[5]]);
         let cov_cam = v.rot * sigma * v.rot.transpose();
         let (cj0, cj1) = (cov_cam * j0, cov_cam * j1);
-        let (mut a, b, mut c) = (j0.dot(cj0), j0.dot(cj1), j1.dot(cj1));
-        let det0 = a * c - b * b;
-        a += LOW_PASS;
-        c += LOW_PASS;
-        let det = a * c - b * b;
-        if det == 0.0 || !det.is_finite() {
-            return None;
-        }
-        let inv = 1.0 / det;
-        let conic = [c * inv, -b * inv, a * inv];
-        let mid = 0.5 * (a + c);
-        let radius = (3.0 * (mid + (mid * mid - det).max(0.1).sqrt()).sqrt()).ceil();
-        let mut opacity = f64::from(scene.opacity[i]);
-        if antialiased {
-            opacity *= (det0 / det).max(0.000_025).sqrt();
-        }
-        let opacity = opacity as f32;
-        if opacity.is_nan() || opacity < ALPHA_MIN {
-            return None;
-        }
-        let ln255o = (255.0 * f64::from(opacity)).ln();
-        let extent = alpha_extent(ln255o, a, c, det);
-        let r = tight_rect(rect(mean, radius, v.grid_x, v.grid_y), mean, extent);
-        if (r[2] - r[0]) * (r[3] - r[1]) == 0 {
-            return None;
-        }
-        let k = scene.coeffs;
-        let color = sh_color(&scene.sh[i * k..(i + 1) * k], 0, DVec3::ZERO);
-        Some(Projected {
-            mean,
-            conic: conic.map(|x| x as f32),
-            opacity,
-            depth: t.z as f32,
-            color,
-            extent,
-            power_min: (-ln255o - 1e-3) as f32,
-            rect: r,
-            id: i as u32,
-        })
+        let (a, b, c) = (j0.dot(cj0), j0.dot(cj1), j1.dot(cj1));
+        let det = (a + LOW_PASS) * (c + LOW_PASS) - b * b;
+        (t.z, mean, outside, [a, b, c], a * c - b * b, det)
     }
 
     /// Every field's bits (a culled Gaussian is `None`).
@@ -580,15 +539,17 @@ mod tests {
         Some(b)
     }
 
-    /// The lanes give the glam-written projection's bits for every Gaussian, in full batches
-    /// and a short last one, over
-    /// cameras near, far, tilted and inside the cloud, with NaN centres, zero quaternions,
-    /// needles and Gaussians behind or at the near plane.
+    /// The lanes give the glam-written front's bits in every lane (NaN where it has NaN), and
+    /// the batched projection gives the one-Gaussian projection's result for every Gaussian,
+    /// in full batches and a short last one, over cameras near, far, tilted and inside the
+    /// cloud, with NaN centres, zero quaternions, needles and Gaussians behind or at the near
+    /// plane.
     #[test]
     fn the_lanes_give_the_reference_projection_bit_for_bit() {
         use rand::{Rng, SeedableRng};
         let scene = crate::render::tests::random_scene(4_001, 30.0, 41);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let same = |x: f64, y: f64| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan());
         let (mut seen, mut culled) = (0usize, 0usize);
         for k in 0..24 {
             let c =
@@ -607,8 +568,30 @@ mod tests {
                 f,
             );
             let v = ViewParams::new(&cam);
-            // Every Gaussian, then an odd subset (a short last batch).
             let all: Vec<u32> = (0..scene.len() as u32).collect();
+            for ids in all.chunks_exact(LANES) {
+                let front = Front::<LANES>::new(&scene, ids.try_into().unwrap(), &v);
+                for (l, &i) in ids.iter().enumerate() {
+                    let (tz, mean, outside, abc, det0, det) =
+                        reference_front(&scene, i as usize, &v);
+                    let at = format!("view {k}, Gaussian {i}");
+                    assert!(same(front.tz[l], tz), "{at}: z");
+                    assert!(
+                        (0..2).all(|q| same(front.mean[l][q], mean[q])),
+                        "{at}: mean"
+                    );
+                    assert_eq!(front.outside[l], outside, "{at}: grid cull");
+                    assert!(
+                        (0..3).all(|q| same(front.abc[l][q], abc[q])),
+                        "{at}: covariance"
+                    );
+                    assert!(
+                        same(front.det0[l], det0) && same(front.det[l], det),
+                        "{at}: det"
+                    );
+                }
+            }
+            // Every Gaussian, then an odd subset (a short last batch).
             let odd: Vec<u32> = (0..scene.len() as u32)
                 .filter(|i| i % 7 != 3)
                 .take(1_003)
@@ -620,7 +603,7 @@ mod tests {
                     let flat = out.as_flattened();
                     assert!(flat[ids.len()..].iter().all(|p| !p.is_visible()));
                     for (p, &i) in flat.iter().zip(ids.iter()) {
-                        let want = reference(&scene, i as usize, &v, aa);
+                        let want = project(&scene, i as usize, &v, aa, 0);
                         assert_eq!(
                             bits(p),
                             want.as_ref().and_then(bits),
