@@ -352,6 +352,35 @@ fn read_views(root: &Path, f: &mut Findings) -> Option<Vec<View>> {
         return None;
     }
     let mut ok = true;
+    // Every per-view file is named by the image's stem (`View::stem`): two images with one
+    // stem (a rig's `camA/img_0.png` and `camB/img_0.png`) would overwrite each other's outputs.
+    let mut stems: BTreeMap<String, &str> = BTreeMap::new();
+    let mut clashes = 0usize;
+    for v in &views {
+        if let Some(first) = stems.insert(v.stem(), &v.name) {
+            clashes += 1;
+            if clashes > MAX_LISTED {
+                continue;
+            }
+            f.error(
+                &sparse,
+                format!(
+                    "images {first} and {} share the file stem `{}`: every per-view output is \
+                     named by the stem, so their files would collide; rename one of them (in the \
+                     COLMAP model and in images/), e.g. with its folder in the name",
+                    v.name,
+                    v.stem()
+                ),
+            );
+            ok = false;
+        }
+    }
+    if clashes > MAX_LISTED {
+        f.error(
+            &sparse,
+            format!("{} more images share a file stem", clashes - MAX_LISTED),
+        );
+    }
     for v in &views {
         if let Err(e) = v.camera.validate() {
             f.error(

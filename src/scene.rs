@@ -270,14 +270,21 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
                 );
                 None
             }
-            Some(p) if !Path::new(&p).is_dir() => {
-                no_source = format!(
-                    "the source_path of {}, {p}, is not a folder here: give --source",
-                    m.join("cfg_args").display()
-                );
-                None
-            }
-            Some(p) => Some(abs(Path::new(&p))?),
+            // A relative source_path is relative to where training ran: tried from here,
+            // then from the training output and its parent folder.
+            Some(p) => match [PathBuf::from(&p), m.join(&p), m.join("..").join(&p)]
+                .into_iter()
+                .find(|c| c.is_dir())
+            {
+                Some(dir) => Some(abs(&dir)?),
+                None => {
+                    no_source = format!(
+                        "the source_path of {}, {p}, is not a folder here: give --source",
+                        m.join("cfg_args").display()
+                    );
+                    None
+                }
+            },
         },
         (None, None) => {
             no_source = "give --source (the COLMAP folder) or --model".into();

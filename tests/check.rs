@@ -251,6 +251,28 @@ fn check_names_each_defect_in_one_line_and_run_stops_before_any_stage() {
             vec![format!("citymodel/{gml_name}: line ")],
         ),
         (
+            // A rig's layout: one file name in two camera folders.
+            "rig-stem-clash",
+            vec!["sparse", "images"],
+            Box::new(move |d: &Path| {
+                let sparse = d.join("sparse/0");
+                let mut vs = gs4city::colmap::read_model(&sparse).unwrap();
+                for (k, cam) in ["camA", "camB"].into_iter().enumerate() {
+                    let new = format!("{cam}/x.png");
+                    std::fs::create_dir_all(d.join("images").join(cam)).unwrap();
+                    std::fs::rename(
+                        d.join("images").join(&vs[k].name),
+                        d.join("images").join(&new),
+                    )
+                    .unwrap();
+                    vs[k].name = new;
+                }
+                std::fs::remove_dir_all(&sparse).unwrap();
+                gs4city::colmap::write_model(&sparse, &vs, true).unwrap();
+            }),
+            vec!["sparse/0: images camA/x.png and camB/x.png share the file stem `x`".into()],
+        ),
+        (
             "shifted-50m",
             vec!["citymodel"],
             Box::new(move |d: &Path| {
@@ -632,5 +654,67 @@ fn an_import_with_problems_names_them_and_fails() {
         "{err}"
     );
     assert!(out.join("point_cloud.ply").exists());
+    // A relative source_path (as train.py records it when given one) is found beside the
+    // training output, wherever the import runs from.
+    let data = r.join("data");
+    std::fs::create_dir_all(data.join("sparse/0")).unwrap();
+    std::fs::create_dir_all(data.join("images")).unwrap();
+    std::fs::write(data.join("sparse/0/images.txt"), "").unwrap();
+    std::fs::write(
+        model.join("cfg_args"),
+        "Namespace(source_path='data', images='images')",
+    )
+    .unwrap();
+    let out2 = r.join("S2");
+    let (_, stdout, _) = cli_in(
+        Some(Path::new("/")),
+        &[
+            "scene",
+            "import",
+            "--model",
+            s(&model),
+            "--citygml",
+            s(&gml),
+            "--out",
+            s(&out2),
+        ],
+    );
+    assert!(
+        stdout
+            .lines()
+            .any(|l| l.starts_with("sparse/0") && l.contains("data/sparse/0")),
+        "{stdout}"
+    );
+    let _ = std::fs::remove_dir_all(&r);
+}
+
+/// `--test-every 0` on a scene with ground truth: every view trains, the run finishes and eval
+/// is skipped (with a warning), instead of refusing to start.
+#[test]
+fn every_view_can_train_on_a_scene_with_ground_truth() {
+    let r = root("test-every-0");
+    let scene = r.join("S");
+    synth(&scene);
+    let out = r.join("R");
+    let (ok, _, err) = cli_in(
+        None,
+        &[
+            "-q",
+            "run",
+            "--scene",
+            s(&scene),
+            "--out",
+            s(&out),
+            "--test-every",
+            "0",
+        ],
+    );
+    assert!(ok, "{err}");
+    assert!(err.contains("eval is skipped"), "{err}");
+    assert!(out.join("report.html").is_file() && out.join("lift").is_dir());
+    assert!(!out.join("eval").exists());
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["test_views"].as_array().map(Vec::len), Some(0));
     let _ = std::fs::remove_dir_all(&r);
 }

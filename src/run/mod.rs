@@ -359,9 +359,10 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         ));
     }
     if scene.gt.is_some() && split.test.is_empty() {
-        return Err(RunError::Refused(
-            "the scene has gt/ but there are no test views to evaluate (--test-every 0?)".into(),
-        ));
+        log::warn!(
+            "the scene has gt/ but --test-every 0 leaves no test view: every view trains and \
+             eval is skipped"
+        );
     }
     let st = Store::open(
         out,
@@ -788,6 +789,10 @@ fn eval_step(
         return Ok(None);
     };
     let stems = r.split.test_stems();
+    if stems.is_empty() {
+        // --test-every 0: nothing held out to evaluate (warned before the stages).
+        return Ok(None);
+    }
     let inputs: Vec<PathBuf> = stems
         .iter()
         .map(|s| crate::idmap::class_file(gt, s))

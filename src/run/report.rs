@@ -63,6 +63,21 @@ fn esc(s: &str) -> String {
     s.replace('&', "&amp;")
         .replace('<', "&lt;")
         .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+/// A relative path as a URL in an attribute: every byte but unreserved characters and `/`
+/// percent-encoded (UTF-8), so names with spaces, `#`, `?`, `%` or non-ASCII letters link.
+fn url(path: &str) -> String {
+    let mut out = String::with_capacity(path.len());
+    for b in path.bytes() {
+        if b.is_ascii_alphanumeric() || b"-._~/".contains(&b) {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
 }
 
 /// What a report shows.
@@ -257,7 +272,8 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
         let rel = p.strip_prefix(out).unwrap_or(p);
         let _ = write!(
             html,
-            "<p>Semantic Gaussians: <a href=\"{0}\">{0}</a> (the input PLY with label, class, feature_id, surface_id, part_id per Gaussian).</p>",
+            "<p>Semantic Gaussians: <a href=\"{}\">{}</a> (the input PLY with label, class, feature_id, surface_id, part_id per Gaussian).</p>",
+            url(&rel.display().to_string()),
             esc(&rel.display().to_string())
         );
     }
@@ -324,7 +340,7 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
              magenta occluder and features, green mask-free component.</p>",
         );
         for o in &m.overlays {
-            let _ = write!(html, "<h3>{}</h3><img src=\"masks/{}\">", esc(o), esc(o));
+            let _ = write!(html, "<h3>{}</h3><img src=\"masks/{}\">", esc(o), url(o));
         }
     }
     completeness_table(&mut html, r.out);
@@ -409,7 +425,7 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             html,
             "<h3>{}</h3><img src=\"report/{}.png\">",
             esc(stem),
-            esc(stem)
+            url(stem)
         );
     }
     html.push_str("</body></html>\n");
@@ -480,6 +496,15 @@ fn completeness_table(html: &mut String, out: &Path) {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn links_are_percent_encoded_and_text_escaped() {
+        assert_eq!(url("report/orbit 000.png"), "report/orbit%20000.png");
+        assert_eq!(url("masks/Ansicht-ü#1.png"), "masks/Ansicht-%C3%BC%231.png");
+        assert_eq!(url("a-b_c.d~/e"), "a-b_c.d~/e");
+        assert_eq!(esc("<a \"b\" & c>"), "&lt;a &quot;b&quot; &amp; c&gt;");
+    }
+
     use super::*;
     use crate::cache::CacheOptions;
     use crate::render::tests::{camera_at, random_scene};
