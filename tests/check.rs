@@ -626,20 +626,23 @@ fn an_import_with_problems_names_them_and_fails() {
     std::fs::write(model.join("cfg_args"), "not a namespace at all").unwrap();
     let gml = r.join("lod3");
     std::fs::create_dir_all(&gml).unwrap();
+    let import = |cwd: Option<&Path>, out: &Path| {
+        cli_in(
+            cwd,
+            &[
+                "scene",
+                "import",
+                "--model",
+                s(&model),
+                "--citygml",
+                s(&gml),
+                "--out",
+                s(out),
+            ],
+        )
+    };
     let out = r.join("S");
-    let (ok, stdout, err) = cli_in(
-        None,
-        &[
-            "scene",
-            "import",
-            "--model",
-            s(&model),
-            "--citygml",
-            s(&gml),
-            "--out",
-            s(&out),
-        ],
-    );
+    let (ok, stdout, err) = import(None, &out);
     assert!(!ok, "{stdout}\n{err}");
     let cfg = model.join("cfg_args");
     assert!(
@@ -665,20 +668,7 @@ fn an_import_with_problems_names_them_and_fails() {
         "Namespace(source_path='data', images='images')",
     )
     .unwrap();
-    let out2 = r.join("S2");
-    let (_, stdout, _) = cli_in(
-        Some(Path::new("/")),
-        &[
-            "scene",
-            "import",
-            "--model",
-            s(&model),
-            "--citygml",
-            s(&gml),
-            "--out",
-            s(&out2),
-        ],
-    );
+    let (_, stdout, _) = import(Some(Path::new("/")), &r.join("S2"));
     assert!(
         stdout
             .lines()
