@@ -416,6 +416,31 @@ impl View {
     }
 }
 
+/// The views whose per-view files cannot be named: `(image name, why)` for each view whose
+/// [`View::stem`] is empty or is an earlier view's (a rig's `camA/x.png` and `camB/x.png`),
+/// in the views' order. Every stage that writes per-view files checks this first.
+pub fn stem_problems(views: &[View]) -> Vec<(String, String)> {
+    let mut first: std::collections::HashMap<String, &str> = std::collections::HashMap::new();
+    let mut out = Vec::new();
+    for v in views {
+        let stem = v.stem();
+        if stem.is_empty() {
+            out.push((v.name.clone(), "the image name has no file stem".into()));
+        } else if let Some(other) = first.get(&stem) {
+            out.push((
+                v.name.clone(),
+                format!(
+                    "shares the file stem `{stem}` with {other}: every per-view output is named \
+                     by the stem, so their files would collide"
+                ),
+            ));
+        } else {
+            first.insert(stem, &v.name);
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -203,25 +203,15 @@ impl Findings {
     fn error_of(&mut self, file: &Path, e: &dyn std::fmt::Display) {
         let text = e.to_string();
         let shown = file.display().to_string();
-        // An error about a file inside the folder `file` names that file: it becomes the
-        // finding's file (`S/sparse/0/images.txt: …`, not `S/sparse/0: S/sparse/0/images.txt: …`).
-        if let Some(inner) = text
+        // An error about a file inside the folder `file` names that file (and its line): it
+        // becomes the finding's file (`S/sparse/0/images.txt:5: …`, not
+        // `S/sparse/0: S/sparse/0/images.txt:5: …`).
+        if let Some((name, rest)) = text
             .strip_prefix(&shown)
             .filter(|t| t.starts_with('/'))
-            .and_then(|t| t.split_once(": ").or_else(|| t.split_once(':')))
-            .map(|(name, rest)| (format!("{shown}{name}"), rest.to_string()))
+            .and_then(|t| t.split_once(": "))
         {
-            let (path, rest) = inner;
-            // `images.txt:1: why` keeps its line with the file.
-            let (path, rest) = match rest.split_once(": ") {
-                Some((line, why))
-                    if line.chars().all(|c| c.is_ascii_digit()) && !line.is_empty() =>
-                {
-                    (format!("{path}:{line}"), why.to_string())
-                }
-                _ => (path, rest),
-            };
-            return self.error(Path::new(&path), rest);
+            return self.error(Path::new(&format!("{shown}{name}")), rest);
         }
         let message = text
             .strip_prefix(&shown)
@@ -352,35 +342,28 @@ fn read_views(root: &Path, f: &mut Findings) -> Option<Vec<View>> {
         return None;
     }
     let mut ok = true;
-    // Every per-view file is named by the image's stem (`View::stem`): two images with one
-    // stem (a rig's `camA/img_0.png` and `camB/img_0.png`) would overwrite each other's outputs.
-    let mut stems: BTreeMap<String, &str> = BTreeMap::new();
-    let mut clashes = 0usize;
-    for v in &views {
-        if let Some(first) = stems.insert(v.stem(), &v.name) {
-            clashes += 1;
-            if clashes > MAX_LISTED {
-                continue;
-            }
-            f.error(
-                &sparse,
-                format!(
-                    "images {first} and {} share the file stem `{}`: every per-view output is \
-                     named by the stem, so their files would collide; rename one of them (in the \
-                     COLMAP model and in images/), e.g. with its folder in the name",
-                    v.name,
-                    v.stem()
-                ),
-            );
-            ok = false;
-        }
-    }
-    if clashes > MAX_LISTED {
+    // Every per-view file is named by the image's stem: two images with one (a rig's
+    // `camA/x.png` and `camB/x.png`) would overwrite each other's outputs.
+    let clashes = crate::camera::stem_problems(&views);
+    for (name, why) in clashes.iter().take(MAX_LISTED) {
         f.error(
             &sparse,
-            format!("{} more images share a file stem", clashes - MAX_LISTED),
+            format!(
+                "image {name}: {why}; rename one of them (in the COLMAP model and in images/), \
+                 e.g. with its folder in the name"
+            ),
         );
     }
+    if clashes.len() > MAX_LISTED {
+        f.error(
+            &sparse,
+            format!(
+                "{} more images share a file stem",
+                clashes.len() - MAX_LISTED
+            ),
+        );
+    }
+    ok &= clashes.is_empty();
     for v in &views {
         if let Err(e) = v.camera.validate() {
             f.error(
@@ -719,25 +702,10 @@ fn optional_parts(root: &Path, views: Option<&[View]>, f: &mut Findings) {
                 Ok(sam) => {
                     if let Some(dim) = dim {
                         let npy = features.join(format!("{stem}.npy"));
-                        if !npy.is_file() {
-                            out.push((
-                                npy,
-                                "missing: features/prompts.json exists, so every view with \
-                                 masks needs its per-mask features"
-                                    .into(),
-                            ));
-                        } else {
-                            match crate::sam::read_features(&npy, Some(sam.len())) {
-                                Err(e) => out.push((npy, e.to_string())),
-                                Ok((_, d, _)) if d != dim => out.push((
-                                    npy,
-                                    format!(
-                                        "feature dimension {d}, but {} has dimension {dim}",
-                                        prompts.display()
-                                    ),
-                                )),
-                                Ok(_) => {}
-                            }
+                        if let Err(e) =
+                            crate::sam::read_view_features(&npy, sam.len(), dim, &prompts)
+                        {
+                            out.push((npy, e.to_string()));
                         }
                     }
                 }

@@ -765,6 +765,35 @@ pub fn read_features(
     Ok((n, d, data))
 }
 
+/// The per-mask features of one view when the scene has prompts (`prompts`, of dimension
+/// `dim`): the file must exist, hold one row per mask of the view's SAM list (`masks`) and
+/// have the prompts' dimension ([`read_features`]'s checks besides). Row-major values.
+pub fn read_view_features(
+    path: &Path,
+    masks: usize,
+    dim: usize,
+    prompts: &Path,
+) -> Result<Vec<f32>, SamError> {
+    let bad = |why: String| SamError::Features {
+        path: path.to_path_buf(),
+        why,
+    };
+    if !path.is_file() {
+        return Err(bad(format!(
+            "missing: {} exists, so every view with SAM masks needs its per-mask features",
+            prompts.display()
+        )));
+    }
+    let (_, d, data) = read_features(path, Some(masks))?;
+    if d != dim {
+        return Err(bad(format!(
+            "feature dimension {d}, but {} has dimension {dim}",
+            prompts.display()
+        )));
+    }
+    Ok(data)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -270,7 +270,7 @@ fn check_names_each_defect_in_one_line_and_run_stops_before_any_stage() {
                 std::fs::remove_dir_all(&sparse).unwrap();
                 gs4city::colmap::write_model(&sparse, &vs, true).unwrap();
             }),
-            vec!["sparse/0: images camA/x.png and camB/x.png share the file stem `x`".into()],
+            vec!["sparse/0: image camB/x.png: shares the file stem `x` with camA/x.png".into()],
         ),
         (
             "shifted-50m",

@@ -572,26 +572,6 @@ pub fn run(
     Ok(summary)
 }
 
-/// The view's per-mask features (`N×dim`), checked against the SAM list and the prompts.
-fn read_features(
-    path: &Path,
-    n: usize,
-    dim: usize,
-    prompts: &Path,
-) -> Result<Vec<f32>, MasksError> {
-    let (_, d, data) = sam::read_features(path, Some(n))?;
-    if d != dim {
-        return Err(MasksError::Invalid {
-            path: path.to_path_buf(),
-            why: format!(
-                "feature dimension {d}, but {} has dimension {dim}",
-                prompts.display()
-            ),
-        });
-    }
-    Ok(data)
-}
-
 /// One view: load, decide, write.
 fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
     let t0 = Instant::now();
@@ -657,13 +637,7 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
                 .as_ref()
                 .map(|d| d.join(format!("{stem}.npy")))
                 .unwrap_or_else(|| inp.scene.root.join("features").join(format!("{stem}.npy")));
-            if !path.is_file() {
-                return Err(MasksError::Invalid {
-                    path,
-                    why: "missing: features/prompts.json exists, so every view needs its per-mask features".into(),
-                });
-            }
-            Some(read_features(&path, list.len(), p.dim, &ppath)?)
+            Some(sam::read_view_features(&path, list.len(), p.dim, &ppath)?)
         }
         _ => None,
     };

@@ -96,20 +96,9 @@ pub fn run(
                 why: format!("empty image size {}×{}", k.width, k.height),
             });
         }
-        if v.stem().is_empty() {
-            return Err(RaycastError::View {
-                name: v.name.clone(),
-                why: "image name has no file stem".into(),
-            });
-        }
     }
-    let mut stems: Vec<String> = views.iter().map(|v| v.stem()).collect();
-    stems.sort();
-    if let Some(w) = stems.windows(2).find(|w| w[0] == w[1]) {
-        return Err(RaycastError::View {
-            name: w[0].clone(),
-            why: "two views share this file stem; their outputs would collide".into(),
-        });
+    if let Some((name, why)) = crate::camera::stem_problems(views).into_iter().next() {
+        return Err(RaycastError::View { name, why });
     }
     let t0 = Instant::now();
     let scene = TwoPassScene::build(mesh)?;

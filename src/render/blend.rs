@@ -193,8 +193,8 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
     // All and Mass: every contribution, tagged with its pixel, in blending order.
     // The tile's scratch lists are reused from the previous tile on this thread (taken, and
     // put back at the end): grown once, not reallocated ≈ 10 times per tile.
-    let mut flat = SCRATCH.take();
-    flat.flat.clear();
+    let mut scratch = SCRATCH.take();
+    scratch.flat.clear();
     let mut slots: Vec<Vec<Slot>> = match topk {
         Some(k) => (0..PIX).map(|_| Vec::with_capacity(k.min(64))).collect(),
         None => Vec::new(),
@@ -287,7 +287,7 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                             weight: wgt,
                         };
                         match topk {
-                            None => flat.flat.push((k as u16, c)),
+                            None => scratch.flat.push((k as u16, c)),
                             Some(kk) => {
                                 push_topk(
                                     &mut slots[k],
@@ -326,13 +326,13 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
         } else {
             // A stable counting sort by pixel keeps each pixel's blending (= depth) order.
             let mut counts = [0u32; PIX + 1];
-            for &(k, _) in &flat.flat {
+            for &(k, _) in &scratch.flat {
                 counts[k as usize + 1] += 1;
             }
             for k in 0..PIX {
                 counts[k + 1] += counts[k];
             }
-            let Scratch { flat, all, keys } = &mut flat;
+            let Scratch { flat, all, keys } = &mut scratch;
             all.clear();
             all.resize(flat.len(), Contribution { id: 0, weight: 0.0 });
             let mut cursor = counts;
@@ -356,7 +356,7 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
             }
         }
     }
-    SCRATCH.set(flat);
+    SCRATCH.set(scratch);
     TileOut {
         x0,
         y0,

@@ -547,24 +547,12 @@ pub fn check_inputs(scene: &PreparedScene, views: &[View]) -> Result<(), RenderE
             scene.len()
         )));
     }
-    let mut stems = std::collections::BTreeSet::new();
-    for v in views {
-        let stem = v.stem();
-        if stem.is_empty() {
-            return Err(RenderError::Camera {
-                view: v.name.clone(),
-                why: "the image name has no file stem".into(),
-            });
-        }
-        if !stems.insert(stem) {
-            return Err(RenderError::Camera {
-                view: v.name.clone(),
-                why: format!("two views share the output stem `{}`", v.stem()),
-            });
-        }
+    match crate::camera::stem_problems(views).into_iter().next() {
+        Some((view, why)) => Err(RenderError::Camera { view, why }),
+        None => Ok(()),
     }
-    Ok(())
 }
+
 /// Renders every view into `out_dir`: `<stem>.png` (8-bit RGB), `<stem>.depth.npy`
 /// (`float32` H×W expected depth, NaN where alpha < `DEPTH_MIN_ALPHA`) and, when the scene
 /// has feature channels and `options.features` is set, `<stem>.features.npy`
@@ -692,7 +680,6 @@ pub(crate) mod tests {
         PreparedScene::new(&g).expect("valid scene")
     }
 
-    /// A camera at `centre` looking along yaw/pitch, `w × h`, focal `f`.
     /// A point drawn uniformly from the cube `[−half, half]³` (a test camera's centre).
     pub(crate) fn random_centre(rng: &mut impl Rng, half: f64) -> DVec3 {
         DVec3::new(
@@ -702,6 +689,7 @@ pub(crate) mod tests {
         )
     }
 
+    /// A camera at `centre` looking along yaw/pitch, `w × h`, focal `f`.
     pub(crate) fn camera_at(centre: DVec3, yaw: f64, pitch: f64, w: u32, h: u32, f: f64) -> Camera {
         let rot = DMat3::from_rotation_x(pitch) * DMat3::from_rotation_y(yaw);
         Camera {

@@ -231,7 +231,7 @@ pub fn project(
     finish(scene, i, &front, 0, v, antialiased, max_degree)
 }
 
-/// Gaussians per batch of [`project_batch`].
+/// Gaussians per batch of [`project_into`].
 pub const LANES: usize = 4;
 
 /// [`project`] of the Gaussians `ids` into `out`, `LANES` at a time (`out` has
@@ -294,9 +294,9 @@ impl pulp::WithSimd for BatchOp<'_> {
 }
 
 /// The branch-free front of the projection for `L` Gaussians, one array per quantity: the
-/// camera-frame depth, the projected mean, [`outside_grid`]'s verdict and the 2D covariance
-/// before (`det0`) and after the low-pass (`abc`, `det`). Lane `l` performs exactly the scalar operations
-/// of one Gaussian (glam's order for `R·p + t`, `(R·Σ)·Rᵀ` and `J·Σ'·Jᵀ`, zero entries of `J`
+/// camera-frame depth, the projected mean, [`outside_grid`]'s verdict, the 2D covariance
+/// `abc` and its determinant before the low-pass (`det0`) and after it (`det`). Lane `l`
+/// performs exactly the scalar operations of one Gaussian (glam's order for `R·p + t`, `(R·Σ)·Rᵀ` and `J·Σ'·Jᵀ`, zero entries of `J`
 /// included), so any `L` gives the same bits.
 struct Front<const L: usize> {
     tz: [f64; L],
