@@ -308,21 +308,31 @@ mod tests {
         s.commit().unwrap()
     }
 
+    /// Whether Embree's distance `t` is `want` within 4 ulp: its kernels for each instruction
+    /// set (SSE, AVX2, AVX-512; single rays and packets) may differ in the last bits (the AVX2
+    /// `rtcIntersect1` gives 1.9999999 for the plane z = 2 seen from z = 0).
+    fn near(t: f32, want: f32) -> bool {
+        (t - want).abs() <= 4.0 * f32::EPSILON * want.abs()
+    }
+
     #[test]
     fn intersect1_and_packets_agree() {
         let sc = quad_scene();
         let h = sc
             .intersect1([0.75, 0.25, 0.0], [0.0, 0.0, 1.0], f32::INFINITY)
             .unwrap();
-        assert_eq!((h.t, h.prim_id, h.geom_id), (2.0, 0, 0));
+        assert_eq!((h.prim_id, h.geom_id), (0, 0));
+        assert!(near(h.t, 2.0), "{}", h.t);
         let h = sc
             .intersect1([0.25, 0.75, 0.0], [0.0, 0.0, 1.0], f32::INFINITY)
             .unwrap();
-        assert_eq!((h.t, h.prim_id, h.geom_id), (2.0, 1, 0));
+        assert_eq!((h.prim_id, h.geom_id), (1, 0));
+        assert!(near(h.t, 2.0), "{}", h.t);
         let h = sc
             .intersect1([-0.25, 0.5, 0.0], [0.0, 0.0, 1.0], f32::INFINITY)
             .unwrap();
-        assert_eq!((h.t, h.geom_id), (5.0, 1));
+        assert_eq!(h.geom_id, 1);
+        assert!(near(h.t, 5.0), "{}", h.t);
         assert!(
             sc.intersect1([-0.25, 0.5, 0.0], [0.0, 0.0, 1.0], 4.0)
                 .is_none()
@@ -350,12 +360,16 @@ mod tests {
                     assert!(p.hit(i).is_none());
                 } else {
                     hits += usize::from(p.hit(i).is_some());
+                    let (got, want) = (p.hit(i), single);
                     assert_eq!(
-                        p.hit(i).map(|h| (h.t, h.geom_id, h.prim_id)),
-                        single.map(|h| (h.t, h.geom_id, h.prim_id)),
+                        got.map(|h| (h.geom_id, h.prim_id)),
+                        want.map(|h| (h.geom_id, h.prim_id)),
                         "lane {i} of {}",
                         P::LANES
                     );
+                    if let (Some(a), Some(b)) = (got, want) {
+                        assert!(near(a.t, b.t), "lane {i}: {} vs {}", a.t, b.t);
+                    }
                 }
             }
             assert!(hits >= P::LANES / 2 + 2);
