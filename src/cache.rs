@@ -215,24 +215,31 @@ impl ViewContrib {
         head.extend_from_slice(&(code.len() as u64).to_le_bytes());
         head.resize(HEADER, 0);
         w.write_all(&head)?;
-        let counts: Vec<u16> = self
-            .lists
-            .offsets
-            .windows(2)
-            .map(|w| (w[1] - w[0]) as u16)
-            .collect();
-        debug_assert_eq!(counts.len(), self.pixels());
-        put(w, &counts)?;
+        // The counts and the half weights go out through small buffers, not as whole
+        // arrays: no fresh memory per view on the writer thread.
+        const CHUNK: usize = 4096;
+        let mut counts = [0u16; CHUNK];
+        let off = &self.lists.offsets;
+        for start in (0..self.pixels()).step_by(CHUNK) {
+            let n = CHUNK.min(self.pixels() - start);
+            for (i, c) in counts[..n].iter_mut().enumerate() {
+                *c = (off[start + i + 1] - off[start + i]) as u16;
+            }
+            put(w, &counts[..n])?;
+        }
         put(w, &ends)?;
         w.write_all(&code)?;
-        let halves: Vec<half::f16> =
-            half::vec::HalfFloatVecExt::from_f32_slice(&self.lists.weights);
-        put(w, &halves)?;
+        let mut halves = [half::f16::ZERO; CHUNK];
+        for ws in self.lists.weights.chunks(CHUNK) {
+            let h = &mut halves[..ws.len()];
+            half::slice::HalfFloatSliceExt::convert_from_f32_slice(h, ws);
+            put(w, h)?;
+        }
         for arr in [&self.lists.residual, &self.alpha, &self.depth] {
             put(w, arr)?;
         }
         Ok(
-            (HEADER + 2 * counts.len() + 8 * ends.len() + code.len() + 2 * halves.len()) as u64
+            (HEADER + 2 * self.pixels() + 8 * ends.len() + code.len() + 2 * self.entries()) as u64
                 + 12 * self.pixels() as u64,
         )
     }

@@ -78,7 +78,8 @@ pub struct RenderOptions {
     /// Blend the scene's feature channels.
     pub features: bool,
     /// Blend the colour and track the median depth (off where only alpha, expected depth and
-    /// the lists are read: the contributions cache; the colour then holds only `T·background`).
+    /// the lists are read: the contributions cache; the output's colour, accumulated depth
+    /// and median depth are then empty).
     #[serde(default = "yes")]
     pub images: bool,
     /// Per-pixel contribution lists.
@@ -249,13 +250,15 @@ pub struct RenderStats {
 pub struct RenderOutput {
     pub width: usize,
     pub height: usize,
+    /// RGB per pixel, `H × W × 3` (empty without [`RenderOptions::images`]).
     pub rgb: Vec<f32>,
     /// Accumulated alpha `1 − T`.
     pub alpha: Vec<f32>,
-    /// INRIA-style accumulated depth `Σ w·z`.
+    /// INRIA-style accumulated depth `Σ w·z` (empty without [`RenderOptions::images`]).
     pub depth_acc: Vec<f32>,
     /// Expected depth `Σ w·z / (1 − T)`, NaN where `1 − T < DEPTH_MIN_ALPHA`.
     pub depth: Vec<f32>,
+    /// Median depth (empty without [`RenderOptions::images`]).
     pub median_depth: Vec<f32>,
     /// `channels × H × W`.
     pub features: Vec<f32>,
@@ -265,7 +268,8 @@ pub struct RenderOutput {
 }
 
 impl RenderOutput {
-    /// RGB as 8-bit `H×W×3` (clamped to [0, 1], rounded).
+    /// RGB as 8-bit `H×W×3` (clamped to [0, 1], rounded); the render needs
+    /// [`RenderOptions::images`].
     pub fn rgb8(&self) -> Array3<u8> {
         let v = self
             .rgb
@@ -391,7 +395,14 @@ fn render_view_with(
         .map(|t| blend::blend_tile(&input, t, bins.tile(t)))
         .collect();
     PROJECTED.set(batches);
-    let mut out = assemble(&tiles, v.width, v.height, channels, options.contributions);
+    let mut out = assemble(
+        &tiles,
+        v.width,
+        v.height,
+        channels,
+        options.contributions,
+        options.images,
+    );
     let t3 = Instant::now();
     out.stats = RenderStats {
         gaussians: n,
@@ -405,43 +416,51 @@ fn render_view_with(
     Ok(out)
 }
 
+/// The view's arrays from its tiles. Without `images`, the colour, the accumulated depth and
+/// the median depth are left empty: the contributions cache reads none of them, and a view's
+/// arrays are fresh memory (page faults) each time.
 fn assemble(
     tiles: &[TileOut],
     width: usize,
     height: usize,
     channels: usize,
     mode: ContributionMode,
+    images: bool,
 ) -> RenderOutput {
     let npx = width * height;
-    let mut rgb = vec![0.0f32; npx * 3];
+    let planes = if images { npx } else { 0 };
+    let mut rgb = vec![0.0f32; planes * 3];
     let mut alpha = vec![0.0f32; npx];
-    let mut depth_acc = vec![0.0f32; npx];
+    let mut depth_acc = vec![0.0f32; planes];
     let mut depth = vec![f32::NAN; npx];
-    let mut median_depth = vec![f32::NAN; npx];
+    let mut median_depth = vec![f32::NAN; planes];
     let mut features = vec![0.0f32; channels * npx];
     let keep = mode != ContributionMode::None;
-    let mut counts = vec![0u64; if keep { npx } else { 0 }];
+    // Pixel p's list length at offsets[p + 1], summed into the offsets below.
+    let mut offsets = vec![0u64; if keep { npx + 1 } else { 0 }];
     let mut residual = vec![0.0f32; if keep { npx } else { 0 }];
     for t in tiles {
         for y in 0..t.h {
             for x in 0..t.w {
                 let k = y * blend_tile_width() + x;
                 let p = (t.y0 + y) * width + t.x0 + x;
-                for c in 0..3 {
-                    rgb[p * 3 + c] = t.rgb[c][k];
-                }
                 let a = 1.0 - t.trans[k];
                 alpha[p] = a;
-                depth_acc[p] = t.depth_acc[k];
                 if a >= DEPTH_MIN_ALPHA {
                     depth[p] = t.depth_acc[k] / a;
                 }
-                median_depth[p] = t.median[k];
+                if images {
+                    for c in 0..3 {
+                        rgb[p * 3 + c] = t.rgb[c][k];
+                    }
+                    depth_acc[p] = t.depth_acc[k];
+                    median_depth[p] = t.median[k];
+                }
                 for c in 0..channels {
                     features[c * npx + p] = t.features[k * channels + c];
                 }
                 if keep {
-                    counts[p] = t.list(k).len() as u64;
+                    offsets[p + 1] = t.list(k).len() as u64;
                     if let Some(r) = t.residual.get(k) {
                         residual[p] = *r;
                     }
@@ -450,9 +469,8 @@ fn assemble(
         }
     }
     let contributions = keep.then(|| {
-        let mut offsets = vec![0u64; npx + 1];
         for p in 0..npx {
-            offsets[p + 1] = offsets[p] + counts[p];
+            offsets[p + 1] += offsets[p];
         }
         let total = offsets[npx] as usize;
         let mut ids = vec![0u32; total];
@@ -765,6 +783,35 @@ pub(crate) mod tests {
             "only {cut} lists were cut: the test would be empty"
         );
         assert!(unsure < cut / 100, "{unsure} undecided of {cut}");
+    }
+
+    #[test]
+    fn without_images_the_alpha_depth_and_lists_are_the_same() {
+        let scene = random_scene(20_000, 30.0, 29);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        for k in 0..3 {
+            let c = random_centre(&mut rng, 20.0);
+            let cam = camera_at(c, rng.random_range(-3.1..3.1), 0.2, 96, 72, 80.0);
+            let opts = |images| RenderOptions {
+                contributions: ContributionMode::Mass {
+                    epsilon: 0.05,
+                    cap: 32,
+                },
+                images,
+                t_stop: 0.02,
+                ..RenderOptions::default()
+            };
+            let with = render_view(&scene, &cam, &opts(true)).unwrap();
+            let without = render_view(&scene, &cam, &opts(false)).unwrap();
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&with.alpha), bits(&without.alpha), "view {k}");
+            assert_eq!(bits(&with.depth), bits(&without.depth));
+            assert_eq!(with.contributions, without.contributions);
+            assert!(with.contributions.as_ref().unwrap().ids.len() > 1000);
+            assert_eq!(with.rgb.len(), 3 * 96 * 72);
+            assert!(without.rgb.is_empty() && without.depth_acc.is_empty());
+            assert!(without.median_depth.is_empty());
+        }
     }
 
     #[test]
