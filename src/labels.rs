@@ -7,7 +7,6 @@
 //!
 //! Ids are `i32` everywhere (never 8- or 16-bit containers); an id that would overflow is an
 //! error. This is a format module: it depends on no stage.
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -58,8 +57,10 @@ pub struct Label {
 pub struct LabelTable {
     pub delta: i32,
     pub labels: Vec<Label>,
+    /// Row of each id (Fx hashing: looked up per pixel by the vote, fuse and eval; the map's
+    /// order is never read).
     #[serde(skip)]
-    index: HashMap<i32, usize>,
+    index: rustc_hash::FxHashMap<i32, usize>,
 }
 
 /// The fused id of image group `group`: `group + Δ`; an error where it does not fit in `i32`.
@@ -88,7 +89,8 @@ pub fn delta_for(entities: usize) -> Result<i32, LabelsError> {
 impl LabelTable {
     /// A table from its parts (checks ids are unique and consistent with their source).
     pub fn new(delta: i32, labels: Vec<Label>) -> Result<LabelTable, String> {
-        let mut index = HashMap::with_capacity(labels.len());
+        let mut index =
+            rustc_hash::FxHashMap::with_capacity_and_hasher(labels.len(), Default::default());
         for (i, l) in labels.iter().enumerate() {
             if index.insert(l.id, i).is_some() {
                 return Err(format!("label id {} is listed twice", l.id));
