@@ -296,8 +296,8 @@ impl pulp::WithSimd for BatchOp<'_> {
 /// The branch-free front of the projection for `L` Gaussians, one array per quantity: the
 /// camera-frame depth, the projected mean, [`outside_grid`]'s verdict, the 2D covariance
 /// `abc` and its determinant before the low-pass (`det0`) and after it (`det`). Lane `l`
-/// performs exactly the scalar operations of one Gaussian (glam's order for `R·p + t`, `(R·Σ)·Rᵀ` and `J·Σ'·Jᵀ`, zero entries of `J`
-/// included), so any `L` gives the same bits.
+/// performs exactly the scalar operations of one Gaussian (glam's order for `R·p + t`,
+/// `(R·Σ)·Rᵀ` and `J·Σ'·Jᵀ`, zero entries of `J` included), so any `L` gives the same bits.
 struct Front<const L: usize> {
     tz: [f64; L],
     mean: [[f64; 2]; L],

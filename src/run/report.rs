@@ -496,15 +496,6 @@ fn completeness_table(html: &mut String, out: &Path) {
 
 #[cfg(test)]
 mod tests {
-
-    #[test]
-    fn links_are_percent_encoded_and_text_escaped() {
-        assert_eq!(url("report/orbit 000.png"), "report/orbit%20000.png");
-        assert_eq!(url("masks/Ansicht-ü#1.png"), "masks/Ansicht-%C3%BC%231.png");
-        assert_eq!(url("a-b_c.d~/e"), "a-b_c.d~/e");
-        assert_eq!(esc("<a \"b\" & c>"), "&lt;a &quot;b&quot; &amp; c&gt;");
-    }
-
     use super::*;
     use crate::cache::CacheOptions;
     use crate::render::tests::{camera_at, random_scene};
@@ -596,5 +587,13 @@ mod tests {
         }
         // Most values agree exactly.
         assert!(checked > 3 * 2 * 120 * 90 * 3 / 2, "{checked}");
+    }
+
+    #[test]
+    fn links_are_percent_encoded_and_text_escaped() {
+        assert_eq!(url("report/orbit 000.png"), "report/orbit%20000.png");
+        assert_eq!(url("masks/Ansicht-ü#1.png"), "masks/Ansicht-%C3%BC%231.png");
+        assert_eq!(url("a-b_c.d~/e"), "a-b_c.d~/e");
+        assert_eq!(esc("<a \"b\" & c>"), "&lt;a &quot;b&quot; &amp; c&gt;");
     }
 }
