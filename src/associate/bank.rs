@@ -28,7 +28,9 @@
 //!
 //! Groups are then numbered canonically, by their first mask in (view name, mask index) order,
 //! so ids do not depend on the visiting order either.
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet};
+
+use rustc_hash::FxHashMap as HashMap;
 
 use super::candidates::Candidate;
 
@@ -368,7 +370,7 @@ impl Bank {
         // order was.
         let mut canon: Vec<usize> = (0..self.obs.len()).collect();
         canon.sort_by_key(|&i| (self.obs[i].view, self.obs[i].mask));
-        let mut renum: HashMap<u32, u32> = HashMap::new();
+        let mut renum: HashMap<u32, u32> = HashMap::default();
         for &i in &canon {
             let n = renum.len() as u32;
             renum.entry(self.assigned[i]).or_insert(n);
@@ -537,7 +539,10 @@ impl Bank {
             }
             entries.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.cmp(&b.1)));
             let n = m.len();
-            let mut ov: HashMap<(u32, u32), f32> = HashMap::new();
+            // Ordered: the link masses below are summed in key order, the same in every
+            // process (a randomly seeded hash map's order changed the last bits of the f32
+            // sums, and so could change which component a small one joins).
+            let mut ov: BTreeMap<(u32, u32), f32> = BTreeMap::new();
             let mut i = 0;
             while i < entries.len() {
                 let mut j = i;
@@ -610,7 +615,7 @@ impl Bank {
                     final_root[l] = to_big[&root[l]];
                 }
             }
-            let mut local: HashMap<u32, u32> = HashMap::new();
+            let mut local: HashMap<u32, u32> = HashMap::default();
             for (l, &i) in m.iter().enumerate() {
                 let c = *local.entry(final_root[l]).or_insert_with(|| {
                     next += 1;
@@ -698,7 +703,7 @@ pub(crate) fn best_share(shares: &[(u32, f64)]) -> Option<(u32, f64)> {
 
 /// Weighted share of `c`'s mass per owner (owners ascending) and the total mass.
 pub(crate) fn shares_under(owner: &[i32], c: &Candidate) -> (Vec<(u32, f64)>, f64) {
-    let mut per: HashMap<u32, f64> = HashMap::new();
+    let mut per: HashMap<u32, f64> = HashMap::default();
     let mut total = 0.0;
     for (&g, &w) in c.ids.iter().zip(&c.weights) {
         let w = f64::from(w);

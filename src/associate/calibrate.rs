@@ -21,7 +21,7 @@
 //! Sampling keeps the cost bounded and deterministic: Gaussians enter the pair count through a
 //! SplitMix64 hash sample sized to at most [`PAIR_BUDGET`] mask pairs, and unlinked pairs are a
 //! strided sample of at most [`UNLINKED_MAX`]; nothing depends on the thread count.
-use std::collections::HashMap;
+use rustc_hash::FxHashMap as HashMap;
 
 use serde::{Deserialize, Serialize};
 
@@ -106,7 +106,7 @@ pub type Pairs = Vec<(u32, u32)>;
 /// Linked and unlinked pairs of `obs`, and the Gaussian sampling modulus used.
 pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
     // Gaussian → (mask, share of the mask's candidate mass), masks in observation order.
-    let mut lists: HashMap<u32, Vec<(u32, f32)>> = HashMap::new();
+    let mut lists: HashMap<u32, Vec<(u32, f32)>> = HashMap::default();
     for (i, o) in obs.iter().enumerate() {
         let total = o.candidate.mass();
         if total <= 0.0 {
@@ -127,7 +127,7 @@ pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
     let kept = |g: u32| sample == 1 || splitmix64(u64::from(g)) % sample == 0;
     // Per mask the sampled mass, per pair the shared sampled mass of each side.
     let mut mass = vec![0.0f64; obs.len()];
-    let mut shared: HashMap<(u32, u32), (f64, f64)> = HashMap::new();
+    let mut shared: HashMap<(u32, u32), (f64, f64)> = HashMap::default();
     let mut gs: Vec<u32> = lists.keys().copied().filter(|&g| kept(g)).collect();
     gs.sort_unstable();
     for g in gs {

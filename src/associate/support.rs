@@ -71,9 +71,9 @@ fn join_members(
     min_views: u32,
 ) -> usize {
     // Per claimed Gaussian: (group, views containing it), or a conflict (usize::MAX).
-    let mut claim: std::collections::HashMap<u32, (usize, u32)> = Default::default();
+    let mut claim: rustc_hash::FxHashMap<u32, (usize, u32)> = Default::default();
     for view in joins {
-        let mut here: std::collections::HashSet<(u32, usize)> = Default::default();
+        let mut here: rustc_hash::FxHashSet<(u32, usize)> = Default::default();
         for (k, ids) in view {
             for &g in ids {
                 if here.insert((g, *k)) {
@@ -86,10 +86,10 @@ fn join_members(
             }
         }
     }
-    let mut seen: std::collections::HashMap<u32, u32> = Default::default();
+    let mut seen: rustc_hash::FxHashMap<u32, u32> = Default::default();
     for (view, bits) in joins.iter().zip(visible) {
         let bits = bits.as_deref().unwrap_or_default();
-        let groups: std::collections::HashSet<usize> = view.iter().map(|(k, _)| *k).collect();
+        let groups: rustc_hash::FxHashSet<usize> = view.iter().map(|(k, _)| *k).collect();
         for (&g, &(k, _)) in &claim {
             let vis = bits
                 .get(g as usize / 64)

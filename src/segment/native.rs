@@ -306,6 +306,9 @@ impl<'a> Lookup<'a> {
             .iter()
             .map(|(n, t)| (n.as_str(), t))
             .collect();
+        // By name: should two initializers shorten to one key below, the same one wins in every
+        // process (the map's own order is seeded at random).
+        named.sort_unstable_by_key(|&(n, _)| n);
         for n in &g.nodes {
             if let (true, [i], [o]) = (n.op_type == "Identity", &n.inputs[..], &n.outputs[..]) {
                 if let Some(t) = g.initializers.get(i) {
