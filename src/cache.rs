@@ -833,27 +833,51 @@ fn pick_label(
 
 // Depth from the cache: the 3DGS median depth of a cached view.
 
-/// View-space z (the camera-axis depth the rasterizer sorts by) of every Gaussian centre.
-pub fn view_z(positions: &[[f32; 3]], pose: &crate::camera::Pose) -> Vec<f32> {
-    // Only the third row of `world_to_camera` (`R·p + t`).
-    let r = pose.rotation.row(2);
-    let tz = pose.translation.z;
-    positions
-        .iter()
-        .map(|p| (r.dot(glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64)) + tz) as f32)
-        .collect()
+/// The view-space z (the camera-axis depth the rasterizer sorts by) of Gaussian centres:
+/// only the third row of `world_to_camera` (`R·p + t`), hoisted once per view.
+pub struct CentreZ {
+    row: glam::DVec3,
+    tz: f64,
+}
+
+impl CentreZ {
+    pub fn new(pose: &crate::camera::Pose) -> CentreZ {
+        CentreZ {
+            row: pose.rotation.row(2),
+            tz: pose.translation.z,
+        }
+    }
+
+    /// The z of centre `p`.
+    #[inline]
+    pub fn of(&self, p: [f32; 3]) -> f32 {
+        (self
+            .row
+            .dot(glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+            + self.tz) as f32
+    }
 }
 
 /// The 3DGS median depth per pixel from a view's contribution lists: the z of the Gaussian
 /// at which the accumulated weight `Σ α·T` (in depth order) first reaches 0.5 — where the
 /// transmittance crosses 0.5, the rasterizer's median depth. NaN where the kept weights never
-/// reach 0.5 (mostly transparent pixels, or mass lost to the top-k truncation). Unlike the
-/// expected depth, it is not pulled forward by semi-transparent Gaussians in front (a tree
-/// crown at 1 m covering 25 % of a wall pixel at 11 m moves the expected depth to 8.6 m and
-/// the median not at all).
-pub fn median_depth(c: &ViewContrib, z: &[f32]) -> Vec<f32> {
+/// reach 0.5 (mostly transparent pixels, or mass lost to the top-k truncation), or where the
+/// Gaussian has no centre in `positions`. Unlike the expected depth, it is not pulled forward
+/// by semi-transparent Gaussians in front (a tree crown at 1 m covering 25 % of a wall pixel
+/// at 11 m moves the expected depth to 8.6 m and the median not at all). Only the median
+/// Gaussians' z is computed ([`CentreZ`], with the view's `pose`), not every centre's.
+pub fn median_depth(
+    c: &ViewContrib,
+    positions: &[[f32; 3]],
+    pose: &crate::camera::Pose,
+) -> Vec<f32> {
+    let z = CentreZ::new(pose);
     (0..c.pixels())
-        .map(|p| median_gaussian(c, p).map_or(f32::NAN, |i| z[i as usize]))
+        .map(|p| {
+            median_gaussian(c, p)
+                .and_then(|i| positions.get(i as usize))
+                .map_or(f32::NAN, |&q| z.of(q))
+        })
         .collect()
 }
 
@@ -876,7 +900,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn view_z_is_the_camera_z_of_world_to_camera() {
+    fn centre_z_is_the_camera_z_of_world_to_camera_and_the_median_reads_it() {
         let pose = crate::camera::Pose::look_at(
             glam::DVec3::new(3.0, -7.0, 2.0),
             glam::DVec3::new(0.5, 1.0, 1.0),
@@ -884,13 +908,24 @@ mod tests {
         )
         .unwrap();
         let pts = [[0.0f32, 0.0, 0.0], [1.5, 2.5, -0.5], [-4.0, 8.0, 3.0]];
-        let z = view_z(&pts, &pose);
-        for (p, z) in pts.iter().zip(z) {
+        let cz = CentreZ::new(&pose);
+        for p in pts {
             let e = pose
                 .world_to_camera(glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))
                 .z;
-            assert!((z as f64 - e).abs() < 1e-5, "{z} {e}");
+            assert!((cz.of(p) as f64 - e).abs() < 1e-5, "{} {e}", cz.of(p));
         }
+        // Pixel 0: weights 0.3, 0.3 → the second Gaussian (id 2) crosses 0.5; pixel 1: 0.2 only,
+        // never; pixel 2: id 7, beyond the centres.
+        let mut v = ViewContrib::empty();
+        v.width = 3;
+        v.height = 1;
+        v.lists.offsets = vec![0, 2, 3, 4];
+        v.lists.ids = vec![0, 2, 1, 7];
+        v.lists.weights = vec![0.3, 0.3, 0.2, 0.9];
+        let d = median_depth(&v, &pts, &pose);
+        assert_eq!(d[0].to_bits(), cz.of(pts[2]).to_bits());
+        assert!(d[1].is_nan() && d[2].is_nan());
     }
 
     use rand::{Rng, SeedableRng};

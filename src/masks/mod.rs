@@ -604,7 +604,7 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
         }
         let t = Instant::now();
         let gs = match &plan.positions {
-            Some(pos) => crate::cache::median_depth(&c, &crate::cache::view_z(pos, &v.camera.pose)),
+            Some(pos) => crate::cache::median_depth(&c, pos, &v.camera.pose),
             None => c.depth,
         };
         let surface = &ids[h * w..2 * h * w];

@@ -545,7 +545,7 @@ fn scan_view(
                 ),
             });
         }
-        let gs = crate::cache::median_depth(&c, &crate::cache::view_z(g.positions, &cam.pose));
+        let gs = crate::cache::median_depth(&c, g.positions, &cam.pose);
         scan.candidates
             .extend(recess::candidates(&vm, &gs, frames, opts, scale)?);
     }
