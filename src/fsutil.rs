@@ -1,8 +1,11 @@
 //! Output files that never survive half-written: everything is written to a temporary
-//! sibling and renamed into place once complete.
+//! sibling and renamed into place once complete. The xxh3-64 digest of what
+//! [`atomic_write`] wrote is computed on the way ([`written`]), so the run store need not read
+//! a stage's outputs back to record them.
 use std::fs::{self, File};
 use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use serde::Serialize;
 
@@ -35,12 +38,66 @@ fn tmp_path(path: &Path) -> PathBuf {
     path.with_file_name(format!(".{name}.tmp{}", std::process::id()))
 }
 
+/// The file [`atomic_write`] fills: every byte also goes into the xxh3-64 digest.
+pub struct Digesting {
+    file: File,
+    hash: xxhash_rust::xxh3::Xxh3,
+    bytes: u64,
+}
+
+impl Write for Digesting {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        let n = self.file.write(buf)?;
+        self.hash.update(&buf[..n]);
+        self.bytes += n as u64;
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        self.file.flush()
+    }
+}
+
+/// What [`atomic_write`] wrote to a path: size, modification time (ns since the epoch) and
+/// the xxh3-64 digest of the content (hex).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Written {
+    pub size: u64,
+    pub mtime_ns: u64,
+    pub digest: String,
+}
+
+/// The files this process has written with [`atomic_write`], by path, until [`written`] takes
+/// them.
+static WRITTEN: std::sync::LazyLock<Mutex<std::collections::HashMap<PathBuf, Written>>> =
+    std::sync::LazyLock::new(Default::default);
+
+/// The modification time of `m` in ns since the epoch (0 where unknown).
+pub fn mtime_ns(m: &fs::Metadata) -> u64 {
+    m.modified()
+        .ok()
+        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// Takes what this process wrote to `path` with [`atomic_write`], when the file still has that
+/// size and modification time (so it was not changed since); `None` otherwise.
+pub fn written(path: &Path) -> Option<Written> {
+    let w = WRITTEN
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .remove(path)?;
+    let m = fs::metadata(path).ok()?;
+    (m.is_file() && m.len() == w.size && mtime_ns(&m) == w.mtime_ns).then_some(w)
+}
+
 /// Writes `path` through `fill`, into a temporary file that is renamed over `path` only
 /// when `fill` succeeded and the data was flushed. On failure the temporary file is removed.
+/// The content's digest is kept for [`written`].
 pub fn atomic_write<E, F>(path: &Path, fill: F) -> Result<(), E>
 where
     E: From<FsError>,
-    F: FnOnce(&mut BufWriter<File>) -> Result<(), E>,
+    F: FnOnce(&mut BufWriter<Digesting>) -> Result<(), E>,
 {
     let tmp = tmp_path(path);
     let wrap = |err| FsError::Write {
@@ -48,7 +105,14 @@ where
         err,
     };
     let file = File::create(&tmp).map_err(wrap)?;
-    let mut writer = BufWriter::with_capacity(1 << 20, file);
+    let mut writer = BufWriter::with_capacity(
+        1 << 20,
+        Digesting {
+            file,
+            hash: xxhash_rust::xxh3::Xxh3::new(),
+            bytes: 0,
+        },
+    );
     let result = fill(&mut writer).and_then(|()| {
         writer.flush().map_err(wrap)?;
         fs::rename(&tmp, path).map_err(|err| {
@@ -59,8 +123,24 @@ where
             .into()
         })
     });
-    if result.is_err() {
-        let _ = fs::remove_file(&tmp);
+    match &result {
+        Err(_) => {
+            let _ = fs::remove_file(&tmp);
+        }
+        Ok(()) => {
+            let d = writer.get_ref();
+            if let Ok(m) = fs::metadata(path) {
+                let w = Written {
+                    size: d.bytes,
+                    mtime_ns: mtime_ns(&m),
+                    digest: format!("{:016x}", d.hash.digest()),
+                };
+                WRITTEN
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .insert(path.to_path_buf(), w);
+            }
+        }
     }
     result
 }
@@ -165,5 +245,40 @@ mod tests {
         write_bytes(&target, b"ok").unwrap();
         assert_eq!(fs::read(&target).unwrap(), b"ok");
         fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn written_gives_the_digest_of_what_was_written_once_and_only_while_unchanged() {
+        let d = test_temp_dir().join(format!("fsutil-written-{}", std::process::id()));
+        create_dir(&d).unwrap();
+        let p = d.join("x.bin");
+        let content: Vec<u8> = (0..5000u32).map(|i| (i * 7 % 251) as u8).collect();
+        write_bytes(&p, &content).unwrap();
+        let w = written(&p).expect("just written");
+        assert_eq!(w.size, 5000);
+        assert_eq!(
+            w.digest,
+            format!("{:016x}", xxhash_rust::xxh3::xxh3_64(&content))
+        );
+        assert_eq!(written(&p), None, "taken once");
+        // Rewritten, then grown in place: the file no longer matches what was written.
+        write_bytes(&p, b"abc").unwrap();
+        fs::OpenOptions::new()
+            .append(true)
+            .open(&p)
+            .unwrap()
+            .write_all(b"d")
+            .unwrap();
+        assert_eq!(written(&p), None);
+        // A failed fill records nothing.
+        let q = d.join("y.bin");
+        let r: Result<(), FsError> = atomic_write(&q, |_| {
+            Err(FsError::Write {
+                path: q.clone(),
+                err: io::Error::other("boom"),
+            })
+        });
+        assert!(r.is_err() && !q.exists() && written(&q).is_none());
+        let _ = fs::remove_dir_all(&d);
     }
 }

@@ -25,7 +25,7 @@ use rayon::prelude::*;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
-use crate::fsutil::{self, FsError};
+use crate::fsutil::{self, FsError, mtime_ns};
 use crate::layout::Stage;
 
 /// Errors of the run store.
@@ -94,13 +94,6 @@ pub struct StageReport {
     /// Time of the run that made the output.
     pub compute_seconds: f64,
     pub out: PathBuf,
-}
-
-fn mtime_ns(m: &std::fs::Metadata) -> u64 {
-    m.modified()
-        .ok()
-        .and_then(|t| t.duration_since(UNIX_EPOCH).ok())
-        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// xxh3-64 of a file's content, hex.
@@ -311,10 +304,24 @@ impl Store {
         if !summary_path.is_file() {
             fsutil::write_json(&summary_path, &summary).map_err(StoreError::from)?;
         }
-        // Digested in parallel (a render cache is gigabytes); the order stays the listing's.
+        // The digests computed while the files were written (`fsutil::written`: unchanged
+        // since); the others are read back, in parallel (a render cache is gigabytes). The
+        // order stays the listing's.
         let outputs = list_files(&partial)?
             .par_iter()
-            .map(|rel| file_id(&partial.join(rel), rel.display().to_string(), None))
+            .map(|rel| {
+                let path = partial.join(rel);
+                let shown = rel.display().to_string();
+                match fsutil::written(&path) {
+                    Some(w) => Ok(FileId {
+                        path: shown,
+                        size: w.size,
+                        mtime_ns: w.mtime_ns,
+                        digest: w.digest,
+                    }),
+                    None => file_id(&path, shown, None),
+                }
+            })
             .collect::<Result<Vec<_>, _>>()?;
         // Swap it into place.
         let aside = self.root.join(format!(".{stage}.old"));
@@ -521,6 +528,34 @@ mod tests {
         std::fs::write(&input, "HELLO").unwrap();
         go(2, &mut ra, &mut rb);
         assert_eq!((ra, rb), (4, 5), "input content changed");
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn recorded_digests_match_the_files_however_they_were_written() {
+        let d = tmp("digests");
+        let root = d.join("run");
+        let mut s = Store::open(&root, &d, serde_json::json!({}), false).unwrap();
+        s.stage::<Sum, E, _>(Stage::Render, &0, &[], &[], |dir| {
+            // Digested while written (fsutil), written plainly, and written through fsutil
+            // then changed in place (its digest must be read back, not the one from writing).
+            crate::fsutil::write_bytes(&dir.join("a.bin"), &[7u8; 3000]).unwrap();
+            std::fs::write(dir.join("b.bin"), b"plain").unwrap();
+            crate::fsutil::write_bytes(&dir.join("c.bin"), b"before").unwrap();
+            std::thread::sleep(std::time::Duration::from_millis(30));
+            std::fs::write(dir.join("c.bin"), b"after!").unwrap();
+            Ok(Sum { n: 0 })
+        })
+        .unwrap();
+        let rec = s.record(Stage::Render).unwrap();
+        let names: Vec<&str> = rec.outputs.iter().map(|o| o.path.as_str()).collect();
+        assert_eq!(names, ["a.bin", "b.bin", "c.bin", "summary.json"]);
+        for o in &rec.outputs {
+            let bytes = std::fs::read(root.join("render").join(&o.path)).unwrap();
+            let want = format!("{:016x}", xxhash_rust::xxh3::xxh3_64(&bytes));
+            assert_eq!(o.digest, want, "{}", o.path);
+            assert_eq!(o.size, bytes.len() as u64, "{}", o.path);
+        }
         let _ = std::fs::remove_dir_all(&d);
     }
 
