@@ -213,6 +213,15 @@ impl Findings {
         {
             return self.error(Path::new(&format!("{shown}{name}")), rest);
         }
+        // `file:430: …` (a reader's file and line): `line 430: …`, the file said once.
+        if let Some((line, rest)) = text
+            .strip_prefix(&shown)
+            .and_then(|t| t.strip_prefix(':'))
+            .and_then(|t| t.split_once(": "))
+            .filter(|(n, _)| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+        {
+            return self.error(file, format!("line {line}: {rest}"));
+        }
         let message = text
             .strip_prefix(&shown)
             .and_then(|t| t.strip_prefix(": "))
@@ -912,4 +921,38 @@ fn plausibility(
         median_distance_m: median,
         plausible,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_reader_error_names_its_file_once() {
+        let mut f = Findings(Vec::new());
+        let p = Path::new("S/citymodel/a.gml");
+        f.error_of(
+            p,
+            &"S/citymodel/a.gml:430: file ends inside 12 open element(s)",
+        );
+        f.error_of(p, &"S/citymodel/a.gml: not a CityGML file");
+        f.error_of(
+            Path::new("S/sparse/0"),
+            &"S/sparse/0/images.txt:5: bad pose",
+        );
+        f.error_of(p, &"something else entirely");
+        let shown: Vec<String> =
+            f.0.iter()
+                .map(|x| format!("{}: {}", x.file.display(), x.message))
+                .collect();
+        assert_eq!(
+            shown,
+            [
+                "S/citymodel/a.gml: line 430: file ends inside 12 open element(s)",
+                "S/citymodel/a.gml: not a CityGML file",
+                "S/sparse/0/images.txt:5: bad pose",
+                "S/citymodel/a.gml: something else entirely",
+            ]
+        );
+    }
 }

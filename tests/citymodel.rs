@@ -300,6 +300,38 @@ fn bad_input_gives_named_errors_or_warnings_never_panics() {
 }
 
 #[test]
+fn building_parts_nested_without_end_are_refused_with_the_line() {
+    // Parts without gml:id derive ids from their parents', which grow with the depth: 20
+    // levels are read, 40 refused at the 33rd level with its line.
+    let nest = |levels: usize| {
+        let mut s = String::from(HEAD);
+        for _ in 0..levels {
+            s.push_str("<bldg:consistsOfBuildingPart>\n<bldg:BuildingPart>\n");
+        }
+        s.push_str(&wall("0 0 0 4 0 0 4 0 3 0 0 3 0 0 0"));
+        for _ in 0..levels {
+            s.push_str("</bldg:BuildingPart></bldg:consistsOfBuildingPart>\n");
+        }
+        s.push_str(TAIL);
+        s
+    };
+    let m = read(&nest(20)).unwrap();
+    assert_eq!(m.objects.len(), 22);
+    let deepest = &m.objects[20].object_id;
+    assert!(
+        deepest.starts_with("B1/BuildingPart[1]/BuildingPart[1]/"),
+        "{deepest}"
+    );
+    let e = read(&nest(40)).unwrap_err().to_string();
+    // HEAD has 6 lines before the first part; each level adds 2 lines.
+    let line = 6 + 2 * 32;
+    assert!(
+        e.contains(&format!("test.gml:{line}")) && e.contains("nested in 32 other city objects"),
+        "{e}"
+    );
+}
+
+#[test]
 fn xlinked_solid_polygons_are_counted_once_and_reversed_surfaces_flip() {
     let snippet = format!(
         "{HEAD}<bldg:lod3Solid><gml:Solid><gml:exterior><gml:CompositeSurface><gml:surfaceMember xlink:href=\"#P1\"/>\

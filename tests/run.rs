@@ -347,6 +347,34 @@ fn another_test_split_leaves_no_stale_prediction() {
 }
 
 #[test]
+fn an_image_that_cannot_be_decoded_is_a_grey_report_panel_not_a_failed_run() {
+    let dir = wall::tmp("run-badimage");
+    let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
+    // The test view's image cut short after its PNG header (`gs4city check` warns that the
+    // report shows a grey panel for it); the other views have none.
+    std::fs::create_dir_all(scene.join("images")).unwrap();
+    std::fs::write(
+        scene.join("images/v00.png"),
+        b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR\0\0\0\x10",
+    )
+    .unwrap();
+    let out = dir.join("out");
+    let s = run(&scene, &out, &RunOptions::default()).unwrap();
+    assert_eq!(s.test_views, ["v00"]);
+    assert!(out.join("report.html").is_file());
+    // The first of the panel's four images (image | classes | truth | prediction, 4-pixel
+    // gaps) is grey.
+    let panel = gs4city::imageio::read_rgb(&out.join("report/v00.png")).unwrap();
+    let (h, total, _) = panel.dim();
+    for y in 0..h {
+        for x in 0..(total - 12) / 4 {
+            assert_eq!(panel[[y, x, 1]], 128, "pixel ({x}, {y})");
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
 fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
     let dir = wall::tmp("run-refuse");
     let (scene, _) = wall::write_scene(&dir.join("scene"), 5);

@@ -20,6 +20,12 @@ use super::geometry::{CoordKind, PolyBuilder, Reference, lod_property};
 use super::hierarchy::{CONTAINMENT, GenAttrBuilder, SIMPLE_ATTRS};
 use super::model::*;
 
+/// City objects nested deeper than this are refused: real models nest a handful of levels
+/// (building → part → surface → opening), and the ids derived for objects without a gml:id
+/// grow with the depth (`<parent id>/<Class>[k]`), so thousands of levels would cost memory
+/// quadratic in the depth.
+pub(super) const MAX_OBJECT_NESTING: usize = 32;
+
 /// Maps byte offsets of the text to 1-based line numbers with a forward cursor: offsets
 /// arrive in increasing order while the XML streams, so the whole file costs one pass and
 /// no memory per line (a step back recounts from the start).
@@ -515,6 +521,22 @@ impl Parser {
                 Module::Building | Module::Construction | Module::Core
             ) && let Some(class) = Class::from_local_name(local)
             {
+                if self.object_stack.len() >= MAX_OBJECT_NESTING {
+                    return Err(CityGmlError::Content {
+                        path: self.path.clone(),
+                        line,
+                        message: format!(
+                            "{local}{} is nested in {} other city objects (buildings, parts, \
+                             installations, surfaces, openings); gs4city reads at most \
+                             {MAX_OBJECT_NESTING} levels",
+                            a.gml_id
+                                .as_deref()
+                                .map(|id| format!(" gml:id \"{id}\""))
+                                .unwrap_or_default(),
+                            self.object_stack.len()
+                        ),
+                    });
+                }
                 return Ok(self.begin_object(class, a, line));
             }
             if let Some(lod) = lod_property(local) {

@@ -55,12 +55,14 @@ pub enum EvalError {
         col: usize,
     },
     #[error(
-        "{path}: a {}×{} prediction for a {}×{} ground truth: another aspect ratio, so another \
-         image (a prediction of another size is only resized when its shape is the ground truth's)",
-        pred[0], pred[1], gt[0], gt[1]
+        "{path}: a {}×{} prediction for the {}×{} ground truth {}: another aspect ratio, so \
+         another image (a prediction of another size is only resized when its shape is the \
+         ground truth's)",
+        pred[0], pred[1], gt[0], gt[1], gt_path.display()
     )]
     Shape {
         path: PathBuf,
+        gt_path: PathBuf,
         pred: [usize; 2],
         gt: [usize; 2],
     },
@@ -144,6 +146,7 @@ pub fn evaluate_view(stem: &str, gt_path: &Path, pred_path: &Path) -> Result<Ima
     if !same_shape(pred_size, gt_size) {
         return Err(EvalError::Shape {
             path: pred_path.to_path_buf(),
+            gt_path: gt_path.to_path_buf(),
             pred: pred_size,
             gt: gt_size,
         });

@@ -101,9 +101,25 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
         .iter()
         .find(|&&l| l >= 0 && inp.labels.get(l).is_none())
     {
-        return Err(LiftError::Labels {
-            path: inp.maps.dir().to_path_buf(),
-            why: format!("label {l} of a label map is not in the label table"),
+        // Only on this error path: find the first map and pixel holding it, to name them.
+        let at = inp.train.iter().find_map(|v| {
+            let (w, h) = (
+                v.camera.intrinsics.width as usize,
+                v.camera.intrinsics.height as usize,
+            );
+            let map = inp.maps.read(&v.stem(), w, h).ok()?;
+            let p = map.iter().position(|&x| x == *l)?;
+            Some((inp.maps.file(&v.stem()), p % w, p / w))
+        });
+        return Err(match at {
+            Some((path, x, y)) => LiftError::Labels {
+                path,
+                why: format!("label {l} at pixel (x {x}, y {y}) is not in the label table"),
+            },
+            None => LiftError::Labels {
+                path: inp.maps.dir().to_path_buf(),
+                why: format!("label {l} of a label map is not in the label table"),
+            },
         });
     }
     let t = Instant::now();

@@ -162,6 +162,27 @@ pub fn surface_bias(
             nkeys = nkeys.max(k as usize + 1).max(feature[p] as usize + 1);
         }
     }
+    // Ids are entity indices, so they stay below a few times the pixel count; larger ones
+    // (a damaged or foreign raycast) are renumbered densely first, so that nothing is sized
+    // by an id. The medians are the same: each key keeps its values in the same order.
+    let dense: Option<Vec<u32>> = (nkeys > 2 * by_surface.len() + 1024).then(|| {
+        let mut d: Vec<u32> = by_surface
+            .iter()
+            .chain(&by_feature)
+            .map(|&(k, _)| k)
+            .collect();
+        d.sort_unstable();
+        d.dedup();
+        for (k, _) in by_surface.iter_mut().chain(by_feature.iter_mut()) {
+            *k = d.binary_search(k).expect("collected above") as u32;
+        }
+        nkeys = d.len();
+        d
+    });
+    let index = |k: i32| match &dense {
+        None => Some(k as usize),
+        Some(d) => d.binary_search(&(k as u32)).ok(),
+    };
     let ms = medians_by_key(&by_surface, nkeys, min_px);
     let mf = medians_by_key(&by_feature, nkeys, min_px);
     (0..city.len())
@@ -169,9 +190,15 @@ pub fn surface_bias(
             if feature[p] < 0 {
                 return 0.0;
             }
-            let s = ms.get(key(p) as usize).copied().unwrap_or(f32::NAN);
+            let s = index(key(p))
+                .and_then(|i| ms.get(i))
+                .copied()
+                .unwrap_or(f32::NAN);
             let b = if s.is_nan() {
-                mf.get(feature[p] as usize).copied().unwrap_or(f32::NAN)
+                index(feature[p])
+                    .and_then(|i| mf.get(i))
+                    .copied()
+                    .unwrap_or(f32::NAN)
             } else {
                 s
             };
@@ -572,6 +599,31 @@ mod tests {
         assert_eq!(b, vec![-2.0; 8]);
         let st = classify(&city, &gs2, &f, &s, h, w, &test(0, true));
         assert_eq!(st[2..], [FRONT; 6]);
+    }
+
+    #[test]
+    fn huge_ids_give_the_offsets_of_small_ones_without_sizing_anything_by_them() {
+        // Two surfaces of one building, six pixels each with depth offsets; one surface's pixels
+        // are too few on their own (min 5), so they take the building's median.
+        let n = 12;
+        let city = vec![20.0f32; n];
+        let gs: Vec<f32> = (0..n).map(|i| 20.0 + (i % 5) as f32 * 0.3 - 0.6).collect();
+        let small_f = vec![1i32; n];
+        let small_s: Vec<i32> = (0..n).map(|i| if i < 8 { 4 } else { 6 }).collect();
+        // The same partition under ids near i32::MAX (a damaged raycast would hold these).
+        let big = |k: i32| i32::MAX - 10 + k;
+        let big_f: Vec<i32> = small_f.iter().map(|&k| big(k)).collect();
+        let big_s: Vec<i32> = small_s.iter().map(|&k| big(k)).collect();
+        let want = surface_bias(&city, &gs, &small_f, &small_s, 5, 2.0);
+        let got = surface_bias(&city, &gs, &big_f, &big_s, 5, 2.0);
+        assert_eq!(got, want);
+        // Surface 4 has its own median (8 pixels), surface 6 the building's (4 < 5 pixels).
+        let mut own: Vec<f32> = gs[..8].iter().map(|g| g - 20.0).collect();
+        own.sort_by(f32::total_cmp);
+        let mut all: Vec<f32> = gs.iter().map(|g| g - 20.0).collect();
+        all.sort_by(f32::total_cmp);
+        assert_eq!(want[0], own[4]);
+        assert_eq!(want[11], all[6]);
     }
 
     #[test]

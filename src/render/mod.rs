@@ -644,6 +644,14 @@ pub fn render_to_dir(
         });
     }
     bar.finish();
+    if let Some(first) = summary.warnings.first() {
+        log::warn!(
+            "render: {} of {} views have lens distortion, which this pinhole render ignores \
+             (first: {first}; summary.json lists them)",
+            summary.warnings.len(),
+            views.len()
+        );
+    }
     if summary.render_s > 0.0 {
         summary.gaussians_per_s = (scene.len() * summary.views.len()) as f64 / summary.render_s;
     }

@@ -383,16 +383,28 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             v.camera.intrinsics.width as usize,
             v.camera.intrinsics.height as usize,
         );
+        // The image is only shown: one that cannot be decoded (cut short, empty) or has another
+        // size than the camera is a grey panel with a warning, as `gs4city check` promises.
+        let grey = || Array3::from_elem((h, w, 3), 128u8);
         let img = match scene.images.as_ref().map(|d| d.join(&v.name)) {
-            Some(p) if p.is_file() => crate::imageio::read_rgb(&p)?,
-            _ => Array3::from_elem((h, w, 3), 128u8),
+            Some(p) if p.is_file() => match crate::imageio::read_rgb(&p) {
+                Ok(img) if img.dim() == (h, w, 3) => img,
+                Ok(img) => {
+                    log::warn!(
+                        "report: {}: {}×{} pixels, the camera's are {w}×{h}: a grey panel instead",
+                        p.display(),
+                        img.dim().1,
+                        img.dim().0
+                    );
+                    grey()
+                }
+                Err(e) => {
+                    log::warn!("report: {e}: a grey panel instead");
+                    grey()
+                }
+            },
+            _ => grey(),
         };
-        if img.dim() != (h, w, 3) {
-            return Err(ReportError::Data {
-                path: v.name.clone().into(),
-                why: format!("image is {:?}, camera is {w}×{h}", img.dim()),
-            });
-        }
         let pred = read_map(&crate::idmap::class_file(r.predictions, stem), h, w)?;
         let gt = match scene.gt.as_ref().map(|g| crate::idmap::class_file(g, stem)) {
             Some(p) if p.is_file() => read_map(&p, h, w)?,
