@@ -250,8 +250,11 @@ fn a_prediction_of_another_shape_is_refused() {
     let e = eval::evaluate_dirs(&t.pred(), &t.gt())
         .unwrap_err()
         .to_string();
+    // Both files are named.
+    let (pred, gt) = (t.pred().join("v.class.npy"), t.gt().join("v.class.npy"));
     assert!(
-        e.contains("v.class.npy") && e.contains("20×60 prediction for a 40×60"),
+        e.contains(&format!("{}: a 20×60 prediction", pred.display()))
+            && e.contains(&format!("the 40×60 ground truth {}", gt.display())),
         "{e}"
     );
     // Half the resolution, the same shape: resized.

@@ -351,8 +351,13 @@ fn an_image_that_cannot_be_decoded_is_a_grey_report_panel_not_a_failed_run() {
     let dir = wall::tmp("run-badimage");
     let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
     // The test view's image cut short after its PNG header (`gs4city check` warns that the
-    // report shows a grey panel for it); the other views have none.
+    // report shows a grey panel for it); the other views' images are whole (black).
     std::fs::create_dir_all(scene.join("images")).unwrap();
+    for v in wall::views() {
+        let k = &v.camera.intrinsics;
+        let black = ndarray::Array3::<u8>::zeros((k.height as usize, k.width as usize, 3));
+        gs4city::imageio::write_png(&scene.join("images").join(&v.name), &black).unwrap();
+    }
     std::fs::write(
         scene.join("images/v00.png"),
         b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR\0\0\0\x10",
