@@ -10,6 +10,7 @@
 //! elsewhere, so the one-vs-rest confusion of `c` over the GT fine pixels is exactly that of the
 //! class-map evaluation with this mask as class `c`. Masks of different classes may overlap, so
 //! there is no single confusion matrix (the `confusion` field is empty).
+use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::Path;
 
@@ -111,12 +112,10 @@ pub fn evaluate(
         selections.push((s, merged));
     }
     let gts = super::list_maps(gt_dir)?;
-    let mut coarse: Vec<Counts> = Vec::new();
-    let mut per: Vec<[Counts; N_FINE]> = Vec::new();
-    let mut images = Vec::new();
     let bar = crate::progress::Bar::new("eval", stems.len() as u64, "views");
-    let (mut c, mut buf) = (crate::cache::ViewContrib::empty(), Vec::new());
-    for stem in stems {
+    // The views in parallel, each from its own reading of the cache; collected in view order
+    // (the first error in that order is returned).
+    let per_view = |stem: &String| -> Result<(ImageJson, Counts, [Counts; N_FINE]), EvalError> {
         let gpath = gts.get(stem).ok_or_else(|| EvalError::MissingGroundTruth {
             stem: stem.clone(),
             dir: gt_dir.to_path_buf(),
@@ -130,7 +129,7 @@ pub fn evaluate(
                 col: i % gsize[1],
             });
         }
-        cache.load_into(stem, &mut c, &mut buf)?;
+        let c = cache.load(stem)?;
         let psize = [c.height, c.width];
         let pred_map = |sel: &(Vec<bool>, (Vec<i32>, i32)), class: i32| -> Vec<i32> {
             let m = crate::selection::masks::view_mask(&c, &sel.1, &sel.0, rule);
@@ -144,7 +143,7 @@ pub fn evaluate(
         let cb = accumulate(&gt, &pred_map(&selections[0], classes::WALL));
         let pc: [Counts; N_FINE] =
             std::array::from_fn(|k| accumulate(&gt, &pred_map(&selections[1 + k], FINE[k])));
-        images.push(ImageJson {
+        let image = ImageJson {
             stem: stem.clone(),
             gt_size: gsize,
             pred_size: psize,
@@ -157,10 +156,20 @@ pub fn evaluate(
                 metrics: cb.coarse.coarse_metrics(),
             }),
             fine: (cb.fine_pixels() > 0).then(|| fine_json(&pc)),
-        });
+        };
+        bar.inc(1);
+        Ok((image, cb, pc))
+    };
+    let done: Vec<Result<(ImageJson, Counts, [Counts; N_FINE]), EvalError>> =
+        stems.par_iter().map(per_view).collect();
+    let mut coarse: Vec<Counts> = Vec::with_capacity(done.len());
+    let mut per: Vec<[Counts; N_FINE]> = Vec::with_capacity(done.len());
+    let mut images = Vec::with_capacity(done.len());
+    for d in done {
+        let (image, cb, pc) = d?;
+        images.push(image);
         coarse.push(cb);
         per.push(pc);
-        bar.inc(1);
     }
     bar.finish();
     // Paper protocol: coarse from the building masks; per class over the images holding it;
