@@ -72,6 +72,11 @@ pub struct Written {
 static WRITTEN: std::sync::LazyLock<Mutex<std::collections::HashMap<PathBuf, Written>>> =
     std::sync::LazyLock::new(Default::default);
 
+/// How a content digest is written: the xxh3-64 value as 16 hex digits.
+pub fn digest_hex(h: u64) -> String {
+    format!("{h:016x}")
+}
+
 /// The modification time of `m` in ns since the epoch (0 where unknown).
 pub fn mtime_ns(m: &fs::Metadata) -> u64 {
     m.modified()
@@ -133,7 +138,7 @@ where
                 let w = Written {
                     size: d.bytes,
                     mtime_ns: mtime_ns(&m),
-                    digest: format!("{:016x}", d.hash.digest()),
+                    digest: digest_hex(d.hash.digest()),
                 };
                 WRITTEN
                     .lock()

@@ -113,9 +113,12 @@ pub fn evaluate(
     }
     let gts = super::list_maps(gt_dir)?;
     let bar = crate::progress::Bar::new("eval", stems.len() as u64, "views");
-    // The views in parallel, each from its own reading of the cache; collected in view order
-    // (the first error in that order is returned).
-    let per_view = |stem: &String| -> Result<(ImageJson, Counts, [Counts; N_FINE]), EvalError> {
+    // The views in parallel, each from its own reading of the cache (one decoded view per
+    // running task in memory); collected in view order (every view is evaluated, then the
+    // first error in that order is returned).
+    // One view's row, coarse counts and per-class counts.
+    type ViewEval = (ImageJson, Counts, [Counts; N_FINE]);
+    let per_view = |stem: &String| -> Result<ViewEval, EvalError> {
         let gpath = gts.get(stem).ok_or_else(|| EvalError::MissingGroundTruth {
             stem: stem.clone(),
             dir: gt_dir.to_path_buf(),
@@ -160,8 +163,7 @@ pub fn evaluate(
         bar.inc(1);
         Ok((image, cb, pc))
     };
-    let done: Vec<Result<(ImageJson, Counts, [Counts; N_FINE]), EvalError>> =
-        stems.par_iter().map(per_view).collect();
+    let done: Vec<Result<ViewEval, EvalError>> = stems.par_iter().map(per_view).collect();
     let mut coarse: Vec<Counts> = Vec::with_capacity(done.len());
     let mut per: Vec<[Counts; N_FINE]> = Vec::with_capacity(done.len());
     let mut images = Vec::with_capacity(done.len());

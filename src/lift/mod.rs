@@ -103,10 +103,9 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
     {
         // Only on this error path: find the first map and pixel holding it, to name them.
         let at = inp.train.iter().find_map(|v| {
-            let (w, h) = (
-                v.camera.intrinsics.width as usize,
-                v.camera.intrinsics.height as usize,
-            );
+            // The size the vote read the map at: its cache view's.
+            let c = inp.cache.load(&v.stem()).ok()?;
+            let (w, h) = (c.width, c.height);
             let map = inp.maps.read(&v.stem(), w, h).ok()?;
             let p = map.iter().position(|&x| x == *l)?;
             Some((inp.maps.file(&v.stem()), p % w, p / w))

@@ -108,7 +108,7 @@ pub fn digest_file(path: &Path) -> Result<String, StoreError> {
         }
         h.update(&buf[..n]);
     }
-    Ok(format!("{:016x}", h.digest()))
+    Ok(fsutil::digest_hex(h.digest()))
 }
 
 /// The identity of `path` (`shown` is the path recorded); the digest of `previous` is reused
@@ -239,7 +239,7 @@ impl Store {
                 .map_or("missing", |r| r.run_id.as_str());
             s.push_str(&format!("upstream {u} {id}\n"));
         }
-        format!("{:016x}", xxhash_rust::xxh3::xxh3_64(s.as_bytes()))
+        fsutil::digest_hex(xxhash_rust::xxh3::xxh3_64(s.as_bytes()))
     }
 
     /// Runs `stage` (or resumes it, see the module docs). `inputs` are the scene files it reads,
@@ -542,8 +542,7 @@ mod tests {
             crate::fsutil::write_bytes(&dir.join("a.bin"), &[7u8; 3000]).unwrap();
             std::fs::write(dir.join("b.bin"), b"plain").unwrap();
             crate::fsutil::write_bytes(&dir.join("c.bin"), b"before").unwrap();
-            std::thread::sleep(std::time::Duration::from_millis(30));
-            std::fs::write(dir.join("c.bin"), b"after!").unwrap();
+            std::fs::write(dir.join("c.bin"), b"after, longer").unwrap();
             Ok(Sum { n: 0 })
         })
         .unwrap();
