@@ -113,11 +113,11 @@ pub fn evaluate(
     }
     let gts = super::list_maps(gt_dir)?;
     let bar = crate::progress::Bar::new("eval", stems.len() as u64, "views");
+    // One view's row, coarse counts and per-class counts.
+    type ViewEval = (ImageJson, Counts, [Counts; N_FINE]);
     // The views in parallel, each from its own reading of the cache (one decoded view per
     // running task in memory); collected in view order (every view is evaluated, then the
     // first error in that order is returned).
-    // One view's row, coarse counts and per-class counts.
-    type ViewEval = (ImageJson, Counts, [Counts; N_FINE]);
     let per_view = |stem: &String| -> Result<ViewEval, EvalError> {
         let gpath = gts.get(stem).ok_or_else(|| EvalError::MissingGroundTruth {
             stem: stem.clone(),
