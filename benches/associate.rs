@@ -403,6 +403,7 @@ fn main() {
                 labels: &labels,
                 entities: &entities,
                 city_depth: None,
+                city_mesh: None,
             },
             &LiftOptions::default(),
             &ld,

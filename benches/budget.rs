@@ -268,6 +268,7 @@ struct Revote<'a> {
     s: &'a Supervision,
     entities: Vec<gs4city::semantics::Entity>,
     raycast: PathBuf,
+    mesh: PathBuf,
     scale: f64,
 }
 
@@ -298,6 +299,7 @@ impl<'a> Revote<'a> {
             ))
             .expect("semantics.json"),
             raycast: pick("openings/raycast", "raycast"),
+            mesh: pick("openings/mesh.ply", "citymodel/mesh.ply"),
             scale: cm["scale"].as_f64().unwrap_or(1.0),
         }
     }
@@ -313,13 +315,23 @@ impl<'a> Revote<'a> {
             labels: &self.s.table,
             entities: &self.entities,
             city_depth: Some((&self.raycast, self.scale)),
+            city_mesh: Some(&self.mesh),
         };
         let opts = gs4city::vote::VoteOptions::default();
         let gate = gs4city::vote::CityGate::for_inputs(&inp, opts.city_gate_m, opts.centre_gate)
             .expect("gate");
-        let (asg, _) =
-            gs4city::vote::vote(self.cache, &self.split.train, maps, gate.as_ref(), &opts)
-                .expect("vote");
+        let prior =
+            gs4city::vote::ModelPrior::for_inputs(&inp, &opts, gate.as_ref().map(|g| g.centres()))
+                .expect("prior");
+        let (asg, _) = gs4city::vote::vote(
+            self.cache,
+            &self.split.train,
+            maps,
+            gate.as_ref(),
+            prior.as_ref(),
+            &opts,
+        )
+        .expect("vote");
         asg.iter().map(|a| self.s.table.class_of(a.label)).collect()
     }
 

@@ -39,6 +39,15 @@ pub enum VoteError {
         n: usize,
         cache: usize,
     },
+    #[error(transparent)]
+    MeshRead(#[from] crate::mesh::MeshError),
+    #[error("{path}: {why}")]
+    Mesh {
+        path: std::path::PathBuf,
+        why: String,
+    },
+    #[error(transparent)]
+    Embree(#[from] crate::embree::EmbreeError),
 }
 
 /// Everything a vote-based stage reads (`lift`, and `train`, which starts from the vote).
@@ -54,6 +63,10 @@ pub struct VoteInputs<'a> {
     /// The raycast folder (its z-depth maps) and the alignment scale (scene units per metre)
     /// for the depth gate of city votes ([`CityGate`]); `None` leaves city votes ungated.
     pub city_depth: Option<(&'a Path, f64)>,
+    /// The city model's `mesh.ply` whose face ids are `entities` (the citymodel stage's, or the
+    /// openings stage's completed one) for the city-model prior ([`ModelPrior`]); `None` leaves
+    /// the prior out.
+    pub city_mesh: Option<&'a Path>,
 }
 
 /// The background label (a pixel no label covers).
@@ -71,6 +84,12 @@ pub struct VoteOptions {
     pub city_gate_m: f32,
     /// The centre gate of city votes ([`CityGate`]).
     pub centre_gate: bool,
+    /// Weight of the city-model prior ([`ModelPrior`]) as a share of the median Gaussian's
+    /// vote weight; 0 turns it off.
+    pub model_prior: f32,
+    /// Reach of the city-model prior in metres: a Gaussian whose centre lies further from
+    /// every city-model triangle gets no prior vote.
+    pub model_prior_m: f32,
 }
 
 /// The default background bias γ of the vote: −1, so the background's biased score (its share
@@ -102,12 +121,21 @@ pub fn gamma_for(gamma: Option<f32>, maps: &LabelMaps) -> f32 {
 /// city model's surface takes no vote from the city label of that surface.
 pub const CITY_GATE_M: f32 = 0.5;
 
+/// The default weight of the city-model prior, a share of the median Gaussian's vote weight
+/// ([`ModelPrior`]; measured in BENCHMARKS.md, "The city-model prior in 3D").
+pub const MODEL_PRIOR: f32 = 0.3;
+
+/// The default reach of the city-model prior, in metres.
+pub const MODEL_PRIOR_M: f32 = 0.2;
+
 impl Default for VoteOptions {
     fn default() -> Self {
         VoteOptions {
             gamma: None,
             city_gate_m: CITY_GATE_M,
             centre_gate: true,
+            model_prior: MODEL_PRIOR,
+            model_prior_m: MODEL_PRIOR_M,
         }
     }
 }
@@ -121,6 +149,8 @@ impl VoteOptions {
                 range("gamma", g, End::Closed(-1.0), End::Closed(1.0))
             })
             .and_then(|()| non_negative("city_gate_m", self.city_gate_m))
+            .and_then(|()| non_negative("model_prior", self.model_prior))
+            .and_then(|()| non_negative("model_prior_m", self.model_prior_m))
             .map_err(VoteError::Options)
     }
 }
@@ -181,21 +211,13 @@ impl CityGate {
         // The pipeline's reading: every Gaussian in file order, invalid ones kept in place (their
         // centres may be non-finite; a NaN depth never compares below the gate, and they are
         // never drawn, so no pixel lists them).
-        let (g, _) = crate::splat::read_ply(inp.ply, &crate::splat::ReadOptions::KEEP)?;
-        let cache = inp.cache.summary.gaussians;
-        if g.len() != cache {
-            return Err(VoteError::Gaussians {
-                path: inp.ply.to_path_buf(),
-                n: g.len(),
-                cache,
-            });
-        }
+        let positions = read_centres(inp)?;
         let city_below = match inp.maps {
             LabelMaps::City(_) => i32::MAX,
             LabelMaps::Fused(_) => inp.labels.delta,
         };
         let mut gate = CityGate::new(
-            g.positions,
+            positions,
             raycast,
             f64::from(gate_m) * scene_per_metre,
             city_below,
@@ -204,6 +226,11 @@ impl CityGate {
             gate.classes = Some(inp.labels.clone());
         }
         Ok(Some(gate))
+    }
+
+    /// The Gaussian centres the gate projects (scene frame, cache order).
+    pub fn centres(&self) -> &[[f32; 3]] {
+        &self.centres
     }
 
     /// A gate from Gaussian centres (scene frame, cache order), the raycast folder, the
@@ -306,6 +333,130 @@ impl CityGate {
     }
 }
 
+/// The Gaussian centres of a vote's PLY in the pipeline's reading: every Gaussian in file order,
+/// invalid ones kept in place (their centres may be non-finite); the count must be the cache's.
+fn read_centres(inp: &VoteInputs<'_>) -> Result<Vec<[f32; 3]>, VoteError> {
+    let (g, _) = crate::splat::read_ply(inp.ply, &crate::splat::ReadOptions::KEEP)?;
+    let cache = inp.cache.summary.gaussians;
+    if g.len() != cache {
+        return Err(VoteError::Gaussians {
+            path: inp.ply.to_path_buf(),
+            n: g.len(),
+            cache,
+        });
+    }
+    Ok(g.positions)
+}
+
+/// City-model surfaces no Gaussian lies on (seen from outside a building): they give no prior.
+const HIDDEN_SURFACES: [crate::citygml::Class; 2] = [
+    crate::citygml::Class::GroundSurface,
+    crate::citygml::Class::ClosureSurface,
+];
+
+/// The **city-model prior in 3D**. The views' votes decide a Gaussian's label where the
+/// training views see it well; a Gaussian they hardly see (a door only the distant orbit views
+/// show, a few pixels each, or one the training views never reach) collects almost no weight,
+/// and a stray vote decides it. The aligned city model says directly what such a Gaussian lies
+/// on: each Gaussian whose centre lies within `model_prior_m` of a city-model triangle gets one
+/// extra vote, for that triangle's finest label (part, else surface, else building), of weight
+/// `model_prior` × the median Gaussian's vote weight. A Gaussian seen well outweighs it; one
+/// seen barely follows the model. Ground and closure surfaces give no prior; a person or car
+/// against a wall gets the wall's prior vote too, which its own views' votes outweigh where they
+/// see it; the background bias γ applies as before.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelPrior {
+    /// Per Gaussian (cache order): the label of the nearest triangle, or [`BACKGROUND`] where
+    /// no triangle lies within reach (or the centre is not finite).
+    pub label: Vec<i32>,
+    /// The prior's weight as a share of the median vote weight.
+    pub share: f32,
+}
+
+impl ModelPrior {
+    /// The prior of a vote's inputs: `None` when `opts.model_prior` is 0 or the inputs name no
+    /// city mesh. `centres` are the Gaussian centres when already read (the gate's).
+    pub fn for_inputs(
+        inp: &VoteInputs<'_>,
+        opts: &VoteOptions,
+        centres: Option<&[[f32; 3]]>,
+    ) -> Result<Option<ModelPrior>, VoteError> {
+        let Some(mesh_path) = inp.city_mesh else {
+            return Ok(None);
+        };
+        if opts.model_prior <= 0.0 {
+            return Ok(None);
+        }
+        let mesh = crate::mesh::TriMesh::read_ply(mesh_path)?;
+        mesh.validate()
+            .and_then(|()| mesh.check_label_range(inp.entities.len()))
+            .map_err(|why| VoteError::Mesh {
+                path: mesh_path.to_path_buf(),
+                why,
+            })?;
+        let read;
+        let centres = match centres {
+            Some(c) => c,
+            None => {
+                read = read_centres(inp)?;
+                &read
+            }
+        };
+        let per_metre = inp.city_depth.map_or(1.0, |(_, s)| s);
+        let reach = f64::from(opts.model_prior_m) * per_metre;
+        Ok(Some(ModelPrior {
+            label: nearest_labels(&mesh, inp.entities, inp.labels, centres, reach)?,
+            share: opts.model_prior,
+        }))
+    }
+}
+
+/// Per centre, the finest label of the nearest visible city-model triangle within `reach`
+/// (scene units), or [`BACKGROUND`]. Labels the label table lacks give none.
+fn nearest_labels(
+    mesh: &crate::mesh::TriMesh,
+    entities: &[Entity],
+    labels: &LabelTable,
+    centres: &[[f32; 3]],
+    reach: f64,
+) -> Result<Vec<i32>, VoteError> {
+    let mut faces = Vec::with_capacity(mesh.faces.len());
+    let mut face_label = Vec::with_capacity(mesh.faces.len());
+    for (f, l) in mesh.faces.iter().zip(&mesh.labels) {
+        let hidden = usize::try_from(l.surface)
+            .ok()
+            .and_then(|s| entities.get(s))
+            .is_some_and(|e| HIDDEN_SURFACES.contains(&e.class));
+        let finest = [l.part, l.surface, l.feature]
+            .into_iter()
+            .find(|&x| x >= 0)
+            .filter(|&x| labels.get(x).is_some());
+        if let (false, Some(id)) = (hidden, finest) {
+            faces.push(*f);
+            face_label.push(id);
+        }
+    }
+    if faces.is_empty() || reach.is_nan() || reach <= 0.0 {
+        return Ok(vec![BACKGROUND; centres.len()]);
+    }
+    let device = crate::embree::Device::new()?;
+    let mut scene = crate::embree::Scene::new(&device)?;
+    scene.add_triangles(&mesh.vertices, &faces)?;
+    let scene = scene.commit()?;
+    let mut out = Vec::new();
+    centres
+        .par_iter()
+        .with_min_len(1024)
+        .map(|c| {
+            scene
+                .closest_point(c.map(f64::from), reach)
+                .and_then(|h| face_label.get(h.prim_id as usize).copied())
+                .unwrap_or(BACKGROUND)
+        })
+        .collect_into_vec(&mut out);
+    Ok(out)
+}
+
 /// Per-Gaussian label votes: a few inline slots, and per Gaussian an overflow list for the
 /// rare rest (looked up by Gaussian, so reading all votes stays linear). Weights are `f64`:
 /// a Gaussian can collect millions of small terms.
@@ -363,6 +514,48 @@ impl Votes {
             v.extend(extra);
         }
         v
+    }
+
+    /// Gaussian `g`'s total vote weight (every label, background included).
+    pub fn total(&self, g: u32) -> f64 {
+        let inline: f64 = self.slots[g as usize]
+            .iter()
+            .filter(|s| s.0 != EMPTY)
+            .map(|s| s.1)
+            .sum();
+        inline
+            + self
+                .overflow
+                .get(&g)
+                .map_or(0.0, |v| v.iter().map(|e| e.1).sum())
+    }
+
+    /// Adds the city-model prior: one vote of `share` × the median positive total weight for
+    /// each Gaussian's prior label. Returns that weight and the number of Gaussians given one
+    /// (none when no Gaussian has any vote: the prior scales the views' evidence, it does not
+    /// replace it).
+    pub fn add_prior(&mut self, prior: &ModelPrior) -> (f64, usize) {
+        let mut totals: Vec<f64> = (0..self.slots.len() as u32)
+            .map(|g| self.total(g))
+            .filter(|&t| t > 0.0)
+            .collect();
+        if totals.is_empty() {
+            return (0.0, 0);
+        }
+        let mid = totals.len() / 2;
+        let median = *totals.select_nth_unstable_by(mid, f64::total_cmp).1;
+        let w = f64::from(prior.share) * median;
+        if !(w > 0.0 && w.is_finite()) {
+            return (0.0, 0);
+        }
+        let mut n = 0;
+        for (g, &l) in prior.label.iter().enumerate().take(self.slots.len()) {
+            if l != BACKGROUND {
+                self.add(g as u32, l, w);
+                n += 1;
+            }
+        }
+        (w, n)
     }
 
     /// Votes kept in overflow lists.
@@ -488,6 +681,12 @@ pub struct VoteStats {
     /// The background bias the assignment used ([`gamma_for`]).
     #[serde(default)]
     pub gamma: f32,
+    /// The city-model prior ([`ModelPrior`]): the weight of one prior vote and the number of
+    /// Gaussians within its reach (0 and 0 when it is off).
+    #[serde(default)]
+    pub model_prior_weight: f64,
+    #[serde(default)]
+    pub model_prior_gaussians: usize,
 }
 
 /// Runs the vote over `views` (their cached lists and label maps); one assignment per Gaussian.
@@ -496,6 +695,7 @@ pub fn vote(
     views: &[View],
     maps: &LabelMaps,
     gate: Option<&CityGate>,
+    prior: Option<&ModelPrior>,
     opts: &VoteOptions,
 ) -> Result<(Vec<Assignment>, VoteStats), VoteError> {
     opts.validate()?;
@@ -543,6 +743,9 @@ pub fn vote(
     }
     bar.finish();
     let t = Instant::now();
+    if let Some(p) = prior {
+        (stats.model_prior_weight, stats.model_prior_gaussians) = votes.add_prior(p);
+    }
     stats.gamma = gamma_for(opts.gamma, maps);
     let a = assign(&votes, n, stats.gamma);
     stats.assign_s = t.elapsed().as_secs_f64();
@@ -554,6 +757,145 @@ pub fn vote(
 mod tests {
     use super::*;
     use crate::cache::Contributions;
+
+    fn entity(id: i32, class: &str, level: crate::citygml::Level, parent: Option<i32>) -> Entity {
+        Entity {
+            id,
+            object_id: format!("e{id}"),
+            class: crate::citygml::Class::from_local_name(class).unwrap(),
+            level,
+            parent,
+            building: 0,
+            source: String::new(),
+            lod: Some(3),
+            attributes: Default::default(),
+        }
+    }
+
+    #[test]
+    fn the_model_prior_takes_the_finest_label_of_the_nearest_visible_triangle_within_reach() {
+        use crate::citygml::Level;
+        use crate::mesh::{FaceLabel, TriMesh};
+        // Building 0; wall 1 (x = 0 plane, y 0..4, z 0..4) with door 2 (y 1..2, z 0..2) cut
+        // into it as its own triangles; ground surface 3 (z = 0, x 0..4, y 0..4).
+        let entities = vec![
+            entity(0, "Building", Level::Feature, None),
+            entity(1, "WallSurface", Level::Surface, Some(0)),
+            entity(2, "Door", Level::Part, Some(1)),
+            entity(3, "GroundSurface", Level::Surface, Some(0)),
+        ];
+        let labels = LabelTable::city(&entities, &crate::classes::table(&entities)).unwrap();
+        let v = |x: f32, y: f32, z: f32| [x, y, z];
+        let vertices = vec![
+            // wall: 0..3
+            v(0.0, 0.0, 0.0),
+            v(0.0, 4.0, 0.0),
+            v(0.0, 4.0, 4.0),
+            v(0.0, 0.0, 4.0),
+            // door: 4..7 (coplanar with the wall: the door's own faces)
+            v(0.0, 1.0, 0.0),
+            v(0.0, 2.0, 0.0),
+            v(0.0, 2.0, 2.0),
+            v(0.0, 1.0, 2.0),
+            // ground: 8..11
+            v(0.0, 0.0, 0.0),
+            v(4.0, 0.0, 0.0),
+            v(4.0, 4.0, 0.0),
+            v(0.0, 4.0, 0.0),
+        ];
+        let wall = FaceLabel {
+            feature: 0,
+            surface: 1,
+            part: -1,
+        };
+        let door = FaceLabel {
+            feature: 0,
+            surface: 1,
+            part: 2,
+        };
+        let ground = FaceLabel {
+            feature: 0,
+            surface: 3,
+            part: -1,
+        };
+        // The wall's triangles leave the door's rectangle out (y 1..2 for z < 2 is the door).
+        let mesh = TriMesh {
+            vertices,
+            faces: vec![
+                [0, 4, 7],
+                [0, 7, 3],
+                [7, 6, 3],
+                [6, 2, 3],
+                [5, 1, 2],
+                [5, 2, 6],
+                [4, 5, 6],
+                [4, 6, 7],
+                [8, 9, 10],
+                [8, 10, 11],
+            ],
+            labels: vec![
+                wall, wall, wall, wall, wall, wall, door, door, ground, ground,
+            ],
+        };
+        mesh.validate().unwrap();
+        let centres = [
+            // 0.1 in front of the door's middle: the door (part 2), not the wall around it.
+            [0.1, 1.5, 1.0],
+            // 0.15 behind the wall, high up: the wall (surface 1).
+            [-0.15, 3.0, 3.5],
+            // 0.1 above the ground, 3 m from the wall: the ground is hidden, nothing else in reach.
+            [3.0, 2.0, 0.1],
+            // 0.3 in front of the door: beyond a reach of 0.2.
+            [0.3, 1.5, 1.0],
+            // Not finite.
+            [f32::NAN, 1.5, 1.0],
+        ];
+        let got = nearest_labels(&mesh, &entities, &labels, &centres, 0.2).unwrap();
+        assert_eq!(got, vec![2, 1, BACKGROUND, BACKGROUND, BACKGROUND]);
+        // A reach of 0.5 finds the door for the fourth centre too.
+        let got = nearest_labels(&mesh, &entities, &labels, &centres, 0.5).unwrap();
+        assert_eq!(got[3], 2);
+        // No reach: no prior.
+        let got = nearest_labels(&mesh, &entities, &labels, &centres, 0.0).unwrap();
+        assert!(got.iter().all(|&l| l == BACKGROUND));
+    }
+
+    #[test]
+    fn the_model_prior_outweighs_weak_votes_and_not_strong_ones() {
+        // Gaussian totals 1, 10 and 100 (median of the positive totals: 10); the fourth has no
+        // vote. Each has wall (1) votes only, except Gaussian 1 (wall 6, background 4).
+        let mut v = Votes::new(4);
+        v.add(0, 1, 1.0);
+        v.add(1, 1, 6.0);
+        v.add(1, BACKGROUND, 4.0);
+        v.add(2, 1, 100.0);
+        assert_eq!(v.total(1), 10.0);
+        // The prior says door (2) for Gaussians 0, 2 and 3, nothing for 1.
+        let prior = ModelPrior {
+            label: vec![2, BACKGROUND, 2, 2],
+            share: 0.3,
+        };
+        let (w, n) = v.add_prior(&prior);
+        // 0.3 as the f32 option is, times the median 10.
+        assert_eq!((w, n), (f64::from(0.3f32) * 10.0, 3));
+        let a = assign(&v, 4, GAMMA);
+        // 0: door 3 against wall 1; 1: untouched; 2: wall 100 against door 3; 3: door alone.
+        let got: Vec<i32> = a.iter().map(|x| x.label).collect();
+        assert_eq!(got, vec![2, 1, 1, 2]);
+        assert!((a[0].confidence - 0.75).abs() < 1e-6, "{:?}", a[0]);
+        // Without any vote there is no median to scale by: no prior.
+        let mut empty = Votes::new(2);
+        let prior = ModelPrior {
+            label: vec![2, 2],
+            share: 0.3,
+        };
+        assert_eq!(empty.add_prior(&prior), (0.0, 0));
+        assert!(
+            assign(&empty, 2, GAMMA)
+                .iter()
+                .all(|x| x.label == BACKGROUND)
+        );
+    }
 
     #[test]
     fn the_depth_gate_drops_city_votes_of_gaussians_in_front_of_the_surface_only() {

@@ -60,6 +60,7 @@ fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
             labels: &labels,
             entities: &cm.entities,
             city_depth: None,
+            city_mesh: None,
         },
         &LiftOptions {
             gamma: Some(gamma),

@@ -121,6 +121,7 @@ impl Fixture {
                 labels: table,
                 entities: &self.entities,
                 city_depth: None,
+                city_mesh: None,
             },
             opts,
             &self.dir.join(out),

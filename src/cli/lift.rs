@@ -32,6 +32,15 @@ pub struct LiftArgs {
     /// (off with it).
     #[arg(long)]
     no_centre_gate: bool,
+    /// Weight of the city-model prior in 3D: each Gaussian within --model-prior-m of a
+    /// city-model triangle gets one vote for that triangle's label, of this share of the median
+    /// Gaussian's vote weight (well-seen Gaussians outweigh it, barely seen ones follow the
+    /// model); 0 = off.
+    #[arg(long, default_value_t = crate::vote::MODEL_PRIOR)]
+    model_prior: f32,
+    /// Reach of the city-model prior in metres.
+    #[arg(long, default_value_t = crate::vote::MODEL_PRIOR_M)]
+    model_prior_m: f32,
     /// Every N-th view (sorted by name) is a test view, not voted on (3DGS --eval: 8); 0 = none.
     #[arg(long, default_value_t = 8)]
     test_every: usize,
@@ -53,7 +62,8 @@ pub(super) struct LabelSourceArgs {
     /// Contributions cache (`gs4city render --cache`, or a run's `render/`).
     #[arg(long)]
     pub(super) cache: PathBuf,
-    /// Output folder of `gs4city citymodel` (semantics.json).
+    /// Output folder of `gs4city citymodel` (semantics.json; mesh.ply for lift's city-model
+    /// prior), or of the openings stage where it completed the model.
     #[arg(long)]
     pub(super) citymodel: PathBuf,
     /// The city-model labels `M_city` of this `gs4city raycast` output …
@@ -76,6 +86,8 @@ pub(super) struct Loaded {
     pub(super) labels: LabelTable,
     /// The raycast folder of the depth gate and the alignment scale (citymodel/alignment.json).
     pub(super) depth: Option<(PathBuf, f64)>,
+    /// The city model's mesh (`--citymodel`'s mesh.ply: the vote's city-model prior).
+    pub(super) mesh: PathBuf,
 }
 
 impl LabelSourceArgs {
@@ -104,6 +116,7 @@ impl LabelSourceArgs {
         };
         Ok(Loaded {
             depth,
+            mesh: self.citymodel.join("mesh.ply"),
             split,
             cache,
             entities,
@@ -125,6 +138,7 @@ impl Loaded {
             labels: &self.labels,
             entities: &self.entities,
             city_depth: self.depth.as_ref().map(|(d, s)| (d.as_path(), *s)),
+            city_mesh: Some(&self.mesh),
         }
     }
 }
@@ -134,6 +148,8 @@ pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
         gamma: args.gamma,
         city_gate_m: args.city_gate_m,
         centre_gate: !args.no_centre_gate,
+        model_prior: args.model_prior,
+        model_prior_m: args.model_prior_m,
     };
     opts.validate()?;
     let l = args.src.load(args.test_every)?;

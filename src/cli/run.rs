@@ -42,6 +42,15 @@ pub struct RunArgs {
     /// (off with it).
     #[arg(long)]
     pub no_centre_gate: bool,
+    /// Weight of the city-model prior in 3D: each Gaussian within --model-prior-m of a
+    /// city-model triangle gets one vote for that triangle's label, of this share of the median
+    /// Gaussian's vote weight (well-seen Gaussians outweigh it, barely seen ones follow the
+    /// model); 0 = off.
+    #[arg(long, default_value_t = crate::vote::MODEL_PRIOR)]
+    pub model_prior: f32,
+    /// Reach of the city-model prior in metres.
+    #[arg(long, default_value_t = crate::vote::MODEL_PRIOR_M)]
+    pub model_prior_m: f32,
     /// Longest contribution list per pixel in the cache (0 = no bound); with `--epsilon 0`
     /// the top-k by α·T.
     #[arg(long, default_value_t = crate::cache::TOP_K)]
@@ -143,6 +152,8 @@ impl RunArgs {
             gamma: self.gamma,
             city_gate_m: self.city_gate_m,
             centre_gate: !self.no_centre_gate,
+            model_prior: self.model_prior,
+            model_prior_m: self.model_prior_m,
         };
         lift.validate()?;
         crate::cache::CacheOptions {

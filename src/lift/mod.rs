@@ -93,7 +93,15 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
     crate::fsutil::create_dir(out)?;
     let _ = std::fs::remove_file(out.join("summary.json"));
     let gate = crate::vote::CityGate::for_inputs(inp, opts.city_gate_m, opts.centre_gate)?;
-    let (assignments, stats) = vote(inp.cache, inp.train, inp.maps, gate.as_ref(), opts)?;
+    let prior = crate::vote::ModelPrior::for_inputs(inp, opts, gate.as_ref().map(|g| g.centres()))?;
+    let (assignments, stats) = vote(
+        inp.cache,
+        inp.train,
+        inp.maps,
+        gate.as_ref(),
+        prior.as_ref(),
+        opts,
+    )?;
     let t_vote = t0.elapsed().as_secs_f64();
     let label: Vec<i32> = assignments.iter().map(|a| a.label).collect();
     let class: Vec<i32> = label.iter().map(|&l| inp.labels.class_of(l)).collect();

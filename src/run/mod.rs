@@ -504,6 +504,8 @@ struct Supervised {
     entities: Vec<semantics::Entity>,
     /// The raycast folder of that table's mesh (the city votes' depth gate).
     raycast: PathBuf,
+    /// That table's `mesh.ply` (the vote's city-model prior).
+    mesh: PathBuf,
     maps: LabelMaps,
     labels: LabelTable,
     upstream: Vec<Stage>,
@@ -523,6 +525,7 @@ fn city_supervision(
     }
     Ok(Supervised {
         raycast: r.st.dir(Stage::Raycast),
+        mesh: r.st.dir(Stage::Citymodel).join("mesh.ply"),
         maps: LabelMaps::City(r.st.dir(Stage::Raycast)),
         labels: LabelTable::city(&entities, &classes::table(&entities))?,
         entities,
@@ -644,13 +647,18 @@ fn fused_supervision(
         },
     )?;
     let od = r.st.dir(Stage::Openings);
-    let (entities, rc_dir) = if os.added > 0 {
+    let (entities, rc_dir, mesh) = if os.added > 0 {
         (
             semantics::read(&od.join("semantics.json"))?,
             od.join("raycast"),
+            od.join("mesh.ply"),
         )
     } else {
-        (entities, rc_dir)
+        (
+            entities,
+            rc_dir,
+            r.st.dir(Stage::Citymodel).join("mesh.ply"),
+        )
     };
     let asum: AssociateSummary = r.st.stage(
         Stage::Associate,
@@ -715,6 +723,7 @@ fn fused_supervision(
     Ok(Supervised {
         entities,
         raycast: rc_dir,
+        mesh,
         labels: LabelTable::read(&fuse_dir.join("labels.json"))?,
         maps: LabelMaps::Fused(fuse_dir),
         upstream: vec![Stage::Citymodel, Stage::Openings, Stage::Fuse],
@@ -744,6 +753,7 @@ fn vote_steps(
     let entities = &sup.entities;
     let inputs = VoteInputs {
         city_depth: Some((&raycast, scale)),
+        city_mesh: Some(&sup.mesh),
         ply: &ply,
         cache,
         train: &r.split.train,

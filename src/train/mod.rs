@@ -217,6 +217,7 @@ impl TrainOptions {
             gamma: self.gamma,
             city_gate_m: self.city_gate_m,
             centre_gate: self.centre_gate,
+            ..Default::default()
         }
         .validate()?;
         Ok(())
