@@ -315,7 +315,7 @@ impl<'a> Revote<'a> {
             labels: &self.s.table,
             entities: &self.entities,
             city_depth: Some((&self.raycast, self.scale)),
-            city_mesh: Some(&self.mesh),
+            city_mesh: Some((&self.mesh, self.scale)),
         };
         let opts = gs4city::vote::VoteOptions::default();
         let gate = gs4city::vote::CityGate::for_inputs(&inp, opts.city_gate_m, opts.centre_gate)

@@ -64,9 +64,9 @@ pub struct VoteInputs<'a> {
     /// for the depth gate of city votes ([`CityGate`]); `None` leaves city votes ungated.
     pub city_depth: Option<(&'a Path, f64)>,
     /// The city model's `mesh.ply` whose face ids are `entities` (the citymodel stage's, or the
-    /// openings stage's completed one) for the city-model prior ([`ModelPrior`]); `None` leaves
-    /// the prior out.
-    pub city_mesh: Option<&'a Path>,
+    /// openings stage's completed one) and the alignment scale (scene units per metre), for the
+    /// city-model prior ([`ModelPrior`]); `None` leaves the prior out.
+    pub city_mesh: Option<(&'a Path, f64)>,
 }
 
 /// The background label (a pixel no label covers).
@@ -334,9 +334,11 @@ impl CityGate {
 }
 
 /// The Gaussian centres of a vote's PLY in the pipeline's reading: every Gaussian in file order,
-/// invalid ones kept in place (their centres may be non-finite); the count must be the cache's.
+/// invalid ones kept in place with a NaN centre (no pixel lists them, the depth gate never
+/// compares a NaN below the surface, and the city-model prior skips them); the count must be
+/// the cache's.
 fn read_centres(inp: &VoteInputs<'_>) -> Result<Vec<[f32; 3]>, VoteError> {
-    let (g, _) = crate::splat::read_ply(inp.ply, &crate::splat::ReadOptions::KEEP)?;
+    let (g, report) = crate::splat::read_ply(inp.ply, &crate::splat::ReadOptions::KEEP)?;
     let cache = inp.cache.summary.gaussians;
     if g.len() != cache {
         return Err(VoteError::Gaussians {
@@ -345,7 +347,15 @@ fn read_centres(inp: &VoteInputs<'_>) -> Result<Vec<[f32; 3]>, VoteError> {
             cache,
         });
     }
-    Ok(g.positions)
+    let mut centres = g.positions.clone();
+    if report.kept_invalid > 0 {
+        for (i, c) in centres.iter_mut().enumerate() {
+            if !crate::splat::ply::is_valid(&g, i) {
+                *c = [f32::NAN; 3];
+            }
+        }
+    }
+    Ok(centres)
 }
 
 /// City-model surfaces no Gaussian lies on (seen from outside a building): they give no prior.
@@ -381,7 +391,7 @@ impl ModelPrior {
         opts: &VoteOptions,
         centres: Option<&[[f32; 3]]>,
     ) -> Result<Option<ModelPrior>, VoteError> {
-        let Some(mesh_path) = inp.city_mesh else {
+        let Some((mesh_path, per_metre)) = inp.city_mesh else {
             return Ok(None);
         };
         if opts.model_prior <= 0.0 {
@@ -402,56 +412,98 @@ impl ModelPrior {
                 &read
             }
         };
-        let per_metre = inp.city_depth.map_or(1.0, |(_, s)| s);
         let reach = f64::from(opts.model_prior_m) * per_metre;
         Ok(Some(ModelPrior {
-            label: nearest_labels(&mesh, inp.entities, inp.labels, centres, reach)?,
+            label: nearest_labels(
+                &mesh,
+                inp.entities,
+                inp.labels,
+                centres,
+                reach,
+                PART_TOL_M * per_metre,
+            )?,
             share: opts.model_prior,
         }))
     }
 }
 
-/// Per centre, the finest label of the nearest visible city-model triangle within `reach`
-/// (scene units), or [`BACKGROUND`]. Labels the label table lacks give none.
+/// How much further (metres) than the nearest triangle a window or door of the same surface
+/// may lie and still win it: an opening drawn in its wall's plane over an uncut wall (as the
+/// openings stage adds them, and as some LoD3 models draw theirs) lies exactly as near as the
+/// wall, and the nearer-by-index tie would otherwise give the wall. The raycast's part pass
+/// settles the same tie along its rays.
+const PART_TOL_M: f64 = 0.02;
+
+/// Per centre, the label of the nearest visible city-model triangle within `reach` (scene
+/// units), or [`BACKGROUND`]: a window or door of that triangle's surface within `part_tol`
+/// further wins over it (the part pass, [`PART_TOL_M`]); else the triangle's finest id that the
+/// label table holds (part, else surface, else building).
 fn nearest_labels(
     mesh: &crate::mesh::TriMesh,
     entities: &[Entity],
     labels: &LabelTable,
     centres: &[[f32; 3]],
     reach: f64,
+    part_tol: f64,
 ) -> Result<Vec<i32>, VoteError> {
-    let mut faces = Vec::with_capacity(mesh.faces.len());
-    let mut face_label = Vec::with_capacity(mesh.faces.len());
+    let in_table = |x: i32| x >= 0 && labels.get(x).is_some();
+    // Visible faces with their label and surface; the part faces among them, for the part pass.
+    let (mut faces, mut face_info) = (Vec::new(), Vec::new());
+    let (mut parts, mut part_info) = (Vec::new(), Vec::new());
     for (f, l) in mesh.faces.iter().zip(&mesh.labels) {
         let hidden = usize::try_from(l.surface)
             .ok()
             .and_then(|s| entities.get(s))
             .is_some_and(|e| HIDDEN_SURFACES.contains(&e.class));
-        let finest = [l.part, l.surface, l.feature]
+        let Some(id) = [l.part, l.surface, l.feature]
             .into_iter()
-            .find(|&x| x >= 0)
-            .filter(|&x| labels.get(x).is_some());
-        if let (false, Some(id)) = (hidden, finest) {
-            faces.push(*f);
-            face_label.push(id);
+            .find(|&x| in_table(x))
+        else {
+            continue;
+        };
+        if hidden {
+            continue;
+        }
+        faces.push(*f);
+        face_info.push((id, l.surface));
+        if in_table(l.part) {
+            parts.push(*f);
+            part_info.push((l.part, l.surface));
         }
     }
     if faces.is_empty() || reach.is_nan() || reach <= 0.0 {
         return Ok(vec![BACKGROUND; centres.len()]);
     }
     let device = crate::embree::Device::new()?;
-    let mut scene = crate::embree::Scene::new(&device)?;
-    scene.add_triangles(&mesh.vertices, &faces)?;
-    let scene = scene.commit()?;
+    let commit = |faces: &[[u32; 3]]| -> Result<crate::embree::CommittedScene, VoteError> {
+        let mut scene = crate::embree::Scene::new(&device)?;
+        scene.add_triangles(&mesh.vertices, faces)?;
+        Ok(scene.commit()?)
+    };
+    let scene = commit(&faces)?;
+    let part_scene = if parts.is_empty() {
+        None
+    } else {
+        Some(commit(&parts)?)
+    };
     let mut out = Vec::new();
     centres
         .par_iter()
         .with_min_len(1024)
         .map(|c| {
-            scene
-                .closest_point(c.map(f64::from), reach)
-                .and_then(|h| face_label.get(h.prim_id as usize).copied())
-                .unwrap_or(BACKGROUND)
+            let p = c.map(f64::from);
+            let Some(h) = scene.closest_point(p, reach) else {
+                return BACKGROUND;
+            };
+            let (id, surface) = face_info[h.prim_id as usize];
+            if surface >= 0
+                && let Some(ps) = &part_scene
+                && let Some(hp) = ps.closest_point(p, h.distance + part_tol)
+                && part_info[hp.prim_id as usize].1 == surface
+            {
+                return part_info[hp.prim_id as usize].0;
+            }
+            id
         })
         .collect_into_vec(&mut out);
     Ok(out)
@@ -772,72 +824,73 @@ mod tests {
         }
     }
 
-    #[test]
-    fn the_model_prior_takes_the_finest_label_of_the_nearest_visible_triangle_within_reach() {
+    /// Building 0; wall 1 (the x = 0 plane, y 0..4, z 0..4); door 2 of wall 1 (y 1..2, z 0..2);
+    /// ground surface 3 (z = 0, x 0..4, y 0..4). `cut`: the wall leaves the door's rectangle out;
+    /// else the door's faces lie over the uncut wall in its plane, as the openings stage draws
+    /// them. The ground's faces come first (they are left out, so the scene's primitive ids are
+    /// not the mesh's face indices).
+    fn wall_with_a_door(cut: bool) -> (Vec<Entity>, crate::mesh::TriMesh) {
         use crate::citygml::Level;
         use crate::mesh::{FaceLabel, TriMesh};
-        // Building 0; wall 1 (x = 0 plane, y 0..4, z 0..4) with door 2 (y 1..2, z 0..2) cut
-        // into it as its own triangles; ground surface 3 (z = 0, x 0..4, y 0..4).
         let entities = vec![
             entity(0, "Building", Level::Feature, None),
             entity(1, "WallSurface", Level::Surface, Some(0)),
             entity(2, "Door", Level::Part, Some(1)),
             entity(3, "GroundSurface", Level::Surface, Some(0)),
         ];
-        let labels = LabelTable::city(&entities, &crate::classes::table(&entities)).unwrap();
         let v = |x: f32, y: f32, z: f32| [x, y, z];
         let vertices = vec![
-            // wall: 0..3
-            v(0.0, 0.0, 0.0),
-            v(0.0, 4.0, 0.0),
-            v(0.0, 4.0, 4.0),
-            v(0.0, 0.0, 4.0),
-            // door: 4..7 (coplanar with the wall: the door's own faces)
-            v(0.0, 1.0, 0.0),
-            v(0.0, 2.0, 0.0),
-            v(0.0, 2.0, 2.0),
-            v(0.0, 1.0, 2.0),
-            // ground: 8..11
+            // ground: 0..3
             v(0.0, 0.0, 0.0),
             v(4.0, 0.0, 0.0),
             v(4.0, 4.0, 0.0),
             v(0.0, 4.0, 0.0),
+            // wall corners: 4..7
+            v(0.0, 0.0, 0.0),
+            v(0.0, 4.0, 0.0),
+            v(0.0, 4.0, 4.0),
+            v(0.0, 0.0, 4.0),
+            // door corners: 8..11
+            v(0.0, 1.0, 0.0),
+            v(0.0, 2.0, 0.0),
+            v(0.0, 2.0, 2.0),
+            v(0.0, 1.0, 2.0),
         ];
-        let wall = FaceLabel {
+        let label = |surface: i32, part: i32| FaceLabel {
             feature: 0,
-            surface: 1,
-            part: -1,
+            surface,
+            part,
         };
-        let door = FaceLabel {
-            feature: 0,
-            surface: 1,
-            part: 2,
-        };
-        let ground = FaceLabel {
-            feature: 0,
-            surface: 3,
-            part: -1,
-        };
-        // The wall's triangles leave the door's rectangle out (y 1..2 for z < 2 is the door).
+        let mut faces = vec![[0, 1, 2], [0, 2, 3]];
+        let mut labels = vec![label(3, -1), label(3, -1)];
+        if cut {
+            // The wall around the door's rectangle.
+            faces.extend([
+                [4, 8, 11],
+                [4, 11, 7],
+                [11, 10, 7],
+                [10, 6, 7],
+                [9, 5, 6],
+                [9, 6, 10],
+            ]);
+            labels.extend([label(1, -1); 6]);
+        } else {
+            faces.extend([[4, 5, 6], [4, 6, 7]]);
+            labels.extend([label(1, -1); 2]);
+        }
+        faces.extend([[8, 9, 10], [8, 10, 11]]);
+        labels.extend([label(1, 2); 2]);
         let mesh = TriMesh {
             vertices,
-            faces: vec![
-                [0, 4, 7],
-                [0, 7, 3],
-                [7, 6, 3],
-                [6, 2, 3],
-                [5, 1, 2],
-                [5, 2, 6],
-                [4, 5, 6],
-                [4, 6, 7],
-                [8, 9, 10],
-                [8, 10, 11],
-            ],
-            labels: vec![
-                wall, wall, wall, wall, wall, wall, door, door, ground, ground,
-            ],
+            faces,
+            labels,
         };
         mesh.validate().unwrap();
+        (entities, mesh)
+    }
+
+    #[test]
+    fn the_model_prior_takes_the_finest_label_of_the_nearest_visible_triangle_within_reach() {
         let centres = [
             // 0.1 in front of the door's middle: the door (part 2), not the wall around it.
             [0.1, 1.5, 1.0],
@@ -849,15 +902,36 @@ mod tests {
             [0.3, 1.5, 1.0],
             // Not finite.
             [f32::NAN, 1.5, 1.0],
+            // In the wall's plane 0.15 beside the door's edge: the wall, although the door is
+            // within reach (it is 0.15 further than the wall, more than the part tolerance).
+            [0.0, 2.15, 1.0],
         ];
-        let got = nearest_labels(&mesh, &entities, &labels, &centres, 0.2).unwrap();
-        assert_eq!(got, vec![2, 1, BACKGROUND, BACKGROUND, BACKGROUND]);
-        // A reach of 0.5 finds the door for the fourth centre too.
-        let got = nearest_labels(&mesh, &entities, &labels, &centres, 0.5).unwrap();
-        assert_eq!(got[3], 2);
-        // No reach: no prior.
-        let got = nearest_labels(&mesh, &entities, &labels, &centres, 0.0).unwrap();
-        assert!(got.iter().all(|&l| l == BACKGROUND));
+        for cut in [true, false] {
+            let (entities, mesh) = wall_with_a_door(cut);
+            let labels = LabelTable::city(&entities, &crate::classes::table(&entities)).unwrap();
+            let got = nearest_labels(&mesh, &entities, &labels, &centres, 0.2, 0.02).unwrap();
+            assert_eq!(
+                got,
+                vec![2, 1, BACKGROUND, BACKGROUND, BACKGROUND, 1],
+                "cut {cut}"
+            );
+            // A reach of 0.5 finds the door for the fourth centre too.
+            let got = nearest_labels(&mesh, &entities, &labels, &centres, 0.5, 0.02).unwrap();
+            assert_eq!(got[3], 2, "cut {cut}");
+            // No reach: no prior.
+            let got = nearest_labels(&mesh, &entities, &labels, &centres, 0.0, 0.02).unwrap();
+            assert!(got.iter().all(|&l| l == BACKGROUND), "cut {cut}");
+        }
+        // A door that the label table lacks gives its faces' surface instead.
+        let (entities, mesh) = wall_with_a_door(false);
+        let all = LabelTable::city(&entities, &crate::classes::table(&entities)).unwrap();
+        let without_door = LabelTable::new(
+            all.delta,
+            all.labels.iter().filter(|l| l.id != 2).cloned().collect(),
+        )
+        .unwrap();
+        let got = nearest_labels(&mesh, &entities, &without_door, &centres, 0.2, 0.02).unwrap();
+        assert_eq!(got, vec![1, 1, BACKGROUND, BACKGROUND, BACKGROUND, 1]);
     }
 
     #[test]

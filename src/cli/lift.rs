@@ -62,8 +62,8 @@ pub(super) struct LabelSourceArgs {
     /// Contributions cache (`gs4city render --cache`, or a run's `render/`).
     #[arg(long)]
     pub(super) cache: PathBuf,
-    /// Output folder of `gs4city citymodel` (semantics.json; mesh.ply for lift's city-model
-    /// prior), or of the openings stage where it completed the model.
+    /// Output folder of `gs4city citymodel` (semantics.json, alignment.json; mesh.ply for
+    /// lift's city-model prior).
     #[arg(long)]
     pub(super) citymodel: PathBuf,
     /// The city-model labels `M_city` of this `gs4city raycast` output …
@@ -86,8 +86,9 @@ pub(super) struct Loaded {
     pub(super) labels: LabelTable,
     /// The raycast folder of the depth gate and the alignment scale (citymodel/alignment.json).
     pub(super) depth: Option<(PathBuf, f64)>,
-    /// The city model's mesh (`--citymodel`'s mesh.ply: the vote's city-model prior).
-    pub(super) mesh: PathBuf,
+    /// The city model's mesh (`--citymodel`'s mesh.ply: the vote's city-model prior) and the
+    /// alignment scale.
+    pub(super) mesh: (PathBuf, f64),
 }
 
 impl LabelSourceArgs {
@@ -102,21 +103,22 @@ impl LabelSourceArgs {
             .with_context(|| format!("opening the contributions cache {}", self.cache.display()))?;
         let entities = semantics::read(&self.citymodel.join("semantics.json"))?;
         let (maps, labels) = label_source(self.raycast.as_ref(), self.fuse.as_ref(), &entities)?;
-        let depth = match self.depth.as_ref().or(self.raycast.as_ref()) {
-            Some(d) => {
-                let a = self.citymodel.join("alignment.json");
-                let scale = if a.is_file() {
-                    crate::alignment::Alignment::read(&a)?.scale
-                } else {
-                    1.0
-                };
-                Some((d.clone(), scale))
-            }
-            None => None,
+        // Scene units per metre (the depth gate's tolerance and the prior's reach); a model
+        // folder without an alignment is in metres.
+        let a = self.citymodel.join("alignment.json");
+        let scale = if a.is_file() {
+            crate::alignment::Alignment::read(&a)?.scale
+        } else {
+            1.0
         };
+        let depth = self
+            .depth
+            .as_ref()
+            .or(self.raycast.as_ref())
+            .map(|d| (d.clone(), scale));
         Ok(Loaded {
             depth,
-            mesh: self.citymodel.join("mesh.ply"),
+            mesh: (self.citymodel.join("mesh.ply"), scale),
             split,
             cache,
             entities,
@@ -138,7 +140,7 @@ impl Loaded {
             labels: &self.labels,
             entities: &self.entities,
             city_depth: self.depth.as_ref().map(|(d, s)| (d.as_path(), *s)),
-            city_mesh: Some(&self.mesh),
+            city_mesh: Some((self.mesh.0.as_path(), self.mesh.1)),
         }
     }
 }

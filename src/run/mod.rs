@@ -753,7 +753,7 @@ fn vote_steps(
     let entities = &sup.entities;
     let inputs = VoteInputs {
         city_depth: Some((&raycast, scale)),
-        city_mesh: Some(&sup.mesh),
+        city_mesh: Some((&sup.mesh, scale)),
         ply: &ply,
         cache,
         train: &r.split.train,

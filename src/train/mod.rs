@@ -11,7 +11,7 @@
 //! * 3D, every `kl_every` iterations: `λ/(m k C) Σ_j Σ_{n ∈ kNN(j)} KL(p_j ‖ p_n)` over `m`
 //!   Gaussians drawn uniformly, `p = softmax(W e + b)`, the kNN graph built once over centres.
 //!
-//! Training starts from the closed-form vote (`lift`): every voted label gets a random unit
+//! Training starts from the closed-form vote (`lift`'s, without its city-model prior): every voted label gets a random unit
 //! direction `u`, its Gaussians the code `u`, the classifier `W = β u`, `b = 0`, and the
 //! background `W = 0`, `b = β/2` (so a Gaussian's argmax is its vote and a pixel needs half its
 //! opacity from a label to show it). Each iteration takes one training view (epochs in a seeded
