@@ -347,13 +347,16 @@ fn read_centres(inp: &VoteInputs<'_>) -> Result<Vec<[f32; 3]>, VoteError> {
             cache,
         });
     }
-    let mut centres = g.positions.clone();
-    if report.kept_invalid > 0 {
-        for (i, c) in centres.iter_mut().enumerate() {
-            if !crate::splat::ply::is_valid(&g, i) {
-                *c = [f32::NAN; 3];
-            }
-        }
+    let invalid: Vec<usize> = if report.kept_invalid > 0 {
+        (0..g.len())
+            .filter(|&i| !crate::splat::ply::is_valid(&g, i))
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let mut centres = g.positions;
+    for i in invalid {
+        centres[i] = [f32::NAN; 3];
     }
     Ok(centres)
 }

@@ -18,6 +18,18 @@ struct Lifted {
 }
 
 fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
+    lift_wall_with(name, gamma, top_k, 0.0, None).unwrap()
+}
+
+/// [`lift_wall`] with the city-model prior's weight and, when the prior is on, the mesh it
+/// reads (`None`: the citymodel stage's own `mesh.ply`).
+fn lift_wall_with(
+    name: &str,
+    gamma: f32,
+    top_k: usize,
+    prior: f32,
+    mesh: Option<&std::path::Path>,
+) -> Result<(Lifted, wall::Splats), lift::LiftError> {
     let dir = wall::tmp(name);
     let (scene, s) = wall::write_scene(&dir.join("scene"), 5);
     let gml = scene.join("citymodel/wall.gml");
@@ -50,6 +62,7 @@ fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
     let cache = Cache::open(&dir.join("cache")).unwrap();
     let split = Split::new(views, 4);
     let labels = LabelTable::city(&cm.entities, &classes::table(&cm.entities)).unwrap();
+    let own_mesh = dir.join("citymodel/mesh.ply");
     let summary = lift::run(
         &lift::LiftInputs {
             ply: &scene.join("point_cloud.ply"),
@@ -60,15 +73,15 @@ fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
             labels: &labels,
             entities: &cm.entities,
             city_depth: None,
-            city_mesh: None,
+            city_mesh: (prior > 0.0).then(|| (mesh.unwrap_or(&own_mesh), 1.0)),
         },
         &LiftOptions {
             gamma: Some(gamma),
+            model_prior: prior,
             ..Default::default()
         },
         &dir.join("lift"),
-    )
-    .unwrap();
+    )?;
     let (shape, table) = npy::read::<i32>(&dir.join("lift/gaussians.npy")).unwrap();
     assert_eq!(shape, vec![s.real.len(), 2]);
     // Gaussians no training view saw have no vote (confidence 0): −2, not judged.
@@ -80,7 +93,52 @@ fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
         .zip(conf)
         .map(|(r, &c)| if c > 0.0 { r[1] } else { -2 })
         .collect();
-    (Lifted { pred, summary, dir }, s)
+    Ok((Lifted { pred, summary, dir }, s))
+}
+
+#[test]
+fn the_city_model_prior_reaches_every_gaussian_on_the_model_no_floater_and_turns_none_wrong() {
+    let (off, s) = lift_wall("prior_off", 0.0, 16);
+    let (on, _) = lift_wall_with("prior_on", 0.0, 16, 0.3, None).unwrap();
+    // Every wall and window Gaussian lies on the model (the window 0.15 m behind the wall's
+    // plane, within the 0.2 m reach); the floaters stand 8–12 m in front of it.
+    let on_model = s.real.iter().filter(|&&c| c >= 0).count();
+    assert_eq!(on.summary.stats.model_prior_gaussians, on_model);
+    assert!(on.summary.stats.model_prior_weight > 0.0);
+    // Judged wall and window Gaussians (away from the outlines): every one whose class the
+    // prior changes is then right, and none that was right turns wrong.
+    let judged: Vec<usize> = (0..s.judged.len()).filter(|&i| s.judged[i] >= 0).collect();
+    let changed: Vec<usize> = judged
+        .iter()
+        .copied()
+        .filter(|&i| on.pred[i] != off.pred[i])
+        .collect();
+    let wrong = changed
+        .iter()
+        .filter(|&&i| on.pred[i] != s.judged[i])
+        .count();
+    assert_eq!(
+        wrong,
+        0,
+        "{wrong} of {} changed Gaussians turned wrong",
+        changed.len()
+    );
+    let right = |p: &[i32]| judged.iter().filter(|&&i| p[i] == s.judged[i]).count();
+    assert!(right(&on.pred) >= right(&off.pred));
+    // No floater is within reach: their labels do not change.
+    for i in (0..s.real.len()).filter(|&i| s.real[i] == -1) {
+        assert_eq!(on.pred[i], off.pred[i], "floater {i}");
+    }
+}
+
+#[test]
+fn a_missing_city_mesh_is_an_error_naming_it() {
+    let missing = std::env::temp_dir().join("gs4city-no-such-dir/mesh.ply");
+    let e = lift_wall_with("prior_missing", 0.0, 16, 0.3, Some(&missing))
+        .err()
+        .expect("a missing mesh fails the stage")
+        .to_string();
+    assert!(e.contains("gs4city-no-such-dir/mesh.ply"), "{e}");
 }
 
 #[test]
