@@ -6,10 +6,10 @@
 //! `Σ_{i ∈ list(p)} w_i·x_i` (+ the truncated rest): forward passes are sparse products with
 //! these lists and backward passes their transposes.
 //!
-//! File `<stem>.contrib` (little endian), version 3:
+//! File `<stem>.contrib` (little endian), version 4:
 //! ```text
-//! magic "GS4CCONT", u32 version = 3, u32 width, u32 height, u32 k (longest list; 0 = no bound),
-//! u64 gaussians (ids are < this), u64 entries, u64 code bytes, 16 reserved → 64-byte header
+//! magic "GS4CCONT", u32 version = 4, u32 width, u32 height, u32 k (longest list; 0 = no bound),
+//! u64 gaussians (ids are < this), u64 entries, u64 code bytes, u32 flags, 12 reserved → 64 bytes
 //! u16 count[H·W]                           list length per pixel (row-major; ≤ 2344 by T_min)
 //! u64 row_end[H]                           end of each image row's id code in the code bytes
 //! u8 code[code bytes]                      the ids, pixel after pixel, each list in depth order
@@ -17,13 +17,19 @@
 //! f32 residual[H·W]                        α·T mass not kept (top-k or mass rule), 0 otherwise
 //! f32 alpha[H·W]                           1 − T
 //! f32 depth[H·W]                           expected depth Σw·z/(1−T); NaN where 1−T < 1e-3
+//! f32 median[H·W]                          (flags bit 0) median depth of the kept lists
 //! ```
+//! The median depth is [`median_depth`] of the stored lists: the view-space z of the Gaussian
+//! at which the kept weights first reach 0.5, NaN where they never do. The render stage stores
+//! it so that the stages which need only the per-pixel planes (masks, openings) read the file's
+//! tail ([`ViewPlanes`]) instead of decoding every list and loading the Gaussians' centres.
 //! The id code is per image row (rows decode independently, in parallel): each id is one
 //! LEB128 varint `v`; `v < n` (n = the length of the previous pixel's list in the row) means
 //! "the previous pixel's `v`-th id" (neighbouring pixels share most of their Gaussians, so
 //! most ids take one byte), otherwise `v − n` is the zigzag-coded difference to the last id
-//! coded this way in the row (0 at the row's start). Versions 1 (u32 ids, f32 weights) and 2
-//! (u32 ids, f16 weights; both with the 24 reserved bytes and no row ends) are still read.
+//! coded this way in the row (0 at the row's start). Versions 1 (u32 ids, f32 weights), 2
+//! (u32 ids, f16 weights; both with the 24 reserved bytes and no row ends) and 3 (version 4
+//! without the flags: no median plane) are still read.
 //!
 //! Weights are IEEE half floats (round to nearest even; relative error ≤ 2⁻¹¹, absolute
 //! ≤ 3·10⁻⁸ below 2⁻¹⁴), with the error measured in BENCHMARKS.md. The list rule (top-k or
@@ -43,16 +49,18 @@ use serde::{Deserialize, Serialize};
 use crate::fsutil;
 
 const MAGIC: &[u8; 8] = b"GS4CCONT";
-const VERSION: u32 = 3;
+const VERSION: u32 = 4;
 /// Bytes per stored weight of each readable version.
 fn weight_bytes(version: u32) -> Option<usize> {
     match version {
         1 => Some(4),
-        2 | 3 => Some(2),
+        2..=4 => Some(2),
         _ => None,
     }
 }
 const HEADER: usize = 64;
+/// Header flag (version 4): the file ends with the median-depth plane.
+const FLAG_MEDIAN: u32 = 1;
 /// Longest list a pixel can have: `(1 − 1/255)^n ≥ 1e-4` ⇒ `n ≤ 2344`.
 pub const MAX_LIST: usize = 2344;
 
@@ -164,6 +172,9 @@ pub struct ViewContrib {
     pub alpha: Vec<f32>,
     /// Expected depth per pixel, NaN where the alpha is below `DEPTH_MIN_ALPHA`.
     pub depth: Vec<f32>,
+    /// Median depth per pixel of the kept lists ([`median_depth`]); empty where not stored
+    /// (files before version 4, views built without it).
+    pub median: Vec<f32>,
 }
 
 impl ViewContrib {
@@ -186,7 +197,21 @@ impl ViewContrib {
     /// Bytes of the file this view is stored in (codes the ids to count them).
     pub fn file_bytes(&self) -> usize {
         let (code, ends) = encode_ids(self);
-        HEADER + self.pixels() * (2 + 12) + ends.len() * 8 + code.len() + self.entries() * 2
+        HEADER
+            + self.pixels() * (2 + 12)
+            + ends.len() * 8
+            + code.len()
+            + self.entries() * 2
+            + self.median.len() * 4
+    }
+
+    /// The header flags this view is written with.
+    fn flags(&self) -> u32 {
+        if self.median.is_empty() {
+            0
+        } else {
+            FLAG_MEDIAN
+        }
     }
 
     /// The file's bytes.
@@ -199,6 +224,13 @@ impl ViewContrib {
     /// Streams the file's bytes into `w` (no copy of the whole file in memory); returns
     /// their number.
     pub fn write_to<W: std::io::Write>(&self, w: &mut W) -> std::io::Result<u64> {
+        if !self.median.is_empty() && self.median.len() != self.pixels() {
+            return Err(std::io::Error::other(format!(
+                "{} median depths for {} pixels",
+                self.median.len(),
+                self.pixels()
+            )));
+        }
         let (code, ends) = encode_ids(self);
         let mut head = Vec::with_capacity(HEADER);
         head.extend_from_slice(MAGIC);
@@ -213,6 +245,7 @@ impl ViewContrib {
         head.extend_from_slice(&(self.gaussians as u64).to_le_bytes());
         head.extend_from_slice(&(self.entries() as u64).to_le_bytes());
         head.extend_from_slice(&(code.len() as u64).to_le_bytes());
+        head.extend_from_slice(&self.flags().to_le_bytes());
         head.resize(HEADER, 0);
         w.write_all(&head)?;
         // The counts and the half weights go out through small buffers, not as whole
@@ -235,12 +268,12 @@ impl ViewContrib {
             half::slice::HalfFloatSliceExt::convert_from_f32_slice(h, ws);
             put(w, h)?;
         }
-        for arr in [&self.lists.residual, &self.alpha, &self.depth] {
+        for arr in [&self.lists.residual, &self.alpha, &self.depth, &self.median] {
             put(w, arr)?;
         }
         Ok(
             (HEADER + 2 * self.pixels() + 8 * ends.len() + code.len() + 2 * self.entries()) as u64
-                + 12 * self.pixels() as u64,
+                + (12 * self.pixels() + 4 * self.median.len()) as u64,
         )
     }
 
@@ -269,6 +302,7 @@ impl ViewContrib {
             lists: Contributions::default(),
             alpha: Vec::new(),
             depth: Vec::new(),
+            median: Vec::new(),
         }
     }
 
@@ -323,50 +357,18 @@ impl ViewContrib {
             path: path.to_path_buf(),
             why,
         };
-        if b.len() < HEADER || &b[..8] != MAGIC {
-            return Err(bad("missing the GS4CCONT header".into()));
-        }
-        let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().expect("4 bytes"));
-        let u64_at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().expect("8 bytes"));
-        let version = u32_at(8);
-        let wb = weight_bytes(version)
-            .ok_or_else(|| bad(format!("version {version}, this program reads 1 to 3")))?
-            as u64;
-        let (width, height, k) = (
-            u32_at(12) as usize,
-            u32_at(16) as usize,
-            u32_at(20) as usize,
-        );
-        let (gaussians, entries) = (u64_at(24), u64_at(32));
-        // Version 3 codes the ids (row ends + code bytes); 1 and 2 store them as u32.
-        let coded = version >= 3;
-        let code_bytes = if coded { u64_at(40) } else { 0 };
-        let npx = (width as u64)
-            .checked_mul(height as u64)
-            .filter(|&n| n > 0 && n <= 1 << 31)
-            .ok_or_else(|| bad(format!("image size {width}×{height} is empty or too large")))?;
-        let id_part = if coded {
-            (height as u64 * 8).checked_add(code_bytes)
-        } else {
-            entries.checked_mul(4)
-        };
-        let expected = (HEADER as u64)
-            .checked_add(npx * 14)
-            .and_then(|x| id_part.and_then(|i| x.checked_add(i)))
-            .and_then(|x| entries.checked_mul(wb).and_then(|e| x.checked_add(e)));
-        if expected != Some(b.len() as u64) {
-            return Err(bad(format!(
-                "{} bytes, the header ({width}×{height}, {entries} entries) needs {}",
-                b.len(),
-                expected.map_or("more than 2^64".to_string(), |e| e.to_string())
-            )));
-        }
-        if k > MAX_LIST || gaussians > u64::from(u32::MAX) + 1 {
-            return Err(bad(format!(
-                "k = {k} or {gaussians} Gaussians out of range"
-            )));
-        }
-        let (npx, entries) = (npx as usize, entries as usize);
+        let hd = Header::parse(path, b, b.len() as u64)?;
+        let Header {
+            width,
+            height,
+            k,
+            gaussians,
+            entries,
+            code_bytes,
+            flags,
+            ..
+        } = hd;
+        let (wb, coded, npx) = (hd.weight_bytes(), hd.coded(), hd.pixels());
         let mut o = HEADER;
         let bound = if k == 0 { MAX_LIST } else { k };
         let offsets = &mut self.lists.offsets;
@@ -391,13 +393,13 @@ impl ViewContrib {
         if coded {
             let ends = &b[o..o + 8 * height];
             o += 8 * height;
-            let code = &b[o..o + code_bytes as usize];
-            o += code_bytes as usize;
+            let code = &b[o..o + code_bytes];
+            o += code_bytes;
             ids.resize(entries, 0);
-            decode_ids(code, ends, offsets, width, gaussians, ids).map_err(bad)?;
+            decode_ids(code, ends, offsets, width, gaussians as u64, ids).map_err(bad)?;
         } else {
             take_into(&b[o..o + 4 * entries], ids);
-            if let Some(id) = ids.iter().find(|&&id| u64::from(id) >= gaussians) {
+            if let Some(id) = ids.iter().find(|&&id| u64::from(id) >= gaussians as u64) {
                 return Err(bad(format!(
                     "Gaussian id {id} is not below the Gaussian count {gaussians}"
                 )));
@@ -423,10 +425,15 @@ impl ViewContrib {
                 half::slice::HalfFloatSliceExt::convert_to_f32_slice(&h[..], dst);
             }
         }
-        o += wb as usize * entries;
+        o += wb * entries;
         for v in [&mut self.lists.residual, &mut self.alpha, &mut self.depth] {
             take_into(&b[o..o + 4 * npx], v);
             o += 4 * npx;
+        }
+        if flags & FLAG_MEDIAN != 0 {
+            take_into(&b[o..o + 4 * npx], &mut self.median);
+        } else {
+            self.median.clear();
         }
         if let Some(i) = outside_unit(&self.lists.weights) {
             return Err(bad(format!("weight {i} is {}", self.lists.weights[i])));
@@ -441,8 +448,180 @@ impl ViewContrib {
         self.width = width;
         self.height = height;
         self.k = k;
-        self.gaussians = gaussians as usize;
+        self.gaussians = gaussians;
         Ok(())
+    }
+}
+
+/// A file's checked header: every size it implies is checked against the file's length
+/// before anything is allocated.
+#[derive(Debug, Clone, Copy)]
+struct Header {
+    version: u32,
+    width: usize,
+    height: usize,
+    k: usize,
+    gaussians: usize,
+    entries: usize,
+    code_bytes: usize,
+    flags: u32,
+}
+
+impl Header {
+    /// Parses the header at the start of `b` (at least its first 64 bytes) of a file of
+    /// `len` bytes.
+    fn parse(path: &Path, b: &[u8], len: u64) -> Result<Header, CacheError> {
+        let bad = |why: String| CacheError::Format {
+            path: path.to_path_buf(),
+            why,
+        };
+        if b.len() < HEADER || &b[..8] != MAGIC {
+            return Err(bad("missing the GS4CCONT header".into()));
+        }
+        let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().expect("4 bytes"));
+        let u64_at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().expect("8 bytes"));
+        let version = u32_at(8);
+        let wb = weight_bytes(version).ok_or_else(|| {
+            bad(format!(
+                "version {version}, this program reads 1 to {VERSION}"
+            ))
+        })? as u64;
+        let (width, height, k) = (
+            u32_at(12) as usize,
+            u32_at(16) as usize,
+            u32_at(20) as usize,
+        );
+        let (gaussians, entries) = (u64_at(24), u64_at(32));
+        // Versions 3 and 4 code the ids (row ends + code bytes); 1 and 2 store them as u32.
+        let coded = version >= 3;
+        let code_bytes = if coded { u64_at(40) } else { 0 };
+        let flags = if version >= 4 { u32_at(48) } else { 0 };
+        if flags & !FLAG_MEDIAN != 0 {
+            return Err(bad(format!("unknown header flags {flags:#x}")));
+        }
+        let npx = (width as u64)
+            .checked_mul(height as u64)
+            .filter(|&n| n > 0 && n <= 1 << 31)
+            .ok_or_else(|| bad(format!("image size {width}×{height} is empty or too large")))?;
+        let id_part = if coded {
+            (height as u64 * 8).checked_add(code_bytes)
+        } else {
+            entries.checked_mul(4)
+        };
+        let planes = if flags & FLAG_MEDIAN != 0 { 18 } else { 14 };
+        let expected = (HEADER as u64)
+            .checked_add(npx * planes)
+            .and_then(|x| id_part.and_then(|i| x.checked_add(i)))
+            .and_then(|x| entries.checked_mul(wb).and_then(|e| x.checked_add(e)));
+        if expected != Some(len) {
+            return Err(bad(format!(
+                "{len} bytes, the header ({width}×{height}, {entries} entries) needs {}",
+                expected.map_or("more than 2^64".to_string(), |e| e.to_string())
+            )));
+        }
+        if k > MAX_LIST || gaussians > u64::from(u32::MAX) + 1 {
+            return Err(bad(format!(
+                "k = {k} or {gaussians} Gaussians out of range"
+            )));
+        }
+        // All sizes are below the file's length now, so they fit a usize.
+        Ok(Header {
+            version,
+            width,
+            height,
+            k,
+            gaussians: gaussians as usize,
+            entries: entries as usize,
+            code_bytes: code_bytes as usize,
+            flags,
+        })
+    }
+
+    fn weight_bytes(&self) -> usize {
+        weight_bytes(self.version).expect("checked in parse")
+    }
+
+    fn coded(&self) -> bool {
+        self.version >= 3
+    }
+
+    fn pixels(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// Bytes of the per-pixel planes at the file's end (residual, alpha, depth, median).
+    fn planes_bytes(&self) -> usize {
+        let planes = if self.flags & FLAG_MEDIAN != 0 { 4 } else { 3 };
+        planes * 4 * self.pixels()
+    }
+}
+
+/// The per-pixel planes of a cached view, without its lists ([`ViewPlanes::read`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewPlanes {
+    pub width: usize,
+    pub height: usize,
+    /// Accumulated alpha `1 − T`.
+    pub alpha: Vec<f32>,
+    /// Expected depth, NaN where the alpha is below `DEPTH_MIN_ALPHA`.
+    pub depth: Vec<f32>,
+    /// Median depth of the kept lists; `None` in files that do not store it (before version 4).
+    pub median: Option<Vec<f32>>,
+}
+
+impl ViewPlanes {
+    /// Reads only the header and the planes at the end of a cache file (the lists are
+    /// skipped, not decoded); checks the header as a full read does, the stored Gaussian
+    /// count against `expect_gaussians`, and the alpha's range.
+    pub fn read(path: &Path, expect_gaussians: Option<usize>) -> Result<ViewPlanes, CacheError> {
+        use std::io::{Read, Seek, SeekFrom};
+        let err = |source| CacheError::Read {
+            path: path.to_path_buf(),
+            source,
+        };
+        let mut f = std::fs::File::open(path).map_err(err)?;
+        let len = f.metadata().map_err(err)?.len();
+        let mut head = Vec::with_capacity(HEADER);
+        (&mut f)
+            .take(HEADER as u64)
+            .read_to_end(&mut head)
+            .map_err(err)?;
+        let hd = Header::parse(path, &head, len)?;
+        if let Some(n) = expect_gaussians
+            && n != hd.gaussians
+        {
+            return Err(CacheError::Stale {
+                path: path.to_path_buf(),
+                found: hd.gaussians,
+                expected: n,
+            });
+        }
+        let npx = hd.pixels();
+        // The residual plane is skipped too: its readers read the lists.
+        let skip = hd.planes_bytes() - 4 * npx;
+        f.seek(SeekFrom::Start(len - skip as u64)).map_err(err)?;
+        let mut b = vec![0u8; skip];
+        f.read_exact(&mut b).map_err(err)?;
+        let plane = |i: usize| {
+            let mut v = Vec::new();
+            take_into(&b[i * 4 * npx..(i + 1) * 4 * npx], &mut v);
+            v
+        };
+        let (alpha, depth) = (plane(0), plane(1));
+        let median = (hd.flags & FLAG_MEDIAN != 0).then(|| plane(2));
+        if let Some(p) = outside_unit(&alpha) {
+            return Err(CacheError::Format {
+                path: path.to_path_buf(),
+                why: format!("pixel {p}: alpha outside [0, 1]"),
+            });
+        }
+        Ok(ViewPlanes {
+            width: hd.width,
+            height: hd.height,
+            alpha,
+            depth,
+            median,
+        })
     }
 }
 
@@ -703,6 +882,10 @@ pub struct CacheSummary {
     pub gaussians: usize,
     pub skipped_gaussians: usize,
     pub options: CacheOptions,
+    /// Whether every view's file stores its median-depth plane (version 4 written by the
+    /// render stage); false in caches from before it, whose readers compute it from the lists.
+    #[serde(default)]
+    pub median_depth: bool,
     pub views: Vec<CachedView>,
     pub bytes: u64,
     pub render_s: f64,
@@ -750,6 +933,38 @@ impl Cache {
             Some(self.summary.gaussians),
             buf,
         )
+    }
+
+    /// The per-pixel planes of view `stem` only ([`ViewPlanes::read`]).
+    pub fn load_planes(&self, stem: &str) -> Result<ViewPlanes, CacheError> {
+        ViewPlanes::read(&cache_file(&self.dir, stem), Some(self.summary.gaussians))
+    }
+
+    /// View `stem`'s median depth per pixel: the stored plane, or, in a cache without one,
+    /// [`median_depth`] of its lists with the Gaussians' `positions` and the view's `pose`
+    /// (`None` there: an error naming the file). Returns the view's planes with it.
+    pub fn median_depth(
+        &self,
+        stem: &str,
+        positions: Option<&[[f32; 3]]>,
+        pose: &crate::camera::Pose,
+    ) -> Result<(ViewPlanes, Vec<f32>), CacheError> {
+        let mut planes = self.load_planes(stem)?;
+        if let Some(m) = planes.median.take() {
+            return Ok((planes, m));
+        }
+        let path = cache_file(&self.dir, stem);
+        let Some(positions) = positions else {
+            return Err(CacheError::Format {
+                path,
+                why: "no median-depth plane, though the cache's summary.json says every view has \
+                      one: render the cache again"
+                    .into(),
+            });
+        };
+        let c = ViewContrib::read(&path, Some(self.summary.gaussians))?;
+        let m = median_depth(&c, positions, pose);
+        Ok((planes, m))
     }
 
     /// Whether the cache holds view `stem`.
@@ -985,6 +1200,7 @@ mod tests {
             },
             alpha: vec![0.85, 0.0, 0.9, 0.35, 0.0, 0.3],
             depth: vec![2.0, f32::NAN, 3.0, 1.0, f32::NAN, 5.0],
+            median: Vec::new(),
         }
     }
 
@@ -1043,6 +1259,7 @@ mod tests {
             },
             alpha: vec![0.75, 0.0],
             depth: vec![4.0, f32::NAN],
+            median: Vec::new(),
         };
         let (pb, ps) = (dir.join("big.contrib"), dir.join("small.contrib"));
         big.write(&pb).unwrap();
@@ -1122,11 +1339,124 @@ mod tests {
         assert_eq!(r.lists, v.lists);
         assert_eq!(r.alpha, v.alpha);
         // A version this program does not know is refused, naming it.
-        b[8..12].copy_from_slice(&4u32.to_le_bytes());
-        let e = ViewContrib::from_bytes(Path::new("v4.contrib"), &b)
+        b[8..12].copy_from_slice(&5u32.to_le_bytes());
+        let e = ViewContrib::from_bytes(Path::new("v5.contrib"), &b)
             .unwrap_err()
             .to_string();
-        assert!(e.contains("v4.contrib") && e.contains("version 4"), "{e}");
+        assert!(e.contains("v5.contrib") && e.contains("version 5"), "{e}");
+    }
+
+    /// `sample()` with a median plane (NaN where a pixel has no median).
+    fn with_median() -> ViewContrib {
+        let mut v = sample();
+        v.median = vec![2.5, f32::NAN, 3.0, 1.25, f32::NAN, -0.5];
+        v
+    }
+
+    fn bits(x: &[f32]) -> Vec<u32> {
+        x.iter().map(|f| f.to_bits()).collect()
+    }
+
+    #[test]
+    fn the_median_plane_is_flagged_written_last_and_read_back() {
+        let v = with_median();
+        let b = v.to_bytes();
+        assert_eq!(b.len(), v.file_bytes());
+        assert_eq!(
+            b.len(),
+            sample().to_bytes().len() + 4 * 6,
+            "one f32 per pixel more"
+        );
+        assert_eq!(u32::from_le_bytes(b[8..12].try_into().unwrap()), 4);
+        assert_eq!(
+            u32::from_le_bytes(b[48..52].try_into().unwrap()),
+            FLAG_MEDIAN
+        );
+        // The last 24 bytes are the plane, little endian.
+        let tail: Vec<u32> = b[b.len() - 24..]
+            .chunks(4)
+            .map(|c| u32::from_le_bytes(c.try_into().unwrap()))
+            .collect();
+        assert_eq!(tail, bits(&v.median));
+        let r = ViewContrib::from_bytes(Path::new("x"), &b).unwrap();
+        assert_eq!(bits(&r.median), bits(&v.median));
+        assert_eq!(r.lists, v.lists);
+        // Without the plane: flag 0, and nothing read back.
+        let b0 = sample().to_bytes();
+        assert_eq!(u32::from_le_bytes(b0[48..52].try_into().unwrap()), 0);
+        assert!(
+            ViewContrib::from_bytes(Path::new("x"), &b0)
+                .unwrap()
+                .median
+                .is_empty()
+        );
+        // A plane of the wrong length is not written.
+        let mut bad = with_median();
+        bad.median.pop();
+        assert!(bad.write_to(&mut Vec::new()).is_err());
+        // An unknown flag, or a flag without its plane, is refused.
+        let mut x = b.clone();
+        x[48] = 3;
+        let e = ViewContrib::from_bytes(Path::new("f.contrib"), &x)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("f.contrib") && e.contains("flags"), "{e}");
+        let mut x = b0.clone();
+        x[48] = 1;
+        let e = ViewContrib::from_bytes(Path::new("f.contrib"), &x)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("bytes"), "{e}");
+    }
+
+    #[test]
+    fn the_planes_reader_reads_the_tail_and_checks_the_header() {
+        let dir =
+            crate::fsutil::test_temp_dir().join(format!("gs4c-planes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (pm, p0, p3) = (
+            dir.join("m.contrib"),
+            dir.join("0.contrib"),
+            dir.join("3.contrib"),
+        );
+        with_median().write(&pm).unwrap();
+        sample().write(&p0).unwrap();
+        // The same view as version 3 wrote it: no flags word.
+        let mut b3 = sample().to_bytes();
+        b3[8..12].copy_from_slice(&3u32.to_le_bytes());
+        std::fs::write(&p3, &b3).unwrap();
+        let v = with_median();
+        let m = ViewPlanes::read(&pm, Some(10)).unwrap();
+        assert_eq!((m.width, m.height), (3, 2));
+        assert_eq!(bits(&m.alpha), bits(&v.alpha));
+        assert_eq!(bits(&m.depth), bits(&v.depth));
+        assert_eq!(m.median.as_deref().map(bits), Some(bits(&v.median)));
+        for p in [&p0, &p3] {
+            let r = ViewPlanes::read(p, Some(10)).unwrap();
+            assert_eq!(bits(&r.alpha), bits(&v.alpha));
+            assert_eq!(bits(&r.depth), bits(&v.depth));
+            assert!(r.median.is_none());
+        }
+        assert_eq!(ViewContrib::read(&p3, Some(10)).unwrap().lists, v.lists);
+        // A stale count, a truncated file and a bad alpha are refused, naming the file.
+        assert!(matches!(
+            ViewPlanes::read(&pm, Some(11)),
+            Err(CacheError::Stale { .. })
+        ));
+        let b = std::fs::read(&pm).unwrap();
+        std::fs::write(&pm, &b[..b.len() - 1]).unwrap();
+        let e = ViewPlanes::read(&pm, Some(10)).unwrap_err().to_string();
+        assert!(e.contains("m.contrib") && e.contains("bytes"), "{e}");
+        std::fs::write(&pm, &b[..40]).unwrap();
+        let e = ViewPlanes::read(&pm, Some(10)).unwrap_err().to_string();
+        assert!(e.contains("m.contrib") && e.contains("header"), "{e}");
+        let mut x = b.clone();
+        let a0 = x.len() - 3 * 24; // alpha, depth, median: 24 bytes each
+        x[a0..a0 + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+        std::fs::write(&pm, &x).unwrap();
+        let e = ViewPlanes::read(&pm, Some(10)).unwrap_err().to_string();
+        assert!(e.contains("pixel 0") && e.contains("alpha"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     /// The id code by hand for `sample()`: row 0 = pixels [1, 4], [], [9]; row 1 = [0, 2],
@@ -1152,6 +1482,7 @@ mod tests {
             },
             alpha: vec![1.0; 2],
             depth: vec![1.0; 2],
+            median: Vec::new(),
         };
         let (code, _) = encode_ids(&v);
         // 5 → zz 10; 6 − 5 → 2; then n = 2: 6 is entry 1 → 1; 300 − 6 = 294 → zz 588, + 2 =
@@ -1175,6 +1506,7 @@ mod tests {
             },
             alpha: vec![1.0; 3],
             depth: vec![1.0; 3],
+            median: Vec::new(),
         };
         let (code, _) = encode_ids(&v);
         // 3 → zz 6; 8 − 3 → 10; 9 − 8 → 2.
@@ -1222,6 +1554,7 @@ mod tests {
                 },
                 alpha: vec![0.5; w * h],
                 depth: vec![1.0; w * h],
+                median: Vec::new(),
             };
             let b = v.to_bytes();
             assert_eq!(b.len(), v.file_bytes());

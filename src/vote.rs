@@ -992,6 +992,7 @@ mod tests {
             lists,
             alpha: vec![1.0; 3],
             depth: vec![f32::NAN; 3],
+            median: Vec::new(),
         };
         let gate = GateView {
             z: vec![2.0, 4.8, 7.0],
@@ -1114,6 +1115,7 @@ mod tests {
             },
             alpha: vec![1.0; 4],
             depth: vec![1.0; 4],
+            median: Vec::new(),
         };
         let mut gate = CityGate::new(centres, &dir, 0.5, delta);
         let off = gate.view(&view, &c, &labels).unwrap();

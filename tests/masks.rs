@@ -275,6 +275,7 @@ fn fixture(name: &str, with_features: bool) -> Fixture {
         },
         alpha,
         depth: edepth,
+        median: Vec::new(),
     };
     vc.write(&gs4city::cache::cache_file(&cache, STEM)).unwrap();
     let summary = CacheSummary {
@@ -285,6 +286,7 @@ fn fixture(name: &str, with_features: bool) -> Fixture {
             epsilon: 0.0,
             t_stop: 0.0,
         },
+        median_depth: false,
         views: vec![CachedView {
             name: format!("{STEM}.png"),
             stem: STEM.into(),

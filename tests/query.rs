@@ -227,6 +227,7 @@ fn views() -> [(String, ViewContrib); 2] {
             },
             alpha,
             depth: vec![1.0; 8],
+            median: Vec::new(),
         }
     };
     let v0 = make(
@@ -343,6 +344,7 @@ fn fixture(name: &str, fused: bool, ply: PlyEncoding) -> Fixture {
                 epsilon: 0.0,
                 t_stop: 0.0,
             },
+            median_depth: false,
             views: cached,
             bytes: 0,
             render_s: 0.0,

@@ -366,6 +366,7 @@ mod tests {
             },
             alpha: vec![0.85, 0.4, 1.0],
             depth: vec![1.0; 3],
+            median: Vec::new(),
         };
         let vm = ViewMasks {
             width: 3,

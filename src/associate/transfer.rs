@@ -272,6 +272,7 @@ mod tests {
             },
             alpha: vec![0.9, 0.9, 0.7, 0.9],
             depth: vec![1.0; 4],
+            median: Vec::new(),
         }
     }
 

@@ -379,7 +379,7 @@ struct Plan<'a> {
     test: Test,
     prompts: Option<PromptTable>,
     depth: DepthTest,
-    /// Gaussian centres (for the median depth).
+    /// Gaussian centres (for the median depth of a cache without its plane).
     positions: Option<Vec<[f32; 3]>>,
     overlay_stems: Vec<String>,
     out: &'a Path,
@@ -462,8 +462,9 @@ pub fn run(
     };
     let needs_depth = source == Source::Depth || matches!(test, Test::Geometry | Test::Both);
     let t_ply = Instant::now();
+    // The Gaussians' centres are read only for a cache without the median-depth plane.
     let positions = match (needs_depth, opts.gs_depth, inp.cache) {
-        (true, GsDepth::Median, Some(cache)) => {
+        (true, GsDepth::Median, Some(cache)) if !cache.summary.median_depth => {
             let (g, _) = crate::splat::read_ply(&inp.scene.ply, &crate::splat::ReadOptions::KEEP)?;
             if g.len() != cache.summary.gaussians {
                 return Err(MasksError::Invalid {
@@ -592,7 +593,16 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
     let states = if needs_depth {
         let city = idmap::read_depth(inp.raycast, &stem, w, h)?;
         let cache = inp.cache.expect("checked in run");
-        let c = cache.load(&stem)?;
+        let (c, gs) = match plan.opts.gs_depth {
+            GsDepth::Median => {
+                cache.median_depth(&stem, plan.positions.as_deref(), &v.camera.pose)?
+            }
+            GsDepth::Expected => {
+                let c = cache.load_planes(&stem)?;
+                let d = c.depth.clone();
+                (c, d)
+            }
+        };
         if (c.height, c.width) != (h, w) {
             return Err(MasksError::Invalid {
                 path: crate::cache::cache_file(&cache.dir, &stem),
@@ -603,10 +613,6 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
             });
         }
         let t = Instant::now();
-        let gs = match &plan.positions {
-            Some(pos) => crate::cache::median_depth(&c, pos, &v.camera.pose),
-            None => c.depth,
-        };
         let surface = &ids[h * w..2 * h * w];
         let s = geometry::classify(&city, &gs, feature, surface, h, w, &plan.depth);
         depth_s = t.elapsed().as_secs_f64();

@@ -263,12 +263,13 @@ pub struct OpeningsInputs<'a> {
     pub geometry: Option<Geometry<'a>>,
 }
 
-/// What the geometric cue reads: the contributions cache of the views and the centres of the
-/// Gaussians it was built for.
+/// What the geometric cue reads: the contributions cache of the views (their median depth),
+/// and for a cache without the median-depth plane the centres of the Gaussians it was built
+/// for ([`crate::cache::Cache::median_depth`]).
 #[derive(Clone, Copy)]
 pub struct Geometry<'a> {
     pub cache: &'a crate::cache::Cache,
-    pub positions: &'a [[f32; 3]],
+    pub positions: Option<&'a [[f32; 3]]>,
 }
 
 /// One view's raycast maps (row-major `h×w`).
@@ -535,7 +536,7 @@ fn scan_view(
         });
     }
     if let Some(g) = geometry {
-        let c = g.cache.load(&stem)?;
+        let (c, gs) = g.cache.median_depth(&stem, g.positions, &cam.pose)?;
         if (c.height, c.width) != (h, w) {
             return Err(OpeningsError::Invalid {
                 path: crate::cache::cache_file(&g.cache.dir, &stem),
@@ -545,7 +546,6 @@ fn scan_view(
                 ),
             });
         }
-        let gs = crate::cache::median_depth(&c, g.positions, &cam.pose);
         scan.candidates
             .extend(recess::candidates(&vm, &gs, frames, opts, scale)?);
     }

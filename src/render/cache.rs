@@ -9,7 +9,7 @@ use rayon::prelude::*;
 use super::{ContributionMode, PreparedScene, RenderError, RenderOptions};
 use crate::cache::{
     CacheError, CacheOptions, CacheSummary, CachedView, DEPTH_MIN_ALPHA, ViewContrib, cache_file,
-    round_weights,
+    median_depth, round_weights,
 };
 use crate::camera::View;
 use crate::fsutil;
@@ -32,7 +32,8 @@ pub fn list_mode(opts: &CacheOptions) -> ContributionMode {
     }
 }
 
-/// Renders `view` with the lists of `opts` ([`list_mode`]), weights rounded as stored.
+/// Renders `view` with the lists of `opts` ([`list_mode`]), weights rounded as stored, and
+/// the median depth of those lists.
 pub fn contrib(
     scene: &PreparedScene,
     view: &View,
@@ -40,6 +41,8 @@ pub fn contrib(
 ) -> Result<ViewContrib, RenderError> {
     let mut v = contrib_unrounded(scene, view, opts)?;
     round_weights(&mut v.lists.weights);
+    // The median depth of the stored (rounded) lists, as a reader would compute it.
+    v.median = median_depth(&v, &scene.positions, &view.camera.pose);
     Ok(v)
 }
 
@@ -77,6 +80,7 @@ pub fn contrib_unrounded(
         lists: out.contributions.unwrap_or_default(),
         alpha: out.alpha,
         depth: out.depth,
+        median: Vec::new(),
     })
 }
 
@@ -98,6 +102,7 @@ pub fn build(
         gaussians: scene.len(),
         skipped_gaussians: scene.skipped,
         options: *opts,
+        median_depth: true,
         views: Vec::with_capacity(views.len()),
         bytes: 0,
         render_s: 0.0,

@@ -604,8 +604,9 @@ fn fused_supervision(
         |dir| {
             let mesh = crate::mesh::TriMesh::read_ply(&cm_dir.join("mesh.ply"))?;
             let alignment = Alignment::read(&cm_dir.join("alignment.json"))?;
-            // The geometric cue's Gaussian centres (the cache was built for this PLY).
-            let positions = if opts.openings.cues.geometry() {
+            // The geometric cue's Gaussian centres (the cache was built for this PLY), read
+            // only for a cache without the median-depth plane.
+            let positions = if opts.openings.cues.geometry() && !cache.summary.median_depth {
                 let (g, _) = crate::splat::read_ply(&scene.ply, &crate::splat::ReadOptions::KEEP)?;
                 if g.len() != cache.summary.gaussians {
                     return Err(RunError::Refused(format!(
@@ -630,9 +631,10 @@ fn fused_supervision(
                     mesh: &mesh,
                     alignment: &alignment,
                     srs_name,
-                    geometry: positions
-                        .as_deref()
-                        .map(|positions| openings::Geometry { cache, positions }),
+                    geometry: opts.openings.cues.geometry().then_some(openings::Geometry {
+                        cache,
+                        positions: positions.as_deref(),
+                    }),
                 },
                 &opts.openings,
             )?;

@@ -120,6 +120,7 @@ mod tests {
             },
             alpha: vec![0.9, 0.95, 0.8],
             depth: vec![1.0; 3],
+            median: Vec::new(),
         }
     }
 
@@ -173,6 +174,7 @@ mod tests {
             },
             alpha: vec![0.9, 0.95],
             depth: vec![1.0; 2],
+            median: Vec::new(),
         };
         let class = [2, 1, 3, 3];
         let (map, _) = crate::cache::predict(&c, &[0, 1, 2, 3], &class);

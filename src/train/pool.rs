@@ -273,6 +273,7 @@ mod tests {
             },
             alpha: vec![0.95, 0.5],
             depth: vec![1.0, 2.0],
+            median: Vec::new(),
         };
         let t = truncate(&c, 2);
         // 0.4 first, then the nearer of the two 0.2 entries; depth order kept.

@@ -240,6 +240,7 @@ mod tests {
             },
             alpha: vec![1.0, 0.0],
             depth: vec![1.0, f32::NAN],
+            median: Vec::new(),
         };
         // Labels 10, 11, 12 are walls (class 0), 20 a window (class 2).
         let class_ids = [-1, 10, 11, 12, 20];
