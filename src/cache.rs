@@ -332,16 +332,7 @@ impl ViewContrib {
             .and_then(|mut f| f.read_to_end(buf))
             .map_err(err)?;
         self.parse_into(path, buf)?;
-        if let Some(n) = expect_gaussians
-            && n != self.gaussians
-        {
-            return Err(CacheError::Stale {
-                path: path.to_path_buf(),
-                found: self.gaussians,
-                expected: n,
-            });
-        }
-        Ok(())
+        check_count(path, self.gaussians, expect_gaussians)
     }
 
     /// Parses and checks a file's bytes (`path` names it in errors).
@@ -450,6 +441,18 @@ impl ViewContrib {
         self.k = k;
         self.gaussians = gaussians;
         Ok(())
+    }
+}
+
+/// A stale cache: the file's Gaussian count `found` is not the expected one.
+fn check_count(path: &Path, found: usize, expected: Option<usize>) -> Result<(), CacheError> {
+    match expected {
+        Some(n) if n != found => Err(CacheError::Stale {
+            path: path.to_path_buf(),
+            found,
+            expected: n,
+        }),
+        _ => Ok(()),
     }
 }
 
@@ -587,15 +590,7 @@ impl ViewPlanes {
             .read_to_end(&mut head)
             .map_err(err)?;
         let hd = Header::parse(path, &head, len)?;
-        if let Some(n) = expect_gaussians
-            && n != hd.gaussians
-        {
-            return Err(CacheError::Stale {
-                path: path.to_path_buf(),
-                found: hd.gaussians,
-                expected: n,
-            });
-        }
+        check_count(path, hd.gaussians, expect_gaussians)?;
         let npx = hd.pixels();
         // The residual plane is skipped too: its readers read the lists.
         let skip = hd.planes_bytes() - 4 * npx;
