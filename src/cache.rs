@@ -217,7 +217,8 @@ impl ViewContrib {
     /// The file's bytes.
     pub fn to_bytes(&self) -> Vec<u8> {
         let mut b = Vec::with_capacity(self.file_bytes());
-        self.write_to(&mut b).expect("writing to a Vec cannot fail");
+        self.write_to(&mut b)
+            .expect("writing to a Vec fails only for a median plane not of the pixel count");
         b
     }
 
@@ -935,31 +936,50 @@ impl Cache {
         ViewPlanes::read(&cache_file(&self.dir, stem), Some(self.summary.gaussians))
     }
 
-    /// View `stem`'s median depth per pixel: the stored plane, or, in a cache without one,
-    /// [`median_depth`] of its lists with the Gaussians' `positions` and the view's `pose`
-    /// (`None` there: an error naming the file). Returns the view's planes with it.
+    /// View `stem`'s median depth per pixel: the stored plane, or, in a cache from before
+    /// version 4 (its summary's `median_depth` false), [`median_depth`] of its lists with the
+    /// Gaussians' `positions` and the view's `pose` (`None` there: an error naming the file).
+    /// Returns the view's planes with it (their `median` taken out).
     pub fn median_depth(
         &self,
         stem: &str,
         positions: Option<&[[f32; 3]]>,
         pose: &crate::camera::Pose,
     ) -> Result<(ViewPlanes, Vec<f32>), CacheError> {
+        let path = cache_file(&self.dir, stem);
+        if let (false, Some(positions)) = (self.summary.median_depth, positions) {
+            // One full read: the lists give the median, and the planes come with them.
+            let c = ViewContrib::read(&path, Some(self.summary.gaussians))?;
+            let m = if c.median.is_empty() {
+                median_depth(&c, positions, pose)
+            } else {
+                c.median
+            };
+            let planes = ViewPlanes {
+                width: c.width,
+                height: c.height,
+                alpha: c.alpha,
+                depth: c.depth,
+                median: None,
+            };
+            return Ok((planes, m));
+        }
         let mut planes = self.load_planes(stem)?;
         if let Some(m) = planes.median.take() {
             return Ok((planes, m));
         }
-        let path = cache_file(&self.dir, stem);
-        let Some(positions) = positions else {
-            return Err(CacheError::Format {
-                path,
-                why: "no median-depth plane, though the cache's summary.json says every view has \
-                      one: render the cache again"
-                    .into(),
-            });
-        };
-        let c = ViewContrib::read(&path, Some(self.summary.gaussians))?;
-        let m = median_depth(&c, positions, pose);
-        Ok((planes, m))
+        Err(CacheError::Format {
+            path,
+            why: if self.summary.median_depth {
+                "no median-depth plane, though the cache's summary.json says every view has one: \
+                 render the cache again"
+                    .into()
+            } else {
+                "no median-depth plane (a cache from before version 4): its median depth needs the \
+                 Gaussians' centres"
+                    .into()
+            },
+        })
     }
 
     /// Whether the cache holds view `stem`.
@@ -1433,6 +1453,35 @@ mod tests {
             assert!(r.median.is_none());
         }
         assert_eq!(ViewContrib::read(&p3, Some(10)).unwrap().lists, v.lists);
+        // Version 3 has no flags word: a set byte 48 changes nothing.
+        b3[48] = 1;
+        std::fs::write(&p3, &b3).unwrap();
+        assert!(ViewPlanes::read(&p3, Some(10)).unwrap().median.is_none());
+        // Versions 1 and 2 (u32 ids; f32 or half weights).
+        for version in [1u32, 2] {
+            let mut b = old_header(version);
+            for id in &v.lists.ids {
+                b.extend_from_slice(&id.to_le_bytes());
+            }
+            for w in &v.lists.weights {
+                if version == 1 {
+                    b.extend_from_slice(&w.to_le_bytes());
+                } else {
+                    b.extend_from_slice(&half::f16::from_f32(*w).to_bits().to_le_bytes());
+                }
+            }
+            for arr in [&v.lists.residual, &v.alpha, &v.depth] {
+                for x in arr {
+                    b.extend_from_slice(&x.to_le_bytes());
+                }
+            }
+            let p = dir.join(format!("v{version}.contrib"));
+            std::fs::write(&p, &b).unwrap();
+            let r = ViewPlanes::read(&p, Some(10)).unwrap();
+            assert_eq!(bits(&r.alpha), bits(&v.alpha), "version {version}");
+            assert_eq!(bits(&r.depth), bits(&v.depth), "version {version}");
+            assert!(r.median.is_none());
+        }
         // A stale count, a truncated file and a bad alpha are refused, naming the file.
         assert!(matches!(
             ViewPlanes::read(&pm, Some(11)),

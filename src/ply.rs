@@ -1071,6 +1071,20 @@ impl RowWriter {
     }
 }
 
+/// Reads and checks the header of the file at `path` only (its declared sizes against the
+/// file's size), without reading the payload; returns it with the file's size.
+pub fn read_header(path: &Path) -> Result<(Header, u64), PlyError> {
+    let io = |err| PlyError::Io {
+        path: path.to_path_buf(),
+        err,
+    };
+    let mut f = std::fs::File::open(path).map_err(io)?;
+    let file_len = f.metadata().map_err(io)?.len();
+    let mut head = vec![0u8; (file_len.min(MAX_HEADER_BYTES as u64)) as usize];
+    std::io::Read::read_exact(&mut f, &mut head).map_err(io)?;
+    Ok((Header::parse_sized(path, &head, file_len)?, file_len))
+}
+
 /// The rows of one element of a binary PLY whose elements all have fixed-size rows, read from
 /// the file in chunks: memory independent of the file size (`gs4city tile` cuts a city's PLY
 /// this way). The header is checked against the file's size first, and the file must hold
@@ -1092,19 +1106,11 @@ pub struct FixedRows {
 impl FixedRows {
     /// Opens `path` and finds element `name` (errors name the file).
     pub fn open(path: &Path, name: &str) -> Result<FixedRows, PlyError> {
-        let io = |err| PlyError::Io {
-            path: path.to_path_buf(),
-            err,
-        };
         let layout = |why: String| PlyError::Layout {
             path: path.to_path_buf(),
             why,
         };
-        let mut f = std::fs::File::open(path).map_err(io)?;
-        let file_len = f.metadata().map_err(io)?.len();
-        let mut head = vec![0u8; (file_len.min(MAX_HEADER_BYTES as u64)) as usize];
-        std::io::Read::read_exact(&mut f, &mut head).map_err(io)?;
-        let header = Header::parse_sized(path, &head, file_len)?;
+        let (header, file_len) = read_header(path)?;
         if header.encoding == Encoding::Ascii {
             return Err(layout(
                 "an ASCII PLY cannot be read in chunks; convert it to binary (e.g. `gs4city render` \

@@ -121,7 +121,7 @@ fn a_python_reader_written_from_the_docs_decodes_version_4() {
             })
             .collect(),
     };
-    let dir = crate::common::temp_dir().join(format!("gs4c-v3-{}", std::process::id()));
+    let dir = crate::common::temp_dir().join(format!("gs4c-v4-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let file = dir.join("v.contrib");
     v.write(&file).unwrap();

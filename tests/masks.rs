@@ -847,3 +847,51 @@ fn a_low_quality_mask_that_passes_every_other_rule_is_support_only() {
             .contains("support_floor")
     );
 }
+
+/// The version 4 cache: with the render stage's median-depth plane the stage reads only the
+/// cache's planes and no Gaussian centres, and gives exactly the masks it gives from the lists
+/// and the PLY's centres (a cache from before version 4); the PLY's header still tells a stale
+/// cache.
+#[test]
+fn the_stored_median_plane_gives_the_masks_of_the_lists_and_the_centres() {
+    let f = fixture("plane", true);
+    let mut o = opts(Test::Both);
+    o.low_overlap_check = true;
+    run(&f, &o, "lists", true).unwrap();
+    // The same view with its median plane, and a summary that says the cache has them.
+    let file = gs4city::cache::cache_file(&f.cache, STEM);
+    let mut c = ViewContrib::read(&file, None).unwrap();
+    assert!(c.median.is_empty());
+    let centres: Vec<[f32; 3]> = Z.iter().map(|&z| [0.0, 0.0, z]).collect();
+    c.median = gs4city::cache::median_depth(&c, &centres, &view().camera.pose);
+    assert!(c.median.iter().any(|m| m.is_finite()));
+    c.write(&file).unwrap();
+    let mut summary = Cache::open(&f.cache).unwrap().summary;
+    summary.median_depth = true;
+    summary.write(&f.cache).unwrap();
+    run(&f, &o, "plane", true).unwrap();
+    let (a, b) = (
+        folder_bytes(&f.root.join("lists")),
+        folder_bytes(&f.root.join("plane")),
+    );
+    assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
+    for (k, v) in &a {
+        assert!(v == &b[k], "{k} differs");
+    }
+    // A PLY with another number of Gaussians: the cache is stale, named with the PLY.
+    let one = Gaussians {
+        positions: vec![[0.0, 0.0, 5.0]],
+        normals: None,
+        sh_degree: 0,
+        f_dc: vec![[0.5; 3]],
+        f_rest: vec![],
+        opacity: vec![2.0],
+        scale: vec![[-2.0; 3]],
+        rotation: vec![[1.0, 0.0, 0.0, 0.0]],
+        extras: vec![],
+    };
+    let ply = f.scene.join("point_cloud.ply");
+    gs4city::splat::write_ply(&ply, &one, PlyEncoding::BinaryLittleEndian).unwrap();
+    let e = run(&f, &o, "stale", true).unwrap_err().to_string();
+    assert!(e.contains("point_cloud.ply") && e.contains("stale"), "{e}");
+}

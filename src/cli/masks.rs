@@ -53,8 +53,9 @@ pub struct MasksArgs {
     /// δ: margin of S_fore over S_city.
     #[arg(long, default_value_t = MasksOptions::default().delta, allow_negative_numbers = true)]
     delta: f64,
-    /// 3DGS depth of the depth test: median (from the cache's lists and the Gaussian centres of
-    /// the scene's point_cloud.ply) or expected (the cache's Σw·z/(1−T)).
+    /// 3DGS depth of the depth test: median (of the cache's lists, stored by the render stage;
+    /// a cache before version 4: from its lists and point_cloud.ply's centres) or expected (the
+    /// cache's Σw·z/(1−T)).
     #[arg(long, default_value = "median")]
     gs_depth: GsDepth,
     /// τ_occ in metres (× the alignment scale): how far in front of the city surface the 3DGS

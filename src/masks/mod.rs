@@ -104,8 +104,9 @@ pub enum Source {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum GsDepth {
-    /// Median depth from the cache's lists and the Gaussian centres ([`crate::cache::median_depth`];
-    /// reads the scene's `point_cloud.ply`).
+    /// Median depth of the cache's lists ([`crate::cache::Cache::median_depth`]: the plane the
+    /// render stage stores; from the lists and the centres of the scene's `point_cloud.ply` in a
+    /// cache from before version 4).
     Median,
     /// The cache's expected depth `Σ w·z / (1 − T)`.
     Expected,
@@ -462,20 +463,29 @@ pub fn run(
     };
     let needs_depth = source == Source::Depth || matches!(test, Test::Geometry | Test::Both);
     let t_ply = Instant::now();
-    // The Gaussians' centres are read only for a cache without the median-depth plane.
+    // The Gaussians' centres are read only for a cache without the median-depth plane; with
+    // it, the PLY's header alone shows whether the cache was built for this scene.
+    let stale = |found: usize, cache: &Cache| MasksError::Invalid {
+        path: inp.scene.ply.clone(),
+        why: format!(
+            "{found} Gaussians, but the cache {} was built for {}: the cache is stale",
+            cache.dir.display(),
+            cache.summary.gaussians
+        ),
+    };
+    if let (true, Some(cache)) = (needs_depth, inp.cache)
+        && cache.summary.median_depth
+    {
+        let found = crate::splat::read_count(&inp.scene.ply)?;
+        if found != cache.summary.gaussians {
+            return Err(stale(found, cache));
+        }
+    }
     let positions = match (needs_depth, opts.gs_depth, inp.cache) {
         (true, GsDepth::Median, Some(cache)) if !cache.summary.median_depth => {
             let (g, _) = crate::splat::read_ply(&inp.scene.ply, &crate::splat::ReadOptions::KEEP)?;
             if g.len() != cache.summary.gaussians {
-                return Err(MasksError::Invalid {
-                    path: inp.scene.ply.clone(),
-                    why: format!(
-                        "{} Gaussians, but the cache {} was built for {}: the cache is stale",
-                        g.len(),
-                        cache.dir.display(),
-                        cache.summary.gaussians
-                    ),
-                });
+                return Err(stale(g.len(), cache));
             }
             Some(g.positions)
         }

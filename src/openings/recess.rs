@@ -3,7 +3,7 @@
 //! plain polygon, the pre-trained 3DGS scene stands behind the wall's own surface there.
 //!
 //! Per training view, with the 3DGS median depth of the contributions cache
-//! ([`crate::cache::median_depth`]):
+//! ([`crate::cache::Cache::median_depth`]):
 //! 1. each pixel whose raycast surface is a framed wall (not a model opening, and the same wall
 //!    `guard_px` pixels up, down, left and right: no silhouette blur) gets the signed distance
 //!    of its 3DGS point behind the wall's plane (positive: away from the camera);

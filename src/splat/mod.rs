@@ -10,7 +10,7 @@ pub mod transform;
 
 pub use ply::{
     InvalidPolicy, LOG_SCALE_RANGE, MAX_ABS_SH, PlyEncoding, PlyError, PlyReport, ReadOptions,
-    ScalarKind, read_ply, read_ply_bytes, write_ply,
+    ScalarKind, read_count, read_ply, read_ply_bytes, write_ply,
 };
 
 /// Number of `f_rest_*` coefficients (all three colour channels) for SH degree 0..=3.

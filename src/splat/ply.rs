@@ -542,6 +542,15 @@ pub fn is_valid(g: &Gaussians, i: usize) -> bool {
     )
 }
 
+/// The number of Gaussians (`vertex` rows) a 3DGS PLY file declares, from its checked header
+/// alone (the payload is not read); 0 without a `vertex` element.
+pub fn read_count(path: &Path) -> Result<usize, PlyError> {
+    let (header, _) = ply::read_header(path)?;
+    Ok(header
+        .element("vertex")
+        .map_or(0, |e| header.elements[e].count))
+}
+
 /// Reads a 3DGS PLY file.
 pub fn read_ply(path: &Path, options: &ReadOptions) -> Result<(Gaussians, PlyReport), PlyError> {
     let bytes = ply::read_file(path)?;

@@ -97,6 +97,8 @@ pub fn truncate(c: &ViewContrib, k: usize) -> Cow<'_, ViewContrib> {
         return Cow::Borrowed(c);
     }
     let mut out = c.clone();
+    // The median depth of the full lists is not that of the shortened ones.
+    out.median.clear();
     let l = &mut out.lists;
     l.ids.clear();
     l.weights.clear();
