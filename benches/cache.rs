@@ -10,8 +10,7 @@
 //! 0.005, 0.01, 0.02, 0.05), every chosen view is rendered with its lists (nothing
 //! written: the bytes of the version 4 file are counted, ids coded; since version 4 they include
 //! the median-depth plane, 4 bytes per pixel, and their time includes computing it), and the
-//! city-model vote of
-//! `lift` runs over them. `GS4CITY_RULES=a,b` keeps the rows whose label is listed.
+//! city-model vote of `lift` runs over them. `GS4CITY_RULES=a,b` keeps the rows whose label is listed.
 //! Errors are measured against the complete lists with unrounded f32 weights ("all, f32": what
 //! the rasterizer computes; the cache stores weights as IEEE half): the share of Gaussians whose
 //! voted label differs, and the share of pixels whose predicted label differs when the same
