@@ -869,6 +869,12 @@ fn the_stored_median_plane_gives_the_masks_of_the_lists_and_the_centres() {
     let mut summary = Cache::open(&f.cache).unwrap().summary;
     summary.median_depth = true;
     summary.write(&f.cache).unwrap();
+    // The PLY's centres moved 1 km away (same count): a stage that still read them for the
+    // median would see every Gaussian far behind the city surface, and keep other masks.
+    let ply = f.scene.join("point_cloud.ply");
+    let (mut far, _) = gs4city::splat::read_ply(&ply, &gs4city::splat::ReadOptions::KEEP).unwrap();
+    far.positions.iter_mut().for_each(|p| p[2] += 1000.0);
+    gs4city::splat::write_ply(&ply, &far, PlyEncoding::BinaryLittleEndian).unwrap();
     run(&f, &o, "plane", true).unwrap();
     let (a, b) = (
         folder_bytes(&f.root.join("lists")),
@@ -890,7 +896,6 @@ fn the_stored_median_plane_gives_the_masks_of_the_lists_and_the_centres() {
         rotation: vec![[1.0, 0.0, 0.0, 0.0]],
         extras: vec![],
     };
-    let ply = f.scene.join("point_cloud.ply");
     gs4city::splat::write_ply(&ply, &one, PlyEncoding::BinaryLittleEndian).unwrap();
     let e = run(&f, &o, "stale", true).unwrap_err().to_string();
     assert!(e.contains("point_cloud.ply") && e.contains("stale"), "{e}");

@@ -608,8 +608,8 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
                 cache.median_depth(&stem, plan.positions.as_deref(), &v.camera.pose)?
             }
             GsDepth::Expected => {
-                let c = cache.load_planes(&stem)?;
-                let d = c.depth.clone();
+                let mut c = cache.load_planes(&stem)?;
+                let d = std::mem::take(&mut c.depth);
                 (c, d)
             }
         };
