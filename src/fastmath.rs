@@ -23,6 +23,17 @@ pub fn exp_neg(x: f32) -> f32 {
     if x < -87.0 { 0.0 } else { e * scale }
 }
 
+/// `x.round().clamp(0.0, 255.0) as u8` (rounding half away from zero; NaN gives 0) without
+/// the library's `roundf` call: the truncation `t` of a non-negative `x` and its exact
+/// fraction `x − t` (exact below 2²⁴; above, `x` is an integer and the fraction 0) decide
+/// the rounding. Negative values truncate to 0, as they round and clamp to 0.
+#[inline(always)]
+pub fn round_u8(x: f32) -> u8 {
+    let t = x as u32;
+    let up = u32::from(x - t as f32 >= 0.5);
+    t.saturating_add(up).min(255) as u8
+}
+
 /// `erf(x)` by Abramowitz & Stegun 7.1.26 (`1 − t·P(t)·e^{−x²}`, `t = 1/(1 + 0.3275911·|x|)`),
 /// absolute error ≤ 1.5·10⁻⁷ in exact arithmetic, ≤ 6·10⁻⁷ evaluated in `f32`; NaN stays NaN.
 #[inline(always)]
@@ -66,6 +77,33 @@ pub fn gelu_in_place(v: &mut [f32]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn round_u8_is_the_library_round_and_clamp() {
+        let want = |x: f32| x.round().clamp(0.0, 255.0) as u8;
+        // Every float of [0.25, 300] (all the halves and their neighbours among them), and a
+        // stride through every bit pattern (negatives, NaNs, infinities, huge and tiny values).
+        let mut x = 0.25f32;
+        while x <= 300.0 {
+            assert_eq!(round_u8(x), want(x), "{x:e} ({:#x})", x.to_bits());
+            x = x.next_up();
+        }
+        for bits in (0..=u32::MAX).step_by(4099) {
+            let x = f32::from_bits(bits);
+            assert_eq!(round_u8(x), want(x), "{x:e} ({bits:#x})");
+        }
+        for x in [
+            0.499_999_97f32,
+            0.5,
+            254.5,
+            255.5,
+            16_777_215.0,
+            4.3e9,
+            -0.0,
+        ] {
+            assert_eq!(round_u8(x), want(x), "{x:e}");
+        }
+    }
 
     #[test]
     fn exp_neg_is_within_2_ulp_of_the_f64_exponential() {

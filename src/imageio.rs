@@ -118,7 +118,8 @@ pub fn write_png(path: &Path, rgb: &Array3<u8>) -> Result<(), ImageError> {
 
 /// The one overlay blend of the overlays (raycast, report, query masks): each pixel `p` with
 /// a colour `colour_at(p)` becomes `(1 − alpha)·base + alpha·colour`, every other pixel
-/// `dim·base`, rounded; the base is `image` (H×W×3) or, without one, the grey `background`.
+/// `dim·base`, rounded; the base is `image` (H×W×3) or, without one (or with one of another
+/// size), the grey `background`.
 pub fn blend_overlay(
     image: Option<&Array3<u8>>,
     height: usize,
@@ -128,22 +129,27 @@ pub fn blend_overlay(
     dim: f32,
     colour_at: impl Fn(usize) -> Option<[u8; 3]>,
 ) -> Array3<u8> {
-    let mut out = Array3::<u8>::zeros((height, width, 3));
+    let n = height * width;
+    // The image's bytes in row-major order (a copy only for a non-standard layout); an image
+    // of another size is not used (callers check sizes and warn).
+    let image = image
+        .filter(|im| im.dim() == (height, width, 3))
+        .map(|im| im.as_standard_layout());
+    let base_bytes = image.as_ref().and_then(|im| im.as_slice());
+    let mut out = vec![0u8; n * 3];
     // `colour_at` once per pixel (not per channel).
-    for ((y, x), colour) in ndarray::indices((height, width))
-        .into_iter()
-        .map(|(y, x)| ((y, x), colour_at(y * width + x)))
-    {
-        for ch in 0..3 {
-            let base = image.map_or(background, |im| f32::from(im[[y, x, ch]]));
+    for (p, px) in out.chunks_exact_mut(3).enumerate() {
+        let colour = colour_at(p);
+        for (ch, o) in px.iter_mut().enumerate() {
+            let base = base_bytes.map_or(background, |b| f32::from(b[p * 3 + ch]));
             let v = match colour {
                 Some(c) => (1.0 - alpha) * base + alpha * f32::from(c[ch]),
                 None => dim * base,
             };
-            out[[y, x, ch]] = v.round().clamp(0.0, 255.0) as u8;
+            *o = crate::fastmath::round_u8(v);
         }
     }
-    out
+    Array3::from_shape_vec((height, width, 3), out).expect("H·W·3 bytes")
 }
 
 /// 8-connected components of a binary mask (`H×W`, nonzero = foreground) by OpenCV.
@@ -270,6 +276,41 @@ mod tests {
         let e = read_rgb(&dir.join("missing.png")).unwrap_err();
         assert!(e.to_string().contains("missing.png"));
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_overlay_blends_each_pixel_and_rounds_half_away_from_zero() {
+        // A transposed image (not in standard layout) and colours on every third pixel.
+        let (h, w) = (5, 7);
+        let stored = Array3::from_shape_fn((w, h, 3), |(x, y, c)| (y * 53 + x * 31 + c * 77) as u8);
+        let image = stored.clone().permuted_axes([1, 0, 2]);
+        assert!(!image.is_standard_layout());
+        let colour = |p: usize| (p % 3 == 0).then_some([255u8, (p * 9) as u8, 1]);
+        let (alpha, dim) = (0.5f32, 0.6f32);
+        let out = blend_overlay(Some(&image), h, w, 96.0, alpha, dim, colour);
+        for y in 0..h {
+            for x in 0..w {
+                let p = y * w + x;
+                for c in 0..3 {
+                    // The pixel's own bytes, read by (x, y) from the stored array.
+                    let base = f64::from(stored[[x, y, c]]);
+                    let v = match colour(p) {
+                        Some(col) => 0.5 * base + 0.5 * f64::from(col[c]),
+                        None => 0.6 * base,
+                    };
+                    // Halves (x.5 from the 50 % blend of an odd sum) round up.
+                    let want = (v + 0.5).floor().min(255.0) as u8;
+                    assert_eq!(out[[y, x, c]], want, "pixel ({x}, {y}) channel {c}, {v}");
+                }
+            }
+        }
+        // Without an image, or with one of another size: the grey background.
+        let small = Array3::<u8>::zeros((2, 2, 3));
+        for im in [None, Some(&small)] {
+            let out = blend_overlay(im, h, w, 96.0, alpha, dim, colour);
+            assert_eq!(out[[0, 0, 0]], 176); // 0.5·96 + 0.5·255 = 175.5
+            assert_eq!(out[[0, 1, 0]], 58); // 0.6·96 = 57.6
+        }
     }
 
     #[test]

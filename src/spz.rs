@@ -65,7 +65,7 @@ pub struct Cloud<'a> {
 
 /// `x` rounded and clamped to a byte.
 fn to_u8(x: f32) -> u8 {
-    x.round().clamp(0.0, 255.0) as u8
+    crate::fastmath::round_u8(x)
 }
 
 /// One SH coefficient quantised to `bits` bits (module docs).
