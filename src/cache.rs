@@ -901,6 +901,8 @@ pub fn cache_file(dir: &Path, stem: &str) -> PathBuf {
 pub struct Cache {
     pub dir: PathBuf,
     pub summary: CacheSummary,
+    /// Views read in full through this cache and its clones ([`Cache::views_read`]).
+    reads: std::sync::Arc<std::sync::atomic::AtomicUsize>,
 }
 
 impl Cache {
@@ -909,11 +911,25 @@ impl Cache {
         Ok(Cache {
             dir: dir.to_path_buf(),
             summary: crate::layout::Summary::read(dir)?,
+            reads: Default::default(),
         })
+    }
+
+    /// How many views were read in full ([`Cache::load`], [`Cache::load_into`], and the
+    /// fallback of [`Cache::median_depth`]) through this cache and its clones: a stage's
+    /// number of passes over the lists.
+    pub fn views_read(&self) -> usize {
+        self.reads.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    fn count_read(&self) {
+        self.reads
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     }
 
     /// Loads view `stem`, checking it indexes the cache's Gaussians.
     pub fn load(&self, stem: &str) -> Result<ViewContrib, CacheError> {
+        self.count_read();
         ViewContrib::read(&cache_file(&self.dir, stem), Some(self.summary.gaussians))
     }
 
@@ -924,6 +940,7 @@ impl Cache {
         view: &mut ViewContrib,
         buf: &mut Vec<u8>,
     ) -> Result<(), CacheError> {
+        self.count_read();
         view.read_into(
             &cache_file(&self.dir, stem),
             Some(self.summary.gaussians),
@@ -949,6 +966,7 @@ impl Cache {
         let path = cache_file(&self.dir, stem);
         if let (false, Some(positions)) = (self.summary.median_depth, positions) {
             // One full read: the lists give the median, and the planes come with them.
+            self.count_read();
             let c = ViewContrib::read(&path, Some(self.summary.gaussians))?;
             let m = if c.median.is_empty() {
                 median_depth(&c, positions, pose)

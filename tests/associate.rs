@@ -525,6 +525,16 @@ fn run_sam(
     opts: &AssociateOptions,
     out: &Path,
 ) -> (AssociateSummary, GroupsFile, Vec<Vec<i32>>) {
+    let (s, gf, maps, _) = run_sam_reads(b, opts, out);
+    (s, gf, maps)
+}
+
+/// [`run_sam`], with the number of cache views the stage read in full.
+fn run_sam_reads(
+    b: &boxes::Built,
+    opts: &AssociateOptions,
+    out: &Path,
+) -> (AssociateSummary, GroupsFile, Vec<Vec<i32>>, usize) {
     let cache = b.open_cache();
     let s = associate::run(
         &associate::AssociateInputs {
@@ -545,7 +555,7 @@ fn run_sam(
         .iter()
         .map(|v| boxes::read_map(&out.join(format!("{}.ids.npy", v.stem()))))
         .collect();
-    (s, GroupsFile::read(out).unwrap(), maps)
+    (s, GroupsFile::read(out).unwrap(), maps, cache.views_read())
 }
 
 #[test]
@@ -567,7 +577,7 @@ fn a_support_only_mask_joins_the_group_its_gaussians_overlap() {
     );
     // Without the fill over masks (it relabels silhouette spill, see the fill test): only the
     // joins are compared here.
-    let (on, gf_on, m_on) = run_sam(
+    let (on, gf_on, m_on, reads) = run_sam_reads(
         &b,
         &AssociateOptions {
             fill_over_masks: false,
@@ -575,6 +585,9 @@ fn a_support_only_mask_joins_the_group_its_gaussians_overlap() {
         },
         &b.dir.join("on"),
     );
+    // The join takes the support-only masks' candidates from pass 1: the stage reads each
+    // view's lists twice (pass 1 and the transfer back), not a third time for the join.
+    assert_eq!(reads, 2 * b.views.len());
     assert_eq!((off.joined_masks, off.joined_gaussians), (0, 0));
     let others = person_views.len() - kept.len();
     assert!(on.joined_masks > 0 && on.joined_masks <= others, "{on:?}");

@@ -416,8 +416,14 @@ pub fn run(
     let far = filters::FarField::new(&fin, &views, opts.far_field_m * inp.scale);
     let mut members = transfer::members(opts, &fin, &pass1.visible, views.len());
     let targets = support::Targets::new(&fin, &far, opts);
-    tally.joined_gaussians =
-        support::join_support_masks(&st, &fin, &targets, &pass1.visible, &mut members)?;
+    tally.joined_gaussians = support::join_support_masks(
+        &st,
+        &fin,
+        &targets,
+        &pass1.visible,
+        pass1.join_masks,
+        &mut members,
+    )?;
     drop(pass1.visible);
     let per_view = transfer::masks_per_view(&fin, views.len());
     tally.timing.finish_s = t.elapsed().as_secs_f64();

@@ -7,10 +7,8 @@
 //! masks never start a group.
 use std::path::Path;
 
-use rayon::prelude::*;
-
 use super::filters::FarField;
-use super::views::{load_cache_view, mask_features};
+use super::views::mask_features;
 use super::{AssociateError, AssociateInputs, AssociateOptions, Stage, bank, candidates};
 use crate::camera::View;
 use crate::maskfile::{self, Rule};
@@ -22,8 +20,6 @@ pub(super) struct Hit {
     pub(super) view: bool,
     /// A support-only mask that joined the group.
     pub(super) joined: bool,
-    /// Its α·T candidates (support-only masks only).
-    pub(super) gaussians: Vec<u32>,
 }
 
 /// The pre-filter groups the dropped masks are matched against.
@@ -113,19 +109,64 @@ fn join_members(
     added
 }
 
-/// Support-only masks join their groups ([`AssociateOptions::support_masks`]): a pass over the
-/// views before the transfer back, so that every view's fill sees the joins of all views. Adds
-/// the joining masks' Gaussians to `members` ([`join_members`]) and returns how many it added
-/// (0 when the support-only masks, the fill or the SAM lists are off, or every group is far
-/// field).
+/// A support-only mask's α·T candidates and feature, computed by pass 1 of the memory bank
+/// while the view's lists are in memory ([`join_masks`]), so that the join does not read the
+/// view's cache again.
+pub(super) struct JoinMask {
+    candidate: candidates::Candidate,
+    feature: Option<Vec<f32>>,
+}
+
+/// The support-only masks of a view that may join a group ([`AssociateOptions::support_masks`]
+/// with the fill and SAM lists on; none otherwise), with their α·T candidates
+/// ([`candidates::weighted_one`], as [`Support::hits`] computes them) and features. `total` is
+/// the view's per-Gaussian mass ([`candidates::view_mass`]).
+pub(super) fn join_masks(
+    inp: &AssociateInputs<'_>,
+    opts: &AssociateOptions,
+    view: &View,
+    c: &crate::cache::ViewContrib,
+    total: &[f32],
+    centres: &[[f32; 3]],
+) -> Result<Vec<JoinMask>, AssociateError> {
+    if !(opts.support_masks && opts.fill.is_some()) {
+        return Ok(Vec::new());
+    }
+    let Some(mut d) = dropped_masks(inp, opts, view, c.width, c.height)? else {
+        return Ok(Vec::new());
+    };
+    let mut scratch = CandidateScratch::default();
+    let mut out = Vec::new();
+    for j in 0..d.sources.len() {
+        if !d.only[j] {
+            continue;
+        }
+        scratch.pixels(&d, j)?;
+        let candidate = scratch.candidate(c, total, centres, &view.camera, opts);
+        out.push(JoinMask {
+            candidate,
+            feature: d.feats[j].take(),
+        });
+    }
+    Ok(out)
+}
+
+/// Support-only masks join their groups ([`AssociateOptions::support_masks`]): after pass 1,
+/// before the transfer back, so that every view's fill sees the joins of all views. `masks[v]`
+/// are view `v`'s support-only masks with their candidates ([`join_masks`], from pass 1); each
+/// that matches a group by [`Support::best_match`] (the rule of [`Support::hits`]) joins it.
+/// Adds the joining masks' Gaussians to `members` ([`join_members`]) and returns how many it
+/// added (0 when the support-only masks, the fill or the SAM lists are off, or every group is
+/// far field).
 pub(super) fn join_support_masks(
     st: &Stage<'_>,
     fin: &bank::Finished,
     targets: &Targets,
     visible: &[Option<Vec<u64>>],
+    masks: Vec<Result<Vec<JoinMask>, AssociateError>>,
     members: &mut [i32],
 ) -> Result<usize, AssociateError> {
-    let (inp, opts, views) = (st.inp, st.opts, st.views);
+    let (inp, opts) = (st.inp, st.opts);
     if !(opts.support_masks
         && opts.fill.is_some()
         && inp.sam.is_some()
@@ -139,31 +180,22 @@ pub(super) fn join_support_masks(
         near: &targets.near,
         centres: st.centres,
         paint_joined: false,
-        joined_only: true,
         owner: &fin.owner,
     };
     // Per view: (group, candidates) of each joining mask.
-    type Joins = Vec<(usize, Vec<u32>)>;
-    let joins: Vec<Result<Joins, AssociateError>> = views
-        .par_iter()
-        .enumerate()
-        .map(|(vi, v)| {
-            let stem = v.stem();
-            let (w, h) = (
-                v.camera.intrinsics.width as usize,
-                v.camera.intrinsics.height as usize,
-            );
-            let c = load_cache_view(inp, &stem, w, h)?;
-            let mut scratch = vec![-1i32; w * h];
-            Ok(sup
-                .hits(inp, opts, v, vi as u32, &c, &mut scratch)?
+    let mut joins: Vec<Vec<(usize, Vec<u32>)>> = Vec::with_capacity(masks.len());
+    for (vi, view) in masks.into_iter().enumerate() {
+        joins.push(
+            view?
                 .into_iter()
-                .filter(|h| h.joined)
-                .map(|h| (h.group, h.gaussians))
-                .collect())
-        })
-        .collect();
-    let joins = joins.into_iter().collect::<Result<Vec<_>, _>>()?;
+                .filter_map(|m| {
+                    let k =
+                        sup.best_match(opts, vi as u32, &m.candidate, m.feature.as_deref(), true)?;
+                    Some((k, m.candidate.ids))
+                })
+                .collect(),
+        );
+    }
     Ok(join_members(
         members,
         &fin.owner,
@@ -184,14 +216,170 @@ pub(super) struct Support<'a> {
     pub(super) near: &'a [bool],
     /// Label the pixels of joining support-only masks (else only record their candidates).
     pub(super) paint_joined: bool,
-    /// Match only the support-only masks.
-    pub(super) joined_only: bool,
     /// Gaussian ownership the masks are matched against (the bank's).
     pub(super) owner: &'a [i32],
     pub(super) centres: &'a [[f32; 3]],
 }
 
+/// The masks of a view that the masks stage dropped for quality or area only (and the
+/// support-only ones), with their SAM file and features: what the view support matches.
+struct Dropped {
+    /// SAM index of each.
+    sources: Vec<i64>,
+    /// Each is a support-only mask that may join a group ([`AssociateOptions::support_masks`]).
+    only: Vec<bool>,
+    sam: Vec<crate::sam::SamMask>,
+    spath: std::path::PathBuf,
+    feats: Vec<Option<Vec<f32>>>,
+}
+
+/// Reads view `view`'s dropped masks (`None` without SAM lists or without such masks): the
+/// masks stage's decisions, the SAM file (checked against the `w × h` image) and the features.
+fn dropped_masks(
+    inp: &AssociateInputs<'_>,
+    opts: &AssociateOptions,
+    view: &View,
+    w: usize,
+    h: usize,
+) -> Result<Option<Dropped>, AssociateError> {
+    let Some(sam_dir) = inp.sam else {
+        return Ok(None);
+    };
+    let stem = view.stem();
+    let dpath = maskfile::decisions_file(inp.masks, &stem);
+    if !dpath.is_file() {
+        return Err(AssociateError::Invalid {
+            path: dpath,
+            why: "missing: the view support needs the masks stage's decisions".into(),
+        });
+    }
+    // (SAM index, support-only) of the masks dropped for quality or area only.
+    let (sources, only): (Vec<i64>, Vec<bool>) = maskfile::read_decisions(&dpath)?
+        .iter()
+        .filter(|d| {
+            !d.kept
+                && d.source_index >= 0
+                && matches!(d.rule, Rule::Quality | Rule::Area | Rule::LowQualitySupport)
+        })
+        .map(|d| {
+            let joins = opts.support_masks && d.rule == Rule::LowQualitySupport;
+            (d.source_index, joins)
+        })
+        .unzip();
+    if sources.is_empty() {
+        return Ok(None);
+    }
+    let spath = sam_dir.join(format!("{stem}.json"));
+    let sam = crate::sam::read_sam_json_sized(&spath, Some([h, w]))?;
+    if let Some(&s) = sources.iter().find(|&&s| s as usize >= sam.len()) {
+        return Err(AssociateError::Invalid {
+            path: dpath,
+            why: format!(
+                "a decision has source_index {s}, {} lists {} masks",
+                spath.display(),
+                sam.len()
+            ),
+        });
+    }
+    let feats = match inp.features {
+        Some(dir) => mask_features(&dir.join(format!("{stem}.npy")), &sources)?.1,
+        None => vec![None; sources.len()],
+    };
+    Ok(Some(Dropped {
+        sources,
+        only,
+        sam,
+        spath,
+        feats,
+    }))
+}
+
+/// Scratch of the dropped masks' candidates: the mask's pixels, its inside flags and the
+/// per-Gaussian accumulator (both all false / zero between masks).
+#[derive(Default)]
+struct CandidateScratch {
+    px: Vec<u32>,
+    in_mask: Vec<bool>,
+    acc: Vec<f32>,
+}
+
+impl CandidateScratch {
+    /// Decodes dropped mask `j`'s pixels into `px`.
+    fn pixels(&mut self, d: &Dropped, j: usize) -> Result<(), AssociateError> {
+        let si = d.sources[j] as usize;
+        self.px.clear();
+        let px = &mut self.px;
+        for_each_pixel_checked(&d.sam[si].segmentation, &d.spath, si, |p| px.push(p as u32))
+    }
+
+    /// The α·T candidates of the pixels in `px` ([`candidates::weighted_one`]).
+    fn candidate(
+        &mut self,
+        c: &crate::cache::ViewContrib,
+        total: &[f32],
+        centres: &[[f32; 3]],
+        camera: &crate::camera::Camera,
+        opts: &AssociateOptions,
+    ) -> candidates::Candidate {
+        self.in_mask.resize(c.width * c.height, false);
+        self.acc.resize(c.gaussians, 0.0);
+        for &p in &self.px {
+            self.in_mask[p as usize] = true;
+        }
+        let cand = candidates::weighted_one(
+            c,
+            total,
+            candidates::MaskPixels {
+                list: &self.px,
+                inside: &self.in_mask,
+            },
+            centres,
+            camera,
+            &opts.weighted,
+            &mut self.acc,
+        );
+        for &p in &self.px {
+            self.in_mask[p as usize] = false;
+        }
+        cand
+    }
+}
+
 impl Support<'_> {
+    /// Whether group `k` lacks a kept mask in view `vi` and the view support may add one.
+    fn weak(&self, k: usize, vi: u32) -> bool {
+        self.eligible[k] && !self.fin.groups[k].views.contains(&vi)
+    }
+
+    /// Whether a dropped mask of view `vi` may match group `k`: a support-only mask (`joins`)
+    /// any group that is not far field, every dropped mask a weak one.
+    fn wants(&self, k: usize, vi: u32, joins: bool) -> bool {
+        (joins && self.near[k]) || self.weak(k, vi)
+    }
+
+    /// The paper's rule for a dropped mask of view `vi` with candidates `cand`: the group that
+    /// owns the largest share of their mass, when that share passes `τ_geo`, the mask may match
+    /// it ([`Support::wants`]) and its feature (if any) is `τ_sim`-similar to the group's.
+    fn best_match(
+        &self,
+        opts: &AssociateOptions,
+        vi: u32,
+        cand: &candidates::Candidate,
+        feature: Option<&[f32]>,
+        joins: bool,
+    ) -> Option<usize> {
+        let (shares, mass) = bank::shares_under(self.owner, cand);
+        let (k, m) = bank::best_share(&shares)?;
+        let k = k as usize;
+        if !(mass > 0.0 && m / mass > opts.tau_geo && self.wants(k, vi, joins)) {
+            return None;
+        }
+        let similar = feature.is_none_or(|f| {
+            bank::cosine(f, &self.fin.groups[k].feature_mean).is_none_or(|c| c > opts.tau_sim)
+        });
+        similar.then_some(k)
+    }
+
     /// The eligible groups that masks of view `vi` dropped for quality or area only match (one
     /// entry per matching mask; only groups without a kept mask in the view). With
     /// `support_pixels`, a matching mask's pixels where `map` is −1 (or another dropped mask
@@ -205,135 +393,50 @@ impl Support<'_> {
         c: &crate::cache::ViewContrib,
         map: &mut [i32],
     ) -> Result<Vec<Hit>, AssociateError> {
-        let Some(sam_dir) = inp.sam else {
+        let Some(d) = dropped_masks(inp, opts, view, c.width, c.height)? else {
             return Ok(Vec::new());
-        };
-        let stem = view.stem();
-        let (w, h) = (c.width, c.height);
-        let dpath = maskfile::decisions_file(inp.masks, &stem);
-        if !dpath.is_file() {
-            return Err(AssociateError::Invalid {
-                path: dpath,
-                why: "missing: the view support needs the masks stage's decisions".into(),
-            });
-        }
-        // (SAM index, support-only) of the masks dropped for quality or area only.
-        let (sources, only): (Vec<i64>, Vec<bool>) = maskfile::read_decisions(&dpath)?
-            .iter()
-            .filter(|d| {
-                !d.kept
-                    && d.source_index >= 0
-                    && matches!(d.rule, Rule::Quality | Rule::Area | Rule::LowQualitySupport)
-            })
-            .map(|d| {
-                let joins = opts.support_masks && d.rule == Rule::LowQualitySupport;
-                (d.source_index, joins)
-            })
-            .unzip();
-        if sources.is_empty() {
-            return Ok(Vec::new());
-        }
-        let spath = sam_dir.join(format!("{stem}.json"));
-        let sam = crate::sam::read_sam_json_sized(&spath, Some([h, w]))?;
-        if let Some(&s) = sources.iter().find(|&&s| s as usize >= sam.len()) {
-            return Err(AssociateError::Invalid {
-                path: dpath,
-                why: format!(
-                    "a decision has source_index {s}, {} lists {} masks",
-                    spath.display(),
-                    sam.len()
-                ),
-            });
-        }
-        let feats = match inp.features {
-            Some(dir) => mask_features(&dir.join(format!("{stem}.npy")), &sources)?.1,
-            None => vec![None; sources.len()],
         };
         let owner = self.owner;
-        let weak = |k: usize| self.eligible[k] && !self.fin.groups[k].views.contains(&vi);
-        // A support-only mask may join any group that is not far field.
-        let wants = |k: usize, joins: bool| (joins && self.near[k]) || weak(k);
         // Larger masks first (ties: file order), so a smaller one paints over them.
-        let mut order: Vec<usize> = (0..sources.len()).collect();
+        let mut order: Vec<usize> = (0..d.sources.len()).collect();
         order.sort_by(|&a, &b| {
-            sam[sources[b] as usize]
+            d.sam[d.sources[b] as usize]
                 .area
-                .cmp(&sam[sources[a] as usize].area)
+                .cmp(&d.sam[d.sources[a] as usize].area)
                 .then(a.cmp(&b))
         });
-        let mut painted = vec![false; w * h];
+        let mut painted = vec![false; c.width * c.height];
         let total = candidates::view_mass(c);
-        let mut acc = vec![0f32; c.gaussians];
-        let mut in_mask = vec![false; w * h];
-        let mut px: Vec<u32> = Vec::new();
+        let mut scratch = CandidateScratch::default();
         let mut hits = Vec::new();
         for j in order {
-            if self.joined_only && !only[j] {
-                continue;
-            }
-            let si = sources[j];
-            px.clear();
-            for_each_pixel_checked(&sam[si as usize].segmentation, &spath, si as usize, |p| {
-                px.push(p as u32)
-            })?;
-            // Only masks on some weak group's Gaussians are worth their candidates.
-            let touches = px.iter().any(|&p| {
+            scratch.pixels(&d, j)?;
+            // Only masks on some weak group's Gaussians are worth their candidates (a mask on
+            // none cannot match: its best group owns one of its candidates, all of them in
+            // its pixels' lists).
+            let touches = scratch.px.iter().any(|&p| {
                 c.pixel(p as usize).0.iter().any(|&g| {
                     let o = owner[g as usize];
-                    o >= 0 && wants(o as usize, only[j])
+                    o >= 0 && self.wants(o as usize, vi, d.only[j])
                 })
             });
             if !touches {
                 continue;
             }
-            for &p in &px {
-                in_mask[p as usize] = true;
-            }
-            let cand = candidates::weighted_one(
-                c,
-                &total,
-                candidates::MaskPixels {
-                    list: &px,
-                    inside: &in_mask,
-                },
-                self.centres,
-                &view.camera,
-                &opts.weighted,
-                &mut acc,
-            );
-            for &p in &px {
-                in_mask[p as usize] = false;
-            }
-            let (shares, mass) = bank::shares_under(owner, &cand);
-            let best = bank::best_share(&shares);
-            if let Some((k, m)) = best
-                && mass > 0.0
-                && m / mass > opts.tau_geo
-                && wants(k as usize, only[j])
-            {
-                let similar = feats[j].as_deref().is_none_or(|f| {
-                    bank::cosine(f, &self.fin.groups[k as usize].feature_mean)
-                        .is_none_or(|c| c > opts.tau_sim)
+            let cand = scratch.candidate(c, &total, self.centres, &view.camera, opts);
+            if let Some(k) = self.best_match(opts, vi, &cand, d.feats[j].as_deref(), d.only[j]) {
+                // A view of the group only where it has no kept mask (view support).
+                hits.push(Hit {
+                    group: k,
+                    view: self.weak(k, vi),
+                    joined: d.only[j],
                 });
-                if similar {
-                    // A view of the group only where it has no kept mask (view support).
-                    hits.push(Hit {
-                        group: k as usize,
-                        view: weak(k as usize),
-                        joined: only[j],
-                        gaussians: if only[j] {
-                            cand.ids.clone()
-                        } else {
-                            Vec::new()
-                        },
-                    });
-                    if opts.support_pixels || (only[j] && self.paint_joined) {
-                        for &p in &px {
-                            let p = p as usize;
-                            if map[p] == -1 || painted[p] {
-                                map[p] = k as i32;
-                                painted[p] = true;
-                            }
+                if opts.support_pixels || (d.only[j] && self.paint_joined) {
+                    for &p in &scratch.px {
+                        let p = p as usize;
+                        if map[p] == -1 || painted[p] {
+                            map[p] = k as i32;
+                            painted[p] = true;
                         }
                     }
                 }

@@ -173,7 +173,6 @@ pub(super) fn pass_a(
                         near: &targets.near,
                         centres: st.centres,
                         paint_joined: opts.support_mask_pixels,
-                        joined_only: false,
                         owner: &fin.owner,
                     };
                     hits = sup.hits(inp, opts, v, vi as u32, &c, &mut map)?;

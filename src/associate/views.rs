@@ -144,6 +144,9 @@ impl MaskCounts {
 struct ViewWork {
     /// Gaussians visible in the view (only for the fill).
     visible: Option<Vec<u64>>,
+    /// Its support-only masks with their candidates, for the join after pass 1
+    /// ([`super::support::join_masks`]; an error is raised only if the join runs).
+    join_masks: Result<Vec<super::support::JoinMask>, AssociateError>,
     observations: Vec<bank::Observation>,
     counts: MaskCounts,
     dim: Option<usize>,
@@ -211,8 +214,13 @@ fn view_work(
         (Some(t), Some(_)) => Some(candidates::visible_set(t, opts.weighted.min_mass)),
         _ => None,
     };
+    let join_masks = match (&cache_view, &total) {
+        (Some(c), Some(t)) => super::support::join_masks(inp, opts, view, c, t, centres),
+        _ => Ok(Vec::new()),
+    };
     let mut out = ViewWork {
         visible,
+        join_masks,
         observations: Vec::new(),
         counts: MaskCounts {
             masks: kept.len(),
@@ -261,6 +269,8 @@ pub(super) struct PassOne {
     pub(super) bank: bank::Bank,
     /// Per view (canonical index): its visible Gaussians (only for the fill).
     pub(super) visible: Vec<Option<Vec<u64>>>,
+    /// Per view (canonical index): its support-only masks ([`super::support::join_masks`]).
+    pub(super) join_masks: Vec<Result<Vec<super::support::JoinMask>, AssociateError>>,
     /// How τ_sim was chosen; the bank used its value.
     pub(super) calibration: super::calibrate::Calibration,
 }
@@ -282,6 +292,8 @@ pub(super) fn pass_one(st: &Stage<'_>, tally: &mut Tally) -> Result<PassOne, Ass
     let mut dim: Option<usize> = None;
     let mut observations: Vec<bank::Observation> = Vec::new();
     let mut visible: Vec<Option<Vec<u64>>> = vec![None; views.len()];
+    let mut join_masks: Vec<Result<Vec<super::support::JoinMask>, AssociateError>> =
+        (0..views.len()).map(|_| Ok(Vec::new())).collect();
     let chunk = rayon::current_num_threads().max(1) * 2;
     for block in order.chunks(chunk) {
         let t = Instant::now();
@@ -307,6 +319,7 @@ pub(super) fn pass_one(st: &Stage<'_>, tally: &mut Tally) -> Result<PassOne, Ass
             dim = dim.or(wk.dim);
             counts.add(&wk.counts);
             visible[vi as usize] = wk.visible;
+            join_masks[vi as usize] = wk.join_masks;
             observations.extend(wk.observations);
             bar.inc(1);
         }
@@ -346,6 +359,7 @@ pub(super) fn pass_one(st: &Stage<'_>, tally: &mut Tally) -> Result<PassOne, Ass
     Ok(PassOne {
         bank,
         visible,
+        join_masks,
         calibration,
     })
 }
