@@ -21,8 +21,6 @@
 //! Sampling keeps the cost bounded and deterministic: Gaussians enter the pair count through a
 //! SplitMix64 hash sample sized to at most [`PAIR_BUDGET`] mask pairs, and unlinked pairs are a
 //! strided sample of at most [`UNLINKED_MAX`]; nothing depends on the thread count.
-use rustc_hash::FxHashMap as HashMap;
-
 use serde::{Deserialize, Serialize};
 
 use super::bank::Observation;
@@ -104,59 +102,108 @@ pub fn configured(tau_sim: f64, why: &str) -> Calibration {
 pub type Pairs = Vec<(u32, u32)>;
 
 /// Linked and unlinked pairs of `obs`, and the Gaussian sampling modulus used.
+///
+/// The overlaps are summed per mask `a` (in parallel, masks independent): over `a`'s sampled
+/// Gaussians in ascending order, the shares of every later mask `b` of another view that lists
+/// the same Gaussian, into a dense row. Every pair's sums and every mask's mass are added in
+/// ascending Gaussian order, so the result does not depend on the thread count.
 pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
-    // Gaussian → (mask, share of the mask's candidate mass), masks in observation order.
-    let mut lists: HashMap<u32, Vec<(u32, f32)>> = HashMap::default();
+    use rayon::prelude::*;
+    // (Gaussian ≪ 32 | mask, share of the mask's candidate mass), sorted by Gaussian and then
+    // mask (a stable sort: a Gaussian a candidate lists twice keeps its order).
+    let mut entries: Vec<(u64, f32)> = Vec::new();
     for (i, o) in obs.iter().enumerate() {
         let total = o.candidate.mass();
         if total <= 0.0 {
             continue;
         }
         for (&g, &w) in o.candidate.ids.iter().zip(&o.candidate.weights) {
-            lists
-                .entry(g)
-                .or_default()
-                .push((i as u32, (f64::from(w) / total) as f32));
+            entries.push((
+                (u64::from(g) << 32) | i as u64,
+                (f64::from(w) / total) as f32,
+            ));
         }
     }
-    let entries: u64 = lists
-        .values()
-        .map(|l| (l.len() as u64) * (l.len() as u64).saturating_sub(1) / 2)
-        .sum();
-    let sample = entries.div_ceil(PAIR_BUDGET).max(1);
-    let kept = |g: u32| sample == 1 || splitmix64(u64::from(g)) % sample == 0;
-    // Per mask the sampled mass, per pair the shared sampled mass of each side.
-    let mut mass = vec![0.0f64; obs.len()];
-    let mut shared: HashMap<(u32, u32), (f64, f64)> = HashMap::default();
-    let mut gs: Vec<u32> = lists.keys().copied().filter(|&g| kept(g)).collect();
-    gs.sort_unstable();
-    for g in gs {
-        let l = &lists[&g];
-        for &(a, s) in l {
-            mass[a as usize] += f64::from(s);
+    entries.par_sort_by_key(|e| e.0);
+    let gaussian = |e: usize| (entries[e].0 >> 32) as u32;
+    let mask = |e: usize| (entries[e].0 & 0xffff_ffff) as usize;
+    // Each entry's run end (the entries of its Gaussian), and the pair count before sampling.
+    let mut run_end = vec![0u32; entries.len()];
+    let mut count: u64 = 0;
+    let mut r0 = 0;
+    while r0 < entries.len() {
+        let mut r1 = r0 + 1;
+        while r1 < entries.len() && gaussian(r1) == gaussian(r0) {
+            r1 += 1;
         }
-        for (x, &(a, sa)) in l.iter().enumerate() {
-            for &(b, sb) in &l[x + 1..] {
-                if obs[a as usize].view == obs[b as usize].view {
-                    continue;
+        run_end[r0..r1].fill(r1 as u32);
+        let l = (r1 - r0) as u64;
+        count += l * l.saturating_sub(1) / 2;
+        r0 = r1;
+    }
+    let sample = count.div_ceil(PAIR_BUDGET).max(1);
+    let kept = |g: u32| sample == 1 || splitmix64(u64::from(g)) % sample == 0;
+    // Per mask, its sampled entries in ascending Gaussian order.
+    let mut of_mask: Vec<Vec<u32>> = vec![Vec::new(); obs.len()];
+    for e in 0..entries.len() {
+        if kept(gaussian(e)) {
+            of_mask[mask(e)].push(e as u32);
+        }
+    }
+    // Per mask a: its sampled mass, and (b, shared mass of a, of b) for every later mask b
+    // of another view, b ascending.
+    type Row = (f64, Vec<(u32, f64, f64)>);
+    let rows: Vec<Row> = (0..obs.len())
+        .into_par_iter()
+        .map_init(
+            || (vec![(0.0f64, 0.0f64); obs.len()], vec![false; obs.len()]),
+            |(sums, touched), a| {
+                let mut mass = 0.0f64;
+                let mut bs: Vec<u32> = Vec::new();
+                for &e in &of_mask[a] {
+                    let e = e as usize;
+                    let sa = f64::from(entries[e].1);
+                    mass += sa;
+                    for f in e + 1..run_end[e] as usize {
+                        let b = mask(f);
+                        if obs[a].view == obs[b].view {
+                            continue;
+                        }
+                        if !touched[b] {
+                            touched[b] = true;
+                            bs.push(b as u32);
+                        }
+                        sums[b].0 += sa;
+                        sums[b].1 += f64::from(entries[f].1);
+                    }
                 }
-                let e = shared.entry((a, b)).or_insert((0.0, 0.0));
-                e.0 += f64::from(sa);
-                e.1 += f64::from(sb);
+                bs.sort_unstable();
+                let row = bs
+                    .iter()
+                    .map(|&b| {
+                        let b = b as usize;
+                        touched[b] = false;
+                        let (x, y) = std::mem::take(&mut sums[b]);
+                        (b as u32, x, y)
+                    })
+                    .collect();
+                (mass, row)
+            },
+        )
+        .collect();
+    let mass: Vec<f64> = rows.iter().map(|r| r.0).collect();
+    let mut linked: Vec<(u32, u32)> = Vec::new();
+    for (a, (_, row)) in rows.iter().enumerate() {
+        for &(b, sa, sb) in row {
+            if mass[a] > 0.0
+                && mass[b as usize] > 0.0
+                && sa / mass[a] >= LINK_SHARE
+                && sb / mass[b as usize] >= LINK_SHARE
+            {
+                linked.push((a as u32, b));
             }
         }
     }
-    let mut linked: Vec<(u32, u32)> = shared
-        .iter()
-        .filter(|&(&(a, b), &(sa, sb))| {
-            mass[a as usize] > 0.0
-                && mass[b as usize] > 0.0
-                && sa / mass[a as usize] >= LINK_SHARE
-                && sb / mass[b as usize] >= LINK_SHARE
-        })
-        .map(|(&k, _)| k)
-        .collect();
-    linked.sort_unstable();
     // Unlinked: a strided sample of the pairs of different views that share nothing.
     let n = obs.len() as u64;
     let all = n * n.saturating_sub(1) / 2;
@@ -170,7 +217,11 @@ pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
                 continue;
             }
             // Pairs that share a Gaussian outside the sample are rare and count as unlinked.
-            if !shared.contains_key(&(a as u32, b as u32)) {
+            if rows[a]
+                .1
+                .binary_search_by_key(&(b as u32), |r| r.0)
+                .is_err()
+            {
                 unlinked.push((a as u32, b as u32));
             }
         }
@@ -300,6 +351,105 @@ mod tests {
             },
             centroid_sum: [0.0; 3],
             weight_sum: ids.len() as f64,
+        }
+    }
+
+    /// The pairs of random masks by the definition, pair by pair: each mask's share of every
+    /// Gaussian, the shared mass summed over the common Gaussians in ascending order, linked
+    /// when both sides reach [`LINK_SHARE`]; unlinked by the same stride over the pairs of
+    /// different views that share none (no sampling at this size).
+    #[test]
+    fn pairs_are_the_pair_by_pair_definition_at_any_thread_count() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let o: Vec<Observation> = (0..90)
+            .map(|i| {
+                // 10 objects of 40 Gaussians seen in 9 views; each mask most of one object
+                // and a few Gaussians of a neighbour (some pairs just above or below the link
+                // share).
+                let obj = (i % 10) as u32;
+                let mut ids: Vec<u32> = (0..40)
+                    .filter(|_| rng.random_bool(0.8))
+                    .map(|g| obj * 40 + g)
+                    .collect();
+                ids.extend((0..(rng.random_range(0..30))).map(|g| ((obj + 1) % 10) * 40 + g));
+                ids.sort_unstable();
+                ids.dedup();
+                ids.reverse();
+                let mut m = obs((i / 10) as u32, &ids, None);
+                m.candidate.weights = ids.iter().map(|_| rng.random_range(0.01f32..1.0)).collect();
+                if i == 7 {
+                    m.candidate.weights.iter_mut().for_each(|w| *w = 0.0);
+                }
+                m
+            })
+            .collect();
+        // Per mask: Gaussian → share, and the mass in ascending Gaussian order.
+        let share: Vec<std::collections::BTreeMap<u32, f32>> = o
+            .iter()
+            .map(|m| {
+                let total = m.candidate.mass();
+                if total <= 0.0 {
+                    return Default::default();
+                }
+                let w = m.candidate.ids.iter().zip(&m.candidate.weights);
+                w.map(|(&g, &w)| (g, (f64::from(w) / total) as f32))
+                    .collect()
+            })
+            .collect();
+        let mass: Vec<f64> = share
+            .iter()
+            .map(|s| s.values().map(|&x| f64::from(x)).sum())
+            .collect();
+        let (mut want_linked, mut shares_any) = (Vec::new(), Vec::new());
+        for a in 0..o.len() {
+            for b in a + 1..o.len() {
+                if o[a].view == o[b].view {
+                    continue;
+                }
+                let common: Vec<u32> = share[a]
+                    .keys()
+                    .filter(|g| share[b].contains_key(g))
+                    .copied()
+                    .collect();
+                if common.is_empty() {
+                    continue;
+                }
+                shares_any.push((a as u32, b as u32));
+                let sa: f64 = common.iter().map(|g| f64::from(share[a][g])).sum();
+                let sb: f64 = common.iter().map(|g| f64::from(share[b][g])).sum();
+                if mass[a] > 0.0
+                    && mass[b] > 0.0
+                    && sa / mass[a] >= LINK_SHARE
+                    && sb / mass[b] >= LINK_SHARE
+                {
+                    want_linked.push((a as u32, b as u32));
+                }
+            }
+        }
+        let n = o.len() as u64;
+        let stride = (n * (n - 1) / 2).div_ceil(UNLINKED_MAX as u64).max(1);
+        let mut want_unlinked = Vec::new();
+        let mut k = 0u64;
+        for a in 0..o.len() as u32 {
+            for b in a + 1..o.len() as u32 {
+                k += 1;
+                let (va, vb) = (o[a as usize].view, o[b as usize].view);
+                if k % stride == 0 && va != vb && shares_any.binary_search(&(a, b)).is_err() {
+                    want_unlinked.push((a, b));
+                }
+            }
+        }
+        assert!(want_linked.len() > 100 && want_unlinked.len() > 100);
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let (linked, unlinked, sample) = pool.install(|| pairs(&o));
+            assert_eq!(sample, 1);
+            assert_eq!(linked, want_linked, "{threads} threads");
+            assert_eq!(unlinked, want_unlinked, "{threads} threads");
         }
     }
 
