@@ -164,8 +164,8 @@ pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
                     let e = e as usize;
                     let sa = f64::from(entries[e].1);
                     mass += sa;
-                    for f in e + 1..run_end[e] as usize {
-                        let b = mask(f);
+                    for &(key, sb) in &entries[e + 1..run_end[e] as usize] {
+                        let b = (key & 0xffff_ffff) as usize;
                         if obs[a].view == obs[b].view {
                             continue;
                         }
@@ -174,7 +174,7 @@ pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
                             bs.push(b as u32);
                         }
                         sums[b].0 += sa;
-                        sums[b].1 += f64::from(entries[f].1);
+                        sums[b].1 += f64::from(sb);
                     }
                 }
                 bs.sort_unstable();
