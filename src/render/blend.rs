@@ -89,18 +89,32 @@ pub struct BlendInput<'a> {
     pub t_stop: f32,
 }
 
-/// Per-thread scratch of [`blend_tile`]: every contribution tagged with its pixel (blending
-/// order), the same sorted by pixel, and the mass rule's keys.
+/// Contributions a pixel keeps in its own slots of [`Scratch::slots`]; the rest of a longer
+/// list goes to [`Scratch::spill`].
+pub(crate) const SLOTS: usize = 32;
+
+/// Per-thread scratch of [`blend_tile`] (All and Mass lists): each pixel's first [`SLOTS`]
+/// contributions in its own slots (blending order), the rest tagged with the pixel in `spill`
+/// (blending order) and gathered by pixel in `spilled`, one long list assembled in `long`,
+/// and the mass rule's keys.
 #[derive(Default)]
 struct Scratch {
-    flat: Vec<(u16, Contribution)>,
-    all: Vec<Contribution>,
+    slots: Vec<Contribution>,
+    spill: Vec<(u16, Contribution)>,
+    spilled: Vec<Contribution>,
+    long: Vec<Contribution>,
     keys: Vec<u64>,
 }
 
 thread_local! {
     static SCRATCH: std::cell::Cell<Scratch> = const {
-        std::cell::Cell::new(Scratch { flat: Vec::new(), all: Vec::new(), keys: Vec::new() })
+        std::cell::Cell::new(Scratch {
+            slots: Vec::new(),
+            spill: Vec::new(),
+            spilled: Vec::new(),
+            long: Vec::new(),
+            keys: Vec::new(),
+        })
     };
 }
 
@@ -190,11 +204,17 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
         ContributionMode::TopK(k) => Some(k),
         _ => None,
     };
-    // All and Mass: every contribution, tagged with its pixel, in blending order.
-    // The tile's scratch lists are reused from the previous tile on this thread (taken, and
-    // put back at the end): grown once, not reallocated ≈ 10 times per tile.
+    // All and Mass: every contribution in its pixel's slots (or the spill), in blending
+    // order. The tile's scratch is reused from the previous tile on this thread (taken, and
+    // put back at the end): grown once, not reallocated per tile.
     let mut scratch = SCRATCH.take();
-    scratch.flat.clear();
+    let mut lens = [0u32; PIX];
+    if keep_lists && topk.is_none() {
+        scratch
+            .slots
+            .resize(PIX * SLOTS, Contribution { id: 0, weight: 0.0 });
+        scratch.spill.clear();
+    }
     let mut slots: Vec<Vec<Slot>> = match topk {
         Some(k) => (0..PIX).map(|_| Vec::with_capacity(k.min(64))).collect(),
         None => Vec::new(),
@@ -287,7 +307,15 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                             weight: wgt,
                         };
                         match topk {
-                            None => scratch.flat.push((k as u16, c)),
+                            None => {
+                                let n = lens[k] as usize;
+                                if n < SLOTS {
+                                    scratch.slots[k * SLOTS + n] = c;
+                                } else {
+                                    scratch.spill.push((k as u16, c));
+                                }
+                                lens[k] += 1;
+                            }
                             Some(kk) => {
                                 push_topk(
                                     &mut slots[k],
@@ -324,35 +352,52 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                 offsets[k + 1] = items.len() as u32;
             }
         } else {
-            // A stable counting sort by pixel keeps each pixel's blending (= depth) order.
-            let mut counts = [0u32; PIX + 1];
-            for &(k, _) in &scratch.flat {
-                counts[k as usize + 1] += 1;
+            let Scratch {
+                slots,
+                spill,
+                spilled,
+                long,
+                keys,
+            } = &mut scratch;
+            // The spilled tails gathered by pixel (a stable counting sort keeps each pixel's
+            // blending = depth order).
+            let mut tail = [0u32; PIX + 1];
+            if !spill.is_empty() {
+                for &(k, _) in spill.iter() {
+                    tail[k as usize + 1] += 1;
+                }
+                for k in 0..PIX {
+                    tail[k + 1] += tail[k];
+                }
+                spilled.clear();
+                spilled.resize(spill.len(), Contribution { id: 0, weight: 0.0 });
+                let mut cursor = tail;
+                for &(k, c) in spill.iter() {
+                    spilled[cursor[k as usize] as usize] = c;
+                    cursor[k as usize] += 1;
+                }
             }
+            let total: usize = lens.iter().map(|&n| n as usize).sum();
+            items.reserve(total);
             for k in 0..PIX {
-                counts[k + 1] += counts[k];
-            }
-            let Scratch { flat, all, keys } = &mut scratch;
-            all.clear();
-            all.resize(flat.len(), Contribution { id: 0, weight: 0.0 });
-            let mut cursor = counts;
-            for &(k, c) in flat.iter() {
-                all[cursor[k as usize] as usize] = c;
-                cursor[k as usize] += 1;
-            }
-            match input.mode {
-                ContributionMode::Mass { epsilon, cap } => {
-                    items.reserve(flat.len());
-                    for k in 0..PIX {
-                        let l = &all[counts[k] as usize..counts[k + 1] as usize];
+                let n = lens[k] as usize;
+                let head = &slots[k * SLOTS..k * SLOTS + n.min(SLOTS)];
+                // Pixel k's whole list in blending order.
+                let l: &[Contribution] = if n <= SLOTS {
+                    head
+                } else {
+                    long.clear();
+                    long.extend_from_slice(head);
+                    long.extend_from_slice(&spilled[tail[k] as usize..tail[k + 1] as usize]);
+                    long
+                };
+                match input.mode {
+                    ContributionMode::Mass { epsilon, cap } => {
                         residual[k] = keep_mass(l, epsilon, cap, keys, &mut items);
-                        offsets[k + 1] = items.len() as u32;
                     }
+                    _ => items.extend_from_slice(l),
                 }
-                _ => {
-                    offsets.copy_from_slice(&counts);
-                    items = std::mem::take(all);
-                }
+                offsets[k + 1] = items.len() as u32;
             }
         }
     }

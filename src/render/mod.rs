@@ -822,6 +822,66 @@ pub(crate) mod tests {
         }
     }
 
+    /// The blend keeps each pixel's first `blend::SLOTS` contributions in the pixel's own slots
+    /// and spills the rest: the complete lists must equal those of the top-k path (its own
+    /// per-pixel storage, back in depth order) with a k no list reaches, bit for bit, long
+    /// lists included; the mass rule's lists must be `keep_mass` of the complete ones.
+    #[test]
+    fn lists_longer_than_the_pixel_slots_are_whole_in_depth_order() {
+        let scene = random_scene(20_000, 30.0, 31);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(13);
+        let (mut long, mut cut) = (0usize, 0usize);
+        for k in 0..3 {
+            let c = random_centre(&mut rng, 20.0);
+            let cam = camera_at(c, rng.random_range(-3.1..3.1), 0.3, 96, 72, 80.0);
+            let render = |mode| {
+                let opts = RenderOptions {
+                    contributions: mode,
+                    images: false,
+                    ..RenderOptions::default()
+                };
+                render_view(&scene, &cam, &opts)
+                    .unwrap()
+                    .contributions
+                    .unwrap()
+            };
+            let all = render(ContributionMode::All);
+            let every = render(ContributionMode::TopK(1 << 20));
+            let mass = render(ContributionMode::Mass {
+                epsilon: 0.05,
+                cap: 0,
+            });
+            let bits = |w: &[f32]| w.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            let (mut keys, mut kept) = (Vec::new(), Vec::new());
+            for p in 0..all.residual.len() {
+                let (ids, ws) = all.pixel(p);
+                let (ei, ew) = every.pixel(p);
+                assert_eq!(ids, ei, "view {k}, pixel {p}");
+                assert_eq!(bits(ws), bits(ew), "view {k}, pixel {p}");
+                long += usize::from(ids.len() > blend::SLOTS);
+                let list: Vec<blend::Contribution> = ids
+                    .iter()
+                    .zip(ws)
+                    .map(|(&id, &weight)| blend::Contribution { id, weight })
+                    .collect();
+                kept.clear();
+                let dropped = blend::keep_mass(&list, 0.05, 0, &mut keys, &mut kept);
+                let (mi, mw) = mass.pixel(p);
+                assert_eq!(mi, kept.iter().map(|c| c.id).collect::<Vec<_>>());
+                assert_eq!(
+                    bits(mw),
+                    kept.iter().map(|c| c.weight.to_bits()).collect::<Vec<_>>()
+                );
+                assert_eq!(mass.residual[p].to_bits(), dropped.to_bits());
+                cut += usize::from(mi.len() < ids.len());
+            }
+        }
+        assert!(
+            long > 200 && cut > 1000,
+            "{long} long lists, {cut} cut by the mass rule"
+        );
+    }
+
     #[test]
     fn the_cell_cull_changes_no_output() {
         let scene = random_scene(20_000, 30.0, 17);
