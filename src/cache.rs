@@ -915,9 +915,9 @@ impl Cache {
         })
     }
 
-    /// How many views were read in full ([`Cache::load`], [`Cache::load_into`], and the
-    /// fallback of [`Cache::median_depth`]) through this cache and its clones: a stage's
-    /// number of passes over the lists.
+    /// How many views were read in full, successfully ([`Cache::load`], [`Cache::load_into`],
+    /// and the fallback of [`Cache::median_depth`]) through this cache and its clones: a
+    /// stage's number of passes over the lists.
     pub fn views_read(&self) -> usize {
         self.reads.load(std::sync::atomic::Ordering::Relaxed)
     }
@@ -929,8 +929,9 @@ impl Cache {
 
     /// Loads view `stem`, checking it indexes the cache's Gaussians.
     pub fn load(&self, stem: &str) -> Result<ViewContrib, CacheError> {
+        let c = ViewContrib::read(&cache_file(&self.dir, stem), Some(self.summary.gaussians))?;
         self.count_read();
-        ViewContrib::read(&cache_file(&self.dir, stem), Some(self.summary.gaussians))
+        Ok(c)
     }
 
     /// [`Cache::load`] into `view`, reusing its memory and the file buffer `buf`.
@@ -940,12 +941,13 @@ impl Cache {
         view: &mut ViewContrib,
         buf: &mut Vec<u8>,
     ) -> Result<(), CacheError> {
-        self.count_read();
         view.read_into(
             &cache_file(&self.dir, stem),
             Some(self.summary.gaussians),
             buf,
-        )
+        )?;
+        self.count_read();
+        Ok(())
     }
 
     /// The per-pixel planes of view `stem` only ([`ViewPlanes::read`]).
@@ -966,8 +968,8 @@ impl Cache {
         let path = cache_file(&self.dir, stem);
         if let (false, Some(positions)) = (self.summary.median_depth, positions) {
             // One full read: the lists give the median, and the planes come with them.
-            self.count_read();
             let c = ViewContrib::read(&path, Some(self.summary.gaussians))?;
+            self.count_read();
             let m = if c.median.is_empty() {
                 median_depth(&c, positions, pose)
             } else {

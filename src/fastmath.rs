@@ -25,8 +25,9 @@ pub fn exp_neg(x: f32) -> f32 {
 
 /// `x.round().clamp(0.0, 255.0) as u8` (rounding half away from zero; NaN gives 0) without
 /// the library's `roundf` call: the truncation `t` of a non-negative `x` and its exact
-/// fraction `x − t` (exact below 2²⁴; above, `x` is an integer and the fraction 0) decide
-/// the rounding. Negative values truncate to 0, as they round and clamp to 0.
+/// fraction `x − t` (exact below 2²⁴; from 2²⁴ to 2³² `x` is an integer and the fraction 0;
+/// above, `t` saturates and the result is 255 either way) decide the rounding. Negative values
+/// and NaN truncate to 0, as they round and clamp to 0.
 #[inline(always)]
 pub fn round_u8(x: f32) -> u8 {
     let t = x as u32;

@@ -21,6 +21,7 @@
 //! Sampling keeps the cost bounded and deterministic: Gaussians enter the pair count through a
 //! SplitMix64 hash sample sized to at most [`PAIR_BUDGET`] mask pairs, and unlinked pairs are a
 //! strided sample of at most [`UNLINKED_MAX`]; nothing depends on the thread count.
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::bank::Observation;
@@ -108,7 +109,6 @@ pub type Pairs = Vec<(u32, u32)>;
 /// the same Gaussian, into a dense row. Every pair's sums and every mask's mass are added in
 /// ascending Gaussian order, so the result does not depend on the thread count.
 pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
-    use rayon::prelude::*;
     // (Gaussian ≪ 32 | mask, share of the mask's candidate mass), sorted by Gaussian and then
     // mask (a stable sort: a Gaussian a candidate lists twice keeps its order).
     let mut entries: Vec<(u64, f32)> = Vec::new();
@@ -128,7 +128,7 @@ pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
     let gaussian = |e: usize| (entries[e].0 >> 32) as u32;
     let mask = |e: usize| (entries[e].0 & 0xffff_ffff) as usize;
     // Each entry's run end (the entries of its Gaussian), and the pair count before sampling.
-    let mut run_end = vec![0u32; entries.len()];
+    let mut run_end = vec![0usize; entries.len()];
     let mut count: u64 = 0;
     let mut r0 = 0;
     while r0 < entries.len() {
@@ -136,7 +136,7 @@ pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
         while r1 < entries.len() && gaussian(r1) == gaussian(r0) {
             r1 += 1;
         }
-        run_end[r0..r1].fill(r1 as u32);
+        run_end[r0..r1].fill(r1);
         let l = (r1 - r0) as u64;
         count += l * l.saturating_sub(1) / 2;
         r0 = r1;
@@ -144,10 +144,10 @@ pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
     let sample = count.div_ceil(PAIR_BUDGET).max(1);
     let kept = |g: u32| sample == 1 || splitmix64(u64::from(g)) % sample == 0;
     // Per mask, its sampled entries in ascending Gaussian order.
-    let mut of_mask: Vec<Vec<u32>> = vec![Vec::new(); obs.len()];
+    let mut of_mask: Vec<Vec<usize>> = vec![Vec::new(); obs.len()];
     for e in 0..entries.len() {
         if kept(gaussian(e)) {
-            of_mask[mask(e)].push(e as u32);
+            of_mask[mask(e)].push(e);
         }
     }
     // Per mask a: its sampled mass, and (b, shared mass of a, of b) for every later mask b
@@ -161,10 +161,9 @@ pub fn pairs(obs: &[Observation]) -> (Pairs, Pairs, u64) {
                 let mut mass = 0.0f64;
                 let mut bs: Vec<u32> = Vec::new();
                 for &e in &of_mask[a] {
-                    let e = e as usize;
                     let sa = f64::from(entries[e].1);
                     mass += sa;
-                    for &(key, sb) in &entries[e + 1..run_end[e] as usize] {
+                    for &(key, sb) in &entries[e + 1..run_end[e]] {
                         let b = (key & 0xffff_ffff) as usize;
                         if obs[a].view == obs[b].view {
                             continue;

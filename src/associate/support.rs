@@ -214,7 +214,7 @@ pub(super) struct Support<'a> {
     pub(super) eligible: &'a [bool],
     /// Per pre-filter group: not far field (what support-only masks may join).
     pub(super) near: &'a [bool],
-    /// Label the pixels of joining support-only masks (else only record their candidates).
+    /// Label the pixels of joining support-only masks (else they only count as hits).
     pub(super) paint_joined: bool,
     /// Gaussian ownership the masks are matched against (the bank's).
     pub(super) owner: &'a [i32],
