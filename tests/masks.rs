@@ -899,4 +899,10 @@ fn the_stored_median_plane_gives_the_masks_of_the_lists_and_the_centres() {
     gs4city::splat::write_ply(&ply, &one, PlyEncoding::BinaryLittleEndian).unwrap();
     let e = run(&f, &o, "stale", true).unwrap_err().to_string();
     assert!(e.contains("point_cloud.ply") && e.contains("stale"), "{e}");
+    // So does the expected depth of a cache from before version 4, which reads no centres.
+    summary.median_depth = false;
+    summary.write(&f.cache).unwrap();
+    o.gs_depth = GsDepth::Expected;
+    let e = run(&f, &o, "stale_expected", true).unwrap_err().to_string();
+    assert!(e.contains("point_cloud.ply") && e.contains("stale"), "{e}");
 }

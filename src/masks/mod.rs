@@ -463,8 +463,9 @@ pub fn run(
     };
     let needs_depth = source == Source::Depth || matches!(test, Test::Geometry | Test::Both);
     let t_ply = Instant::now();
-    // The Gaussians' centres are read only for a cache without the median-depth plane; with
-    // it, the PLY's header alone shows whether the cache was built for this scene.
+    // The cache is checked against the scene's PLY: through the Gaussians' centres where they
+    // are read (the median depth of a cache without its plane), else through the PLY's header
+    // alone.
     let stale = |found: usize, cache: &Cache| MasksError::Invalid {
         path: inp.scene.ply.clone(),
         why: format!(
@@ -473,14 +474,6 @@ pub fn run(
             cache.summary.gaussians
         ),
     };
-    if let (true, Some(cache)) = (needs_depth, inp.cache)
-        && cache.summary.median_depth
-    {
-        let found = crate::splat::read_count(&inp.scene.ply)?;
-        if found != cache.summary.gaussians {
-            return Err(stale(found, cache));
-        }
-    }
     let positions = match (needs_depth, opts.gs_depth, inp.cache) {
         (true, GsDepth::Median, Some(cache)) if !cache.summary.median_depth => {
             let (g, _) = crate::splat::read_ply(&inp.scene.ply, &crate::splat::ReadOptions::KEEP)?;
@@ -491,6 +484,12 @@ pub fn run(
         }
         _ => None,
     };
+    if let (true, Some(cache), None) = (needs_depth, inp.cache, &positions) {
+        let found = crate::splat::read_count(&inp.scene.ply)?;
+        if found != cache.summary.gaussians {
+            return Err(stale(found, cache));
+        }
+    }
     let ply_s = t_ply.elapsed().as_secs_f64();
     let mut stems: Vec<String> = inp.views.iter().map(View::stem).collect();
     stems.sort();
