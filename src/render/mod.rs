@@ -715,6 +715,13 @@ pub(crate) mod tests {
         )
     }
 
+    /// A 96 × 72 test camera (focal 80) at a random centre of the cube `[−20, 20]³`, with a
+    /// random yaw and the given pitch.
+    fn random_camera(rng: &mut impl Rng, pitch: f64) -> Camera {
+        let c = random_centre(rng, 20.0);
+        camera_at(c, rng.random_range(-3.1..3.1), pitch, 96, 72, 80.0)
+    }
+
     /// A camera at `centre` looking along yaw/pitch, `w × h`, focal `f`.
     pub(crate) fn camera_at(centre: DVec3, yaw: f64, pitch: f64, w: u32, h: u32, f: f64) -> Camera {
         let rot = DMat3::from_rotation_x(pitch) * DMat3::from_rotation_y(yaw);
@@ -741,8 +748,7 @@ pub(crate) mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
         let (mut cut, mut unsure) = (0usize, 0usize);
         for k in 0..4 {
-            let c = random_centre(&mut rng, 20.0);
-            let cam = camera_at(c, rng.random_range(-3.1..3.1), 0.3, 96, 72, 80.0);
+            let cam = random_camera(&mut rng, 0.3);
             let opts = |t_stop| RenderOptions {
                 contributions: ContributionMode::All,
                 images: false,
@@ -798,8 +804,7 @@ pub(crate) mod tests {
         let scene = random_scene(20_000, 30.0, 29);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         for k in 0..3 {
-            let c = random_centre(&mut rng, 20.0);
-            let cam = camera_at(c, rng.random_range(-3.1..3.1), 0.2, 96, 72, 80.0);
+            let cam = random_camera(&mut rng, 0.2);
             let opts = |images| RenderOptions {
                 contributions: ContributionMode::Mass {
                     epsilon: 0.05,
@@ -832,8 +837,7 @@ pub(crate) mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(13);
         let (mut long, mut cut) = (0usize, 0usize);
         for k in 0..3 {
-            let c = random_centre(&mut rng, 20.0);
-            let cam = camera_at(c, rng.random_range(-3.1..3.1), 0.3, 96, 72, 80.0);
+            let cam = random_camera(&mut rng, 0.3);
             let render = |mode| {
                 let opts = RenderOptions {
                     contributions: mode,
