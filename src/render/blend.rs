@@ -516,11 +516,20 @@ fn keep_mass_ranked(
             *o = x as u8;
         }
     }
-    let (mut order, mut used) = ([0u8; RANKED], [0u8; RANKED]);
-    for (i, &r) in rank[..n].iter().enumerate() {
-        let r = usize::from(r);
-        order[(r + usize::from(used[r])) % RANKED] = i as u8;
-        used[r] += 1;
+    let mut order = [0u8; RANKED];
+    let seen = rank[..n].iter().fold(0u64, |s, &r| s | (1u64 << (r % 64)));
+    if seen == u64::MAX >> (RANKED - n) {
+        // Distinct weights (nearly always): the ranks are a permutation.
+        for (i, &r) in rank[..n].iter().enumerate() {
+            order[usize::from(r)] = i as u8;
+        }
+    } else {
+        let mut used = [0u8; RANKED];
+        for (i, &r) in rank[..n].iter().enumerate() {
+            let r = usize::from(r);
+            order[(r + usize::from(used[r])) % RANKED] = i as u8;
+            used[r] += 1;
+        }
     }
     let (mut kept, mut m) = (0.0f32, 0usize);
     while m < n && m < cap && kept < target {
