@@ -129,30 +129,40 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
             },
         });
     }
-    let t = Instant::now();
-    let invalid = write_gaussians(
-        inp.ply,
-        out,
-        &GaussianLabels {
-            label: &label,
-            class: &class,
-            extra: vec![(
-                "label_confidence".into(),
-                assignments.iter().map(|a| a.confidence).collect(),
-            )],
+    // The labelled PLY and the test views' predictions are independent (each serial work):
+    // side by side.
+    let (written, predicted) = rayon::join(
+        || {
+            let t = Instant::now();
+            let invalid = write_gaussians(
+                inp.ply,
+                out,
+                &GaussianLabels {
+                    label: &label,
+                    class: &class,
+                    extra: vec![(
+                        "label_confidence".into(),
+                        assignments.iter().map(|a| a.confidence).collect(),
+                    )],
+                },
+                inp.labels,
+                inp.entities,
+            )?;
+            Ok::<_, LiftError>((invalid, t.elapsed().as_secs_f64()))
         },
-        inp.labels,
-        inp.entities,
-    )?;
-    let write_s = t.elapsed().as_secs_f64();
-    let t = Instant::now();
-    let (mut c, mut buf) = (ViewContrib::empty(), Vec::new());
-    for v in inp.test {
-        inp.cache.load_into(&v.stem(), &mut c, &mut buf)?;
-        let (cm, lm) = predict(&c, &label, &class);
-        write_prediction(out, &v.stem(), c.width, c.height, &cm, &lm)?;
-    }
-    let predict_s = t.elapsed().as_secs_f64();
+        || {
+            let t = Instant::now();
+            let (mut c, mut buf) = (ViewContrib::empty(), Vec::new());
+            for v in inp.test {
+                inp.cache.load_into(&v.stem(), &mut c, &mut buf)?;
+                let (cm, lm) = predict(&c, &label, &class);
+                write_prediction(out, &v.stem(), c.width, c.height, &cm, &lm)?;
+            }
+            Ok::<_, LiftError>(t.elapsed().as_secs_f64())
+        },
+    );
+    let (invalid, write_s) = written?;
+    let predict_s = predicted?;
     let mut per_class = BTreeMap::new();
     for &c in &class {
         *per_class
