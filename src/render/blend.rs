@@ -421,9 +421,8 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
 /// Appends to `out` the entries of one pixel's depth-ordered `list` that the mass rule keeps
 /// (in depth order) and returns the mass it drops. Largest weights first (ties: the earlier
 /// in depth order) until the kept sum reaches `(1 − ε)·Σ list` or `cap` entries are kept
-/// (0 = no cap). `keys` is scratch. Lists of up to [`RANKED`] entries are ordered by
-/// counting ranks ([`keep_mass_ranked`]), longer ones by sorting keys; both give the same
-/// entries and the same sums.
+/// (0 = no cap). `keys` is scratch. Lists of up to 64 entries are ordered by counting
+/// ranks, longer ones by sorting keys; both give the same entries and the same sums.
 pub fn keep_mass(
     list: &[Contribution],
     epsilon: f32,
