@@ -111,6 +111,10 @@ pub fn evaluate(
         let merged = crate::selection::masks::merged_values(&sr.class_of, &s);
         selections.push((s, merged));
     }
+    let together = (rule == MaskRule::Argmax).then(|| {
+        let selected: Vec<&[bool]> = selections.iter().map(|s| s.0.as_slice()).collect();
+        crate::selection::masks::Selections::new(&sr.class_of, &selected)
+    });
     let gts = super::list_maps(gt_dir)?;
     let bar = crate::progress::Bar::new("eval", stems.len() as u64, "views");
     // One view's row, coarse counts and per-class counts.
@@ -134,8 +138,15 @@ pub fn evaluate(
         }
         let c = cache.load(stem)?;
         let psize = [c.height, c.width];
-        let pred_map = |sel: &(Vec<bool>, (Vec<i32>, i32)), class: i32| -> Vec<i32> {
-            let m = crate::selection::masks::view_mask(&c, &sel.1, &sel.0, rule);
+        // Every selection's mask: together under the argmax rule (one pass over the lists).
+        let masks: Vec<Vec<u8>> = match &together {
+            Some(set) => set.masks(&c),
+            None => selections
+                .iter()
+                .map(|sel| crate::selection::masks::view_mask(&c, &sel.1, &sel.0, rule))
+                .collect(),
+        };
+        let pred_map = |m: &[u8], class: i32| -> Vec<i32> {
             let p: Vec<i32> = m.iter().map(|&x| if x != 0 { class } else { -1 }).collect();
             if psize == gsize {
                 p
@@ -143,9 +154,9 @@ pub fn evaluate(
                 super::resize_nearest(&p, psize, gsize)
             }
         };
-        let cb = accumulate(&gt, &pred_map(&selections[0], classes::WALL));
+        let cb = accumulate(&gt, &pred_map(&masks[0], classes::WALL));
         let pc: [Counts; N_FINE] =
-            std::array::from_fn(|k| accumulate(&gt, &pred_map(&selections[1 + k], FINE[k])));
+            std::array::from_fn(|k| accumulate(&gt, &pred_map(&masks[1 + k], FINE[k])));
         let image = ImageJson {
             stem: stem.clone(),
             gt_size: gsize,

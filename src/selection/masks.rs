@@ -12,6 +12,7 @@
 //! exceed half the pixel: `Σ_sel w > 1 − Σ_sel w`.
 
 use ndarray::Array3;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::cache::ViewContrib;
@@ -43,23 +44,194 @@ impl std::str::FromStr for MaskRule {
 /// class (≥ 0) among them. The order of the values is the order of the classes, so ties are
 /// decided as in the class maps (to the smaller class). Returns the values and the selection's.
 pub fn merged_values(class_of: &[i32], selected: &[bool]) -> (Vec<i32>, i32) {
-    let m = class_of
+    let m = smallest_class(class_of, selected);
+    let values = class_of
+        .iter()
+        .zip(selected)
+        .map(|(&c, &s)| merged_value(c, s, m))
+        .collect();
+    (values, 2 * m)
+}
+
+/// The smallest class (≥ 0) among the selected Gaussians, 0 when there is none.
+fn smallest_class(class_of: &[i32], selected: &[bool]) -> i32 {
+    class_of
         .iter()
         .zip(selected)
         .filter(|(c, s)| **s && **c >= 0)
         .map(|(&c, _)| c)
         .min()
-        .unwrap_or(0);
-    let values = class_of
-        .iter()
-        .zip(selected)
-        .map(|(&c, &s)| match (s, c) {
-            (true, _) => 2 * m,
-            (false, c) if c < 0 => -1,
-            (false, c) => 2 * c + 1,
-        })
-        .collect();
-    (values, 2 * m)
+        .unwrap_or(0)
+}
+
+/// One Gaussian's value in [`merged_values`]: `2m` when selected, else `2·class + 1`, or −1
+/// for a Gaussian without a class.
+fn merged_value(class: i32, selected: bool, m: i32) -> i32 {
+    match (selected, class) {
+        (true, _) => 2 * m,
+        (false, c) if c < 0 => -1,
+        (false, c) => 2 * c + 1,
+    }
+}
+
+/// Selections per packed key of [`Selections`].
+const PER_KEY: usize = 32;
+
+/// Several selections whose [`MaskRule::Argmax`] masks are computed together: per Gaussian its
+/// class and one bit per selection, packed once ([`Selections::masks`] reads each list entry's
+/// key once for all the masks, where [`view_mask`] per selection reads a value array each).
+pub struct Selections {
+    /// Per group of [`PER_KEY`] selections, per Gaussian: the class in the high 32 bits, bit
+    /// `k` set when the group's selection `k` holds the Gaussian.
+    keys: Vec<Vec<u64>>,
+    /// Each selection's `m` ([`merged_values`]).
+    smallest: Vec<i32>,
+}
+
+impl Selections {
+    /// The selections `selected` (each as long as `class_of`).
+    pub fn new(class_of: &[i32], selected: &[&[bool]]) -> Selections {
+        let keys = selected
+            .chunks(PER_KEY)
+            .map(|group| {
+                (0..class_of.len())
+                    .map(|g| {
+                        let bits = group
+                            .iter()
+                            .enumerate()
+                            .filter(|(_, s)| s[g])
+                            .fold(0u64, |b, (k, _)| b | 1 << k);
+                        (u64::from(class_of[g] as u32) << 32) | bits
+                    })
+                    .collect()
+            })
+            .collect();
+        let smallest = selected
+            .iter()
+            .map(|s| smallest_class(class_of, s))
+            .collect();
+        Selections { keys, smallest }
+    }
+
+    /// The masks of one cached view, in the order of the selections: mask `k` is
+    /// `view_mask(c, &merged_values(class_of, selected[k]), selected[k], MaskRule::Argmax)`.
+    ///
+    /// The argmax is decided without forming the merged values: a pixel is selected when its
+    /// selected weight `T` (summed in list order, as the class maps sum a class) exists,
+    /// exceeds "nothing" (`1 − α`, the residual and the unclassified unselected Gaussians) and
+    /// beats the weight of every other class `c` present, a tie going to the selection when
+    /// `m ≤ c` (its value `2m` is then below `2c + 1`).
+    pub fn masks(&self, c: &ViewContrib) -> Vec<Vec<u8>> {
+        const CHUNK: usize = 4096;
+        let count = self.smallest.len();
+        let npx = c.pixels();
+        let mut out = vec![vec![0u8; npx]; count];
+        if count == 0 {
+            return out;
+        }
+        // Per task, CHUNK pixels of every mask, pixel-major (`p·count + k`).
+        let mut flat = vec![0u8; npx * count];
+        flat.par_chunks_mut(CHUNK * count)
+            .enumerate()
+            .for_each(|(i, chunk)| {
+                let mut pixel = PixelScratch::default();
+                for (j, px) in chunk.chunks_mut(count).enumerate() {
+                    let p = i * CHUNK + j;
+                    let (ids, ws) = c.pixel(p);
+                    let rest = 1.0 - c.alpha[p] + c.lists.residual[p];
+                    pixel.classes.clear();
+                    pixel.entries.clear();
+                    for &g in ids {
+                        let class = (self.keys[0][g as usize] >> 32) as u32 as i32;
+                        let slot = match pixel.classes.iter().position(|&x| x == class) {
+                            Some(s) => s,
+                            None => {
+                                pixel.classes.push(class);
+                                pixel.classes.len() - 1
+                            }
+                        };
+                        pixel.entries.push((g, class, slot));
+                    }
+                    for (lanes, (o, m)) in px
+                        .chunks_mut(LANES)
+                        .zip(self.smallest.chunks(LANES))
+                        .enumerate()
+                    {
+                        let keys = &self.keys[lanes * LANES / PER_KEY];
+                        let shift = lanes * LANES % PER_KEY;
+                        pixel.decide(keys, shift, ws, rest, m, o);
+                    }
+                }
+            });
+        for (p, px) in flat.chunks(count).enumerate() {
+            for (mask, &x) in out.iter_mut().zip(px) {
+                mask[p] = x;
+            }
+        }
+        out
+    }
+}
+
+/// Selections decided side by side by [`PixelScratch::decide`] (one lane each).
+const LANES: usize = 16;
+
+/// One pixel's entries and sums in [`Selections::masks`].
+#[derive(Default)]
+struct PixelScratch {
+    /// The pixel's distinct classes, in order of first appearance.
+    classes: Vec<i32>,
+    /// Per entry: Gaussian, class, slot of the class in `classes`.
+    entries: Vec<(u32, i32, usize)>,
+    /// Per class slot and lane: the unselected weight of the class, and whether any.
+    sums: Vec<([f32; LANES], u32)>,
+}
+
+impl PixelScratch {
+    /// Masks `shift..shift + m.len()` of the key group `keys` at this pixel: per lane (one
+    /// selection each) the selected weight `t`, the unclassified unselected weight and each
+    /// class's unselected weight, each summed in list order (a lane adds only its own
+    /// entries); then the argmax of [`Selections::masks`].
+    fn decide(
+        &mut self,
+        keys: &[u64],
+        shift: usize,
+        ws: &[f32],
+        rest: f32,
+        m: &[i32],
+        out: &mut [u8],
+    ) {
+        let (mut t, mut background) = ([0.0f32; LANES], [-0.0f32; LANES]);
+        let mut has_t = 0u32;
+        self.sums.clear();
+        self.sums.resize(self.classes.len(), ([0.0; LANES], 0));
+        for (&(g, class, slot), &w) in self.entries.iter().zip(ws) {
+            let bits = (keys[g as usize] >> shift) as u32 & 0xffff;
+            has_t |= bits;
+            for (lane, x) in t.iter_mut().enumerate() {
+                *x = if bits >> lane & 1 == 1 { *x + w } else { *x };
+            }
+            let other = if class < 0 {
+                &mut background
+            } else {
+                self.sums[slot].1 |= !bits;
+                &mut self.sums[slot].0
+            };
+            for (lane, x) in other.iter_mut().enumerate() {
+                *x = if bits >> lane & 1 == 0 { *x + w } else { *x };
+            }
+        }
+        for (lane, (o, &m)) in out.iter_mut().zip(m).enumerate() {
+            let t = t[lane];
+            let beats = |(&(ref u, present), &class): (&([f32; LANES], u32), &i32)| {
+                let u = u[lane];
+                present >> lane & 1 == 0 || u < t || (u == t && m <= class)
+            };
+            let wins = has_t >> lane & 1 == 1
+                && t > rest + background[lane]
+                && self.sums.iter().zip(&self.classes).all(beats);
+            *o = u8::from(wins);
+        }
+    }
 }
 
 /// The mask (1 = selected) of one cached view. `merged` comes from [`merged_values`] (argmax),
@@ -121,6 +293,79 @@ mod tests {
             alpha: vec![0.9, 0.95, 0.8],
             depth: vec![1.0; 3],
             median: Vec::new(),
+        }
+    }
+
+    /// A random view: `w × h` pixels, lists of 0–40 distinct Gaussians of `n`, weights from a
+    /// small set (many exact ties), α and residuals from small sets.
+    fn random_view(w: usize, h: usize, n: usize, rng: &mut impl rand::Rng) -> ViewContrib {
+        let (mut offsets, mut ids, mut weights, mut residual, mut alpha) =
+            (vec![0u64], Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for _ in 0..w * h {
+            let len = rng.random_range(0..=40.min(n));
+            let mut seen = std::collections::BTreeSet::new();
+            while seen.len() < len {
+                let g = rng.random_range(0..n as u32);
+                if seen.insert(g) {
+                    ids.push(g);
+                    weights.push([0.125f32, 0.25, 0.1, 0.3, 0.05, 0.0][rng.random_range(0..6)]);
+                }
+            }
+            offsets.push(ids.len() as u64);
+            residual.push([0.0f32, 0.05, 0.25][rng.random_range(0..3)]);
+            alpha.push([1.0f32, 0.9, 0.5, 0.0][rng.random_range(0..4)]);
+        }
+        ViewContrib {
+            width: w,
+            height: h,
+            k: 0,
+            gaussians: n,
+            lists: Contributions {
+                offsets,
+                ids,
+                weights,
+                residual,
+            },
+            alpha,
+            depth: vec![1.0; w * h],
+            median: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn masks_together_are_the_masks_one_at_a_time() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for (n, count) in [(7usize, 3usize), (60, 9), (300, 40), (50, 0)] {
+            // 77 × 61 pixels: more than one task of `predict_maps`, the last one partial.
+            let c = random_view(77, 61, n, &mut rng);
+            // Classes −1..=11 (a few unclassified Gaussians).
+            let class_of: Vec<i32> = (0..n).map(|_| rng.random_range(-1..12)).collect();
+            // Selections: a random share each, one empty, one of everything, one of a class.
+            let selected: Vec<Vec<bool>> = (0..count)
+                .map(|k| match k % 5 {
+                    0 => vec![false; n],
+                    1 => vec![true; n],
+                    2 => class_of.iter().map(|&x| x == 3).collect(),
+                    _ => {
+                        let p = rng.random_range(0.05..0.6);
+                        (0..n).map(|_| rng.random_bool(p)).collect()
+                    }
+                })
+                .collect();
+            let refs: Vec<&[bool]> = selected.iter().map(Vec::as_slice).collect();
+            let together = Selections::new(&class_of, &refs).masks(&c);
+            assert_eq!(together.len(), count);
+            let mut set = 0;
+            for (k, s) in selected.iter().enumerate() {
+                let one = view_mask(&c, &merged_values(&class_of, s), s, MaskRule::Argmax);
+                assert_eq!(together[k], one, "n {n}, selection {k}");
+                set += one.iter().filter(|&&x| x == 1).count();
+            }
+            assert!(
+                count == 0 || set > 0,
+                "no pixel selected at all: a weak test"
+            );
         }
     }
 
