@@ -258,10 +258,31 @@ pub fn check(root: &Path, opts: &CheckOptions) -> CheckReport {
     let alignment = read_alignment(root, opts, &mut f);
     let views = read_views(root, &mut f);
     report.views = views.as_ref().map_or(0, Vec::len);
-    report.images = check_images(root, views.as_deref(), &mut f);
-    let gaussians = read_gaussians(root, &mut f);
+    // The images, the PLY and the CityGML files are read side by side, each into its own
+    // findings, listed in this order.
+    let ((images, fi), ((gaussians, fg), (models, fm))) = rayon::join(
+        || {
+            let mut f = Findings(Vec::new());
+            (check_images(root, views.as_deref(), &mut f), f)
+        },
+        || {
+            rayon::join(
+                || {
+                    let mut f = Findings(Vec::new());
+                    (read_gaussians(root, &mut f), f)
+                },
+                || {
+                    let mut f = Findings(Vec::new());
+                    (read_citygml(&gml, &mut f), f)
+                },
+            )
+        },
+    );
+    for part in [fi, fg, fm] {
+        f.0.extend(part.0);
+    }
+    report.images = images;
     report.gaussians = gaussians.as_ref().map_or(0, Gaussians::len);
-    let models = read_citygml(&gml, &mut f);
     optional_parts(root, views.as_deref(), &mut f);
     if let (Some(models), Some(a)) = (&models, alignment) {
         let a = a.unwrap_or_else(|| local_alignment(models));
@@ -454,6 +475,41 @@ fn truncated(p: &Path) -> Option<String> {
     None
 }
 
+/// One view's image in `dir` (listed in `present`): its presence, declared size and tail.
+fn check_image(dir: &Path, v: &View, present: &BTreeSet<&PathBuf>, f: &mut Findings) {
+    let p = dir.join(&v.name);
+    if !present.contains(&PathBuf::from(&v.name)) {
+        f.error(
+            &p,
+            format!(
+                "missing: the COLMAP model names image {} (id {}) but images/ has no such file",
+                v.name, v.image_id
+            ),
+        );
+        return;
+    }
+    let k = &v.camera.intrinsics;
+    match image_size(&p) {
+        Some((w, h)) if (w, h) != (k.width, k.height) => f.error(
+            &p,
+            format!(
+                "{w}×{h} pixels, but its COLMAP camera {} is {}×{} (images resized after \
+                 reconstruction? use the images the model was made from)",
+                v.camera_id, k.width, k.height
+            ),
+        ),
+        Some(_) => {
+            if let Some(why) = truncated(&p) {
+                f.warn(&p, why);
+            }
+        }
+        None => f.warn(
+            &p,
+            "not a PNG or JPEG whose size can be read from its header",
+        ),
+    }
+}
+
 /// `images/` against the COLMAP names and camera sizes; returns the number of images found.
 fn check_images(root: &Path, views: Option<&[View]>, f: &mut Findings) -> usize {
     let dir = root.join("images");
@@ -471,38 +527,20 @@ fn check_images(root: &Path, views: Option<&[View]>, f: &mut Findings) -> usize 
     };
     let named: BTreeSet<PathBuf> = views.iter().map(|v| PathBuf::from(&v.name)).collect();
     let present: BTreeSet<&PathBuf> = files.iter().collect();
-    for v in views {
-        let p = dir.join(&v.name);
-        if !present.contains(&PathBuf::from(&v.name)) {
-            f.error(
-                &p,
-                format!(
-                    "missing: the COLMAP model names image {} (id {}) but images/ has no such file",
-                    v.name, v.image_id
-                ),
-            );
-            continue;
-        }
-        let k = &v.camera.intrinsics;
-        match image_size(&p) {
-            Some((w, h)) if (w, h) != (k.width, k.height) => f.error(
-                &p,
-                format!(
-                    "{w}×{h} pixels, but its COLMAP camera {} is {}×{} (images resized after \
-                     reconstruction? use the images the model was made from)",
-                    v.camera_id, k.width, k.height
-                ),
-            ),
-            Some(_) => {
-                if let Some(why) = truncated(&p) {
-                    f.warn(&p, why);
-                }
-            }
-            None => f.warn(
-                &p,
-                "not a PNG or JPEG whose size can be read from its header",
-            ),
-        }
+    // Each view's image read in parallel, its findings listed in view order.
+    let per_view: Vec<Findings> = {
+        use rayon::prelude::*;
+        views
+            .par_iter()
+            .map(|v| {
+                let mut f = Findings(Vec::new());
+                check_image(&dir, v, &present, &mut f);
+                f
+            })
+            .collect()
+    };
+    for part in per_view {
+        f.0.extend(part.0);
     }
     let extra: Vec<&PathBuf> = files.iter().filter(|p| !named.contains(*p)).collect();
     for p in extra.iter().take(MAX_LISTED) {
@@ -587,10 +625,16 @@ fn read_gaussians(root: &Path, f: &mut Findings) -> Option<Gaussians> {
 /// Every CityGML file: parse errors, reader warnings, gml:ids of city objects repeated across
 /// files. `None` when a file cannot be read.
 fn read_citygml(gml: &[PathBuf], f: &mut Findings) -> Option<Vec<CityModel>> {
+    use rayon::prelude::*;
     let mut models = Vec::with_capacity(gml.len());
     let mut ok = !gml.is_empty();
-    for p in gml {
-        match crate::cityjson::read_any(p) {
+    // Parsed in parallel, reported in file order.
+    let parsed: Vec<_> = gml
+        .par_iter()
+        .map(|p| crate::cityjson::read_any(p))
+        .collect();
+    for (p, parsed) in gml.iter().zip(parsed) {
+        match parsed {
             Ok(m) => {
                 for w in &m.warnings {
                     let id =
