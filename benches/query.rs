@@ -227,13 +227,9 @@ fn timing(run: &Path) {
     let cache = sr.cache().unwrap();
     let stem = sr.test_views().unwrap()[0].clone();
     let (t_load, c) = best_of(3, || cache.load(&stem).unwrap());
-    let merged = selection::masks::merged_values(&sr.class_of, &selected);
-    let (t_arg, _) = best_of(3, || {
-        selection::masks::view_mask(&c, &merged, &selected, MaskRule::Argmax)
-    });
-    let (t_maj, _) = best_of(3, || {
-        selection::masks::view_mask(&c, &merged, &selected, MaskRule::Majority)
-    });
+    let one = selection::masks::Selections::new(&sr.class_of, &[&selected]);
+    let (t_arg, _) = best_of(3, || one.masks(&c, MaskRule::Argmax));
+    let (t_maj, _) = best_of(3, || one.masks(&c, MaskRule::Majority));
     println!(
         "| one view `{stem}` ({}×{}): cache load {t_load:.3}, argmax mask {t_arg:.3}, majority mask {t_maj:.3} | {:.3} |",
         c.width,

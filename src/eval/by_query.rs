@@ -108,13 +108,13 @@ pub fn evaluate(
         let s = sr.gaussian_selection(&sel.labels);
         gaussians.insert(name, s.iter().filter(|&&x| x).count());
         queries.insert(name, q);
-        let merged = crate::selection::masks::merged_values(&sr.class_of, &s);
-        selections.push((s, merged));
+        selections.push(s);
     }
-    let together = (rule == MaskRule::Argmax).then(|| {
-        let selected: Vec<&[bool]> = selections.iter().map(|s| s.0.as_slice()).collect();
+    // Every selection's mask of a view in one pass over its lists.
+    let together = {
+        let selected: Vec<&[bool]> = selections.iter().map(Vec::as_slice).collect();
         crate::selection::masks::Selections::new(&sr.class_of, &selected)
-    });
+    };
     let gts = super::list_maps(gt_dir)?;
     let bar = crate::progress::Bar::new("eval", stems.len() as u64, "views");
     // One view's row, coarse counts and per-class counts.
@@ -138,14 +138,7 @@ pub fn evaluate(
         }
         let c = cache.load(stem)?;
         let psize = [c.height, c.width];
-        // Every selection's mask: together under the argmax rule (one pass over the lists).
-        let masks: Vec<Vec<u8>> = match &together {
-            Some(set) => set.masks(&c),
-            None => selections
-                .iter()
-                .map(|sel| crate::selection::masks::view_mask(&c, &sel.1, &sel.0, rule))
-                .collect(),
-        };
+        let masks = together.masks(&c, rule);
         let pred_map = |m: &[u8], class: i32| -> Vec<i32> {
             let p: Vec<i32> = m.iter().map(|&x| if x != 0 { class } else { -1 }).collect();
             if psize == gsize {

@@ -525,12 +525,12 @@ pub fn run(
                 sr.run.join(sr.mode.dir()).display()
             ));
         }
-        let merged = masks::merged_values(&sr.class_of, &selected);
+        let selection = masks::Selections::new(&sr.class_of, &[&selected]);
         let bar = crate::progress::Bar::new("query", stems.len() as u64, "views");
         for stem in &stems {
             let v = find_view(cache, stem)?;
             let c = cache.load(stem)?;
-            let mask = masks::view_mask(&c, &merged, &selected, opts.rule);
+            let mask = selection.masks(&c, opts.rule).remove(0);
             if opts.sqlite {
                 let (_, label_map) = crate::cache::predict(&c, &sr.label_of, &sr.class_of);
                 for &l in &label_map {

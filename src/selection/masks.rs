@@ -39,21 +39,8 @@ impl std::str::FromStr for MaskRule {
     }
 }
 
-/// The per-Gaussian values of the argmax: class `c` of an unselected Gaussian becomes `2c + 1`
-/// (−1 stays −1, "nothing"), every selected Gaussian becomes `2m`, where `m` is the smallest
-/// class (≥ 0) among them. The order of the values is the order of the classes, so ties are
-/// decided as in the class maps (to the smaller class). Returns the values and the selection's.
-pub fn merged_values(class_of: &[i32], selected: &[bool]) -> (Vec<i32>, i32) {
-    let m = smallest_class(class_of, selected);
-    let values = class_of
-        .iter()
-        .zip(selected)
-        .map(|(&c, &s)| merged_value(c, s, m))
-        .collect();
-    (values, 2 * m)
-}
-
-/// The smallest class (≥ 0) among the selected Gaussians, 0 when there is none.
+/// The smallest class (≥ 0) among the selected Gaussians, 0 when there is none: the class
+/// whose place the selection takes in the argmax (module docs).
 fn smallest_class(class_of: &[i32], selected: &[bool]) -> i32 {
     class_of
         .iter()
@@ -64,27 +51,17 @@ fn smallest_class(class_of: &[i32], selected: &[bool]) -> i32 {
         .unwrap_or(0)
 }
 
-/// One Gaussian's value in [`merged_values`]: `2m` when selected, else `2·class + 1`, or −1
-/// for a Gaussian without a class.
-fn merged_value(class: i32, selected: bool, m: i32) -> i32 {
-    match (selected, class) {
-        (true, _) => 2 * m,
-        (false, c) if c < 0 => -1,
-        (false, c) => 2 * c + 1,
-    }
-}
+/// Selections decided side by side per list entry (one lane each), and per packed key.
+const LANES: usize = 16;
 
-/// Selections per packed key of [`Selections`].
-const PER_KEY: usize = 32;
-
-/// Several selections whose [`MaskRule::Argmax`] masks are computed together: per Gaussian its
-/// class and one bit per selection, packed once ([`Selections::masks`] reads each list entry's
-/// key once for all the masks, where [`view_mask`] per selection reads a value array each).
+/// Selections whose per-view masks are computed together (either rule, module docs): per
+/// Gaussian its class and one bit per selection, packed once, so that [`Selections::masks`]
+/// reads each list entry's key once for all the masks.
 pub struct Selections {
-    /// Per group of [`PER_KEY`] selections, per Gaussian: the class in the high 32 bits, bit
-    /// `k` set when the group's selection `k` holds the Gaussian.
+    /// Per group of [`LANES`] selections, per Gaussian: the class in the high 32 bits, bit `k`
+    /// set when the group's selection `k` holds the Gaussian.
     keys: Vec<Vec<u64>>,
-    /// Each selection's `m` ([`merged_values`]).
+    /// Each selection's smallest class ([`smallest_class`]).
     smallest: Vec<i32>,
 }
 
@@ -92,7 +69,7 @@ impl Selections {
     /// The selections `selected` (each as long as `class_of`).
     pub fn new(class_of: &[i32], selected: &[&[bool]]) -> Selections {
         let keys = selected
-            .chunks(PER_KEY)
+            .chunks(LANES)
             .map(|group| {
                 (0..class_of.len())
                     .map(|g| {
@@ -113,15 +90,16 @@ impl Selections {
         Selections { keys, smallest }
     }
 
-    /// The masks of one cached view, in the order of the selections: mask `k` is
-    /// `view_mask(c, &merged_values(class_of, selected[k]), selected[k], MaskRule::Argmax)`.
+    /// The masks (1 = selected) of one cached view under `rule`, in the order of the
+    /// selections.
     ///
-    /// The argmax is decided without forming the merged values: a pixel is selected when its
-    /// selected weight `T` (summed in list order, as the class maps sum a class) exists,
-    /// exceeds "nothing" (`1 − α`, the residual and the unclassified unselected Gaussians) and
-    /// beats the weight of every other class `c` present, a tie going to the selection when
-    /// `m ≤ c` (its value `2m` is then below `2c + 1`).
-    pub fn masks(&self, c: &ViewContrib) -> Vec<Vec<u8>> {
+    /// [`MaskRule::Argmax`]: a pixel is selected when its selected weight `T` (summed in list
+    /// order, as the class maps sum a class, [`crate::cache::predict`]) exists, exceeds
+    /// "nothing" (`1 − α`, the residual and the unclassified unselected Gaussians) and beats
+    /// the unselected weight of every other class `c` present, a tie going to the selection
+    /// when its smallest class `m ≤ c`: exactly the class maps' rule with the selection as one
+    /// class in the place of `m`. [`MaskRule::Majority`]: `T > 1 − T` (summed in `f64`).
+    pub fn masks(&self, c: &ViewContrib, rule: MaskRule) -> Vec<Vec<u8>> {
         const CHUNK: usize = 4096;
         let count = self.smallest.len();
         let npx = c.pixels();
@@ -152,14 +130,15 @@ impl Selections {
                         };
                         pixel.entries.push((g, class, slot));
                     }
-                    for (lanes, (o, m)) in px
+                    for ((o, m), keys) in px
                         .chunks_mut(LANES)
                         .zip(self.smallest.chunks(LANES))
-                        .enumerate()
+                        .zip(&self.keys)
                     {
-                        let keys = &self.keys[lanes * LANES / PER_KEY];
-                        let shift = lanes * LANES % PER_KEY;
-                        pixel.decide(keys, shift, ws, rest, m, o);
+                        match rule {
+                            MaskRule::Argmax => pixel.argmax(keys, ws, rest, m, o),
+                            MaskRule::Majority => pixel.majority(keys, ws, o),
+                        }
                     }
                 }
             });
@@ -171,9 +150,6 @@ impl Selections {
         out
     }
 }
-
-/// Selections decided side by side by [`PixelScratch::decide`] (one lane each).
-const LANES: usize = 16;
 
 /// One pixel's entries and sums in [`Selections::masks`].
 #[derive(Default)]
@@ -187,25 +163,17 @@ struct PixelScratch {
 }
 
 impl PixelScratch {
-    /// Masks `shift..shift + m.len()` of the key group `keys` at this pixel: per lane (one
-    /// selection each) the selected weight `t`, the unclassified unselected weight and each
-    /// class's unselected weight, each summed in list order (a lane adds only its own
-    /// entries); then the argmax of [`Selections::masks`].
-    fn decide(
-        &mut self,
-        keys: &[u64],
-        shift: usize,
-        ws: &[f32],
-        rest: f32,
-        m: &[i32],
-        out: &mut [u8],
-    ) {
+    /// The argmax masks of one key group's selections at this pixel (`m`: their smallest
+    /// classes): per lane (one selection each) the selected weight `t`, the unclassified
+    /// unselected weight and each class's unselected weight, each summed in list order (a
+    /// lane adds only its own entries); then the rule of [`Selections::masks`].
+    fn argmax(&mut self, keys: &[u64], ws: &[f32], rest: f32, m: &[i32], out: &mut [u8]) {
         let (mut t, mut background) = ([0.0f32; LANES], [-0.0f32; LANES]);
         let mut has_t = 0u32;
         self.sums.clear();
         self.sums.resize(self.classes.len(), ([0.0; LANES], 0));
         for (&(g, class, slot), &w) in self.entries.iter().zip(ws) {
-            let bits = (keys[g as usize] >> shift) as u32 & 0xffff;
+            let bits = keys[g as usize] as u32;
             has_t |= bits;
             for (lane, x) in t.iter_mut().enumerate() {
                 *x = if bits >> lane & 1 == 1 { *x + w } else { *x };
@@ -232,33 +200,24 @@ impl PixelScratch {
             *o = u8::from(wins);
         }
     }
-}
 
-/// The mask (1 = selected) of one cached view. `merged` comes from [`merged_values`] (argmax),
-/// `selected` is the per-Gaussian selection (majority).
-pub fn view_mask(
-    c: &ViewContrib,
-    merged: &(Vec<i32>, i32),
-    selected: &[bool],
-    rule: MaskRule,
-) -> Vec<u8> {
-    match rule {
-        MaskRule::Argmax => crate::cache::predict_map(c, &merged.0)
-            .iter()
-            .map(|&l| u8::from(l == merged.1))
-            .collect(),
-        MaskRule::Majority => (0..c.pixels())
-            .map(|p| {
-                let (ids, ws) = c.pixel(p);
-                let s: f64 = ids
-                    .iter()
-                    .zip(ws)
-                    .filter(|(g, _)| selected[**g as usize])
-                    .map(|(_, &w)| f64::from(w))
-                    .sum();
-                u8::from(s > 1.0 - s)
-            })
-            .collect(),
+    /// The majority masks of one key group's selections at this pixel: the selected weight
+    /// summed in `f64` in list order, selected when it exceeds the rest of the pixel.
+    fn majority(&self, keys: &[u64], ws: &[f32], out: &mut [u8]) {
+        let mut t = [0.0f64; LANES];
+        for (&(g, _, _), &w) in self.entries.iter().zip(ws) {
+            let bits = keys[g as usize] as u32;
+            for (lane, x) in t.iter_mut().enumerate() {
+                *x = if bits >> lane & 1 == 1 {
+                    *x + f64::from(w)
+                } else {
+                    *x
+                };
+            }
+        }
+        for (o, &t) in out.iter_mut().zip(&t) {
+            *o = u8::from(t > 1.0 - t);
+        }
     }
 }
 
@@ -273,6 +232,52 @@ pub fn overlay(mask: &[u8], width: usize, height: usize, image: Option<&Array3<u
 mod tests {
     use super::*;
     use crate::cache::Contributions;
+
+    /// One selection's mask through [`Selections`].
+    fn mask(c: &ViewContrib, class_of: &[i32], s: &[bool], rule: MaskRule) -> Vec<u8> {
+        Selections::new(class_of, &[s]).masks(c, rule).remove(0)
+    }
+
+    /// The argmax rule's reference: the class maps' own rule ([`crate::cache::predict_map`])
+    /// over merged values (an unselected Gaussian of class `c` is `2c + 1`, an unclassified one
+    /// −1, a selected one `2m` with `m` the selection's smallest class); a pixel is selected
+    /// when its value is `2m`.
+    fn argmax_by_class_maps(c: &ViewContrib, class_of: &[i32], s: &[bool]) -> Vec<u8> {
+        let m = class_of
+            .iter()
+            .zip(s)
+            .filter(|(c, s)| **s && **c >= 0)
+            .map(|(&c, _)| c)
+            .min()
+            .unwrap_or(0);
+        let merged: Vec<i32> = class_of
+            .iter()
+            .zip(s)
+            .map(|(&c, &s)| match (s, c) {
+                (true, _) => 2 * m,
+                (false, c) if c < 0 => -1,
+                (false, c) => 2 * c + 1,
+            })
+            .collect();
+        let map = crate::cache::predict_map(c, &merged);
+        map.iter().map(|&l| u8::from(l == 2 * m)).collect()
+    }
+
+    /// The majority rule's reference, pixel by pixel.
+    fn majority_by_pixels(c: &ViewContrib, s: &[bool]) -> Vec<u8> {
+        (0..c.pixels())
+            .map(|p| {
+                let (ids, ws) = c.pixel(p);
+                let t: f64 = ids
+                    .iter()
+                    .zip(ws)
+                    .filter(|(g, _)| s[**g as usize])
+                    .map(|(_, &w)| f64::from(w))
+                    .sum();
+                u8::from(t > 1.0 - t)
+            })
+            .collect()
+    }
 
     /// Three pixels, Gaussians 0..4 with labels [1, 2, 3, −1].
     fn view() -> ViewContrib {
@@ -333,11 +338,12 @@ mod tests {
     }
 
     #[test]
-    fn masks_together_are_the_masks_one_at_a_time() {
+    fn masks_together_follow_the_class_maps_and_the_majority_pixel_by_pixel() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
         for (n, count) in [(7usize, 3usize), (60, 9), (300, 40), (50, 0)] {
-            // 77 × 61 pixels: more than one task of `predict_maps`, the last one partial.
+            // 77 × 61 pixels: more than one task of `masks`, the last one partial; 40 selections
+            // fill three key groups, the last one partly.
             let c = random_view(77, 61, n, &mut rng);
             // Classes −1..=11 (a few unclassified Gaussians).
             let class_of: Vec<i32> = (0..n).map(|_| rng.random_range(-1..12)).collect();
@@ -354,13 +360,20 @@ mod tests {
                 })
                 .collect();
             let refs: Vec<&[bool]> = selected.iter().map(Vec::as_slice).collect();
-            let together = Selections::new(&class_of, &refs).masks(&c);
-            assert_eq!(together.len(), count);
+            let set_of = Selections::new(&class_of, &refs);
+            let argmax = set_of.masks(&c, MaskRule::Argmax);
+            let majority = set_of.masks(&c, MaskRule::Majority);
+            assert_eq!((argmax.len(), majority.len()), (count, count));
             let mut set = 0;
             for (k, s) in selected.iter().enumerate() {
-                let one = view_mask(&c, &merged_values(&class_of, s), s, MaskRule::Argmax);
-                assert_eq!(together[k], one, "n {n}, selection {k}");
-                set += one.iter().filter(|&&x| x == 1).count();
+                let want = argmax_by_class_maps(&c, &class_of, s);
+                assert_eq!(argmax[k], want, "argmax, n {n}, selection {k}");
+                assert_eq!(
+                    majority[k],
+                    majority_by_pixels(&c, s),
+                    "majority, n {n}, selection {k}"
+                );
+                set += want.iter().filter(|&&x| x == 1).count();
             }
             assert!(
                 count == 0 || set > 0,
@@ -374,10 +387,9 @@ mod tests {
         let c = view();
         let label = [1, 2, 3, -1];
         let sel = |s: [bool; 4]| {
-            let m = merged_values(&label, &s);
             (
-                view_mask(&c, &m, &s, MaskRule::Argmax),
-                view_mask(&c, &m, &s, MaskRule::Majority),
+                mask(&c, &label, &s, MaskRule::Argmax),
+                mask(&c, &label, &s, MaskRule::Majority),
             )
         };
         // Label 1 alone: p0 0.4 > 0.35, 0.15 → 1; p1 0.31 > 0.3, 0.29, 0.1 → 1; p2: 0.2 vs
@@ -426,7 +438,7 @@ mod tests {
         assert_eq!(map, vec![1, 3]);
         for k in [1, 2, 3] {
             let s: Vec<bool> = class.iter().map(|&x| x == k).collect();
-            let got = view_mask(&c, &merged_values(&class, &s), &s, MaskRule::Argmax);
+            let got = mask(&c, &class, &s, MaskRule::Argmax);
             let want: Vec<u8> = map.iter().map(|&p| u8::from(p == k)).collect();
             assert_eq!(got, want, "class {k}");
         }
