@@ -808,3 +808,57 @@ fn a_view_joins_the_tiles_that_take_a_share_of_its_screen_and_each_tile_keeps_it
     }
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// One building 700 km from the rest (another CRS, a coordinate slip): the plan is refused in
+/// one line that names it and its file, before any tile is allocated or made (the grid over
+/// its footprints would hold 21.8 M tiles of 150 m).
+#[test]
+fn a_footprint_far_from_the_others_is_named_instead_of_planning_millions_of_tiles() {
+    let src = scene();
+    let d = tmp("far-footprint");
+    let s = d.join("scene");
+    std::fs::create_dir_all(s.join("citymodel")).unwrap();
+    for e in std::fs::read_dir(src).unwrap() {
+        let e = e.unwrap();
+        if e.file_name() != "citymodel" {
+            std::os::unix::fs::symlink(e.path(), s.join(e.file_name())).unwrap();
+        }
+    }
+    for e in std::fs::read_dir(src.join("citymodel")).unwrap() {
+        let e = e.unwrap();
+        std::os::unix::fs::symlink(e.path(), s.join("citymodel").join(e.file_name())).unwrap();
+    }
+    let al: Value =
+        serde_json::from_slice(&std::fs::read(src.join("citymodel/alignment.json")).unwrap())
+            .unwrap();
+    let o: Vec<f64> = (0..3).map(|k| al["origin"][k].as_f64().unwrap()).collect();
+    let (x, y, z) = (o[0] + 700_000.0, o[1] + 700_000.0, o[2]);
+    let ring: Vec<String> = [(0.0, 0.0), (10.0, 0.0), (10.0, 8.0), (0.0, 8.0), (0.0, 0.0)]
+        .iter()
+        .map(|(dx, dz)| format!("{} {y} {}", x + dx, z + dz))
+        .collect();
+    let gml = format!(
+        r#"<?xml version="1.0" encoding="utf-8"?>
+<core:CityModel xmlns:core="http://www.opengis.net/citygml/2.0" xmlns:bldg="http://www.opengis.net/citygml/building/2.0" xmlns:gml="http://www.opengis.net/gml">
+<core:cityObjectMember><bldg:Building gml:id="FAR_AWAY"><bldg:boundedBy><bldg:WallSurface gml:id="FAR_WALL"><bldg:lod3MultiSurface><gml:MultiSurface><gml:surfaceMember><gml:Polygon gml:id="FAR_POLY"><gml:exterior><gml:LinearRing><gml:posList srsDimension="3">{}</gml:posList></gml:LinearRing></gml:exterior></gml:Polygon></gml:surfaceMember></gml:MultiSurface></bldg:lod3MultiSurface></bldg:WallSurface></bldg:boundedBy></bldg:Building></core:cityObjectMember>
+</core:CityModel>
+"#,
+        ring.join(" ")
+    );
+    std::fs::write(s.join("citymodel/zz_far.gml"), gml).unwrap();
+    let p = d.join("plan");
+    let (ok, text) = gs(&[
+        "tile",
+        "--scene",
+        s.to_str().unwrap(),
+        "--out",
+        p.to_str().unwrap(),
+    ]);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("FAR_AWAY") && text.contains("zz_far.gml") && text.contains("100000"),
+        "{text}"
+    );
+    assert_eq!(text.trim().lines().count(), 1, "{text}");
+    assert!(!p.exists() && !d.join("plan.partial").exists());
+}

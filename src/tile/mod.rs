@@ -494,6 +494,46 @@ fn segment_hits_box(a: DVec3, b: DVec3, lo: DVec3, hi: DVec3) -> bool {
     true
 }
 
+/// Most tiles a plan may hold (100,000 tiles of 150 m cover 2,250 km²).
+pub const MAX_TILES: usize = 100_000;
+
+/// The error of a grid of more than [`MAX_TILES`] tiles: the extent, and the footprint farthest
+/// from the footprints' median centre (the usual cause: one building in another CRS).
+fn too_many_tiles(
+    feet: &[gml::Footprint],
+    files: &[PathBuf],
+    n: [f64; 2],
+    [lo, hi]: [[f64; 2]; 2],
+    size: f64,
+) -> TileError {
+    let median = |k: usize| {
+        let mut v: Vec<f64> = feet.iter().map(|f| f.centre[k]).collect();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let m = [median(0), median(1)];
+    let dist = |f: &gml::Footprint| (f.centre[0] - m[0]).hypot(f.centre[1] - m[1]);
+    let far = feet
+        .iter()
+        .max_by(|a, b| dist(a).total_cmp(&dist(b)))
+        .expect("footprints checked non-empty");
+    let file = files
+        .get(far.file)
+        .map(|p| p.display().to_string())
+        .unwrap_or_default();
+    TileError::Invalid(format!(
+        "the city model's footprints span {:.0} × {:.0} m: {:.0} × {:.0} tiles of {size} m, more than \
+         {MAX_TILES}; the footprint farthest from the others is {} in {file}, {:.0} m from their \
+         median centre (a building in another CRS?): remove it, or choose a larger --size",
+        hi[0] - lo[0],
+        hi[1] - lo[1],
+        n[0],
+        n[1],
+        far.id,
+        dist(far),
+    ))
+}
+
 /// Writes the tile plan of scene `scene_dir` into `out` (which must not exist): one scene folder
 /// per tile, `plan.json`, and the Slurm batch scripts. Built in `out.partial` and renamed, so a
 /// failed plan leaves nothing that looks done. `exe` is the `gs4city` binary the batch
@@ -543,8 +583,19 @@ pub fn plan(
             hi[k] = hi[k].max(f.centre[k]);
         }
     }
-    let n = |k: usize| (((hi[k] - lo[k]) / opts.size_m).ceil() as usize).max(1);
-    let (nx, ny) = (n(0), n(1));
+    // Counted in f64 before anything is allocated: one footprint far from the others (a
+    // building in another CRS) would otherwise ask for millions of tiles.
+    let n = |k: usize| ((hi[k] - lo[k]) / opts.size_m).ceil().max(1.0);
+    if n(0) * n(1) > MAX_TILES as f64 {
+        return Err(too_many_tiles(
+            &feet,
+            &scene.gml,
+            [n(0), n(1)],
+            [lo, hi],
+            opts.size_m,
+        ));
+    }
+    let (nx, ny) = (n(0) as usize, n(1) as usize);
     let grid = Grid {
         origin: [
             lo[0] - (nx as f64 * opts.size_m - (hi[0] - lo[0])) / 2.0,
