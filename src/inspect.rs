@@ -643,6 +643,22 @@ fn read_citygml(gml: &[PathBuf], f: &mut Findings) -> Option<Vec<CityModel>> {
                             .unwrap_or_default();
                     f.warn(p, format!("line {}: {id}{}", w.line, w.message));
                 }
+                for poly in m
+                    .used_polygons()
+                    .filter(|q| q.points() > crate::citygml::MAX_POLYGON_POINTS)
+                {
+                    f.warn(
+                        p,
+                        format!(
+                            "line {}: {}: {} points, more than the {} a polygon may have: the \
+                             citymodel stage skips it",
+                            poly.line,
+                            poly.name(),
+                            poly.points(),
+                            crate::citygml::MAX_POLYGON_POINTS
+                        ),
+                    );
+                }
                 if m.used_polygons().next().is_none() {
                     f.error(
                         p,
@@ -824,13 +840,17 @@ fn local_alignment(models: &[CityModel]) -> Alignment {
     })
 }
 
-/// The used polygons' exterior rings in the scene frame, fan-triangulated.
+/// The used polygons' exterior rings in the scene frame, fan-triangulated (those the
+/// citymodel stage skips as too long are left out).
 fn fan_mesh(models: &[CityModel], a: &Alignment) -> (Vec<[f32; 3]>, Vec<[u32; 3]>) {
     let (mut vertices, mut faces) = (Vec::new(), Vec::new());
     for m in models {
         for p in m.used_polygons() {
             let pts = &p.exterior.points;
-            if pts.len() < 3 || pts.iter().any(|q| !q.is_finite()) {
+            if pts.len() < 3
+                || p.points() > crate::citygml::MAX_POLYGON_POINTS
+                || pts.iter().any(|q| !q.is_finite())
+            {
                 continue;
             }
             let base = vertices.len() as u32;

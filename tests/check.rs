@@ -708,3 +708,78 @@ fn every_view_can_train_on_a_scene_with_ground_truth() {
     assert_eq!(summary["test_views"].as_array().map(Vec::len), Some(0));
     let _ = std::fs::remove_dir_all(&r);
 }
+
+/// A polygon of 12,000 points (all on one circle: the triangulation's slowest case) is named
+/// in a warning by the check, which stays fast, and skipped by the citymodel stage, which
+/// names it too and still triangulates every other polygon.
+#[test]
+fn a_polygon_over_the_point_limit_is_named_and_skipped_not_triangulated() {
+    let r = root("longring");
+    let base = r.join("base");
+    synth(&base);
+    let d = r.join("long");
+    variant(&base, &d, &["citymodel"]);
+    let align: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(base.join("citymodel/alignment.json")).unwrap(),
+    )
+    .unwrap();
+    let o: Vec<f64> = (0..3)
+        .map(|k| align["origin"][k].as_f64().unwrap())
+        .collect();
+    let n = 12_000;
+    let ring: Vec<String> = (0..=n)
+        .map(|i| {
+            let t = std::f64::consts::TAU * (i % n) as f64 / n as f64;
+            format!(
+                "{} {} {}",
+                o[0] + 5.0 * t.cos(),
+                o[1],
+                o[2] + 5.0 + 5.0 * t.sin()
+            )
+        })
+        .collect();
+    std::fs::write(
+        d.join("citymodel/zz_long.gml"),
+        format!(
+            r#"<?xml version="1.0" encoding="utf-8"?>
+<core:CityModel xmlns:core="http://www.opengis.net/citygml/2.0" xmlns:bldg="http://www.opengis.net/citygml/building/2.0" xmlns:gml="http://www.opengis.net/gml">
+<core:cityObjectMember><bldg:Building gml:id="ROUND"><bldg:boundedBy><bldg:WallSurface gml:id="ROUND_WALL"><bldg:lod3MultiSurface><gml:MultiSurface><gml:surfaceMember><gml:Polygon gml:id="LONG_RING"><gml:exterior><gml:LinearRing><gml:posList srsDimension="3">{}</gml:posList></gml:LinearRing></gml:exterior></gml:Polygon></gml:surfaceMember></gml:MultiSurface></bldg:lod3MultiSurface></bldg:WallSurface></bldg:boundedBy></bldg:Building></core:cityObjectMember>
+</core:CityModel>
+"#,
+            ring.join(" ")
+        ),
+    )
+    .unwrap();
+    let (ok, _, err) = cli_in(None, &["check", "--scene", s(&d)]);
+    assert!(ok, "{err}");
+    let warned: Vec<&str> = err.lines().filter(|l| l.contains("LONG_RING")).collect();
+    assert_eq!(warned.len(), 1, "{err}");
+    assert!(
+        warned[0].contains("zz_long.gml") && warned[0].contains("more than the 10000"),
+        "{err}"
+    );
+    let out = r.join("cm");
+    let (ok, _, err) = cli_in(
+        None,
+        &["citymodel", s(&d.join("citymodel")), "--out", s(&out)],
+    );
+    assert!(ok, "{err}");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let skipped: Vec<&serde_json::Value> = summary["skipped"]["polygons"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|p| p["polygon"] == "LONG_RING")
+        .collect();
+    assert_eq!(skipped.len(), 1, "{summary}");
+    assert!(
+        skipped[0]["reason"]
+            .as_str()
+            .unwrap()
+            .contains("12000 points, more than the 10000"),
+        "{summary}"
+    );
+    let mesh = gs4city::mesh::TriMesh::read_ply(&out.join("mesh.ply")).unwrap();
+    assert!(!mesh.faces.is_empty());
+}

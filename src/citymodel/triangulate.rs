@@ -12,6 +12,8 @@ use glam::{DVec2, DVec3};
 use spade::handles::FixedVertexHandle;
 use spade::{ConstrainedDelaunayTriangulation, Point2, Triangulation};
 
+use crate::citygml::MAX_POLYGON_POINTS;
+
 /// Why a polygon produced no triangles.
 #[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize)]
 pub enum SkipReason {
@@ -25,6 +27,8 @@ pub enum SkipReason {
     Cdt(String),
     /// The constraints enclose no face.
     Empty,
+    /// More points than [`MAX_POLYGON_POINTS`] (all rings together): skipped, not triangulated.
+    TooManyPoints(usize),
 }
 
 impl std::fmt::Display for SkipReason {
@@ -37,6 +41,10 @@ impl std::fmt::Display for SkipReason {
             SkipReason::NonFinite => f.write_str("non-finite (NaN/Inf) coordinate"),
             SkipReason::Cdt(e) => write!(f, "triangulation failed: {e}"),
             SkipReason::Empty => f.write_str("rings enclose no area"),
+            SkipReason::TooManyPoints(n) => write!(
+                f,
+                "{n} points, more than the {MAX_POLYGON_POINTS} a polygon may have"
+            ),
         }
     }
 }
@@ -272,6 +280,10 @@ fn triangulate_ring(
     {
         return Err(SkipReason::NonFinite);
     }
+    let points = exterior.len() + interiors.iter().map(Vec::len).sum::<usize>();
+    if points > MAX_POLYGON_POINTS {
+        return Err(SkipReason::TooManyPoints(points));
+    }
     let mut repairs = Vec::new();
     let (ext, removed) = dedup_ring(exterior);
     let mut dups = removed;
@@ -503,6 +515,42 @@ mod tests {
             DVec3::new(x1, y1, 0.0),
             DVec3::new(x0, y1, 0.0),
         ]
+    }
+
+    /// `n` points on a circle of radius `r` (z = 0), counter-clockwise.
+    fn circle(n: usize, r: f64) -> Vec<DVec3> {
+        (0..n)
+            .map(|i| {
+                let t = std::f64::consts::TAU * i as f64 / n as f64;
+                DVec3::new(r * t.cos(), r * t.sin(), 0.0)
+            })
+            .collect()
+    }
+
+    /// A polygon of more than MAX_POLYGON_POINTS points (rings together) is skipped with its
+    /// count; one at the limit is triangulated (n − 2 triangles of a convex ring, area of
+    /// the inscribed polygon).
+    #[test]
+    fn a_polygon_over_the_point_limit_is_skipped_with_its_count() {
+        let n = MAX_POLYGON_POINTS;
+        assert_eq!(
+            triangulate(&circle(n + 1, 10.0), &[]).unwrap_err(),
+            SkipReason::TooManyPoints(n + 1)
+        );
+        let half = n / 2;
+        assert_eq!(
+            triangulate(&circle(half, 10.0), &[circle(n - half + 1, 5.0)]).unwrap_err(),
+            SkipReason::TooManyPoints(n + 1)
+        );
+        assert!(
+            SkipReason::TooManyPoints(n + 1)
+                .to_string()
+                .contains(&format!("{} points, more than the {n}", n + 1))
+        );
+        let t = triangulate(&circle(n, 10.0), &[]).unwrap();
+        assert_eq!(t.triangles.len(), n - 2);
+        let inscribed = 0.5 * n as f64 * 100.0 * (std::f64::consts::TAU / n as f64).sin();
+        assert!((t.area_projected - inscribed).abs() < 1e-9 * inscribed);
     }
 
     /// A vertical wall (x–z plane) 4×3 with a 1.5×1.2 window hole: area 10.2, 8 triangles (BUILD.md, CGAL).
