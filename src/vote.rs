@@ -48,6 +48,28 @@ pub enum VoteError {
     },
     #[error(transparent)]
     Embree(#[from] crate::embree::EmbreeError),
+    #[error("{path}: {why}")]
+    View {
+        path: std::path::PathBuf,
+        why: String,
+    },
+}
+
+/// Checks that view `v`'s cached lists `c` have the size of its camera: a cache file of
+/// another size is named (not the label map that is then read at its size).
+pub fn check_view_size(cache: &Cache, v: &View, c: &ViewContrib) -> Result<(), VoteError> {
+    let k = &v.camera.intrinsics;
+    let (w, h) = (k.width as usize, k.height as usize);
+    if (c.width, c.height) == (w, h) {
+        return Ok(());
+    }
+    Err(VoteError::View {
+        path: crate::cache::cache_file(&cache.dir, &v.stem()),
+        why: format!(
+            "{}×{} pixels (width × height), the camera of view {} is {w}×{h}",
+            c.width, c.height, v.name
+        ),
+    })
 }
 
 /// Everything a vote-based stage reads (`lift`, and `train`, which starts from the vote).
@@ -766,6 +788,7 @@ pub fn vote(
     type Slot = (ViewContrib, Vec<u8>, Vec<i32>, Option<GateView>);
     let load = |v: &View, s: &mut Slot| -> Result<(), VoteError> {
         cache.load_into(&v.stem(), &mut s.0, &mut s.1)?;
+        check_view_size(cache, v, &s.0)?;
         s.2 = maps.read(&v.stem(), s.0.width, s.0.height)?;
         s.3 = gate.map(|g| g.view(v, &s.0, &s.2)).transpose()?;
         Ok(())

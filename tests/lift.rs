@@ -18,8 +18,11 @@ struct Lifted {
 }
 
 fn lift_wall(name: &str, gamma: f32, top_k: usize) -> (Lifted, wall::Splats) {
-    lift_wall_with(name, gamma, top_k, 0.0, None).unwrap()
+    lift_wall_with(name, gamma, top_k, 0.0, None, None).unwrap()
 }
+
+/// A change to the cache folder before the lift (its path, the views, the Gaussians).
+type Tamper<'a> = &'a dyn Fn(&std::path::Path, &[gs4city::camera::View], &PreparedScene);
 
 /// [`lift_wall`] with the city-model prior's weight and, when the prior is on, the mesh it
 /// reads (`None`: the citymodel stage's own `mesh.ply`).
@@ -29,6 +32,7 @@ fn lift_wall_with(
     top_k: usize,
     prior: f32,
     mesh: Option<&std::path::Path>,
+    tamper: Option<Tamper<'_>>,
 ) -> Result<(Lifted, wall::Splats), lift::LiftError> {
     let dir = wall::tmp(name);
     let (scene, s) = wall::write_scene(&dir.join("scene"), 5);
@@ -59,6 +63,9 @@ fn lift_wall_with(
         &dir.join("cache"),
     )
     .unwrap();
+    if let Some(f) = tamper {
+        f(&dir.join("cache"), &views, &prepared);
+    }
     let cache = Cache::open(&dir.join("cache")).unwrap();
     let split = Split::new(views, 4);
     let labels = LabelTable::city(&cm.entities, &classes::table(&cm.entities)).unwrap();
@@ -99,7 +106,7 @@ fn lift_wall_with(
 #[test]
 fn the_city_model_prior_reaches_every_gaussian_on_the_model_no_floater_and_turns_none_wrong() {
     let (off, s) = lift_wall("prior_off", 0.0, 16);
-    let (on, _) = lift_wall_with("prior_on", 0.0, 16, 0.3, None).unwrap();
+    let (on, _) = lift_wall_with("prior_on", 0.0, 16, 0.3, None, None).unwrap();
     // Every wall and window Gaussian lies on the model (the window 0.15 m behind the wall's
     // plane, within the 0.2 m reach); the floaters stand 8–12 m in front of it.
     let on_model = s.real.iter().filter(|&&c| c >= 0).count();
@@ -134,7 +141,7 @@ fn the_city_model_prior_reaches_every_gaussian_on_the_model_no_floater_and_turns
 #[test]
 fn a_missing_city_mesh_is_an_error_naming_it() {
     let missing = std::env::temp_dir().join("gs4city-no-such-dir/mesh.ply");
-    let e = lift_wall_with("prior_missing", 0.0, 16, 0.3, Some(&missing))
+    let e = lift_wall_with("prior_missing", 0.0, 16, 0.3, Some(&missing), None)
         .err()
         .expect("a missing mesh fails the stage")
         .to_string();
@@ -242,4 +249,43 @@ fn gamma_one_sends_everything_to_background_and_all_equals_topk_here() {
     for l in [one, all, top] {
         std::fs::remove_dir_all(&l.dir).unwrap();
     }
+}
+
+/// A training view's cache file rendered for a camera of half the size (a stale or foreign
+/// file): the lift refuses it naming that file and both sizes, not the label map it would
+/// then read at the wrong size.
+#[test]
+fn a_cache_file_of_another_size_than_its_camera_is_named() {
+    let stem = std::cell::RefCell::new(String::new());
+    let half = |dir: &std::path::Path, views: &[gs4city::camera::View], g: &PreparedScene| {
+        let mut v = views[1].clone();
+        let k = &mut v.camera.intrinsics;
+        (k.width, k.height) = (k.width / 2, k.height / 2);
+        (k.fx, k.fy, k.cx, k.cy) = (k.fx / 2.0, k.fy / 2.0, k.cx / 2.0, k.cy / 2.0);
+        let opts = CacheOptions {
+            top_k: 16,
+            epsilon: 0.0,
+            t_stop: 0.0,
+        };
+        let c = gs4city::render::cache::contrib(g, &v, &opts).unwrap();
+        c.write(&gs4city::cache::cache_file(dir, &v.stem()))
+            .unwrap();
+        *stem.borrow_mut() = v.stem();
+    };
+    let e = lift_wall_with("half_size", 0.0, 16, 0.0, None, Some(&half))
+        .err()
+        .expect("refused")
+        .to_string();
+    let views = wall::views();
+    let k = &views[1].camera.intrinsics;
+    let want = format!(
+        "{}.contrib: {}×{} pixels (width × height), the camera of view {} is {}×{}",
+        stem.borrow(),
+        k.width / 2,
+        k.height / 2,
+        views[1].name,
+        k.width,
+        k.height
+    );
+    assert!(e.contains(&want), "{e}\nwanted: {want}");
 }

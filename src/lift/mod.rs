@@ -155,6 +155,7 @@ pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftS
             let (mut c, mut buf) = (ViewContrib::empty(), Vec::new());
             for v in inp.test {
                 inp.cache.load_into(&v.stem(), &mut c, &mut buf)?;
+                crate::vote::check_view_size(inp.cache, v, &c)?;
                 let (cm, lm) = predict(&c, &label, &class);
                 write_prediction(out, &v.stem(), c.width, c.height, &cm, &lm)?;
             }
