@@ -784,3 +784,45 @@ fn a_byte_order_mark_is_skipped() {
     assert!(!b.polygons.is_empty());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A CityObject of a type the reader does not know (an extension's, or a typo) with a child:
+/// both are skipped, with a warning that names the object, its type and the descendants; the
+/// rest of the file is read as before (it was reported as a hierarchy cycle, naming the child).
+#[test]
+fn an_unknown_type_is_skipped_with_its_subtree_and_named() {
+    let dir = scratch("unknown-type");
+    let mut v = cube();
+    let b1 = v["CityObjects"]["B1"].clone();
+    let mut ship = b1.clone();
+    ship["type"] = serde_json::json!("+Spaceship");
+    ship["children"] = serde_json::json!(["S1-part"]);
+    let mut part = v["CityObjects"]["B1-inst"].clone();
+    part["parents"] = serde_json::json!(["S1"]);
+    v["CityObjects"]["S1"] = ship;
+    v["CityObjects"]["S1-part"] = part;
+    let p = write(&dir, "ship.city.json", &v);
+    let m = cityjson::read(&p).unwrap_or_else(|e| panic!("{e}"));
+    let ids: Vec<&str> = m.objects.iter().map(|o| o.object_id.as_str()).collect();
+    assert_eq!(
+        ids,
+        vec![
+            "B1",
+            "B1/WallSurface[1]",
+            "win-1",
+            "B1/RoofSurface[1]",
+            "B1-inst"
+        ]
+    );
+    let named: Vec<&str> = m
+        .warnings
+        .iter()
+        .filter(|w| w.id.as_deref() == Some("S1"))
+        .map(|w| w.message.as_str())
+        .collect();
+    assert_eq!(named.len(), 1, "{:?}", m.warnings);
+    assert!(
+        named[0].contains("\"+Spaceship\"") && named[0].contains("its 1 descendant(s)"),
+        "{}",
+        named[0]
+    );
+}

@@ -545,6 +545,29 @@ impl<'a> Builder<'a> {
                 let t = co["type"].as_str().expect("checked above");
                 let Some(class) = object_class(t) else {
                     self.skipped(format!("CityObject {t}"));
+                    // Its subtree goes with it (marked reached, so that it is not taken for
+                    // a cycle below).
+                    let mut below = 0usize;
+                    let mut sub: Vec<&str> = vec![id];
+                    while let Some(x) = sub.pop() {
+                        let kids = cos[x].get("children").and_then(Value::as_array);
+                        for c in kids.into_iter().flatten().filter_map(Value::as_str) {
+                            if visited.insert(c) {
+                                below += 1;
+                                sub.push(c);
+                            }
+                        }
+                    }
+                    if below > 0 {
+                        self.warn(
+                            at.line,
+                            Some(id.to_string()),
+                            format!(
+                                "a CityObject of type \"{t}\", which gs4city does not read: \
+                                 its {below} descendant(s) are skipped with it"
+                            ),
+                        );
+                    }
                     continue;
                 };
                 let me = plan.len();
