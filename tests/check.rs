@@ -727,27 +727,15 @@ fn a_polygon_over_the_point_limit_is_named_and_skipped_not_triangulated() {
         .map(|k| align["origin"][k].as_f64().unwrap())
         .collect();
     let n = 12_000;
-    let ring: Vec<String> = (0..=n)
+    let ring: Vec<[f64; 3]> = (0..=n)
         .map(|i| {
             let t = std::f64::consts::TAU * (i % n) as f64 / n as f64;
-            format!(
-                "{} {} {}",
-                o[0] + 5.0 * t.cos(),
-                o[1],
-                o[2] + 5.0 + 5.0 * t.sin()
-            )
+            [o[0] + 5.0 * t.cos(), o[1], o[2] + 5.0 + 5.0 * t.sin()]
         })
         .collect();
     std::fs::write(
         d.join("citymodel/zz_long.gml"),
-        format!(
-            r#"<?xml version="1.0" encoding="utf-8"?>
-<core:CityModel xmlns:core="http://www.opengis.net/citygml/2.0" xmlns:bldg="http://www.opengis.net/citygml/building/2.0" xmlns:gml="http://www.opengis.net/gml">
-<core:cityObjectMember><bldg:Building gml:id="ROUND"><bldg:boundedBy><bldg:WallSurface gml:id="ROUND_WALL"><bldg:lod3MultiSurface><gml:MultiSurface><gml:surfaceMember><gml:Polygon gml:id="LONG_RING"><gml:exterior><gml:LinearRing><gml:posList srsDimension="3">{}</gml:posList></gml:LinearRing></gml:exterior></gml:Polygon></gml:surfaceMember></gml:MultiSurface></bldg:lod3MultiSurface></bldg:WallSurface></bldg:boundedBy></bldg:Building></core:cityObjectMember>
-</core:CityModel>
-"#,
-            ring.join(" ")
-        ),
+        crate::common::one_wall_citygml("ROUND", "LONG_RING", &ring),
     )
     .unwrap();
     let (ok, _, err) = cli_in(None, &["check", "--scene", s(&d)]);

@@ -627,13 +627,7 @@ fn a_ply_with_trailing_bytes_or_in_ascii_is_refused_naming_it() {
     ] {
         let d = tmp(&format!("bad-ply-{name}"));
         let s = d.join("scene");
-        std::fs::create_dir_all(&s).unwrap();
-        for e in std::fs::read_dir(src).unwrap() {
-            let e = e.unwrap();
-            if e.file_name() != "point_cloud.ply" {
-                std::os::unix::fs::symlink(e.path(), s.join(e.file_name())).unwrap();
-            }
-        }
+        link_except(src, &s, "point_cloud.ply");
         std::fs::write(s.join("point_cloud.ply"), bytes).unwrap();
         let p = d.join("plan");
         let (ok, text) = gs(&[
@@ -653,6 +647,17 @@ fn a_ply_with_trailing_bytes_or_in_ascii_is_refused_naming_it() {
             "{name}: {text}"
         );
         assert!(!p.join("plan.json").exists(), "{name}: a plan was left");
+    }
+}
+
+/// Folder `dst` (made) with a symbolic link to every entry of `src` but `except`.
+fn link_except(src: &Path, dst: &Path, except: &str) {
+    std::fs::create_dir_all(dst).unwrap();
+    for e in std::fs::read_dir(src).unwrap() {
+        let e = e.unwrap();
+        if e.file_name() != except {
+            std::os::unix::fs::symlink(e.path(), dst.join(e.file_name())).unwrap();
+        }
     }
 }
 
@@ -817,34 +822,18 @@ fn a_footprint_far_from_the_others_is_named_instead_of_planning_millions_of_tile
     let src = scene();
     let d = tmp("far-footprint");
     let s = d.join("scene");
-    std::fs::create_dir_all(s.join("citymodel")).unwrap();
-    for e in std::fs::read_dir(src).unwrap() {
-        let e = e.unwrap();
-        if e.file_name() != "citymodel" {
-            std::os::unix::fs::symlink(e.path(), s.join(e.file_name())).unwrap();
-        }
-    }
-    for e in std::fs::read_dir(src.join("citymodel")).unwrap() {
-        let e = e.unwrap();
-        std::os::unix::fs::symlink(e.path(), s.join("citymodel").join(e.file_name())).unwrap();
-    }
+    link_except(src, &s, "citymodel");
+    link_except(&src.join("citymodel"), &s.join("citymodel"), "");
     let al: Value =
         serde_json::from_slice(&std::fs::read(src.join("citymodel/alignment.json")).unwrap())
             .unwrap();
     let o: Vec<f64> = (0..3).map(|k| al["origin"][k].as_f64().unwrap()).collect();
     let (x, y, z) = (o[0] + 700_000.0, o[1] + 700_000.0, o[2]);
-    let ring: Vec<String> = [(0.0, 0.0), (10.0, 0.0), (10.0, 8.0), (0.0, 8.0), (0.0, 0.0)]
+    let ring: Vec<[f64; 3]> = [(0.0, 0.0), (10.0, 0.0), (10.0, 8.0), (0.0, 8.0), (0.0, 0.0)]
         .iter()
-        .map(|(dx, dz)| format!("{} {y} {}", x + dx, z + dz))
+        .map(|(dx, dz)| [x + dx, y, z + dz])
         .collect();
-    let gml = format!(
-        r#"<?xml version="1.0" encoding="utf-8"?>
-<core:CityModel xmlns:core="http://www.opengis.net/citygml/2.0" xmlns:bldg="http://www.opengis.net/citygml/building/2.0" xmlns:gml="http://www.opengis.net/gml">
-<core:cityObjectMember><bldg:Building gml:id="FAR_AWAY"><bldg:boundedBy><bldg:WallSurface gml:id="FAR_WALL"><bldg:lod3MultiSurface><gml:MultiSurface><gml:surfaceMember><gml:Polygon gml:id="FAR_POLY"><gml:exterior><gml:LinearRing><gml:posList srsDimension="3">{}</gml:posList></gml:LinearRing></gml:exterior></gml:Polygon></gml:surfaceMember></gml:MultiSurface></bldg:lod3MultiSurface></bldg:WallSurface></bldg:boundedBy></bldg:Building></core:cityObjectMember>
-</core:CityModel>
-"#,
-        ring.join(" ")
-    );
+    let gml = crate::common::one_wall_citygml("FAR_AWAY", "FAR_POLY", &ring);
     std::fs::write(s.join("citymodel/zz_far.gml"), gml).unwrap();
     let p = d.join("plan");
     let (ok, text) = gs(&[

@@ -253,3 +253,20 @@ pub fn skip(test: &str, why: &str) {
 }
 
 pub mod wall;
+
+/// A CityGML 2.0 document of one building `building` with one LoD3 wall surface whose one
+/// polygon `polygon` has the exterior ring `ring` (points `x y z`, the closing one included).
+pub fn one_wall_citygml(building: &str, polygon: &str, ring: &[[f64; 3]]) -> String {
+    let pos: Vec<String> = ring
+        .iter()
+        .map(|[x, y, z]| format!("{x} {y} {z}"))
+        .collect();
+    format!(
+        r#"<?xml version="1.0" encoding="utf-8"?>
+<core:CityModel xmlns:core="http://www.opengis.net/citygml/2.0" xmlns:bldg="http://www.opengis.net/citygml/building/2.0" xmlns:gml="http://www.opengis.net/gml">
+<core:cityObjectMember><bldg:Building gml:id="{building}"><bldg:boundedBy><bldg:WallSurface gml:id="{building}_WALL"><bldg:lod3MultiSurface><gml:MultiSurface><gml:surfaceMember><gml:Polygon gml:id="{polygon}"><gml:exterior><gml:LinearRing><gml:posList srsDimension="3">{}</gml:posList></gml:LinearRing></gml:exterior></gml:Polygon></gml:surfaceMember></gml:MultiSurface></bldg:lod3MultiSurface></bldg:WallSurface></bldg:boundedBy></bldg:Building></core:cityObjectMember>
+</core:CityModel>
+"#,
+        pos.join(" ")
+    )
+}
