@@ -254,7 +254,15 @@ impl Pose {
     /// From a COLMAP quaternion `(qw, qx, qy, qz)` (normalised here) and translation.
     /// Returns `None` for a non-finite or zero quaternion or a non-finite translation.
     pub fn from_colmap(q: [f64; 4], t: [f64; 3]) -> Option<Pose> {
-        let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let mut q = q;
+        let mut norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if norm == f64::INFINITY && q.iter().all(|v| v.is_finite()) {
+            // Finite components whose squares overflow (|q| > 1.3e154): scaled first, so that
+            // the direction is kept (a finite quaternion of any size is a rotation).
+            let m = q.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            q = q.map(|v| v / m);
+            norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        }
         if !norm.is_finite() || norm < 1e-12 || t.iter().any(|v| !v.is_finite()) {
             return None;
         }

@@ -600,8 +600,10 @@ fn parse_points_txt(path: &Path, text: &str) -> Result<Vec<Point3D>, ColmapError
 
 // ---------------------------------------------------------------- public API
 
-/// The bytes of a text-format file as UTF-8, or an error naming the line of the first bad byte.
+/// The bytes of a text-format file as UTF-8 (a leading byte-order mark, as some Windows
+/// editors write, skipped), or an error naming the line of the first bad byte.
 fn utf8<'a>(path: &Path, bytes: &'a [u8]) -> Result<&'a str, ColmapError> {
+    let bytes = bytes.strip_prefix("\u{feff}".as_bytes()).unwrap_or(bytes);
     std::str::from_utf8(bytes).map_err(|e| {
         let line = 1 + bytes[..e.valid_up_to()]
             .iter()
@@ -984,6 +986,24 @@ mod tests {
         std::fs::write(dir.join("images.txt"), "1 1 0 0 0 0 0 0 9 a.png\n\n").unwrap();
         let e = read_model(&dir).unwrap_err().to_string();
         assert!(e.contains("camera 9") && e.contains("a.png"), "{e}");
+
+        // A byte-order mark before the first line (Windows editors) is skipped, and a
+        // quaternion whose squares overflow is the rotation of its direction.
+        std::fs::write(
+            dir.join("cameras.txt"),
+            "\u{feff}1 PINHOLE 100 80 90 91 50 40\n",
+        )
+        .unwrap();
+        std::fs::write(
+            dir.join("images.txt"),
+            "\u{feff}# header\n1 1e200 1e200 0 0 0 0 0 1 a.png\n\n2 1 1 0 0 0 0 0 1 b.png\n\n",
+        )
+        .unwrap();
+        let v = read_model(&dir).unwrap();
+        assert_eq!(v[0].camera.intrinsics.fx, 90.0);
+        assert_eq!(v[0].camera.pose.rotation, v[1].camera.pose.rotation);
+        let quarter_turn_x = glam::DMat3::from_rotation_x(std::f64::consts::FRAC_PI_2);
+        assert!(v[0].camera.pose.rotation.abs_diff_eq(quarter_turn_x, 1e-15));
 
         std::fs::write(dir.join("images.txt"), "1 1 0 0 nan 0 0 0 1 a.png\n\n").unwrap();
         let e = read_model(&dir).unwrap_err();
