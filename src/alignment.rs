@@ -272,6 +272,11 @@ pub struct Estimate {
     pub warnings: Vec<String>,
 }
 
+/// Largest coordinate a point pair may hold: far beyond any coordinate reference system
+/// (geocentric coordinates stay below 7·10⁶ m), and small enough that the fit's sums of
+/// squares keep their precision.
+pub const MAX_COORDINATE: f64 = 1e12;
+
 /// Reads point pairs: 6 numbers per line `geo_x geo_y geo_z scene_x scene_y scene_z`
 /// (comma- or whitespace-separated); `#` comments and a non-numeric header line are skipped.
 pub fn read_pairs(path: &Path) -> Result<Vec<(DVec3, DVec3)>, AlignError> {
@@ -321,6 +326,13 @@ pub fn parse_pairs(path: &Path, text: &str) -> Result<Vec<(DVec3, DVec3)>, Align
         if let Some(k) = vals.iter().position(|v| !v.is_finite()) {
             return Err(csv(format!(
                 "{} is {}, not a finite number",
+                NAMES[k], vals[k]
+            )));
+        }
+        if let Some(k) = vals.iter().position(|v| v.abs() > MAX_COORDINATE) {
+            return Err(csv(format!(
+                "{} is {:e}: beyond {MAX_COORDINATE:e}, which no coordinate reference system \
+                 reaches (a unit or a column slip?)",
                 NAMES[k], vals[k]
             )));
         }

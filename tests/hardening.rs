@@ -471,6 +471,15 @@ fn mirrored_degenerate_and_poor_point_pairs_are_refused_or_warned() {
     );
     let e = align::parse_pairs(p, "1,2,3,4,5,6\n1,2,x,4,5,6\n").unwrap_err();
     assert!(e.to_string().contains("\"x\" is not a number"), "{e}");
+    // A finite but absurd coordinate is named on its row (it was "collinear or coincident").
+    let e = align::parse_pairs(p, "1,2,3,4,5,6\n1,2,3,4,1e300,6\n").unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("pairs.csv:2: scene_y is 1e300: beyond 1e12"),
+        "{e}"
+    );
+    let ok = align::parse_pairs(p, "6e6,5e6,400,1e11,-1e11,3\n").unwrap();
+    assert_eq!(ok[0].1, glam::DVec3::new(1e11, -1e11, 3.0));
 }
 
 // ------------------------------------------------------------------ 3DGS values at load
