@@ -154,6 +154,15 @@ pub enum CacheError {
         found: usize,
         expected: usize,
     },
+    #[error(
+        "{path}: {}×{} pixels (width × height), its view's camera is {}×{}",
+        found.0, found.1, expected.0, expected.1
+    )]
+    Size {
+        path: PathBuf,
+        found: (usize, usize),
+        expected: (usize, usize),
+    },
     #[error(transparent)]
     Fs(#[from] fsutil::FsError),
 }
@@ -906,6 +915,25 @@ pub struct Cache {
 }
 
 impl Cache {
+    /// Checks that view `stem`'s cached planes or lists, `found` = (width, height), have the
+    /// size of its camera, `expected`: a file of another size is named with both (before a
+    /// map of the camera's size is read at the cache's, or the other way round).
+    pub fn check_size(
+        &self,
+        stem: &str,
+        found: (usize, usize),
+        expected: (usize, usize),
+    ) -> Result<(), CacheError> {
+        if found == expected {
+            return Ok(());
+        }
+        Err(CacheError::Size {
+            path: cache_file(&self.dir, stem),
+            found,
+            expected,
+        })
+    }
+
     /// Opens a cache folder (reads its summary).
     pub fn open(dir: &Path) -> Result<Cache, CacheError> {
         Ok(Cache {

@@ -48,28 +48,16 @@ pub enum VoteError {
     },
     #[error(transparent)]
     Embree(#[from] crate::embree::EmbreeError),
-    #[error("{path}: {why}")]
-    View {
-        path: std::path::PathBuf,
-        why: String,
-    },
 }
 
-/// Checks that view `v`'s cached lists `c` have the size of its camera: a cache file of
-/// another size is named (not the label map that is then read at its size).
-pub fn check_view_size(cache: &Cache, v: &View, c: &ViewContrib) -> Result<(), VoteError> {
+/// [`Cache::check_size`] of view `v`'s loaded lists `c` against its camera.
+pub fn check_view_size(cache: &Cache, v: &View, c: &ViewContrib) -> Result<(), CacheError> {
     let k = &v.camera.intrinsics;
-    let (w, h) = (k.width as usize, k.height as usize);
-    if (c.width, c.height) == (w, h) {
-        return Ok(());
-    }
-    Err(VoteError::View {
-        path: crate::cache::cache_file(&cache.dir, &v.stem()),
-        why: format!(
-            "{}×{} pixels (width × height), the camera of view {} is {w}×{h}",
-            c.width, c.height, v.name
-        ),
-    })
+    cache.check_size(
+        &v.stem(),
+        (c.width, c.height),
+        (k.width as usize, k.height as usize),
+    )
 }
 
 /// Everything a vote-based stage reads (`lift`, and `train`, which starts from the vote).

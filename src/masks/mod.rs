@@ -612,15 +612,7 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
                 (c, d)
             }
         };
-        if (c.height, c.width) != (h, w) {
-            return Err(MasksError::Invalid {
-                path: crate::cache::cache_file(&cache.dir, &stem),
-                why: format!(
-                    "{}×{} pixels, the view's image is {h}×{w}",
-                    c.height, c.width
-                ),
-            });
-        }
+        cache.check_size(&stem, (c.width, c.height), (w, h))?;
         let t = Instant::now();
         let surface = &ids[h * w..2 * h * w];
         let s = geometry::classify(&city, &gs, feature, surface, h, w, &plan.depth);

@@ -537,15 +537,7 @@ fn scan_view(
     }
     if let Some(g) = geometry {
         let (c, gs) = g.cache.median_depth(&stem, g.positions, &cam.pose)?;
-        if (c.height, c.width) != (h, w) {
-            return Err(OpeningsError::Invalid {
-                path: crate::cache::cache_file(&g.cache.dir, &stem),
-                why: format!(
-                    "{}×{} pixels, the view's image is {h}×{w}",
-                    c.height, c.width
-                ),
-            });
-        }
+        g.cache.check_size(&stem, (c.width, c.height), (w, h))?;
         scan.candidates
             .extend(recess::candidates(&vm, &gs, frames, opts, scale)?);
     }
