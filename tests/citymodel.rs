@@ -528,3 +528,51 @@ fn nothing_triangulated_names_the_first_reason() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A polygon farther than `PLANARITY_TOLERANCE` from its plane is named in a warning with its
+/// deviation and still triangulated; one within the tolerance is not named. The saddles'
+/// expectations are by hand: corners (0,0,±h), (4,0,∓h), (4,4,±h), (0,4,∓h) have their centroid
+/// at z = 0 and, by symmetry, the Newell normal (0,0,1), so every corner lies exactly h from the
+/// plane.
+#[test]
+fn a_polygon_beyond_the_planarity_tolerance_is_named_with_its_deviation() {
+    let dir = crate::common::temp_dir().join(format!("gs4city-planar-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let saddle = |id: &str, h: f64| {
+        wall(&format!("0 0 {h} 4 0 {} 4 4 {h} 0 4 {} 0 0 {h}", -h, -h))
+            .replace("\"P1\"", &format!("\"{id}\""))
+    };
+    let f = dir.join("saddles.gml");
+    std::fs::write(
+        &f,
+        format!(
+            "{HEAD}{}{}{}{TAIL}",
+            saddle("BENT", 0.25),
+            saddle("SLIGHT", 0.004),
+            saddle("FLAT", 0.0)
+        ),
+    )
+    .unwrap();
+    let out = citymodel::run(std::slice::from_ref(&f), &Default::default()).unwrap();
+    let s = &out.summary;
+    let p = &s.max_planarity_deviation;
+    assert!((p.metres - 0.25).abs() < 1e-12, "{p:?}");
+    assert!(p.polygon.contains("BENT"), "{p:?}");
+    assert_eq!(p.beyond_tolerance, 1, "{p:?}");
+    let named: Vec<&String> = s
+        .warnings
+        .items
+        .iter()
+        .filter(|w| w.contains("from their plane"))
+        .collect();
+    assert_eq!(named.len(), 1, "{:?}", s.warnings.items);
+    let w = named[0];
+    assert!(
+        w.contains("saddles.gml:") && w.contains("BENT") && w.contains("up to 0.250 "),
+        "{w}"
+    );
+    // All three are triangulated: two triangles each.
+    assert_eq!(s.polygons_used, 3, "{s:?}");
+    assert_eq!(s.triangles, 6, "{s:?}");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -205,11 +205,23 @@ pub struct SkippedSummary {
     pub polygons: Vec<Skipped>,
 }
 
-/// The largest deviation of a polygon from its plane.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// A polygon whose vertices lie farther than this from their plane (the plane through their
+/// centroid with the exterior ring's Newell normal), in the file's units (metres in a projected
+/// CRS), gets a warning: val3dity's default distance-to-plane tolerance (`planarity_d2p`), the
+/// usual limit of CityGML validation. Such a polygon is still triangulated; its triangles follow
+/// its vertices.
+pub const PLANARITY_TOLERANCE: f64 = 0.01;
+
+/// The largest deviation of a polygon from its plane, and how many polygons exceed
+/// [`PLANARITY_TOLERANCE`].
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Planarity {
     pub metres: f64,
     pub polygon: String,
+    /// Triangulated polygons farther than [`PLANARITY_TOLERANCE`] from their plane (each one
+    /// named in the warnings).
+    #[serde(default)]
+    pub beyond_tolerance: usize,
 }
 
 /// xlink statistics.
@@ -476,7 +488,7 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
     let mut mesh = TriMesh::default();
     let mut skipped: Vec<Skipped> = Vec::new();
     let mut repairs: BTreeMap<&'static str, usize> = BTreeMap::new();
-    let mut worst_planarity = (0.0f64, String::new());
+    let mut planarity = Planarity::default();
     let mut holes_used = 0usize;
     for (job, res) in jobs.iter().zip(results) {
         let m = &models[job.file];
@@ -491,11 +503,19 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
             }),
             Ok(t) => {
                 holes_used += job.poly.interiors.len();
-                if t.planarity > worst_planarity.0 {
-                    worst_planarity = (
+                if t.planarity > planarity.metres {
+                    planarity.metres = t.planarity;
+                    planarity.polygon = format!("{} in {}", job.poly.label(), m.path.display());
+                }
+                if t.planarity > PLANARITY_TOLERANCE {
+                    planarity.beyond_tolerance += 1;
+                    warnings.push(format!(
+                        "{}:{}: {}: its vertices lie up to {:.3} from their plane (tolerance {PLANARITY_TOLERANCE}, in the file's units): triangulated, its triangles following the vertices",
+                        m.path.display(),
+                        job.poly.line,
+                        job.poly.name(),
                         t.planarity,
-                        format!("{} in {}", job.poly.label(), m.path.display()),
-                    );
+                    ));
                 }
                 for r in &t.repairs {
                     let key = match r {
@@ -578,7 +598,7 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
         &skipped,
         &repairs,
         &warnings,
-        worst_planarity,
+        planarity,
         holes_used,
         &alignment,
         opts.alignment.is_some(),
@@ -601,7 +621,7 @@ fn summarize(
     skipped: &[Skipped],
     repairs: &BTreeMap<&'static str, usize>,
     warnings: &[String],
-    worst_planarity: (f64, String),
+    planarity: Planarity,
     holes_used: usize,
     alignment: &Alignment,
     alignment_given: bool,
@@ -679,10 +699,7 @@ fn summarize(
             polygons: skipped.to_vec(),
         },
         repairs: repairs.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
-        max_planarity_deviation: Planarity {
-            metres: worst_planarity.0,
-            polygon: worst_planarity.1,
-        },
+        max_planarity_deviation: planarity,
         curves_skipped: sum(&|m| m.stats.curves_skipped),
         implicit_geometries_skipped: sum(&|m| m.stats.implicit_skipped),
         xlinks: Xlinks {
