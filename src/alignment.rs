@@ -11,6 +11,8 @@ use std::path::{Path, PathBuf};
 use glam::{DMat3, DVec3};
 use serde::{Deserialize, Serialize};
 
+use crate::numfmt::Num;
+
 /// Errors of alignment reading and estimation.
 #[derive(Debug, thiserror::Error)]
 pub enum AlignError {
@@ -140,8 +142,8 @@ impl Alignment {
             .fold(0.0f64, |m, v| m.max(v.abs()));
         if err > 1e-6 || rotation.determinant() < 0.0 {
             return Err(bad(format!(
-                "rotation is not a proper rotation (|RᵀR − I| = {err:.2e}, det = {:.6})",
-                rotation.determinant()
+                "rotation is not a proper rotation (|RᵀR − I| = {err:.2e}, det = {})",
+                Num(rotation.determinant())
             )));
         }
         Ok(Alignment {
@@ -255,7 +257,8 @@ fn check_scale(scale: f64) -> Result<(), String> {
     let (lo, hi) = SCALE_RANGE;
     if !(lo..=hi).contains(&scale) {
         return Err(format!(
-            "scale {scale} is outside {lo:e}..{hi:e} (scene units per CRS unit)"
+            "scale {} is outside {lo:e}..{hi:e} (scene units per CRS unit)",
+            Num(scale)
         ));
     }
     Ok(())
@@ -426,7 +429,8 @@ pub fn estimate(path: &Path, pairs: &[(DVec3, DVec3)]) -> Result<Estimate, Align
     let (rotation, scale) = fit_rotation_scale(&a, &b);
     if !scale.is_finite() || scale <= 0.0 {
         return Err(bad(format!(
-            "the estimated scale {scale} is not positive: the point pairs do not correspond"
+            "the estimated scale {} is not positive: the point pairs do not correspond",
+            Num(scale)
         )));
     }
     check_scale(scale).map_err(|why| bad(format!("the estimated {why}")))?;

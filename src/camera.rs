@@ -19,6 +19,7 @@
 //! and within [`PRINCIPAL_POINT_RANGE`] image sizes of the image, distortion coefficients
 //! finite with magnitude ≤ [`MAX_DISTORTION_COEFF`], a finite proper rotation, and a camera
 //! centre within [`SCENE_COORD_LIMIT`].
+use crate::numfmt::Num;
 use glam::{DMat3, DQuat, DVec2, DVec3};
 
 /// Largest accepted coordinate magnitude of the scene frame, in scene units (module docs).
@@ -31,8 +32,10 @@ pub fn outside_scene_frame(s: DVec3) -> Option<String> {
         return None;
     }
     Some(format!(
-        "a vertex lands at ({:e}, {:e}, {:e}) in the scene frame, beyond ±{SCENE_COORD_LIMIT:e} (camera::SCENE_COORD_LIMIT, the f32 frame's limit): check the coordinates and the alignment's scale and translation",
-        s.x, s.y, s.z
+        "a vertex lands at ({}, {}, {}) in the scene frame, beyond ±{SCENE_COORD_LIMIT:e} (camera::SCENE_COORD_LIMIT, the f32 frame's limit): check the coordinates and the alignment's scale and translation",
+        Num(s.x),
+        Num(s.y),
+        Num(s.z)
     ))
 }
 
@@ -213,7 +216,8 @@ impl Intrinsics {
         for (name, f) in [("fx", self.fx), ("fy", self.fy)] {
             if !f.is_finite() || f < lo * side || f > hi * side {
                 return bad(format!(
-                    "focal length {name} = {f} px is outside {}..{} px ({lo:e}..{hi:e} times the larger image side {side} px)",
+                    "focal length {name} = {} px is outside {}..{} px ({lo:e}..{hi:e} times the larger image side {side} px)",
+                    Num(f),
                     lo * side,
                     hi * side
                 ));
@@ -223,7 +227,8 @@ impl Intrinsics {
         for (name, c, n) in [("cx", self.cx, f64::from(w)), ("cy", self.cy, f64::from(h))] {
             if !c.is_finite() || c < -r * n || c > (r + 1.0) * n {
                 return bad(format!(
-                    "principal point {name} = {c} px lies more than {r} image sizes outside the image"
+                    "principal point {name} = {} px lies more than {r} image sizes outside the image",
+                    Num(c)
                 ));
             }
         }
@@ -234,7 +239,8 @@ impl Intrinsics {
             .find(|k| !k.is_finite() || k.abs() > MAX_DISTORTION_COEFF)
         {
             return bad(format!(
-                "distortion coefficient {k} is not a finite number of magnitude ≤ {MAX_DISTORTION_COEFF:e}"
+                "distortion coefficient {} is not a finite number of magnitude ≤ {MAX_DISTORTION_COEFF:e}",
+                Num(k)
             ));
         }
         Ok(())

@@ -15,6 +15,8 @@
 use glam::{DMat3, DVec3};
 use proj::Proj;
 
+use crate::numfmt::Num;
+
 /// Errors of the georeferencing.
 #[derive(Debug, thiserror::Error)]
 pub enum CrsError {
@@ -24,7 +26,7 @@ pub enum CrsError {
     )]
     Unknown { crs: String, why: String },
     /// A coordinate PROJ could not transform.
-    #[error("CRS `{crs}`: PROJ cannot transform ({x}, {y}): {why}")]
+    #[error("CRS `{crs}`: PROJ cannot transform ({}, {}): {why}", Num(*x), Num(*y))]
     Transform {
         crs: String,
         x: f64,
@@ -199,7 +201,11 @@ impl Georef {
             .convert((x, y))
             .map_err(|e| self.fail(x, y, e))?;
         if !(lon.is_finite() && lat.is_finite() && lat.abs() <= 90.0) {
-            return Err(self.fail(x, y, format!("longitude {lon}, latitude {lat}")));
+            return Err(self.fail(
+                x,
+                y,
+                format!("longitude {}, latitude {}", Num(lon), Num(lat)),
+            ));
         }
         Ok((lon, lat))
     }

@@ -38,6 +38,7 @@ pub mod maskfile;
 pub mod masks;
 pub mod mesh;
 pub mod npy;
+pub mod numfmt;
 pub mod onnxproto;
 pub mod openings;
 pub mod ply;

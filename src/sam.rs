@@ -472,7 +472,10 @@ fn int_box<E: serde::de::Error>(v: [f64; 4]) -> Result<[i64; 4], E> {
     let mut out = [0i64; 4];
     for (o, x) in out.iter_mut().zip(v) {
         if !x.is_finite() || x.fract() != 0.0 || x.abs() > 1e15 {
-            return Err(E::custom(format!("box value {x} is not an integer")));
+            return Err(E::custom(format!(
+                "box value {} is not an integer of magnitude ≤ 1e15",
+                crate::numfmt::Num(x)
+            )));
         }
         *o = x as i64;
     }

@@ -125,6 +125,13 @@ fn broken_files_name_file_and_mask() {
     let e = masks::read_sam_json(&p).unwrap_err();
     assert!(matches!(e, MasksError::Field { index: 1, .. }), "{e}");
     assert!(e.to_string().contains("fields.json"), "{e}");
+    // A box value of 10³⁰⁰ is named as 1e300, not printed in 301 digits.
+    std::fs::write(&p, r#"[{"segmentation": {"size": [1, 1], "counts": "01"}, "area": 1, "bbox": [1e300, 0, 0, 0], "predicted_iou": 1, "stability_score": 1}]"#).unwrap();
+    let e = masks::read_sam_json(&p).unwrap_err().to_string();
+    assert!(
+        e.contains("fields.json") && e.contains("box value 1e300 is not an integer"),
+        "{e}"
+    );
     std::fs::write(&p, "{").unwrap();
     assert!(matches!(
         masks::read_sam_json(&p),
