@@ -1,6 +1,8 @@
 //! The range checks of every options `validate` (one wording for all): a value must be a
 //! number inside an interval whose ends are open, closed or absent. NaN is never inside. A
-//! library module: it imports nothing of the crate.
+//! library module: it imports only `numfmt` (a value of 10³⁰⁰ is printed `1e300`).
+
+use crate::numfmt::Num;
 
 /// One end of an interval.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -15,7 +17,7 @@ pub enum End {
 
 /// Checks `lo ≤/< value ≤/< hi` (`f32` or `f64`); the error reads
 /// `"{name} must lie in [lo, hi), got {value}"`.
-pub fn range<T: Into<f64> + Copy + std::fmt::Display>(
+pub fn range<T: Into<f64> + Copy + std::fmt::Display + std::fmt::LowerExp>(
     name: &str,
     value: T,
     lo: End,
@@ -45,16 +47,19 @@ pub fn range<T: Into<f64> + Copy + std::fmt::Display>(
         End::Open(b) => format!("{b})"),
         End::Unbounded => "∞)".to_string(),
     };
-    Err(format!("{name} must lie in {l}, {h}, got {value}"))
+    Err(format!("{name} must lie in {l}, {h}, got {}", Num(value)))
 }
 
 /// `v ∈ [0, 1]`.
-pub fn unit<T: Into<f64> + Copy + std::fmt::Display>(name: &str, v: T) -> Result<(), String> {
+pub fn unit<T: Into<f64> + Copy + std::fmt::Display + std::fmt::LowerExp>(
+    name: &str,
+    v: T,
+) -> Result<(), String> {
     range(name, v, End::Closed(0.0), End::Closed(1.0))
 }
 
 /// `v` finite and `≥ 0`.
-pub fn non_negative<T: Into<f64> + Copy + std::fmt::Display>(
+pub fn non_negative<T: Into<f64> + Copy + std::fmt::Display + std::fmt::LowerExp>(
     name: &str,
     v: T,
 ) -> Result<(), String> {
@@ -62,17 +67,20 @@ pub fn non_negative<T: Into<f64> + Copy + std::fmt::Display>(
     if x.is_finite() && x >= 0.0 {
         Ok(())
     } else {
-        Err(format!("{name} must be finite and ≥ 0, got {v}"))
+        Err(format!("{name} must be finite and ≥ 0, got {}", Num(v)))
     }
 }
 
 /// `v` finite and `> 0`.
-pub fn positive<T: Into<f64> + Copy + std::fmt::Display>(name: &str, v: T) -> Result<(), String> {
+pub fn positive<T: Into<f64> + Copy + std::fmt::Display + std::fmt::LowerExp>(
+    name: &str,
+    v: T,
+) -> Result<(), String> {
     let x: f64 = v.into();
     if x.is_finite() && x > 0.0 {
         Ok(())
     } else {
-        Err(format!("{name} must be finite and > 0, got {v}"))
+        Err(format!("{name} must be finite and > 0, got {}", Num(v)))
     }
 }
 
@@ -90,6 +98,14 @@ mod tests {
         assert_eq!(
             range("tau", 2.0, End::Closed(-1.0), End::Open(1.0)).unwrap_err(),
             "tau must lie in [-1, 1), got 2"
+        );
+        assert_eq!(
+            unit("tau_q", 1e300).unwrap_err(),
+            "tau_q must lie in [0, 1], got 1e300"
+        );
+        assert_eq!(
+            positive("size", -1e30f32).unwrap_err(),
+            "size must be finite and > 0, got -1e30"
         );
         assert!(unit("u", f64::NAN).is_err() && unit("u", 1.0).is_ok());
         assert!(non_negative("n", 0.0).is_ok() && non_negative("n", f64::INFINITY).is_err());

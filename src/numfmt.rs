@@ -5,14 +5,16 @@
 //! in the file.
 use std::fmt;
 
-/// An `f64` printed for a message (module docs): `format!("scale {}", Num(s))`.
+/// An `f64` or `f32` printed for a message (module docs): `format!("scale {}", Num(s))`. An
+/// `f32` keeps its own shortest form (`0.1`, not `0.10000000149011612`).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Num(pub f64);
+pub struct Num<T = f64>(pub T);
 
-impl fmt::Display for Num {
+impl<T: Into<f64> + Copy + fmt::Display + fmt::LowerExp> fmt::Display for Num<T> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let a = self.0.abs();
-        if !self.0.is_finite() || a == 0.0 || (1e-4..1e9).contains(&a) {
+        let x: f64 = self.0.into();
+        let a = x.abs();
+        if !x.is_finite() || a == 0.0 || (1e-4..1e9).contains(&a) {
             write!(f, "{}", self.0)
         } else {
             write!(f, "{:e}", self.0)
@@ -45,6 +47,10 @@ mod tests {
             (f64::INFINITY, "inf"),
             (f64::MIN_POSITIVE, "2.2250738585072014e-308"),
         ] {
+            assert_eq!(Num(x).to_string(), s, "{x:?}");
+        }
+        // An f32 in its own shortest form.
+        for (x, s) in [(0.1f32, "0.1"), (1e30f32, "1e30"), (-3.5e-6f32, "-3.5e-6")] {
             assert_eq!(Num(x).to_string(), s, "{x:?}");
         }
         // Any finite value: at most 24 characters, and it parses back to itself.

@@ -449,7 +449,7 @@ fn views_in_order<'a>(
     if !(inp.scale.is_finite() && inp.scale > 0.0) {
         return Err(AssociateError::Options(format!(
             "the alignment scale must be finite and > 0, got {}",
-            inp.scale
+            crate::numfmt::Num(inp.scale)
         )));
     }
     let mut views: Vec<&View> = inp.views.iter().collect();

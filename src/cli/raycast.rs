@@ -34,7 +34,10 @@ pub struct RaycastArgs {
 /// Parses the inputs, validates them, runs the stage, writes `summary.json` and prints a table.
 pub fn run(args: &RaycastArgs) -> anyhow::Result<()> {
     if !args.tau.is_finite() || args.tau < 0.0 {
-        bail!("--tau must be finite and ≥ 0 metres, got {}", args.tau);
+        bail!(
+            "--tau must be finite and ≥ 0 metres, got {}",
+            crate::numfmt::Num(args.tau)
+        );
     }
     let mesh_path = args.citymodel.join("mesh.ply");
     let mesh = TriMesh::read_ply(&mesh_path)

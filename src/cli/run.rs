@@ -145,7 +145,7 @@ impl RunArgs {
         if !(self.tau.is_finite() && self.tau >= 0.0) {
             anyhow::bail!(
                 "--tau must be a finite number ≥ 0 (metres), got {}",
-                self.tau
+                crate::numfmt::Num(self.tau)
             );
         }
         let lift = LiftOptions {

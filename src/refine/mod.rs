@@ -211,7 +211,7 @@ impl RefineOptions {
         if self.min_eigen_ratio >= 1.0 {
             return bad(format!(
                 "min_eigen_ratio must be < 1, got {}",
-                self.min_eigen_ratio
+                crate::numfmt::Num(self.min_eigen_ratio)
             ));
         }
         Ok(())

@@ -346,7 +346,7 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
     if !(opts.tau_m.is_finite() && opts.tau_m >= 0.0) {
         return Err(RunError::Refused(format!(
             "tau must be a finite number ≥ 0 (metres), got {}",
-            opts.tau_m
+            crate::numfmt::Num(opts.tau_m)
         )));
     }
     let views = colmap::read_model(&scene.sparse)?;
