@@ -529,7 +529,7 @@ fn nothing_triangulated_names_the_first_reason() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// A polygon farther than `PLANARITY_TOLERANCE` from its plane is named in a warning with its
+/// A polygon farther than `PLANARITY_WARNING` from its plane is named in a warning with its
 /// deviation and still triangulated; one within the tolerance is not named. The saddles'
 /// expectations are by hand: corners (0,0,±h), (4,0,∓h), (4,4,±h), (0,4,∓h) have their centroid
 /// at z = 0 and, by symmetry, the Newell normal (0,0,1), so every corner lies exactly h from the
