@@ -3,6 +3,11 @@
 //! (via `python3 scripts/open3d_check.py DIR --bench`, same run); each packet width (8, 16
 //! lanes) and Embree's high-quality BVH build, for comparison.
 //! Run: `cargo bench --bench raycast`.
+//!
+//! `GS4CITY_RAYCAST_PROFILE=N cargo bench --bench raycast` traces only the 1 MP view, single
+//! pass, N times after the scene build and stops (`N:two`: both passes): a steady window for
+//! `perf record` (how much of a pass is Embree's traversal, how much is gs4city's ray setup
+//! and id lookup).
 #[path = "../tests/common/mod.rs"]
 mod common;
 
@@ -47,6 +52,27 @@ fn main() {
     };
     let cam1 = common::orbit_camera(1280, 800, 1000.0, 0.4, 110.0, 30.0);
     let n1 = 1280.0 * 800.0;
+    if let Ok(v) = std::env::var("GS4CITY_RAYCAST_PROFILE") {
+        let (count, both) = match v.strip_suffix(":two") {
+            Some(c) => (c, true),
+            None => (v.as_str(), false),
+        };
+        let n: usize = count.parse().expect("GS4CITY_RAYCAST_PROFILE=N or N:two");
+        let opts = if both { &two } else { &one };
+        let t = Instant::now();
+        let mut hits = 0usize;
+        for _ in 0..n {
+            let v = raycast_view(&scene, &cam1, opts);
+            hits += v.face.iter().filter(|&&f| f >= 0).count();
+        }
+        let s = t.elapsed().as_secs_f64();
+        println!(
+            "profile: {n} {} 1 MP views in {s:.2} s = {:.2} Mrays/s ({hits} hits)",
+            if both { "two-pass" } else { "single-pass" },
+            n as f64 * n1 / s / 1e6
+        );
+        return;
+    }
     let (t_two, v) = best_of(5, || raycast_view(&scene, &cam1, &two));
     let (t_one, _) = best_of(5, || raycast_view(&scene, &cam1, &one));
     let hits = v.face.iter().filter(|&&f| f >= 0).count();
