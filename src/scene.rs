@@ -9,6 +9,8 @@
 //!   masks/<stem>.json        optional: SAM automatic masks per view
 //!   features/<stem>.npy      optional: one feature row per SAM mask; features/prompts.json
 //!   gt/                      optional: ground truth, read only by evaluation
+//!   scene.json               optional: the scene's own description ([`SceneMeta`]: whether it is
+//!                            SIMULATED); written by `gs4city synth`
 //! ```
 //! Pipeline stages take the paths they need from [`Scene`]; only evaluation uses [`Scene::gt`].
 //! Nothing else of the folder is listed here: a simulator's own files are not inputs
@@ -45,6 +47,43 @@ pub struct Scene {
     pub features: Option<PathBuf>,
     /// `gt/` where it exists: for evaluation only.
     pub gt: Option<PathBuf>,
+    /// `scene.json`: the scene's own description (a scene without it is a real capture as far
+    /// as anything here can tell).
+    pub meta: SceneMeta,
+}
+
+/// The scene's own description, `S/scene.json`. It is metadata, not truth: what it says is
+/// shown (`report.html` says SIMULATED at the top), never used to compute anything.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SceneMeta {
+    /// True for a scene that `gs4city synth` simulated.
+    #[serde(default)]
+    pub simulated: bool,
+}
+
+impl SceneMeta {
+    /// The file name inside the scene folder.
+    pub const FILE: &'static str = "scene.json";
+
+    /// Reads `root/scene.json`; a scene without one gets the default (not simulated). A file
+    /// that is not such a JSON object is an error naming it.
+    pub fn read(root: &Path) -> Result<SceneMeta, SceneError> {
+        let path = root.join(Self::FILE);
+        let bytes = match std::fs::read(&path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(SceneMeta::default()),
+            Err(e) => {
+                return Err(SceneError {
+                    scene: root.to_path_buf(),
+                    why: format!("{}: {e}", Self::FILE),
+                });
+            }
+        };
+        serde_json::from_slice(&bytes).map_err(|e| SceneError {
+            scene: root.to_path_buf(),
+            why: format!("{}: {e}", Self::FILE),
+        })
+    }
 }
 
 impl Scene {
@@ -89,6 +128,7 @@ impl Scene {
             masks: dir("masks"),
             features: dir("features"),
             gt: dir("gt"),
+            meta: SceneMeta::read(root)?,
         })
     }
 

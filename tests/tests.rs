@@ -31,6 +31,7 @@ mod openings;
 mod query;
 mod raycast;
 mod raycast_packets;
+mod readme;
 mod real_raycast;
 mod refine;
 mod render;
