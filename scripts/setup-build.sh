@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs what building and running gs4city needs on Debian 12 (run as root, or with sudo
-# available), and nothing else: `scripts/demo.sh` runs this; `scripts/setup.sh` adds what the
-# tests need. Idempotent: skips what is already there.
+# available), and nothing else: `scripts/demo.sh` runs this. Debian packages named as arguments
+# are installed with them (`scripts/setup.sh` passes the tests' packages). Idempotent: skips what
+# is already there.
 #
 # Build (Cargo.toml, build.rs):
 #   build-essential, pkg-config       the C/C++ compilers of the -sys crates; pkg-config finds PROJ, SQLite
@@ -23,7 +24,7 @@ set -euo pipefail
 SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 pkgs=(build-essential pkg-config libembree-dev libclang1-14 libclang-common-14-dev
-      libopencv-core-dev libopencv-imgproc-dev libopencv-imgcodecs-dev libproj-dev)
+      libopencv-core-dev libopencv-imgproc-dev libopencv-imgcodecs-dev libproj-dev "$@")
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -10,21 +10,13 @@
 set -euo pipefail
 SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
-bash "$(dirname "$0")/setup-build.sh"
-pkgs=(libcgal-dev libgmp-dev libmpfr-dev   # CGAL, GMP, MPFR: the CGAL reference (scripts/cgal_reference.py)
+test_pkgs=(libcgal-dev libgmp-dev libmpfr-dev   # CGAL, GMP, MPFR: the CGAL reference (scripts/cgal_reference.py)
       libusb-1.0-0 libgl1 libegl1 libgomp1  # open3d's shared libraries (tests/open3d_check.rs)
       slurm-wlm munge    # slurm-wlm + munge: scripts/slurm_test.sh (a single-node Slurm, tile plans)
       proj-bin           # PROJ's cs2cs: the independent transform of the 3D Tiles tests
       chromium)          # headless Chromium: CesiumJS loads the exported tileset (tests/export_3dtiles.rs), the viewer's browser test (tests/view.rs)
-missing=()
-for p in "${pkgs[@]}"; do
-  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
-done
-if [ ${#missing[@]} -gt 0 ]; then
-  echo "setup: installing ${missing[*]}"
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 "${missing[@]}" >/dev/null
-fi
+# The build's packages and the tests' in one apt run.
+bash "$(dirname "$0")/setup-build.sh" "${test_pkgs[@]}"
 if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
   py=(numpy==2.4.6 cgal==6.0.1.post202410241521 open3d==0.20.0 pycocotools==2.0.11 plyfile==1.1.5)
   need=()
