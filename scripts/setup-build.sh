@@ -7,9 +7,10 @@
 # Build (Cargo.toml, build.rs):
 #   build-essential, pkg-config       the C/C++ compilers of the -sys crates; pkg-config finds PROJ, SQLite
 #   libembree-dev                     Embree 3 (build.rs: bindgen over ffi/embree.h, links libembree3)
-#   libclang1-14, libclang-common-14-dev
+#   libclang1-14, libclang-common-14-dev, clang
 #                                     libclang and its builtin headers, loaded at build time by bindgen
-#                                     (build.rs, proj-sys) and the opencv crate's binding generator
+#                                     (build.rs, proj-sys) and the opencv crate's binding generator,
+#                                     which also runs the clang binary to find the system headers
 #   libopencv-{core,imgproc,imgcodecs}-dev
 #                                     the three OpenCV modules gs4city links (src/imageio.rs); found
 #                                     through the OPENCV_* variables of .cargo/config.toml
@@ -23,7 +24,7 @@
 set -euo pipefail
 SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
-pkgs=(build-essential pkg-config libembree-dev libclang1-14 libclang-common-14-dev
+pkgs=(build-essential pkg-config libembree-dev libclang1-14 libclang-common-14-dev clang
       libopencv-core-dev libopencv-imgproc-dev libopencv-imgcodecs-dev libproj-dev "$@")
 missing=()
 for p in "${pkgs[@]}"; do
