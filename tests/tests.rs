@@ -33,6 +33,7 @@ mod raycast;
 mod raycast_packets;
 mod real_raycast;
 mod refine;
+mod real_inputs;
 mod render;
 mod report;
 mod run;
