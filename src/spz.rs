@@ -54,7 +54,7 @@ pub enum SpzError {
     #[error("SPZ: gzip: {0}")]
     Io(#[from] std::io::Error),
     /// A file that cannot be read as SPZ; `why` names the part at fault.
-    #[error("{why}")]
+    #[error("SPZ: {why}")]
     Read { why: String },
 }
 
@@ -240,7 +240,7 @@ fn open_stream(bytes: &[u8]) -> Result<flate2::read::GzDecoder<&[u8]>, SpzError>
             .get(4..8)
             .map(|b| u32::from_le_bytes(b.try_into().expect("4 bytes")));
         return Err(read_err(format!(
-            "SPZ version {} (the ZSTD container of @adobe/spz) is not read; write version 3 (splat-transform --spz-version 3) or a PLY",
+            "version {} (the ZSTD container of @adobe/spz) is not read; write version 3 (splat-transform --spz-version 3) or a PLY",
             v.map_or("?".to_string(), |v| v.to_string())
         )));
     }

@@ -62,6 +62,8 @@ fn python(code: &str, args: &[&str]) -> String {
 /// and error.
 #[test]
 fn colmap_reader_on_lund_matches_pycolmap() {
+    // pycolmap's numbers travel as Python's shortest round-trip strings, parsed exactly here
+    let num = |v: &serde_json::Value| -> f64 { v.as_str().unwrap().parse().unwrap() };
     const TEST: &str = "real_inputs::colmap_reader_on_lund_matches_pycolmap";
     let Some(real) = real(TEST) else { return };
     if !python_can_import(TEST, &["pycolmap"]) {
@@ -71,15 +73,16 @@ fn colmap_reader_on_lund_matches_pycolmap() {
     let code = r#"
 import json, sys, pycolmap
 r = pycolmap.Reconstruction(sys.argv[1])
-cams = [{"id": i, "model": c.model.name, "w": c.width, "h": c.height, "params": list(map(float, c.params))}
+f = lambda v: repr(float(v))
+cams = [{"id": i, "model": c.model.name, "w": c.width, "h": c.height, "params": [f(v) for v in c.params]}
         for i, c in r.cameras.items()]
 ims = []
 for i, im in r.images.items():
     p = im.cam_from_world()
-    x, y, z, w = map(float, p.rotation.quat)
-    ims.append({"id": i, "camera": im.camera_id, "name": im.name, "q": [w, x, y, z],
-                "t": list(map(float, p.translation))})
-pts = [{"id": i, "xyz": list(map(float, p.xyz)), "rgb": list(map(int, p.color)), "error": float(p.error)}
+    x, y, z, w = p.rotation.quat
+    ims.append({"id": i, "camera": im.camera_id, "name": im.name, "q": [f(w), f(x), f(y), f(z)],
+                "t": [f(v) for v in p.translation]})
+pts = [{"id": i, "xyz": [f(v) for v in p.xyz], "rgb": list(map(int, p.color)), "error": f(p.error)}
        for i, p in r.points3D.items()]
 print(json.dumps({"cameras": cams, "images": ims, "points": pts}))
 "#;
@@ -100,7 +103,7 @@ print(json.dumps({"cameras": cams, "images": ims, "points": pts}))
             .as_array()
             .unwrap()
             .iter()
-            .map(|v| v.as_f64().unwrap())
+            .map(num)
             .collect();
         // SIMPLE_RADIAL: f, cx, cy, k
         assert_eq!(params.len(), 4);
@@ -127,7 +130,7 @@ print(json.dumps({"cameras": cams, "images": ims, "points": pts}))
             .as_array()
             .unwrap()
             .iter()
-            .map(|x| x.as_f64().unwrap())
+            .map(num)
             .collect();
         let r = DMat3::from_quat(DQuat::from_xyzw(q[1], q[2], q[3], q[0]).normalize());
         assert!(
@@ -136,12 +139,8 @@ print(json.dumps({"cameras": cams, "images": ims, "points": pts}))
             v.name
         );
         let t = &p["t"];
-        let t = DVec3::new(
-            t[0].as_f64().unwrap(),
-            t[1].as_f64().unwrap(),
-            t[2].as_f64().unwrap(),
-        );
-        assert!((v.camera.pose.translation - t).length() < 1e-12, "{}", v.name);
+        let t = DVec3::new(num(&t[0]), num(&t[1]), num(&t[2]));
+        assert_eq!(v.camera.pose.translation, t, "{}", v.name);
     }
     let points = gs4city::colmap::read_points3d(&sparse).unwrap();
     let pp = py["points"].as_array().unwrap();
@@ -153,10 +152,10 @@ print(json.dumps({"cameras": cams, "images": ims, "points": pts}))
     for p in &points {
         let q = by_id[&p.id];
         for k in 0..3 {
-            assert_eq!(p.xyz[k], q["xyz"][k].as_f64().unwrap());
+            assert_eq!(p.xyz[k], num(&q["xyz"][k]));
             assert_eq!(u64::from(p.rgb[k]), q["rgb"][k].as_u64().unwrap());
         }
-        assert!((p.error - q["error"].as_f64().unwrap()).abs() < 1e-12);
+        assert_eq!(p.error, num(&q["error"]));
     }
 }
 
@@ -297,12 +296,16 @@ fn real_captures_read_alike_in_every_format() {
             assert!(d.log_scale <= 1e-5 && d.dc <= 1e-4 && d.opacity <= 1e-5, "{file}: {d:?}");
             assert!(d.rotation_deg <= 0.05, "{file}: {d:?}");
         }
-        // SPZ keeps the order: within its quantisation of the original (positions 12
-        // fractional bits; log scales 1/16; colours 1/255 of 1/0.15; byte opacities; version
-        // 3 rotations 9 bits, version 2 8 bits per component)
-        for (file, rot) in [("v3.spz", 0.3), ("v2.spz", 1.6)] {
-            let d = diff(&read(&f(file)), &ours);
-            eprintln!("{cap} {file} vs the .splat: {d:?}");
+        // SPZ keeps the order: within its quantisation of the Gaussians it was made from,
+        // splat-transform's reading of the .splat (positions 12 fractional bits; log scales
+        // 1/16; colours 1/255 of 1/0.15; byte opacities; version 3 rotations 9 bits, version 2
+        // 8 bits per component of x, y, z with w derived: when w is near 0 the derived w
+        // carries the error of |xyz| ≈ 1, up to ≈ 12° on these captures, the reason version 3
+        // stores the smallest three)
+        let source = read(&f("ply"));
+        for (file, rot) in [("v3.spz", 0.3), ("v2.spz", 15.0)] {
+            let d = diff(&read(&f(file)), &source);
+            eprintln!("{cap} {file} vs the Gaussians it was made from: {d:?}");
             assert!(d.position <= 0.5 / 4096.0 + 1e-5, "{file}: {d:?}");
             assert!(d.log_scale <= 0.5 / 16.0 + 1e-4, "{file}: {d:?}");
             assert!(d.dc <= 0.5 / 255.0 / 0.15 + 1e-4, "{file}: {d:?}");
@@ -478,7 +481,8 @@ fn orbit(g: &Gaussians, w: u32, h: u32) -> Vec<(String, Camera)> {
 
 /// CPU renders of both real captures from virtual cameras agree with the independent NumPy
 /// rasterizer (`scripts/ref_raster.py`, the INRIA rule in float64) on the same Gaussians
-/// (written as an INRIA PLY): colour and alpha within 2·10⁻⁴ at every pixel.
+/// (written as an INRIA PLY): alpha within 2·10⁻⁴ at every pixel, colour within 10⁻³ (mean
+/// within 10⁻⁵).
 #[test]
 fn real_captures_render_as_the_numpy_reference() {
     const TEST: &str = "real_inputs::real_captures_render_as_the_numpy_reference";
@@ -531,13 +535,23 @@ fn real_captures_render_as_the_numpy_reference() {
                     .fold(0f32, |m, (x, y)| m.max((x - y).abs()))
             };
             let (dr, da) = (worst(&out.rgb, &rgb), worst(&out.alpha, &alpha));
+            let mean = out
+                .rgb
+                .iter()
+                .zip(&rgb)
+                .map(|(x, y)| f64::from((x - y).abs()))
+                .sum::<f64>()
+                / rgb.len() as f64;
             let cover = alpha.iter().filter(|&&a| a > 0.5).count();
             eprintln!(
-                "{cap} {name}: max |Δrgb| {dr:.2e}, |Δalpha| {da:.2e}; {cover} of {} pixels over alpha 0.5",
+                "{cap} {name}: max |Δrgb| {dr:.2e} (mean {mean:.1e}), |Δalpha| {da:.2e}; {cover} of {} pixels over alpha 0.5",
                 alpha.len()
             );
             assert!(cover > alpha.len() / 10, "{cap} {name}: the capture is not in view");
-            assert!(dr <= 2e-4 && da <= 2e-4, "{cap} {name}: {dr} {da}");
+            // f32 against f64 over thousands of faint Gaussians per pixel, and a Gaussian whose
+            // α sits at the 1/255 cut can fall on either side of it: the colour's worst pixel
+            // within 10⁻³, its mean within 10⁻⁵
+            assert!(dr <= 1e-3 && mean <= 1e-5 && da <= 2e-4, "{cap} {name}: {dr} {mean} {da}");
         }
     }
     let _ = std::fs::remove_dir_all(&dir);
@@ -760,12 +774,17 @@ fn align_exif_on_lund() {
     eprintln!("{text}");
     assert!(text.contains("GPS of 29 photos in EPSG:32633"), "{text}");
     assert!(text.contains("vertical: the cameras' up"), "{text}");
-    assert_eq!(text.lines().filter(|l| l.trim_start().ends_with(".jpg") || l.contains(".jpg ")).count(), 29);
+    let rows = text
+        .lines()
+        .filter(|l| l.split_whitespace().next().is_some_and(|w| w.ends_with(".jpg")))
+        .count();
+    assert_eq!(rows, 29, "{text}");
     let a = gs4city::alignment::Alignment::read(&out).unwrap();
     assert!(a.scale > 0.0);
     let rms: f64 = text
-        .split("horizontal ")
-        .nth(1)
+        .lines()
+        .find(|l| l.starts_with("RMS"))
+        .and_then(|l| l.split("horizontal ").nth(1))
         .and_then(|t| t.split(' ').next())
         .and_then(|v| v.parse().ok())
         .unwrap();

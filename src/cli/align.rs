@@ -132,7 +132,7 @@ fn run_exif(scene: &Path, out: &Path) -> anyhow::Result<()> {
     )?;
     let fit = &f.fit;
     println!(
-        "alignment from the GPS of {} photos in {} ({}); {} registered photos without GPS",
+        "alignment from the GPS of {} photos in {}: {}; {} registered photos without GPS",
         f.cameras.len(),
         f.crs,
         f.crs_source,
