@@ -54,7 +54,8 @@ fn simulated_like(g: &Gaussians) -> Gaussians {
         out.f_dc.push([n(0.0, 1.0), n(0.0, 1.0), n(0.0, 1.0)]);
         out.opacity.push(n(1.0, 2.0));
         out.scale.push([n(med, 0.6), n(med, 0.6), n(med, 0.6)]);
-        out.rotation.push([n(0.0, 1.0), n(0.0, 1.0), n(0.0, 1.0), n(0.0, 1.0)]);
+        out.rotation
+            .push([n(0.0, 1.0), n(0.0, 1.0), n(0.0, 1.0), n(0.0, 1.0)]);
     }
     out
 }
@@ -101,7 +102,10 @@ fn time_views(g: &Gaussians, cams: &[Camera]) -> (f64, f64) {
 }
 
 fn faint_share(g: &Gaussians) -> f64 {
-    (0..g.len()).filter(|&i| g.activated_opacity(i) < 0.1).count() as f64 / g.len() as f64
+    (0..g.len())
+        .filter(|&i| g.activated_opacity(i) < 0.1)
+        .count() as f64
+        / g.len() as f64
 }
 
 fn render_part(real: &Path) {
@@ -109,7 +113,9 @@ fn render_part(real: &Path) {
     println!(
         "Four orbit views at 1.5× the robust radius, 960×720, best of 3 per view; SIMULATED: the same count in the capture's robust box, log scales N(capture median, 0.6), opacity logits N(1, 2).\n"
     );
-    println!("| scene | Gaussians | opacity < 0.1 | median scale / box diagonal | ms per view | mean alpha |");
+    println!(
+        "| scene | Gaussians | opacity < 0.1 | median scale / box diagonal | ms per view | mean alpha |"
+    );
     println!("|---|---:|---:|---:|---:|---:|");
     for cap in ["plant", "tarot_cards"] {
         let (g, _) = read_ply(
@@ -121,7 +127,10 @@ fn render_part(real: &Path) {
         let cams = cameras(&g, 960, 720);
         let (_, lo, hi) = extent(&g);
         let diag = (hi - lo).length();
-        for (name, s) in [(format!("{cap} (real)"), &g), (format!("{cap}-sized SIMULATED"), &sim)] {
+        for (name, s) in [
+            (format!("{cap} (real)"), &g),
+            (format!("{cap}-sized SIMULATED"), &sim),
+        ] {
             let mut sc: Vec<f32> = (0..s.len())
                 .map(|i| s.activated_scale(i).into_iter().fold(0f32, f32::max))
                 .collect();

@@ -270,20 +270,11 @@ def camera(name, W, H, fx, fy, cx, cy, eye, target):
 
 def read_ply(path):
     """An INRIA PLY (binary little-endian, every property float) as the scene dict."""
-    with open(path, "rb") as f:
-        head = b""
-        while not head.endswith(b"end_header\n"):
-            line = f.readline()
-            if not line:
-                raise SystemExit(f"{path}: no end_header")
-            head += line
-        lines = head.decode().splitlines()
-        assert lines[1] == "format binary_little_endian 1.0", lines[1]
-        n = next(int(l.split()[2]) for l in lines if l.startswith("element vertex"))
-        names = [l.split()[2] for l in lines if l.startswith("property")]
-        assert all(l.split()[1] == "float" for l in lines if l.startswith("property"))
-        data = np.frombuffer(f.read(), dtype="<f4").reshape(n, len(names))
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from replicate_scene import read_ply as read_rows
+    _, names, data = read_rows(path)
     col = {nm: data[:, i] for i, nm in enumerate(names)}
+    n = len(data)
     K3 = sum(1 for nm in names if nm.startswith("f_rest_"))
     degree = {0: 0, 9: 1, 24: 2, 45: 3}[K3]
     stack = lambda keys: np.stack([col[k] for k in keys], axis=1)

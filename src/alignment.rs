@@ -672,7 +672,10 @@ pub fn estimate_robust(
     let alignment = match best {
         Some(a) => a,
         None => fit_on(&all).ok_or_else(|| {
-            bad("the point pairs do not determine a similarity (coincident or collinear points)".into())
+            bad(
+                "the point pairs do not determine a similarity (coincident or collinear points)"
+                    .into(),
+            )
         })?,
     };
     check_scale(alignment.scale).map_err(|why| bad(format!("the estimated {why}")))?;
@@ -709,7 +712,12 @@ pub fn estimate_robust(
 /// horizontal part a 2D least-squares similarity (complex numbers: `w = a·z + b`), the
 /// vertical offset the median of `q_z − s·(g − o)_z`. `None` when the geo points of `set`
 /// coincide horizontally.
-fn level_fit(pairs: &[(DVec3, DVec3)], set: &[usize], origin: DVec3, up: DVec3) -> Option<Alignment> {
+fn level_fit(
+    pairs: &[(DVec3, DVec3)],
+    set: &[usize],
+    origin: DVec3,
+    up: DVec3,
+) -> Option<Alignment> {
     let l = DMat3::from_quat(glam::DQuat::from_rotation_arc(DVec3::Z, up.normalize()));
     let lt = l.transpose();
     let g: Vec<DVec3> = set.iter().map(|&i| pairs[i].0 - origin).collect();
@@ -736,11 +744,7 @@ fn level_fit(pairs: &[(DVec3, DVec3)], set: &[usize], origin: DVec3, up: DVec3) 
         return None;
     }
     let (c, s) = (ar / scale, ai / scale);
-    let rz = DMat3::from_cols(
-        DVec3::new(c, s, 0.0),
-        DVec3::new(-s, c, 0.0),
-        DVec3::Z,
-    );
+    let rz = DMat3::from_cols(DVec3::new(c, s, 0.0), DVec3::new(-s, c, 0.0), DVec3::Z);
     let b = qz - glam::DVec2::new(ar * gz.x - ai * gz.y, ar * gz.y + ai * gz.x);
     let tz = median(g.iter().zip(&q).map(|(p, r)| r.z - scale * p.z).collect());
     Some(Alignment {
@@ -852,8 +856,7 @@ mod tests {
                 .map(|k| {
                     let t = k as f64 / 29.0;
                     if level {
-                        truth.origin
-                            + DVec3::new(170.0 * t - 85.0, 25.0 * (3.0 * t).sin(), 0.5 * t)
+                        truth.origin + DVec3::new(170.0 * t - 85.0, 25.0 * (3.0 * t).sin(), 0.5 * t)
                     } else {
                         truth.origin
                             + DVec3::new(
@@ -890,14 +893,25 @@ mod tests {
                 "{what}: too many outliers {:?}",
                 fit.inliers
             );
-            assert!((a.scale / truth.scale - 1.0).abs() < 0.02, "{what}: scale {}", a.scale);
-            assert!(angle(&a.rotation, &truth.rotation) < 1.5, "{what}: rotation");
+            assert!(
+                (a.scale / truth.scale - 1.0).abs() < 0.02,
+                "{what}: scale {}",
+                a.scale
+            );
+            assert!(
+                angle(&a.rotation, &truth.rotation) < 1.5,
+                "{what}: rotation"
+            );
             // the true camera positions map to their scene points within a few metres
             for (g, (_, sc)) in truth_geo.iter().zip(&pairs) {
                 let err = (a.apply(*g) - *sc).length() / truth.scale;
                 assert!(err < 3.5, "{what}: {err} m");
             }
-            assert!(fit.rms[0] < 3.5 && fit.rms[0] > 1.0, "{what}: rms {:?}", fit.rms);
+            assert!(
+                fit.rms[0] < 3.5 && fit.rms[0] > 1.0,
+                "{what}: rms {:?}",
+                fit.rms
+            );
             if level {
                 // the vertical is the cameras' up exactly, however noisy the altitudes
                 assert!((a.rotation * DVec3::Z - up).length() < 1e-9);
@@ -922,7 +936,10 @@ mod tests {
         let d = subsets(100, 3, 50);
         assert_eq!(d.len(), 50);
         assert_eq!(d, subsets(100, 3, 50));
-        assert!(d.iter().all(|v| v[0] != v[1] && v[1] != v[2] && v[0] != v[2]));
+        assert!(
+            d.iter()
+                .all(|v| v[0] != v[1] && v[1] != v[2] && v[0] != v[2])
+        );
     }
 
     #[test]

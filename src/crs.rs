@@ -159,12 +159,13 @@ impl Georef {
             }
             match Proj::new_known_crs(&name, "EPSG:4326", None) {
                 Ok(to_lonlat) => {
-                    let from_lonlat = Proj::new_known_crs("EPSG:4326", &name, None).map_err(|e| {
-                        CrsError::Unknown {
-                            crs: name.clone(),
-                            why: format!("the projection from longitude/latitude: {e}"),
-                        }
-                    })?;
+                    let from_lonlat =
+                        Proj::new_known_crs("EPSG:4326", &name, None).map_err(|e| {
+                            CrsError::Unknown {
+                                crs: name.clone(),
+                                why: format!("the projection from longitude/latitude: {e}"),
+                            }
+                        })?;
                     let cart = |tail: &str| {
                         Proj::new(&format!(
                             "+proj=pipeline +step +proj=unitconvert +xy_in=deg +xy_out=rad \

@@ -106,19 +106,37 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, GeotagError> {
             orientation,
         });
     };
-    let mut lat_deg =
-        rational_deg(lat).ok_or_else(|| err(format!("GPSLatitude {} is not a D/M/S rational", lat.display_value())))?;
-    let mut lon_deg =
-        rational_deg(lon).ok_or_else(|| err(format!("GPSLongitude {} is not a D/M/S rational", lon.display_value())))?;
+    let mut lat_deg = rational_deg(lat).ok_or_else(|| {
+        err(format!(
+            "GPSLatitude {} is not a D/M/S rational",
+            lat.display_value()
+        ))
+    })?;
+    let mut lon_deg = rational_deg(lon).ok_or_else(|| {
+        err(format!(
+            "GPSLongitude {} is not a D/M/S rational",
+            lon.display_value()
+        ))
+    })?;
     match get(exif::Tag::GPSLatitudeRef).and_then(ascii_first) {
         Some(b'S') => lat_deg = -lat_deg,
         Some(b'N') | None => {}
-        Some(c) => return Err(err(format!("GPSLatitudeRef is {:?}, not N or S", c as char))),
+        Some(c) => {
+            return Err(err(format!(
+                "GPSLatitudeRef is {:?}, not N or S",
+                c as char
+            )));
+        }
     }
     match get(exif::Tag::GPSLongitudeRef).and_then(ascii_first) {
         Some(b'W') => lon_deg = -lon_deg,
         Some(b'E') | None => {}
-        Some(c) => return Err(err(format!("GPSLongitudeRef is {:?}, not E or W", c as char))),
+        Some(c) => {
+            return Err(err(format!(
+                "GPSLongitudeRef is {:?}, not E or W",
+                c as char
+            )));
+        }
     }
     if !(lat_deg.abs() <= 90.0 && lon_deg.abs() <= 180.0) {
         return Err(err(format!(
@@ -140,7 +158,12 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, GeotagError> {
                 let a = v[0].to_f64();
                 Some(if below { -a } else { a })
             }
-            _ => return Err(err(format!("GPSAltitude {} is not a rational", f.display_value()))),
+            _ => {
+                return Err(err(format!(
+                    "GPSAltitude {} is not a rational",
+                    f.display_value()
+                )));
+            }
         },
         None => None,
     };
@@ -182,10 +205,9 @@ pub fn cameras_up(rights: &[DVec3], ups: &[DVec3], views: &[DVec3]) -> Option<DV
         return None;
     }
     let m = ups.iter().copied().sum::<DVec3>() / n;
-    let scatter = rights
-        .iter()
-        .fold(DMat3::ZERO, |s, r| s + DMat3::from_cols(*r * r.x, *r * r.y, *r * r.z))
-        / n;
+    let scatter = rights.iter().fold(DMat3::ZERO, |s, r| {
+        s + DMat3::from_cols(*r * r.x, *r * r.y, *r * r.z)
+    }) / n;
     let (vals, vecs) = alignment::symmetric_eigen3(&scatter);
     // vals descending; the right axes span a plane when the second is not small
     let up = if vals[1] >= 0.05 {
@@ -243,7 +265,11 @@ pub struct ExifFit {
 
 /// Fits the alignment of `views` (a COLMAP model of `images/`) to their photos' GPS in `crs`
 /// (else the UTM zone of their mean position; module docs).
-pub fn fit(images: &Path, views: &[View], crs: Option<(&str, &str)>) -> Result<ExifFit, GeotagError> {
+pub fn fit(
+    images: &Path,
+    views: &[View],
+    crs: Option<(&str, &str)>,
+) -> Result<ExifFit, GeotagError> {
     let mut tagged = Vec::new();
     let mut without_gps = Vec::new();
     for v in views {

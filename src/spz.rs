@@ -348,7 +348,9 @@ pub fn unpack(bytes: &[u8]) -> Result<Unpacked, SpzError> {
         rot.chunks_exact(3)
             .map(|r| {
                 let xyz = [0, 1, 2].map(|k| f32::from(r[k]) / 127.5 - 1.0);
-                let w = (1.0 - xyz.iter().map(|v| v * v).sum::<f32>()).max(0.0).sqrt();
+                let w = (1.0 - xyz.iter().map(|v| v * v).sum::<f32>())
+                    .max(0.0)
+                    .sqrt();
                 [xyz[0], xyz[1], xyz[2], w]
             })
             .collect()
@@ -444,13 +446,18 @@ mod tests {
             rotations: &[[0.0, 0.0, 0.0, 1.0], [0.5, -0.5, 0.5, 0.5]],
             sh_degree: 1,
             sh: &[
-                0.1, -0.2, 0.3, 0.0, 0.05, -0.5, 0.9, -0.9, 0.2, 0.0, 0.0, 0.0, 0.4, 0.4, 0.4, -0.1,
-                0.1, 0.0,
+                0.1, -0.2, 0.3, 0.0, 0.05, -0.5, 0.9, -0.9, 0.2, 0.0, 0.0, 0.0, 0.4, 0.4, 0.4,
+                -0.1, 0.1, 0.0,
             ],
         };
         let u = unpack(&write(&c).unwrap()).unwrap();
         assert_eq!((u.version, u.sh_degree, u.positions.len()), (2, 1, 2));
-        for (a, b) in u.positions.iter().flatten().zip(c.positions.iter().flatten()) {
+        for (a, b) in u
+            .positions
+            .iter()
+            .flatten()
+            .zip(c.positions.iter().flatten())
+        {
             assert!((a - b).abs() <= 0.5 / 4096.0 + 1e-6, "{a} {b}");
         }
         for (a, b) in u.alphas.iter().zip(c.alphas) {
@@ -475,12 +482,13 @@ mod tests {
 
     #[test]
     fn version_3_rotations_are_the_smallest_three() {
-        // largest w (index 3) positive; x = +511 (1/√2), y = −0, z = sign bit + 0
+        // largest w (index 3) positive; then x, y, z from the high bits down: x = +511
+        // (1/√2), y = the sign bit and 0 (−0), z = 0
         let word = (3u32 << 30) | (511 << 20) | (512 << 10);
         let q = smallest_three(word);
         assert!((q[0] - std::f32::consts::FRAC_1_SQRT_2).abs() < 1e-6);
-        assert_eq!(q[1], 0.0);
-        assert!(q[2] == 0.0 && q[2].is_sign_negative());
+        assert!(q[1] == 0.0 && q[1].is_sign_negative());
+        assert!(q[2] == 0.0 && q[2].is_sign_positive());
         assert!((q[3] - std::f32::consts::FRAC_1_SQRT_2).abs() < 1e-6);
         // largest x (index 0); y, z, w in order, w in the lowest bits: w = −256/511/√2
         let word = (256u32 << 20) | (512 | 256);

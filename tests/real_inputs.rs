@@ -99,15 +99,13 @@ print(json.dumps({"cameras": cams, "images": ims, "points": pts}))
         assert_eq!(c.model.name(), p["model"].as_str().unwrap());
         let k = &c.intrinsics;
         assert_eq!((k.width, k.height), (1024, 768));
-        let params: Vec<f64> = p["params"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(num)
-            .collect();
+        let params: Vec<f64> = p["params"].as_array().unwrap().iter().map(num).collect();
         // SIMPLE_RADIAL: f, cx, cy, k
         assert_eq!(params.len(), 4);
-        assert_eq!((k.fx, k.fy, k.cx, k.cy), (params[0], params[0], params[1], params[2]));
+        assert_eq!(
+            (k.fx, k.fy, k.cx, k.cy),
+            (params[0], params[0], params[1], params[2])
+        );
         assert_eq!(
             k.distortion,
             Distortion::Radial {
@@ -126,12 +124,7 @@ print(json.dumps({"cameras": cams, "images": ims, "points": pts}))
             .unwrap();
         assert_eq!(v.name, p["name"].as_str().unwrap());
         assert_eq!(u64::from(v.camera_id), p["camera"].as_u64().unwrap());
-        let q: Vec<f64> = p["q"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(num)
-            .collect();
+        let q: Vec<f64> = p["q"].as_array().unwrap().iter().map(num).collect();
         let r = DMat3::from_quat(DQuat::from_xyzw(q[1], q[2], q[3], q[0]).normalize());
         assert!(
             (v.camera.pose.rotation - r).abs_diff_eq(DMat3::ZERO, 1e-12),
@@ -145,10 +138,8 @@ print(json.dumps({"cameras": cams, "images": ims, "points": pts}))
     let points = gs4city::colmap::read_points3d(&sparse).unwrap();
     let pp = py["points"].as_array().unwrap();
     assert_eq!((points.len(), pp.len()), (1715, 1715));
-    let by_id: std::collections::HashMap<u64, &serde_json::Value> = pp
-        .iter()
-        .map(|p| (p["id"].as_u64().unwrap(), p))
-        .collect();
+    let by_id: std::collections::HashMap<u64, &serde_json::Value> =
+        pp.iter().map(|p| (p["id"].as_u64().unwrap(), p)).collect();
     for p in &points {
         let q = by_id[&p.id];
         for k in 0..3 {
@@ -184,7 +175,13 @@ fn run_ok(cmd: &mut Command) {
 }
 
 fn convert(st: &Path, from: &Path, to: &Path, extra: &[&str]) {
-    run_ok(Command::new(st).args(["-q", "-w"]).args(extra).arg(from).arg(to));
+    run_ok(
+        Command::new(st)
+            .args(["-q", "-w"])
+            .args(extra)
+            .arg(from)
+            .arg(to),
+    );
 }
 
 /// Any splat file, every Gaussian kept in place (splat-transform writes the logit of a byte
@@ -219,8 +216,14 @@ fn diff(a: &Gaussians, b: &Gaussians) -> Diff {
     let m = |x: &mut f64, y: f64| *x = x.max(y);
     for i in 0..a.len() {
         for k in 0..3 {
-            m(&mut d.position, f64::from((a.positions[i][k] - b.positions[i][k]).abs()));
-            m(&mut d.log_scale, f64::from((a.scale[i][k] - b.scale[i][k]).abs()));
+            m(
+                &mut d.position,
+                f64::from((a.positions[i][k] - b.positions[i][k]).abs()),
+            );
+            m(
+                &mut d.log_scale,
+                f64::from((a.scale[i][k] - b.scale[i][k]).abs()),
+            );
             m(&mut d.dc, f64::from((a.f_dc[i][k] - b.f_dc[i][k]).abs()));
         }
         m(
@@ -228,7 +231,13 @@ fn diff(a: &Gaussians, b: &Gaussians) -> Diff {
             f64::from((a.activated_opacity(i) - b.activated_opacity(i)).abs()),
         );
         let (p, q) = (unit(a.rotation[i]), unit(b.rotation[i]));
-        let dot = p.iter().zip(&q).map(|(x, y)| x * y).sum::<f64>().abs().min(1.0);
+        let dot = p
+            .iter()
+            .zip(&q)
+            .map(|(x, y)| x * y)
+            .sum::<f64>()
+            .abs()
+            .min(1.0);
         m(&mut d.rotation_deg, 2.0 * dot.acos().to_degrees());
     }
     for (x, y) in a.f_rest.iter().zip(&b.f_rest) {
@@ -279,7 +288,10 @@ fn real_captures_read_alike_in_every_format() {
         let d = diff(&ours, &read(&f("ply")));
         eprintln!("{cap} .splat vs splat-transform's PLY: {d:?}");
         assert_eq!(d.position, 0.0);
-        assert!(d.log_scale <= 1e-6 && d.dc <= 1e-5 && d.opacity <= 1e-6, "{d:?}");
+        assert!(
+            d.log_scale <= 1e-6 && d.dc <= 1e-5 && d.opacity <= 1e-6,
+            "{d:?}"
+        );
         assert!(d.rotation_deg <= 1.0, "{d:?}");
         for (file, dec, format) in [
             ("compressed.ply", "cdec.ply", SplatFormat::CompressedPly),
@@ -293,7 +305,10 @@ fn real_captures_read_alike_in_every_format() {
             let d = diff(&g, &read(&f(dec)));
             eprintln!("{cap} {file} vs splat-transform's decoding: {d:?}");
             assert!(d.position <= 1e-5 * 50.0, "{file}: {d:?}");
-            assert!(d.log_scale <= 1e-5 && d.dc <= 1e-4 && d.opacity <= 1e-5, "{file}: {d:?}");
+            assert!(
+                d.log_scale <= 1e-5 && d.dc <= 1e-4 && d.opacity <= 1e-5,
+                "{file}: {d:?}"
+            );
             assert!(d.rotation_deg <= 0.05, "{file}: {d:?}");
         }
         // SPZ keeps the order: within its quantisation of the Gaussians it was made from,
@@ -337,11 +352,13 @@ fn sh_bands_survive_spz_and_compressed_ply() {
     for _ in 0..n {
         g.positions
             .push([0, 1, 2].map(|_| rng.random_range(-3.0f32..3.0)));
-        g.f_dc.push([0, 1, 2].map(|_| rng.random_range(-1.5f32..1.5)));
+        g.f_dc
+            .push([0, 1, 2].map(|_| rng.random_range(-1.5f32..1.5)));
         g.f_rest
             .extend((0..45).map(|_| rng.random_range(-0.9f32..0.9)));
         g.opacity.push(rng.random_range(-4.0f32..4.0));
-        g.scale.push([0, 1, 2].map(|_| rng.random_range(-5.0f32..0.0)));
+        g.scale
+            .push([0, 1, 2].map(|_| rng.random_range(-5.0f32..0.0)));
         g.rotation
             .push([0, 1, 2, 3].map(|_| rng.random_range(-1.0f32..1.0)));
     }
@@ -362,18 +379,27 @@ fn sh_bands_survive_spz_and_compressed_ply() {
             for j in 0..k {
                 let (a, b) = (spz.f_rest[i * 45 + c * k + j], g.f_rest[i * 45 + c * k + j]);
                 let tol = if j < 3 { 4.5 / 128.0 } else { 8.5 / 128.0 };
-                assert!((a - b).abs() <= tol, "Gaussian {i} channel {c} coefficient {j}: {a} vs {b}");
+                assert!(
+                    (a - b).abs() <= tol,
+                    "Gaussian {i} channel {c} coefficient {j}: {a} vs {b}"
+                );
             }
         }
     }
-    assert!(d.position <= 0.5 / 4096.0 + 1e-6 && d.rotation_deg <= 0.3, "{d:?}");
+    assert!(
+        d.position <= 0.5 / 4096.0 + 1e-6 && d.rotation_deg <= 0.3,
+        "{d:?}"
+    );
     // the compressed PLY: splat-transform reorders into chunks; its own decoding is the
     // reference, and every band is read (8 bits over ±4: 1/32 per step)
     let c = read(&f("sh3.compressed.ply"));
     let d = diff(&c, &read(&f("cdec.ply")));
     eprintln!("degree-3 compressed PLY vs splat-transform's decoding: {d:?}");
     assert_eq!(c.sh_degree, 3);
-    assert!(d.rest <= 1e-6 && d.dc <= 1e-4 && d.rotation_deg <= 0.05, "{d:?}");
+    assert!(
+        d.rest <= 1e-6 && d.dc <= 1e-4 && d.rotation_deg <= 0.05,
+        "{d:?}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -384,7 +410,9 @@ fn damaged_splat_files_are_named() {
     let one = |name: &str, bytes: &[u8]| -> String {
         let p = dir.join(name);
         std::fs::write(&p, bytes).unwrap();
-        let e = read_ply(&p, &ReadOptions::default()).unwrap_err().to_string();
+        let e = read_ply(&p, &ReadOptions::default())
+            .unwrap_err()
+            .to_string();
         assert!(e.contains(name), "{e}");
         assert!(!e.contains('\n'), "{e}");
         e
@@ -408,8 +436,18 @@ fn damaged_splat_files_are_named() {
     // a compressed PLY whose chunk count does not fit its splats
     let mut head = String::from("ply\nformat binary_little_endian 1.0\nelement chunk 2\n");
     for p in [
-        "min_x", "min_y", "min_z", "max_x", "max_y", "max_z", "min_scale_x", "min_scale_y",
-        "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z",
+        "min_x",
+        "min_y",
+        "min_z",
+        "max_x",
+        "max_y",
+        "max_z",
+        "min_scale_x",
+        "min_scale_y",
+        "min_scale_z",
+        "max_scale_x",
+        "max_scale_y",
+        "max_scale_z",
     ] {
         head.push_str(&format!("property float {p}\n"));
     }
@@ -470,11 +508,23 @@ fn orbit(g: &Gaussians, w: u32, h: u32) -> Vec<(String, Camera)> {
     vec![
         (
             "front".into(),
-            look_at(c + DVec3::new(0.3, -0.4, -1.0).normalize() * 1.6 * r, c, w, h, 0.9 * f64::from(w)),
+            look_at(
+                c + DVec3::new(0.3, -0.4, -1.0).normalize() * 1.6 * r,
+                c,
+                w,
+                h,
+                0.9 * f64::from(w),
+            ),
         ),
         (
             "side".into(),
-            look_at(c + DVec3::new(1.0, -0.2, 0.4).normalize() * 1.2 * r, c, w, h, 0.7 * f64::from(w)),
+            look_at(
+                c + DVec3::new(1.0, -0.2, 0.4).normalize() * 1.2 * r,
+                c,
+                w,
+                h,
+                0.7 * f64::from(w),
+            ),
         ),
     ]
 }
@@ -515,7 +565,12 @@ fn real_captures_render_as_the_numpy_reference() {
         std::fs::write(&cj, serde_json::to_string(&json).unwrap()).unwrap();
         let o = Command::new("python3")
             .arg(repo().join("scripts/ref_raster.py"))
-            .args(["--ply", ply.to_str().unwrap(), "--cameras", cj.to_str().unwrap()])
+            .args([
+                "--ply",
+                ply.to_str().unwrap(),
+                "--cameras",
+                cj.to_str().unwrap(),
+            ])
             .args(["--out", dir.to_str().unwrap()])
             .output()
             .unwrap();
@@ -524,16 +579,13 @@ fn real_captures_render_as_the_numpy_reference() {
         for (name, c) in &cams {
             let out = render_view(&scene, c, &RenderOptions::default()).unwrap();
             let load = |ch: &str| -> Vec<f32> {
-                let (_, v) = gs4city::npy::read::<f32>(&dir.join(format!("{cap}_{name}.{ch}.npy")))
-                    .unwrap();
+                let (_, v) =
+                    gs4city::npy::read::<f32>(&dir.join(format!("{cap}_{name}.{ch}.npy"))).unwrap();
                 v
             };
             let (rgb, alpha) = (load("rgb"), load("alpha"));
-            let worst = |a: &[f32], b: &[f32]| {
-                a.iter()
-                    .zip(b)
-                    .fold(0f32, |m, (x, y)| m.max((x - y).abs()))
-            };
+            let worst =
+                |a: &[f32], b: &[f32]| a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs()));
             let (dr, da) = (worst(&out.rgb, &rgb), worst(&out.alpha, &alpha));
             let mean = out
                 .rgb
@@ -547,11 +599,17 @@ fn real_captures_render_as_the_numpy_reference() {
                 "{cap} {name}: max |Δrgb| {dr:.2e} (mean {mean:.1e}), |Δalpha| {da:.2e}; {cover} of {} pixels over alpha 0.5",
                 alpha.len()
             );
-            assert!(cover > alpha.len() / 10, "{cap} {name}: the capture is not in view");
+            assert!(
+                cover > alpha.len() / 10,
+                "{cap} {name}: the capture is not in view"
+            );
             // f32 against f64 over thousands of faint Gaussians per pixel, and a Gaussian whose
             // α sits at the 1/255 cut can fall on either side of it: the colour's worst pixel
             // within 10⁻³, its mean within 10⁻⁵
-            assert!(dr <= 1e-3 && mean <= 1e-5 && da <= 2e-4, "{cap} {name}: {dr} {mean} {da}");
+            assert!(
+                dr <= 1e-3 && mean <= 1e-5 && da <= 2e-4,
+                "{cap} {name}: {dr} {mean} {da}"
+            );
         }
     }
     let _ = std::fs::remove_dir_all(&dir);
@@ -579,7 +637,12 @@ fn semantic_segmentation_of_lund_matches_the_numpy_reference() {
     let o = Command::new("python3")
         .arg(repo().join("scripts/semantic_reference.py"))
         .args(["--model", espnet().to_str().unwrap()])
-        .args(["--images", images.to_str().unwrap(), "--out", dir.to_str().unwrap()])
+        .args([
+            "--images",
+            images.to_str().unwrap(),
+            "--out",
+            dir.to_str().unwrap(),
+        ])
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -604,7 +667,10 @@ fn semantic_segmentation_of_lund_matches_the_numpy_reference() {
         for &l in labels.iter() {
             hist[usize::from(l)] += 1;
         }
-        eprintln!("{stem}: {:.4} % of pixels equal", 100.0 * eq as f64 / reference.len() as f64);
+        eprintln!(
+            "{stem}: {:.4} % of pixels equal",
+            100.0 * eq as f64 / reference.len() as f64
+        );
         assert!(eq as f64 >= 0.995 * reference.len() as f64, "{stem}");
         same += eq;
         all += reference.len();
@@ -684,7 +750,10 @@ fn segment_semantic_writes_masks_and_features_the_stages_load() {
         let f = gs4city::sam::read_view_features(&fp, masks.len(), prompts.dim, &pp).unwrap();
         for (m, row) in masks.iter().zip(f.chunks(prompts.dim)) {
             let sum: f32 = row.iter().sum();
-            assert!((sum - 1.0).abs() < 1e-3, "a feature is a probability vector: {sum}");
+            assert!(
+                (sum - 1.0).abs() < 1e-3,
+                "a feature is a probability vector: {sum}"
+            );
             assert!(m.predicted_iou > 0.0 && m.predicted_iou <= 1.0);
             assert!(m.area >= (768 * 1024usize).div_ceil(2000) as u64);
             let scores = table.score(row);
@@ -697,20 +766,48 @@ fn segment_semantic_writes_masks_and_features_the_stages_load() {
                 .unwrap()
                 .0;
             agree.1 += 1;
-            if prompts.classes.get(&["road", "sidewalk", "building", "wall", "fence", "pole",
-                "traffic light", "traffic sign", "vegetation", "terrain", "sky", "person",
-                "rider", "car", "truck", "bus", "train", "motorcycle", "bicycle", "void"][top]
-                .to_string()) == Some(&scores.class)
+            if prompts.classes.get(
+                &[
+                    "road",
+                    "sidewalk",
+                    "building",
+                    "wall",
+                    "fence",
+                    "pole",
+                    "traffic light",
+                    "traffic sign",
+                    "vegetation",
+                    "terrain",
+                    "sky",
+                    "person",
+                    "rider",
+                    "car",
+                    "truck",
+                    "bus",
+                    "train",
+                    "motorcycle",
+                    "bicycle",
+                    "void",
+                ][top]
+                    .to_string(),
+            ) == Some(&scores.class)
             {
                 agree.0 += 1;
             }
         }
     }
     assert_eq!(agree.0, agree.1, "{agree:?}");
-    assert!(classes_seen.contains(&gs4city::classes::WALL) && classes_seen.contains(&gs4city::classes::TREE));
+    assert!(
+        classes_seen.contains(&gs4city::classes::WALL)
+            && classes_seen.contains(&gs4city::classes::TREE)
+    );
     // a second run skips every image
     let o = run(&espnet());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("4 skipped"), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("4 skipped"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     // the three bad models
     let bad = scratch("semantic-bad");
     let one_line = |o: std::process::Output, file: &Path| {
@@ -746,8 +843,17 @@ fn segment_semantic_writes_masks_and_features_the_stages_load() {
     c["classes"].as_array_mut().unwrap().pop();
     std::fs::write(fewer.with_extension("json"), c.to_string()).unwrap();
     let e = one_line(run2(&fewer), &fewer);
-    assert!(e.contains("gives 20 classes") && e.contains("names 19"), "{e}");
-    assert!(!s2.join("masks").exists() || std::fs::read_dir(s2.join("masks")).unwrap().next().is_none());
+    assert!(
+        e.contains("gives 20 classes") && e.contains("names 19"),
+        "{e}"
+    );
+    assert!(
+        !s2.join("masks").exists()
+            || std::fs::read_dir(s2.join("masks"))
+                .unwrap()
+                .next()
+                .is_none()
+    );
     let _ = std::fs::remove_dir_all(&s);
     let _ = std::fs::remove_dir_all(&s2);
     let _ = std::fs::remove_dir_all(&bad);
@@ -768,7 +874,13 @@ fn align_exif_on_lund() {
     std::fs::create_dir_all(s.join("sparse")).unwrap();
     std::os::unix::fs::symlink(real.join("lund/sparse/0"), s.join("sparse/0")).unwrap();
     let out = s.join("alignment.json");
-    let o = gs4city(&["align", "--exif", s.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let o = gs4city(&[
+        "align",
+        "--exif",
+        s.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     let text = String::from_utf8_lossy(&o.stdout).to_string();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     eprintln!("{text}");
@@ -776,7 +888,11 @@ fn align_exif_on_lund() {
     assert!(text.contains("vertical: the cameras' up"), "{text}");
     let rows = text
         .lines()
-        .filter(|l| l.split_whitespace().next().is_some_and(|w| w.ends_with(".jpg")))
+        .filter(|l| {
+            l.split_whitespace()
+                .next()
+                .is_some_and(|w| w.ends_with(".jpg"))
+        })
         .count();
     assert_eq!(rows, 29, "{text}");
     let a = gs4city::alignment::Alignment::read(&out).unwrap();
@@ -827,7 +943,12 @@ fn align_exif_recovers_a_known_similarity_from_noisy_gps() {
         // a street, heading changing along it; cameras 1.6 m above it, level, looking sideways
         // or along the street
         let g = origin + DVec3::new(160.0 * t - 80.0, 30.0 * (2.0 * t).sin(), 1.6);
-        let heading = (2.0 * t).cos().atan2(1.0) + if k % 3 == 0 { 0.0 } else { 1.5708 * if k % 2 == 0 { 1.0 } else { -1.0 } };
+        let heading = (2.0 * t).cos().atan2(1.0)
+            + if k % 3 == 0 {
+                0.0
+            } else {
+                1.5708 * if k % 2 == 0 { 1.0 } else { -1.0 }
+            };
         let fwd = DVec3::new(heading.cos(), heading.sin(), 0.0);
         let right = DVec3::new(fwd.y, -fwd.x, 0.0);
         let down = DVec3::NEG_Z;
@@ -887,9 +1008,18 @@ for t in tags:
     ex[0x8825] = gps
     im.save(sys.argv[2] + "/" + t["name"], exif=ex.tobytes())
 "#;
-    python(code, &[tj.to_str().unwrap(), s.join("images").to_str().unwrap()]);
+    python(
+        code,
+        &[tj.to_str().unwrap(), s.join("images").to_str().unwrap()],
+    );
     let out = s.join("alignment.json");
-    let o = gs4city(&["align", "--exif", s.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let o = gs4city(&[
+        "align",
+        "--exif",
+        s.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     let text = String::from_utf8_lossy(&o.stdout).to_string();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     eprintln!("{text}");
@@ -901,11 +1031,17 @@ for t in tags:
     assert_eq!(outliers, vec!["05.jpg", "17.jpg"], "{text}");
     assert!(text.contains("vertical: the cameras' up"), "{text}");
     let a = gs4city::alignment::Alignment::read(&out).unwrap();
-    assert!((a.scale / truth.scale - 1.0).abs() < 0.02, "scale {}", a.scale);
+    assert!(
+        (a.scale / truth.scale - 1.0).abs() < 0.02,
+        "scale {}",
+        a.scale
+    );
     let angle = gs4city::alignment::rotation_angle_deg(&(a.rotation.transpose() * truth.rotation));
     assert!(angle < 1.5, "rotation off by {angle}°");
     // the altitudes (5 m noise) do not tilt it: up maps onto up within 0.01°
-    let tilt = (a.rotation * DVec3::Z).angle_between(truth.rotation * DVec3::Z).to_degrees();
+    let tilt = (a.rotation * DVec3::Z)
+        .angle_between(truth.rotation * DVec3::Z)
+        .to_degrees();
     assert!(tilt < 0.01, "tilt {tilt}°");
     for v in &views {
         let c = v.camera.pose.center();
@@ -963,7 +1099,10 @@ fn semantic_masks_feed_the_masks_and_associate_stages() {
     let masks = read("masks/summary.json");
     assert_eq!(masks["features"], serde_json::Value::Bool(true), "{masks}");
     let assoc = read("associate/summary.json");
-    eprintln!("masks: {masks}\nassociate calibration: {}", assoc["calibration"]);
+    eprintln!(
+        "masks: {masks}\nassociate calibration: {}",
+        assoc["calibration"]
+    );
     assert!(assoc["calibration"]["mode"].is_string(), "{assoc}");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -655,7 +655,11 @@ fn native_against_onnx_runtime(path: &Path, what: &str, masks: usize) {
         let all: Vec<usize> = (0..dec.masks()).collect();
         let ours = dec.low_res(prep, &d, &all);
         assert_eq!(d.iou.len(), iou.len());
-        assert_eq!(ours.len() * 256 * 256, low.len(), "{what}: low-resolution masks");
+        assert_eq!(
+            ours.len() * 256 * 256,
+            low.len(),
+            "{what}: low-resolution masks"
+        );
         let scale = low.iter().fold(1f32, |m, v| m.max(v.abs()));
         for (a, b) in d.iou.iter().zip(iou.iter()) {
             assert!((a - b).abs() <= 1e-4, "{what} prompt {k}: IoU {a} vs {b}");

@@ -549,9 +549,14 @@ mod tests {
             }
         }
         let c = calibrate(&o, 0.7);
-        assert_eq!((c.mode, c.tau_sim), (CalibrationMode::Features, 0.7), "{c:?}");
+        assert_eq!(
+            (c.mode, c.tau_sim),
+            (CalibrationMode::Features, 0.7),
+            "{c:?}"
+        );
         assert!(c.linked_cosine.unwrap()[0] > 0.99, "{c:?}");
-        // unlinked pairs of one class are as similar: the AUC is far from 1
-        assert!(c.auc.unwrap() < 0.8, "{c:?}");
+        // unlinked pairs of one class (a quarter of them) are as similar as linked ones: the
+        // 90 % quantile of the unlinked cosines is as high as the linked pairs'
+        assert!(c.unlinked_cosine.unwrap()[4] > 0.99, "{c:?}");
     }
 }

@@ -122,7 +122,9 @@ fn run_exif(scene: &Path, out: &Path) -> anyhow::Result<()> {
     let sparse = [scene.join("sparse/0"), scene.join("sparse")]
         .into_iter()
         .find(|d| colmap::read_cameras(d).is_ok())
-        .ok_or_else(|| anyhow::anyhow!("{}: no COLMAP model in sparse/0 or sparse", scene.display()))?;
+        .ok_or_else(|| {
+            anyhow::anyhow!("{}: no COLMAP model in sparse/0 or sparse", scene.display())
+        })?;
     let views = colmap::read_model(&sparse)?;
     let crs = scene_crs(scene)?;
     let f = crate::geotag::fit(
@@ -147,7 +149,10 @@ fn run_exif(scene: &Path, out: &Path) -> anyhow::Result<()> {
         ),
     }
     println!("camera residuals (GPS − fitted camera position, metres):");
-    println!("  {:<24} {:>10} {:>10} {:>10}", "image", "horizontal", "vertical", "3D");
+    println!(
+        "  {:<24} {:>10} {:>10} {:>10}",
+        "image", "horizontal", "vertical", "3D"
+    );
     for (c, (r, inlier)) in f.cameras.iter().zip(fit.residuals.iter().zip(&fit.inliers)) {
         println!(
             "  {:<24} {:>10.2} {:>+10.2} {:>10.2}{}",
@@ -164,7 +169,12 @@ fn run_exif(scene: &Path, out: &Path) -> anyhow::Result<()> {
         .zip(&fit.inliers)
         .enumerate()
         .filter(|(_, (_, i))| **i)
-        .max_by(|a, b| a.1.0.truncate().length().total_cmp(&b.1.0.truncate().length()))
+        .max_by(|a, b| {
+            a.1.0
+                .truncate()
+                .length()
+                .total_cmp(&b.1.0.truncate().length())
+        })
         .map(|(i, (r, _))| (f.cameras[i].name.clone(), r.truncate().length()));
     println!(
         "RMS over {} inliers: horizontal {:.2} m, vertical {:.2} m, 3D {:.2} m; inlier bound {:.2} m; scale {:.6} scene units per metre",

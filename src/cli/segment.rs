@@ -12,7 +12,11 @@ pub struct SegmentArgs {
     #[arg(long)]
     scene: PathBuf,
     /// Model folder: encoder.onnx, decoder.onnx, model.json (docs/segment.md).
-    #[arg(long, required_unless_present = "semantic", conflicts_with = "semantic")]
+    #[arg(
+        long,
+        required_unless_present = "semantic",
+        conflicts_with = "semantic"
+    )]
     model: Option<PathBuf>,
     /// A semantic segmentation network (MODEL.onnx with its card MODEL.json beside it):
     /// masks are its classes' connected components, features their mean class probabilities

@@ -131,7 +131,11 @@ impl ModelCard {
         {
             return Err(bad("mean must be finite, std and scale positive".into()));
         }
-        if card.multiple_of == 0 || card.tile.iter().any(|&t| t == 0 || t % card.multiple_of != 0)
+        if card.multiple_of == 0
+            || card
+                .tile
+                .iter()
+                .any(|&t| t == 0 || t % card.multiple_of != 0)
         {
             return Err(bad(format!(
                 "tile {:?} must be positive multiples of multiple_of {}",
@@ -139,7 +143,9 @@ impl ModelCard {
             )));
         }
         if !mapped.iter().any(|c| c.is_some_and(classes::is_building))
-            || !mapped.iter().any(|c| c.is_some_and(|c| c > classes::INSTALLATION))
+            || !mapped
+                .iter()
+                .any(|c| c.is_some_and(|c| c > classes::INSTALLATION))
         {
             return Err(bad(
                 "the classes map to no building class or no foreground class (the masks stage's features test needs both)".into(),
@@ -400,7 +406,9 @@ impl SemanticModel {
 /// Softmax over `c` planes of `n` values each, in place (max subtracted, `f32`).
 fn softmax_in_place(p: &mut [f32], c: usize, n: usize) {
     for i in 0..n {
-        let m = (0..c).map(|k| p[k * n + i]).fold(f32::NEG_INFINITY, f32::max);
+        let m = (0..c)
+            .map(|k| p[k * n + i])
+            .fold(f32::NEG_INFINITY, f32::max);
         let mut s = 0f32;
         for k in 0..c {
             let e = (p[k * n + i] - m).exp();
@@ -415,7 +423,15 @@ fn softmax_in_place(p: &mut [f32], c: usize, n: usize) {
 
 /// Planes `c × ih × iw` brought to `c × oh × ow`: copied when equal, else bilinear with
 /// half-pixel centres and clamped edges (PyTorch's `interpolate(align_corners=False)`).
-fn resize_planes(src: &[f32], c: usize, ih: usize, iw: usize, oh: usize, ow: usize, out: &mut [f32]) {
+fn resize_planes(
+    src: &[f32],
+    c: usize,
+    ih: usize,
+    iw: usize,
+    oh: usize,
+    ow: usize,
+    out: &mut [f32],
+) {
     if (ih, iw) == (oh, ow) {
         out.copy_from_slice(&src[..c * oh * ow]);
         return;
@@ -599,9 +615,9 @@ pub fn run(
     } else {
         None
     };
-    let same = theirs
-        .as_ref()
-        .is_some_and(|p| !p.simulated && p.dim == ours.dim && p.prompts == ours.prompts && p.classes == ours.classes);
+    let same = theirs.as_ref().is_some_and(|p| {
+        !p.simulated && p.dim == ours.dim && p.prompts == ours.prompts && p.classes == ours.classes
+    });
     let any_masks = images.iter().any(|i| mask_path(&masks_dir, i).is_file());
     if any_masks && !same {
         return Err(SegmentError::Image {

@@ -52,8 +52,7 @@ const PACKED: [&str; 4] = [
 /// `packed_position`).
 pub fn is_compressed(h: &Header) -> bool {
     h.element("chunk").is_some()
-        && h
-            .element("vertex")
+        && h.element("vertex")
             .is_some_and(|v| h.elements[v].property("packed_position").is_some())
 }
 
@@ -79,7 +78,10 @@ fn columns(
             let p = def.property(n).ok_or_else(|| {
                 bad(
                     path,
-                    format!("compressed PLY: element `{}` has no property `{n}`", def.name),
+                    format!(
+                        "compressed PLY: element `{}` has no property `{n}`",
+                        def.name
+                    ),
                 )
             })?;
             if def.properties[p].kind != PropertyKind::Scalar(kind) {
@@ -232,11 +234,17 @@ pub fn read(
                 (v - 0.5) * 8.0
             }));
             out.push(opacity_logit(unorm(col, 8)));
-            let s = [unorm(scale >> 21, 11), unorm(scale >> 11, 10), unorm(scale, 11)];
+            let s = [
+                unorm(scale >> 21, 11),
+                unorm(scale >> 11, 10),
+                unorm(scale, 11),
+            ];
             out.extend((0..3).map(|k| lerp(c[6 + k], c[9 + k], s[k])));
             let abc = [20, 10, 0].map(|s| (unorm(rot >> s, 10) - 0.5) * std::f64::consts::SQRT_2);
             let largest = (rot >> 30) as usize;
-            let m = (1.0 - abc.iter().map(|v| v * v).sum::<f64>()).max(0.0).sqrt();
+            let m = (1.0 - abc.iter().map(|v| v * v).sum::<f64>())
+                .max(0.0)
+                .sqrt();
             let mut q = [0f64; 4];
             let mut rest_abc = abc.iter();
             for (k, v) in q.iter_mut().enumerate() {

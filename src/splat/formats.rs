@@ -120,7 +120,11 @@ pub fn read_splat(
     let n = splat_count(path, bytes.len() as u64)?;
     assemble(path, SplatFormat::Splat, 0, n, options, |i, row| {
         let r = &bytes[i * SPLAT_RECORD..(i + 1) * SPLAT_RECORD];
-        let f = |k: usize| f64::from(f32::from_le_bytes(r[4 * k..4 * k + 4].try_into().expect("4 bytes")));
+        let f = |k: usize| {
+            f64::from(f32::from_le_bytes(
+                r[4 * k..4 * k + 4].try_into().expect("4 bytes"),
+            ))
+        };
         row.extend([f(0), f(1), f(2)]);
         row.extend((0..3).map(|c| (f64::from(r[24 + c]) / 255.0 - 0.5) / SH_C0));
         row.push(opacity_logit(f64::from(r[27]) / 255.0));
@@ -134,7 +138,8 @@ pub fn read_splat(
 const SH_FLIP_YZ: [f64; 15] = [
     -1.0, -1.0, 1.0, // y, z, x
     -1.0, 1.0, 1.0, -1.0, 1.0, // xy, yz, 3z²−1, xz, x²−y²
-    -1.0, 1.0, -1.0, -1.0, 1.0, -1.0, 1.0, // y(3x²−y²), xyz, y(5z²−1), z(5z²−3), x(5z²−1), z(x²−y²), x(x²−3y²)
+    -1.0, 1.0, -1.0, -1.0, 1.0, -1.0,
+    1.0, // y(3x²−y²), xyz, y(5z²−1), z(5z²−3), x(5z²−1), z(x²−y²), x(x²−3y²)
 ];
 
 /// Reads an SPZ file's bytes (versions 2 and 3; module docs).
@@ -204,7 +209,10 @@ mod tests {
         let a = basis(x, y, z);
         let b = basis(x, -y, -z);
         for k in 0..15 {
-            assert!((b[k] - SH_FLIP_YZ[k] * a[k]).abs() < 1e-12, "coefficient {k}");
+            assert!(
+                (b[k] - SH_FLIP_YZ[k] * a[k]).abs() < 1e-12,
+                "coefficient {k}"
+            );
         }
     }
 

@@ -359,7 +359,12 @@ impl<'a> Assembler<'a> {
 
     /// [`Assembler::row`] on the values of vertex `index` (at `line` of an ASCII file).
     #[inline]
-    fn values(&mut self, index: usize, line: Option<usize>, values: &[f64]) -> Result<(), PlyError> {
+    fn values(
+        &mut self,
+        index: usize,
+        line: Option<usize>,
+        values: &[f64],
+    ) -> Result<(), PlyError> {
         for (&slot, &v) in self.layout.slots.iter().zip(values) {
             let f = v as f32;
             match slot {
@@ -625,31 +630,43 @@ pub fn read_ply_bytes(
     let mut asm = Assembler::new(path, &layout, options.invalid, def.count);
     reader.read_element("vertex", |row| asm.row(row))?;
     reader.finish()?;
-    let (
-        g,
-        [
+    let (g, counts, examples) = asm.finish();
+    let report = PlyReport::new(encoding, def.count, g.sh_degree, counts, examples, fast);
+    Ok((g, report))
+}
+
+impl PlyReport {
+    /// The report of `vertices` read (the assembler's counts: dropped non-finite, out of
+    /// range, zero quaternion, kept invalid, kept with a non-finite position), of an INRIA PLY.
+    fn new(
+        encoding: PlyEncoding,
+        vertices: usize,
+        sh_degree: u8,
+        counts: [usize; 5],
+        invalid_examples: Vec<String>,
+        fast_path: bool,
+    ) -> PlyReport {
+        let [
             dropped_non_finite,
             dropped_out_of_range,
             dropped_zero_quaternion,
             kept_invalid,
             kept_non_finite_position,
-        ],
-        invalid_examples,
-    ) = asm.finish();
-    let report = PlyReport {
-        encoding,
-        vertices: def.count,
-        sh_degree: g.sh_degree,
-        dropped_non_finite,
-        dropped_out_of_range,
-        dropped_zero_quaternion,
-        kept_invalid,
-        kept_non_finite_position,
-        invalid_examples,
-        fast_path: fast,
-        format: super::formats::SplatFormat::Ply,
-    };
-    Ok((g, report))
+        ] = counts;
+        PlyReport {
+            encoding,
+            vertices,
+            sh_degree,
+            dropped_non_finite,
+            dropped_out_of_range,
+            dropped_zero_quaternion,
+            kept_invalid,
+            kept_non_finite_position,
+            invalid_examples,
+            fast_path,
+            format: super::formats::SplatFormat::Ply,
+        }
+    }
 }
 
 /// Gaussians of another splat format, checked as a PLY's are: `values(i, row)` fills the
@@ -688,30 +705,19 @@ pub(super) fn assemble(
         debug_assert_eq!(row.len(), def.properties.len());
         asm.values(i, None, &row)?;
     }
-    let (g, counts, invalid_examples) = asm.finish();
-    let [
-        dropped_non_finite,
-        dropped_out_of_range,
-        dropped_zero_quaternion,
-        kept_invalid,
-        kept_non_finite_position,
-    ] = counts;
-    Ok((
-        g,
-        PlyReport {
-            encoding: PlyEncoding::BinaryLittleEndian,
-            vertices: count,
+    let (g, counts, examples) = asm.finish();
+    let report = PlyReport {
+        format,
+        ..PlyReport::new(
+            PlyEncoding::BinaryLittleEndian,
+            count,
             sh_degree,
-            dropped_non_finite,
-            dropped_out_of_range,
-            dropped_zero_quaternion,
-            kept_invalid,
-            kept_non_finite_position,
-            invalid_examples,
-            fast_path: false,
-            format,
-        },
-    ))
+            counts,
+            examples,
+            false,
+        )
+    };
+    Ok((g, report))
 }
 
 /// The property names and kinds written for `g`, in INRIA order, extras last.
