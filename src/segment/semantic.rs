@@ -554,21 +554,12 @@ pub fn prompts(card: &ModelCard, mapped: &[Option<i32>]) -> Prompts {
 }
 
 /// The options of `segment --semantic`.
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct SemanticOptions {
     /// Components smaller than this many pixels are dropped; 0 = 1/2000 of the image's pixels.
     pub min_area: usize,
     /// ONNX Runtime intra-op threads (0 = its default).
     pub threads: usize,
-}
-
-impl Default for SemanticOptions {
-    fn default() -> Self {
-        SemanticOptions {
-            min_area: 0,
-            threads: 0,
-        }
-    }
 }
 
 /// The area threshold of an `h × w` image.
