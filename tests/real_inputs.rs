@@ -767,7 +767,7 @@ fn segment_semantic_writes_masks_and_features_the_stages_load() {
                 .0;
             agree.1 += 1;
             if prompts.classes.get(
-                &[
+                [
                     "road",
                     "sidewalk",
                     "building",
@@ -788,8 +788,7 @@ fn segment_semantic_writes_masks_and_features_the_stages_load() {
                     "motorcycle",
                     "bicycle",
                     "void",
-                ][top]
-                    .to_string(),
+                ][top],
             ) == Some(&scores.class)
             {
                 agree.0 += 1;
@@ -947,7 +946,7 @@ fn align_exif_recovers_a_known_similarity_from_noisy_gps() {
             + if k % 3 == 0 {
                 0.0
             } else {
-                1.5708 * if k % 2 == 0 { 1.0 } else { -1.0 }
+                std::f64::consts::FRAC_PI_2 * if k % 2 == 0 { 1.0 } else { -1.0 }
             };
         let fwd = DVec3::new(heading.cos(), heading.sin(), 0.0);
         let right = DVec3::new(fwd.y, -fwd.x, 0.0);
