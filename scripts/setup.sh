@@ -50,6 +50,13 @@ if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
     echo "setup: pip install onnx==1.23.2 onnxruntime==1.32.0 scipy"
     python3 -m pip install -q --disable-pip-version-check onnx==1.23.2 onnxruntime==1.32.0 scipy==1.17.1
   fi
+  # The independent readers of the real-data tests (tests/real_inputs.rs): pycolmap reads the
+  # real COLMAP model, Pillow decodes the real photos for scripts/semantic_reference.py and
+  # writes the EXIF GPS tags of the simulated-GPS test. ~40 MB.
+  if ! python3 -c "import pycolmap, PIL" 2>/dev/null; then
+    echo "setup: pip install pycolmap==4.2.1 pillow==13.0.0"
+    python3 -m pip install -q --disable-pip-version-check pycolmap==4.2.1 pillow==13.0.0
+  fi
 fi
 # The JavaScript the project takes from the npm registry (tools/js: package.json +
 # package-lock.json, pinned), one folder and one browser driver for every test:

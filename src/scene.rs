@@ -199,7 +199,8 @@ pub struct ImportSpec {
     pub model: Option<PathBuf>,
     /// The iteration to take (default: the highest `point_cloud/iteration_N`).
     pub iteration: Option<u32>,
-    /// A PLY in the INRIA layout (nerfstudio `ns-export gaussian-splat`, gsplat's export);
+    /// A PLY in the INRIA layout (nerfstudio `ns-export gaussian-splat`, gsplat's export), or
+    /// a `.splat`, `.spz` or SuperSplat compressed PLY (converted to an INRIA PLY on import);
     /// overrides the training output's.
     pub ply: Option<PathBuf>,
     /// The COLMAP folder the scene was trained from (`sparse/0/`, `images/`); default: the
@@ -410,6 +411,15 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
         }
         // alignment.json is always copied: it is edited and refined in place.
         let copy = spec.copy || part == "citymodel/alignment.json";
+        if part == "point_cloud.ply" && !is_inria_ply(src) {
+            // .splat, .spz, compressed PLY: converted once into the INRIA layout, which every
+            // stage (and `gs4city tile`'s streaming cut) reads
+            let (g, _) = crate::splat::read_ply(src, &crate::splat::ReadOptions::KEEP)
+                .map_err(|e| bad(e.to_string()))?;
+            crate::splat::write_ply(&dst, &g, crate::splat::PlyEncoding::BinaryLittleEndian)
+                .map_err(|e| bad(e.to_string()))?;
+            continue;
+        }
         let r = if copy {
             copy_tree(src, &dst)
         } else {
@@ -422,6 +432,21 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
         parts,
         missing,
     })
+}
+
+/// Whether `path` is an INRIA PLY (not a `.splat`, SPZ or compressed PLY, which [`import`]
+/// converts).
+fn is_inria_ply(path: &Path) -> bool {
+    use crate::splat::SplatFormat;
+    let mut head = [0u8; 4];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
+        .unwrap_or(0);
+    match crate::splat::formats::detect(path, &head[..n]) {
+        SplatFormat::Ply | SplatFormat::CompressedPly => crate::ply::read_header(path)
+            .map_or(true, |(h, _)| !crate::splat::compressed::is_compressed(&h)),
+        SplatFormat::Splat | SplatFormat::Spz => false,
+    }
 }
 
 #[cfg(unix)]
