@@ -10,7 +10,7 @@ use clap::{Args, Subcommand, ValueEnum};
 use crate::citymodel::CitymodelSummary;
 use crate::layout::{Mode, Stage, Summary};
 use crate::query::ColorBy;
-use crate::query::tiles3d::{self, TilesOptions};
+use crate::tiles3d::{self, TilesOptions};
 
 #[derive(Debug, Subcommand)]
 pub enum ExportCommand {
@@ -58,7 +58,8 @@ pub struct ExportArgs {
     /// building).
     #[arg(long, value_name = "rgb|class|building", default_value = "rgb")]
     pub color_by: ColorBy,
-    /// The largest number of Gaussians in one tile (a quadtree node with more is split).
+    /// The largest number of splats in one tile: a quadtree node with more Gaussians is split,
+    /// and every inner node holds at most this many coarse splats (the root too).
     #[arg(long, default_value_t = tiles3d::MAX_SPLATS)]
     pub max_splats: usize,
     /// Store each tile's splats SPZ-compressed (`KHR_gaussian_splatting_compression_spz_2`, a
@@ -120,18 +121,21 @@ pub fn run(cmd: &ExportCommand) -> anyhow::Result<()> {
         None => (vec![true; sr.label_of.len()], "every Gaussian".to_string()),
     };
     let opts = TilesOptions {
-        color_by: a.color_by,
         max_splats: a.max_splats,
         spz: a.spz,
     };
-    let s = tiles3d::export(&sr, &selected, &query, &alignment, &georef, &opts, &a.out)?;
+    let s = crate::query::tiles(
+        &sr, &selected, &query, a.color_by, &alignment, &georef, &opts, &a.out,
+    )?;
     println!(
-        "export 3dtiles `{}`: {} Gaussians in {} tiles ({} leaves, depth {}), {:.1} MB, CRS {} → root at lon {:.7}° lat {:.7}° h {:.2} m → {}  [{:.2} s]",
+        "export 3dtiles `{}`: {} Gaussians in {} tiles ({} leaves, depth {}; {} coarse splats, {} in the root), {:.1} MB, CRS {} → root at lon {:.7}° lat {:.7}° h {:.2} m → {}  [{:.2} s]",
         s.query,
         s.splats,
         s.tiles,
         s.leaves,
         s.depth,
+        s.coarse_splats,
+        s.root_splats,
         s.bytes as f64 / 1e6,
         s.crs,
         s.root.lon,
