@@ -264,7 +264,7 @@ try {
       });
       m.seconds = (Date.now() - t0) / 1000;
       m.requests = requests.slice(before);
-      await tab.screenshot({ path: outPng.replace(/\.png$/, "") + "-" + v.name + ".png" });
+      await tab.screenshot({ path: outPng.replace(/\.png$/, "") + "-" + v.name + ".png", timeout: 180000 });
       result.views[v.name] = m;
     }
   } else if (result.ok) {
@@ -298,7 +298,7 @@ try {
       }
       return { lit, byColor: out };
     }, palette);
-    await tab.screenshot({ path: outPng });
+    await tab.screenshot({ path: outPng, timeout: 180000 });
   }
   result.logs = logs.slice(0, 30);
   result.requests = requests;

@@ -168,7 +168,7 @@ try {
         if (same >= 2 && m.lit > 0) break;
       }
       m.seconds = (Date.now() - t0) / 1000;
-      await tab.screenshot({ path: `${outPrefix}-${v.name}.png` });
+      await tab.screenshot({ path: `${outPrefix}-${v.name}.png`, timeout: 180000 });
       result.views[v.name] = m;
     }
     result.ok = true;
