@@ -132,7 +132,8 @@ def main():
     out["max_error"] = err
     # The steps: half a quantisation step (and f32 rounding of the reference).
     out["half_step"] = {
-        "position_m": 0.5 / 4096 + 1e-6,  # in units of a 12-bit tile's step "alpha": 0.5 / 255 + 1e-6,
+        # position_m: in units of a 12-bit tile's step.
+        "position_m": 0.5 / 4096 + 1e-6, "alpha": 0.5 / 255 + 1e-6,
         "color_dc": 0.5 / (0.15 * 255) + 1e-6, "log_scale": 0.5 / 16 + 1e-6,
         "rotation_xyz": 0.5 / 127.5 + 1e-6,
         # w = sqrt(1 - |xyz|²) from xyz each off by d: |Δw| <= sqrt(2·sqrt(3)·d + 3d²), the
