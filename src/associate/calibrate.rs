@@ -1,4 +1,4 @@
-//! The feature threshold `τ_sim` from the scene's own statistics (issue 23): before the memory
+//! The feature threshold `τ_sim` from the scene's own statistics: before the memory
 //! bank runs, pairs of kept masks in different views are split by geometry alone — **linked**
 //! when each puts at least half of its candidates' α·T mass on the other's candidates (the same
 //! object seen twice), **unlinked** when they share no candidate Gaussian — and the cosine of

@@ -18,7 +18,7 @@
 //! groups (masks composited, the fill) and finds the view support; after the filters, pass B
 //! rewrites the maps with the kept groups' ids (−1 for dropped groups).
 //!
-//! Outputs (`docs/design.md`, "Wave 2 contract"): per view `<stem>.ids.npy` (int32 H×W, group id ≥ 0,
+//! Outputs (`docs/design.md`, "Stage contract"): per view `<stem>.ids.npy` (int32 H×W, group id ≥ 0,
 //! −1 none), `groups.json` ([`GroupsFile`]), `features.npy` (float32 G×D, the unit mean feature
 //! of each group, when the masks have features) and `summary.json` (last).
 //!

@@ -1,5 +1,7 @@
 //! CPU rasterizer for 3D Gaussian Splatting: the INRIA `diff-gaussian-rasterization`
-//! forward pass (constants in `shared/docs/ANCHORS.md` §3), deterministic and rayon-parallel
+//! forward pass (its constants: near cull z ≤ 0.2, +0.3 on the 2D covariance's diagonal, radius
+//! ⌈3√λ_max⌉, α = min(0.99, o·e^power), α < 1/255 skipped, stop once T·(1 − α) < 1e-4; the
+//! `forward.cu` of the INRIA repository), deterministic and rayon-parallel
 //! over 16×16 tiles. This module owns the render stage: [`PreparedScene`] (view-independent
 //! activations), [`render_view`] (one camera → RGB, alpha, depths, features, contribution
 //! lists) and [`render_to_dir`] (per-view files). Submodules: [`project`] (per-Gaussian
