@@ -400,6 +400,7 @@ pub fn columns(sr: &SemanticRun) -> export::Columns {
 /// `gs4city export --format 3dtiles`: the Gaussians `selected` of run `sr` (the scene's PLY,
 /// invalid ones left out, coloured by `color_by`) with their building / surface / part and
 /// class, written by [`crate::tiles3d::write`] into `out`. `query`: the selection's text.
+#[allow(clippy::too_many_arguments)]
 pub fn tiles(
     sr: &SemanticRun,
     selected: &[bool],
