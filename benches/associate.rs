@@ -2,8 +2,8 @@
 //! pipeline (citymodel/, raycast/, render/ = contributions cache):
 //!
 //! ```text
-//! cargo bench --bench associate -- --scene out/street/scene --run out/street/run \
-//!     --masks out/street/run/masks --out out/street/assoc-bench \
+//! cargo bench --bench associate -- --scene out/results/street/scene --run out/results/street/run \
+//!     --masks out/results/street/run/masks --out out/results/street/assoc-bench \
 //!     [--configs default,mview1,...] [--keep] [--quick]
 //! ```
 //! Kept masks come from the real masks stage (`gs4city::masks::run`, default options, all views):
@@ -54,10 +54,10 @@ fn args() -> Args {
         }
     }
     Args {
-        scene: scene.unwrap_or_else(|| "out/street/scene".into()),
-        run: run.unwrap_or_else(|| "out/street/run".into()),
-        out: out.unwrap_or_else(|| "out/street/assoc-bench".into()),
-        masks: masks.unwrap_or_else(|| "out/street/run/masks".into()),
+        scene: scene.unwrap_or_else(|| "out/results/street/scene".into()),
+        run: run.unwrap_or_else(|| "out/results/street/run".into()),
+        out: out.unwrap_or_else(|| "out/results/street/assoc-bench".into()),
+        masks: masks.unwrap_or_else(|| "out/results/street/run/masks".into()),
         configs: configs
             .unwrap_or_else(|| {
                 "default,mview1,mview5,projected,single_pass,shuffle1,shuffle2,shuffle3,nosnap"

@@ -455,7 +455,7 @@ fn product_texts() -> Vec<(PathBuf, String)> {
             }
         }
     }
-    let mut files: Vec<PathBuf> = ["ARCHITECTURE.md"]
+    let mut files: Vec<PathBuf> = ["README.md", "BENCHMARKS.md", "ARCHITECTURE.md"]
         .iter()
         .map(|f| root().join(f))
         .collect();
@@ -491,6 +491,19 @@ fn the_products_words_carry_no_history_and_no_machine() {
          numbers, waves or machine paths (history belongs in git and CHANGELOG.md):\n{}",
         found.join("\n")
     );
+}
+
+/// README.md is a guide (≤ 200 lines) and BENCHMARKS.md holds current figures (≤ 400 lines):
+/// per-command detail belongs in `--help` and docs/, older measurements in git.
+#[test]
+fn the_readme_and_the_benchmarks_stay_short() {
+    for (file, max) in [("README.md", 200), ("BENCHMARKS.md", 400)] {
+        let n = std::fs::read_to_string(root().join(file))
+            .unwrap()
+            .lines()
+            .count();
+        assert!(n <= max, "{file} has {n} lines, at most {max}");
+    }
 }
 
 #[test]

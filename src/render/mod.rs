@@ -352,7 +352,7 @@ fn render_view_with(
     // Gaussians get an empty tile rectangle and are never binned.
     // The array is reused from the previous view on this thread (taken, so that a nested
     // render gets a fresh one): a new n × 80-byte allocation per view costs a page fault per
-    // 4 KB (BENCHMARKS.md, "Render: allocation").
+    // 4 KB (BENCHMARKS.md's git history, "Render: allocation").
     let mut batches = PROJECTED.take();
     // Resized, not refilled: every batch is written below.
     batches.resize(
