@@ -55,15 +55,29 @@ fn small_run() -> &'static (PathBuf, PathBuf) {
                 "vote",
             ],
         ] {
-            let o = Command::new(BIN).args(&args).output().unwrap();
-            assert!(
-                o.status.success(),
-                "{args:?}: {}",
-                String::from_utf8_lossy(&o.stderr)
-            );
+            gs4city_ok(&args);
         }
         (scene, run)
     })
+}
+
+/// PROJ's `cs2cs` and the Python modules `python`; a missing one skips the test (said once).
+fn have_cs2cs_and(test: &str, python: &[&str]) -> bool {
+    have(
+        test,
+        "cs2cs",
+        "cs2cs is missing (scripts/setup.sh installs proj-bin)",
+    ) && (python.is_empty() || common::python_can_import(test, python))
+}
+
+/// Runs gs4city with `args`; panics with its stderr when it fails.
+fn gs4city_ok(args: &[&str]) {
+    let o = Command::new(BIN).args(args).output().unwrap();
+    assert!(
+        o.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
 }
 
 fn export(run: &Path, out: &Path, extra: &[&str]) -> Output {
@@ -269,12 +283,7 @@ fn log_scale_tile(path: &Path) {
 #[test]
 fn reference_decoder_of_the_text_matches_semantic_ply() {
     let test = "export_3dtiles::reference_decoder_of_the_text_matches_semantic_ply";
-    if !have(
-        test,
-        "cs2cs",
-        "cs2cs is missing (scripts/setup.sh installs proj-bin)",
-    ) || !common::python_can_import(test, &["numpy", "scipy"])
-    {
+    if !have_cs2cs_and(test, &["numpy", "scipy"]) {
         return;
     }
     for spz in [false, true] {
@@ -602,12 +611,7 @@ fn root_transform_matches_cs2cs() {
 #[test]
 fn splats_carry_their_place_ids_and_class() {
     let test = "export_3dtiles::splats_carry_their_place_ids_and_class";
-    if !have(
-        test,
-        "cs2cs",
-        "cs2cs is missing (scripts/setup.sh installs proj-bin)",
-    ) || !common::python_can_import(test, &["numpy", "scipy"])
-    {
+    if !have_cs2cs_and(test, &["numpy", "scipy"]) {
         return;
     }
     let t = full_export();
@@ -823,22 +827,7 @@ fn crs_to_ecef_matches_cs2cs() {
 #[test]
 fn cesium_draws_the_class_colours_at_the_right_place() {
     let test = "export_3dtiles::cesium_draws_the_class_colours_at_the_right_place";
-    if !have(test, "node", "node is missing (scripts/setup.sh)")
-        || !have_js(test, "cesium")
-        || !have_js(test, "playwright-core")
-        || !have(
-            test,
-            "cs2cs",
-            "cs2cs is missing (scripts/setup.sh installs proj-bin)",
-        )
-    {
-        return;
-    }
-    if !Path::new("/usr/bin/chromium").is_file() {
-        common::skip(
-            test,
-            "/usr/bin/chromium is missing (scripts/setup.sh installs chromium)",
-        );
+    if !have_browser(test, "cesium", &[]) {
         return;
     }
     let t = spz_export();
@@ -1070,15 +1059,22 @@ fn footprint_problems(views: &Value, f: f64) -> Vec<String> {
     bad
 }
 
-fn have_chromium(test: &str) -> bool {
-    if !Path::new("/usr/bin/chromium").is_file() {
-        common::skip(
-            test,
-            "/usr/bin/chromium is missing (scripts/setup.sh installs chromium)",
-        );
-        return false;
-    }
-    true
+/// What a browser test needs: node, the npm `package` and playwright-core in tools/js, Debian's
+/// Chromium, `cs2cs` and the Python modules `python`; a missing one skips the test (said once).
+fn have_browser(test: &str, package: &str, python: &[&str]) -> bool {
+    have(test, "node", "node is missing (scripts/setup.sh)")
+        && have_js(test, package)
+        && have_js(test, "playwright-core")
+        && have_cs2cs_and(test, python)
+        && if Path::new("/usr/bin/chromium").is_file() {
+            true
+        } else {
+            common::skip(
+                test,
+                "/usr/bin/chromium is missing (scripts/setup.sh installs chromium)",
+            );
+            false
+        }
 }
 
 /// The PlayCanvas engine (npm `playcanvas` 2.23.3, whose glTF loader reads
@@ -1089,16 +1085,7 @@ fn have_chromium(test: &str) -> bool {
 #[test]
 fn playcanvas_draws_splats_of_the_size_the_tiles_say() {
     let test = "export_3dtiles::playcanvas_draws_splats_of_the_size_the_tiles_say";
-    if !have(test, "node", "node is missing (scripts/setup.sh)")
-        || !have_js(test, "playcanvas")
-        || !have_js(test, "playwright-core")
-        || !have(
-            test,
-            "cs2cs",
-            "cs2cs is missing (scripts/setup.sh installs proj-bin)",
-        )
-        || !have_chromium(test)
-    {
+    if !have_browser(test, "playcanvas", &[]) {
         return;
     }
     let p = probes();
@@ -1167,16 +1154,7 @@ fn playcanvas_draws_splats_of_the_size_the_tiles_say() {
 #[test]
 fn cesium_draws_splats_of_the_size_the_tiles_say() {
     let test = "export_3dtiles::cesium_draws_splats_of_the_size_the_tiles_say";
-    if !have(test, "node", "node is missing (scripts/setup.sh)")
-        || !have_js(test, "cesium")
-        || !have_js(test, "playwright-core")
-        || !have(
-            test,
-            "cs2cs",
-            "cs2cs is missing (scripts/setup.sh installs proj-bin)",
-        )
-        || !have_chromium(test)
-    {
+    if !have_browser(test, "cesium", &[]) {
         return;
     }
     let p = probes();
@@ -1248,12 +1226,7 @@ fn merged_replicated_export() -> &'static PathBuf {
                 "--no-test-views",
             ],
         ] {
-            let o = Command::new(BIN).args(&args).output().unwrap();
-            assert!(
-                o.status.success(),
-                "{args:?}: {}",
-                String::from_utf8_lossy(&o.stderr)
-            );
+            gs4city_ok(&args);
         }
         let out = dir.join("tiles");
         ok(&export(
@@ -1279,12 +1252,7 @@ fn depth_of(uri: &str) -> usize {
 #[test]
 fn cesium_refines_coarse_to_fine_on_a_merged_plan() {
     let test = "export_3dtiles::cesium_refines_coarse_to_fine_on_a_merged_plan";
-    if !have(test, "node", "node is missing (scripts/setup.sh)")
-        || !have_js(test, "cesium")
-        || !have_js(test, "playwright-core")
-        || !common::python_can_import(test, &["numpy"])
-        || !have_chromium(test)
-    {
+    if !have_browser(test, "cesium", &["numpy"]) {
         return;
     }
     let t = merged_replicated_export();

@@ -49,15 +49,8 @@ impl SplatSet {
     pub fn concat(parts: &[&SplatSet]) -> SplatSet {
         let sh_degree = parts.iter().map(|p| p.g.sh_degree).max().unwrap_or(0);
         let mut g = Gaussians {
-            positions: Vec::new(),
-            normals: None,
             sh_degree,
-            f_dc: Vec::new(),
-            f_rest: Vec::new(),
-            opacity: Vec::new(),
-            scale: Vec::new(),
-            rotation: Vec::new(),
-            extras: Vec::new(),
+            ..Gaussians::default()
         };
         let rest = g.rest_per_gaussian();
         let (mut tags, mut error) = (Vec::new(), Vec::new());

@@ -14,12 +14,12 @@
 //   the camera is put at each view in turn and the picture measured (the peak green value and
 //   the pixels at or above half of it: count, centroid, second moments; OUT-NAME.png). The
 //   server counts every tile requested (uri, bytes), in total and per view.
-import { createServer } from "node:http";
-import { readFile, stat, writeFile } from "node:fs/promises";
+import { writeFile } from "node:fs/promises";
 import path from "node:path";
 import { fileURLToPath } from "node:url";
 import { launchChromium } from "./chromium.mjs";
 import { renameGaussianSemantics } from "./glb_rename.mjs";
+import { measureCanvas, serveFolders } from "./shot_server.mjs";
 
 const here = path.dirname(fileURLToPath(import.meta.url));
 const [tilesetDir, outPng, paletteJson, viewsJson] = process.argv.slice(2);
@@ -138,46 +138,17 @@ window.__views = ${viewSpec ? "true" : "false"};
 })();
 </script></body></html>`;
 
-const types = { ".js": "text/javascript", ".css": "text/css", ".json": "application/json",
-  ".glb": "model/gltf-binary", ".html": "text/html", ".png": "image/png", ".wasm": "application/wasm" };
-
-function inside(root, rel) {
-  const p = path.resolve(root, "." + decodeURIComponent(rel));
-  return p.startsWith(path.resolve(root) + path.sep) ? p : null;
-}
-
-const server = createServer(async (req, res) => {
-  try {
-    const url = new URL(req.url, "http://127.0.0.1");
-    let file = null;
-    if (url.pathname === "/" || url.pathname === "/index.html") {
-      res.writeHead(200, { "content-type": "text/html" });
-      res.end(page);
-      return;
-    } else if (url.pathname.startsWith("/cesium/")) {
-      file = inside(cesiumDir, url.pathname.slice("/cesium".length));
-    } else if (url.pathname.startsWith("/tiles/")) {
-      file = inside(tilesetDir, url.pathname.slice("/tiles".length));
-    }
-    if (!file || !(await stat(file)).isFile()) throw new Error("not found");
-    res.writeHead(200, { "content-type": types[path.extname(file)] ?? "application/octet-stream",
-      "cache-control": "no-store" });
-    let body = await readFile(file);
-    if (url.pathname.startsWith("/tiles/") && file.endsWith(".glb")) {
-      requests.push({ uri: url.pathname.slice("/tiles/".length), bytes: body.length });
-    }
-    // Uncompressed splats: their semantics renamed for Cesium's shader (docs/export.md); SPZ
-    // tiles (KHR_gaussian_splatting_compression_spz_2) are served as written.
-    if (file.endsWith(".glb") && !body.includes("KHR_gaussian_splatting_compression_spz_2")) {
-      body = Buffer.from(renameGaussianSemantics(new Uint8Array(body)));
-    }
-    res.end(body);
-  } catch {
-    res.writeHead(404);
-    res.end();
+// Tiles requested are counted; uncompressed splats are served with their semantics renamed for
+// Cesium's shader (docs/export.md); SPZ tiles (KHR_gaussian_splatting_compression_spz_2) as written.
+const server = await serveFolders(page, { "/cesium": cesiumDir, "/tiles": tilesetDir }, (pathname, file, body) => {
+  if (pathname.startsWith("/tiles/") && file.endsWith(".glb")) {
+    requests.push({ uri: pathname.slice("/tiles/".length), bytes: body.length });
   }
+  if (file.endsWith(".glb") && !body.includes("KHR_gaussian_splatting_compression_spz_2")) {
+    return Buffer.from(renameGaussianSemantics(new Uint8Array(body)));
+  }
+  return body;
 });
-await new Promise((r) => server.listen(0, "127.0.0.1", r));
 const port = server.address().port;
 
 const browser = await launchChromium();
@@ -230,38 +201,17 @@ try {
         });
         viewer.scene.render();
       }, [v, viewSpec.fov, viewSpec.wait ?? "splats"]);
-      const m = await tab.evaluate(() => {
-        const src = document.querySelector("#c canvas");
-        const c = document.createElement("canvas");
-        c.width = src.width;
-        c.height = src.height;
-        const g = c.getContext("2d");
-        g.drawImage(src, 0, 0);
-        const d = g.getImageData(0, 0, c.width, c.height).data;
-        let peak = 0, lit = 0;
-        for (let i = 0; i < d.length; i += 4) {
-          peak = Math.max(peak, d[i + 1]);
-          if (d[i] + d[i + 1] + d[i + 2] > 30) lit += 1;
-        }
-        let n = 0, sx = 0, sy = 0, sxx = 0, syy = 0, sxy = 0;
-        for (let i = 0; i < d.length; i += 4) {
-          if (peak > 0 && d[i + 1] >= peak / 2) {
-            const p = i / 4, x = p % c.width, y = Math.floor(p / c.width);
-            n += 1; sx += x; sy += y; sxx += x * x; syy += y * y; sxy += x * y;
-          }
-        }
-        const mx = n ? sx / n : null, my = n ? sy / n : null;
+      const m = await tab.evaluate(measureCanvas, ["#c canvas"]);
+      Object.assign(m, await tab.evaluate(() => {
         const p = window.__tileset.gaussianSplatPrimitive;
-        let drawn = 0, splatContents = 0;
+        let splatContents = 0;
         const walk = (tile) => {
           if (tile.hasRenderableContent && tile.content instanceof Cesium.GaussianSplat3DTileContent) splatContents += 1;
           tile.children.forEach(walk);
         };
         walk(window.__tileset.root);
-        return { size: [c.width, c.height], peak, lit, half: n, centroid: n ? [mx, my] : null,
-          moments: n ? [sxx / n - mx * mx, syy / n - my * my, sxy / n - mx * my] : null,
-          numSplats: p ? p._numSplats : 0, splatContents };
-      });
+        return { numSplats: p ? p._numSplats : 0, splatContents };
+      }));
       m.seconds = (Date.now() - t0) / 1000;
       m.requests = requests.slice(before);
       await tab.screenshot({ path: outPng.replace(/\.png$/, "") + "-" + v.name + ".png", timeout: 180000 });
@@ -269,35 +219,8 @@ try {
     }
   } else if (result.ok) {
     // Count palette colours in the canvas (the WebGL drawing buffer is preserved).
-    result.pixels = await tab.evaluate((pal) => {
-      const src = document.querySelector("#c canvas");
-      const c = document.createElement("canvas");
-      c.width = src.width;
-      c.height = src.height;
-      const g = c.getContext("2d");
-      g.drawImage(src, 0, 0);
-      const d = g.getImageData(0, 0, c.width, c.height).data;
-      const out = {};
-      for (const [name, rgb] of Object.entries(pal)) out[name] = { count: 0, sx: 0, sy: 0 };
-      let lit = 0;
-      for (let i = 0; i < d.length; i += 4) {
-        if (d[i] + d[i + 1] + d[i + 2] > 30) lit += 1;
-        for (const [name, rgb] of Object.entries(pal)) {
-          if (Math.abs(d[i] - rgb[0]) <= 12 && Math.abs(d[i + 1] - rgb[1]) <= 12 && Math.abs(d[i + 2] - rgb[2]) <= 12) {
-            const p = i / 4;
-            out[name].count += 1;
-            out[name].sx += p % c.width;
-            out[name].sy += Math.floor(p / c.width);
-          }
-        }
-      }
-      for (const v of Object.values(out)) {
-        v.centroid = v.count ? [v.sx / v.count, v.sy / v.count] : null;
-        delete v.sx;
-        delete v.sy;
-      }
-      return { lit, byColor: out };
-    }, palette);
+    const m = await tab.evaluate(measureCanvas, ["#c canvas", palette]);
+    result.pixels = { lit: m.lit, byColor: m.byColor };
     await tab.screenshot({ path: outPng, timeout: 180000 });
   }
   result.logs = logs.slice(0, 30);

@@ -12,11 +12,10 @@
 // Prints one JSON object: the tiles and splats loaded, and per view the peak green value, the
 // pixels at or above half of it (count, centroid, second moments), the lit pixels (> 30 in
 // r + g + b) and the screenshot OUT_PREFIX-NAME.png.
-import { createServer } from "node:http";
-import { readFile, stat } from "node:fs/promises";
 import path from "node:path";
 import { fileURLToPath } from "node:url";
 import { launchChromium } from "./chromium.mjs";
+import { measureCanvas, serveFolders } from "./shot_server.mjs";
 
 const here = path.dirname(fileURLToPath(import.meta.url));
 const [tilesetDir, outPrefix, specJson] = process.argv.slice(2);
@@ -82,36 +81,7 @@ const I = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
 })();
 </script></body></html>`;
 
-const types = { ".js": "text/javascript", ".mjs": "text/javascript", ".json": "application/json",
-  ".glb": "model/gltf-binary", ".html": "text/html", ".wasm": "application/wasm" };
-
-function inside(root, rel) {
-  const p = path.resolve(root, "." + decodeURIComponent(rel));
-  return p.startsWith(path.resolve(root) + path.sep) ? p : null;
-}
-
-const server = createServer(async (req, res) => {
-  try {
-    const url = new URL(req.url, "http://127.0.0.1");
-    let file = null;
-    if (url.pathname === "/") {
-      res.writeHead(200, { "content-type": "text/html" });
-      res.end(page);
-      return;
-    } else if (url.pathname.startsWith("/pc/")) {
-      file = inside(pcDir, url.pathname.slice("/pc".length));
-    } else if (url.pathname.startsWith("/tiles/")) {
-      file = inside(tilesetDir, url.pathname.slice("/tiles".length));
-    }
-    if (!file || !(await stat(file)).isFile()) throw new Error("not found");
-    res.writeHead(200, { "content-type": types[path.extname(file)] ?? "application/octet-stream" });
-    res.end(await readFile(file));
-  } catch {
-    res.writeHead(404);
-    res.end();
-  }
-});
-await new Promise((r) => server.listen(0, "127.0.0.1", r));
+const server = await serveFolders(page, { "/pc": pcDir, "/tiles": tilesetDir });
 const port = server.address().port;
 
 const browser = await launchChromium();
@@ -133,30 +103,7 @@ try {
         camera.lookAt(new pc.Vec3(v.target[0], v.target[1], v.target[2]), new pc.Vec3(v.up[0], v.up[1], v.up[2]));
       }, v);
       // PlayCanvas sorts in a worker: wait until the picture holds still (3 reads 1 s apart).
-      const measure = () => tab.evaluate(() => {
-        const src = document.getElementById("c");
-        const c = document.createElement("canvas");
-        c.width = src.width;
-        c.height = src.height;
-        const g = c.getContext("2d");
-        g.drawImage(src, 0, 0);
-        const d = g.getImageData(0, 0, c.width, c.height).data;
-        let peak = 0, lit = 0;
-        for (let i = 0; i < d.length; i += 4) {
-          peak = Math.max(peak, d[i + 1]);
-          if (d[i] + d[i + 1] + d[i + 2] > 30) lit += 1;
-        }
-        let n = 0, sx = 0, sy = 0, sxx = 0, syy = 0, sxy = 0;
-        for (let i = 0; i < d.length; i += 4) {
-          if (peak > 0 && d[i + 1] >= peak / 2) {
-            const p = i / 4, x = p % c.width, y = Math.floor(p / c.width);
-            n += 1; sx += x; sy += y; sxx += x * x; syy += y * y; sxy += x * y;
-          }
-        }
-        const mx = n ? sx / n : null, my = n ? sy / n : null;
-        return { size: [c.width, c.height], peak, lit, half: n, centroid: n ? [mx, my] : null,
-          moments: n ? [sxx / n - mx * mx, syy / n - my * my, sxy / n - mx * my] : null };
-      });
+      const measure = () => tab.evaluate(measureCanvas, ["#c"]);
       let last = null, same = 0, m = null;
       const t0 = Date.now();
       while (Date.now() - t0 < 180000) {
