@@ -62,7 +62,8 @@ fi
 # package-lock.json, pinned), one folder and one browser driver for every test:
 # @playcanvas/splat-transform reads the viewer-ready PLY exports back (tests/export_ply.rs);
 # gltf-validator, 3d-tiles-tools and cesium check the 3D Tiles export (tests/export_3dtiles.rs:
-# validate_gltf.mjs, read_tileset.mjs, cesium_shot.mjs); @sparkjsdev/spark + three are the splat
+# validate_gltf.mjs, read_tileset.mjs, cesium_shot.mjs), and playcanvas is its second splat
+# reader (playcanvas_shot.mjs: the engine's glTF loader reads KHR_gaussian_splatting); @sparkjsdev/spark + three are the splat
 # renderer of `gs4city view`, vendored into src/view/vendor/ (scripts/vendor_viewer.sh) and
 # embedded in the binary, here so that tests/view.rs can check the vendored bytes;
 # playwright-core drives Debian's Chromium (headless, WebGL2 on SwiftShader; it downloads no
@@ -80,7 +81,7 @@ if [ "${GS4CITY_SKIP_JS:-0}" != 1 ]; then
   fi
   js="$(cd "$(dirname "$0")/.." && pwd)/tools/js"
   ok=1
-  for p in .bin/splat-transform cesium gltf-validator 3d-tiles-tools @sparkjsdev/spark three; do
+  for p in .bin/splat-transform cesium gltf-validator 3d-tiles-tools @sparkjsdev/spark three playcanvas; do
     [ -e "$js/node_modules/$p" ] || ok=0
   done
   # The pinned driver, not an older one left by an earlier lockfile.

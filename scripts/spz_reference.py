@@ -101,14 +101,18 @@ def main():
             out["structure_errors"].append(f"{q.name}: EXT_mesh_features differs")
         pos = a0["POSITION"].astype(np.float64)
         lim = (1 << 23) / float(1 << s["frac"])
-        err["position_m"] = max(err["position_m"], float(np.abs(s["pos"] - pos).max()))
+        # Relative to the tile's half step (its fractional bits: 12, fewer for a large tile).
+        err["position_m"] = max(err["position_m"],
+                                float(np.abs(s["pos"] - pos).max()) * 2.0 ** (s["frac"] - 12))
         assert np.abs(pos).max() < lim
         op = a0["KHR_gaussian_splatting:OPACITY"][:, 0].astype(np.float64)
         err["alpha"] = max(err["alpha"], float(np.abs(s["alpha"] - op).max()))
         dc = a0["KHR_gaussian_splatting:SH_DEGREE_0_COEF_0"].astype(np.float64)
         dc = np.clip(dc, -0.5 / 0.15, 0.5 / 0.15)
         err["color_dc"] = max(err["color_dc"], float(np.abs(s["color"] - dc).max()))
-        sc = np.clip(a0["KHR_gaussian_splatting:SCALE"].astype(np.float64), -10.0, 255 / 16 - 10)
+        # The uncompressed SCALE is linear, SPZ holds log scales.
+        sc = np.clip(np.log(a0["KHR_gaussian_splatting:SCALE"].astype(np.float64)), -10.0,
+                     255 / 16 - 10)
         err["log_scale"] = max(err["log_scale"], float(np.abs(s["scale"] - sc).max()))
         r = a0["KHR_gaussian_splatting:ROTATION"].astype(np.float64)
         r = r / np.linalg.norm(r, axis=1, keepdims=True)
@@ -128,6 +132,7 @@ def main():
     out["max_error"] = err
     # The steps: half a quantisation step (and f32 rounding of the reference).
     out["half_step"] = {
+        # position_m: in units of a 12-bit tile's step.
         "position_m": 0.5 / 4096 + 1e-6, "alpha": 0.5 / 255 + 1e-6,
         "color_dc": 0.5 / (0.15 * 255) + 1e-6, "log_scale": 0.5 / 16 + 1e-6,
         "rotation_xyz": 0.5 / 127.5 + 1e-6,

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Independent check of a `gs4city export --format 3dtiles` tileset (tests/export_3dtiles.rs).
 
-Decodes every tile of TILESET (tileset.json → content .glb: JSON and BIN chunks, accessors,
+Decodes every leaf tile of TILESET (tileset.json → content .glb: JSON and BIN chunks, accessors,
 EXT_mesh_features feature ids, EXT_structural_metadata string tables) with NumPy alone, places
 each splat on the globe by the chain of tile transforms (glTF Y-up → 3D Tiles Z-up, then each
 4×4 from the tile up to the root), and compares it with what the run says, computed here
@@ -75,11 +75,12 @@ def strings(doc, bin_, prop, count):
 
 
 def tiles(tile, parent):
-    """(content uri, 4×4 local → ECEF) of every tile with content."""
+    """(content uri, 4×4 local → ECEF) of every leaf (the inner tiles hold coarse sets merged
+    from their children, not Gaussians of the run)."""
     m = parent @ np.array(tile.get("transform", np.eye(4).flatten(order="F").tolist()),
                           dtype=np.float64).reshape(4, 4, order="F")
     out = []
-    if "content" in tile:
+    if "content" in tile and not tile.get("children"):
         out.append((tile["content"]["uri"], m))
     for c in tile.get("children", []):
         out += tiles(c, m)

@@ -60,6 +60,7 @@ pub mod spz;
 pub mod synth;
 pub mod textembed;
 pub mod tile;
+pub mod tiles3d;
 pub mod train;
 pub mod view;
 pub mod vote;

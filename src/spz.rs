@@ -6,7 +6,9 @@
 //! Layout (all little-endian), gzip-compressed as a whole:
 //! - header, 16 bytes: magic `0x5053474E` ("NGSP"), version `2` (u32 each), number of points
 //!   (u32), SH degree, fractional bits, flags, reserved (u8 each);
-//! - positions: 3 × 24-bit signed fixed point per point (`round(x · 2^fractionalBits)`);
+//! - positions: 3 × 24-bit signed fixed point per point (`round(x · 2^fractionalBits)`), with
+//!   12 fractional bits (1/4096 m steps, ±2048 m) when every coordinate fits, else the most
+//!   that fit (a coarse tile of a city: 10 bits hold ±8192 m in 1/1024 m steps);
 //! - alphas: `round(255 · opacity)` (the opacity after the sigmoid);
 //! - colours: the SH DC coefficients, `round(255 · (0.15 · dc + 0.5))`;
 //! - scales: the log scales, `round(16 · (s + 10))`;
@@ -31,8 +33,17 @@ use std::io::{Read, Write};
 pub const MAGIC: u32 = 0x5053_474E;
 /// The format version written.
 pub const VERSION: u32 = 2;
-/// Fractional bits of the 24-bit positions (1/4096 m steps, ±2048 m range).
+/// Fractional bits of the 24-bit positions when they fit (1/4096 m steps, ±2048 m range).
 pub const FRACTIONAL_BITS: u8 = 12;
+
+/// The fractional bits for coordinates of magnitude up to `max_abs`: [`FRACTIONAL_BITS`], or
+/// fewer down to 0 while `round(max_abs · 2^bits)` would not fit 24 signed bits; `None` when
+/// not even whole metres fit.
+pub fn fractional_bits(max_abs: f32) -> Option<u8> {
+    (0..=FRACTIONAL_BITS)
+        .rev()
+        .find(|&b| (max_abs * (1u32 << b) as f32).round() < (1u32 << 23) as f32)
+}
 /// The colour scale of the DC term.
 pub const COLOR_SCALE: f32 = 0.15;
 
@@ -116,12 +127,19 @@ pub fn pack(c: &Cloud<'_>) -> Result<Vec<u8>, SpzError> {
         )));
     }
     let n32 = u32::try_from(n).map_err(|_| SpzError::Shape(format!("{n} points")))?;
+    let max_abs = c
+        .positions
+        .iter()
+        .flatten()
+        .filter(|v| v.is_finite())
+        .fold(0.0f32, |m, v| m.max(v.abs()));
+    let bits = fractional_bits(max_abs).unwrap_or(0);
     let mut out = Vec::with_capacity(16 + n * (9 + 1 + 3 + 3 + 3 + 3 * dim));
     out.extend_from_slice(&MAGIC.to_le_bytes());
     out.extend_from_slice(&VERSION.to_le_bytes());
     out.extend_from_slice(&n32.to_le_bytes());
-    out.extend_from_slice(&[c.sh_degree, FRACTIONAL_BITS, 0, 0]);
-    let step = (1u32 << FRACTIONAL_BITS) as f32;
+    out.extend_from_slice(&[c.sh_degree, bits, 0, 0]);
+    let step = (1u32 << bits) as f32;
     let limit = (1u32 << 23) as f32 / step;
     for (i, p) in c.positions.iter().enumerate() {
         for &v in p {
@@ -417,14 +435,26 @@ mod tests {
         assert_eq!(&b[29..32], &[0, 160, 255]); // scales
         assert_eq!(&b[32..35], &[128, 128, 128]); // −w flipped to +w, xyz 0
         assert_eq!(b.len(), 35);
+        // 3000 m needs 11 fractional bits: 3000 · 2048 = 0x5DC000.
         let big = Cloud {
             positions: &[[3000.0, 0.0, 0.0]],
             ..c
         };
+        let b = pack(&big).unwrap();
+        assert_eq!(b[13], 11);
+        assert_eq!(&b[16..19], &[0x00, 0xC0, 0x5D]);
+        let huge = Cloud {
+            positions: &[[1.0e7, 0.0, 0.0]],
+            ..c
+        };
         assert!(matches!(
-            pack(&big),
+            pack(&huge),
             Err(SpzError::OutOfRange { index: 0, .. })
         ));
+        assert_eq!(fractional_bits(2047.9), Some(12));
+        assert_eq!(fractional_bits(2048.0), Some(11));
+        assert_eq!(fractional_bits(8_388_607.0), Some(0));
+        assert_eq!(fractional_bits(8_388_608.0), None);
     }
 
     #[test]

@@ -73,8 +73,14 @@ struct Server {
 
 impl Server {
     fn start(run: &Path) -> Server {
+        Server::start_with(run, &[])
+    }
+
+    /// The server with extra options (`--max-splats N`).
+    fn start_with(run: &Path, extra: &[&str]) -> Server {
         let mut child = Command::new(env!("CARGO_BIN_EXE_gs4city"))
             .args(["view", run.to_str().unwrap(), "--port", "0"])
+            .args(extra)
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()
@@ -742,9 +748,10 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
     }
 }
 
-/// `/api/splats.bin` (version 2) holds what Spark draws: per Gaussian the centre, σ, the three
+/// `/api/splats.bin` (version 3) holds what Spark draws: per Gaussian the centre, σ, the three
 /// activated scales and the unit quaternion in Spark's `x y z w` order, checked against the
-/// raw `semantic.ply` columns (exp of the log scales, the quaternion normalised here).
+/// raw `semantic.ply` columns (exp of the log scales, the quaternion normalised here), and, the
+/// run being within the splat budget, each splat standing for its own Gaussian.
 #[test]
 fn splats_binary_holds_centres_scales_and_rotations() {
     let run = run_dir();
@@ -755,8 +762,11 @@ fn splats_binary_holds_centres_scales_and_rotations() {
     let n = t.pos.len();
     assert_eq!(&b[..4], b"GS4V");
     let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().unwrap());
-    assert_eq!((u32_at(4), u32_at(8) as usize), (2, n));
-    assert_eq!(b.len(), 16 + 56 * n);
+    assert_eq!((u32_at(4), u32_at(8) as usize), (3, n));
+    assert_eq!(b.len(), 16 + 60 * n);
+    for i in 0..n {
+        assert_eq!(u32_at(16 + 56 * n + 4 * i) as usize, i);
+    }
     let f = |o: usize| f64::from(f32::from_le_bytes(b[o..o + 4].try_into().unwrap()));
     let (pos, sig, scl, rot) = (16, 16 + 12 * n, 16 + 16 * n, 16 + 28 * n);
     for i in (0..n).step_by(97) {
@@ -781,6 +791,72 @@ fn splats_binary_holds_centres_scales_and_rotations() {
             );
         }
     }
+}
+
+/// A run of more Gaussians than the splat budget (`view --max-splats 20000` on the 131 154 of
+/// the small run) is served as at most that many splats, each standing for one Gaussian of the
+/// run, with that Gaussian's class colour and building colour (semantic.ply's class column
+/// through the palette of docs/design.md, by hand), inside the run's bounds; every Gaussian
+/// stands behind at most one splat; `/api/meta` gives both counts, and `/api/query` still counts
+/// and masks every Gaussian (the `class=Window` bitmask equals semantic.ply's window column).
+#[test]
+fn a_run_beyond_the_budget_is_served_as_a_coarse_set_standing_for_its_gaussians() {
+    let run = run_dir();
+    let t = truth(run);
+    let srv = Server::start_with(run, &["--max-splats", "20000"]);
+    let (status, meta) = srv.get("/api/meta");
+    assert_eq!(status, 200);
+    let meta: Value = serde_json::from_slice(&meta).unwrap();
+    let n_all = t.pos.len();
+    assert_eq!(meta["gaussians"].as_u64(), Some(n_all as u64));
+    let (_, b) = srv.get("/api/splats.bin");
+    let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().unwrap());
+    let n = u32_at(8) as usize;
+    assert_eq!(meta["splats"].as_u64(), Some(n as u64));
+    assert!(n <= 20_000 && n > 5_000, "{n} splats");
+    assert_eq!(b.len(), 16 + 60 * n);
+    // The class palette of docs/design.md, by hand.
+    let palette: [[u8; 3]; 12] = [
+        [200, 180, 140],
+        [180, 60, 50],
+        [60, 140, 230],
+        [240, 160, 40],
+        [120, 100, 80],
+        [170, 90, 200],
+        [40, 160, 60],
+        [250, 60, 160],
+        [230, 230, 30],
+        [90, 90, 90],
+        [30, 200, 220],
+        [255, 255, 255],
+    ];
+    let (cls, idx) = (16 + 48 * n, 16 + 56 * n);
+    let mut seen = vec![false; n_all];
+    let f = |o: usize| f64::from(f32::from_le_bytes(b[o..o + 4].try_into().unwrap()));
+    let (lo, hi) = t.pos.iter().fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+    );
+    for i in 0..n {
+        let g = u32_at(idx + 4 * i) as usize;
+        assert!(g < n_all && !seen[g], "splat {i} stands for {g}");
+        seen[g] = true;
+        let c = t.class[g];
+        if c >= 0 {
+            assert_eq!(
+                &b[cls + 4 * i..cls + 4 * i + 3],
+                &palette[c as usize],
+                "splat {i}"
+            );
+        }
+        let p = DVec3::new(f(16 + 12 * i), f(20 + 12 * i), f(24 + 12 * i));
+        assert!(p.cmpge(lo - 1e-3).all() && p.cmple(hi + 1e-3).all(), "{p}");
+    }
+    let (status, q) = srv.get("/api/query?where=category%3Dwindow");
+    assert_eq!(status, 200);
+    let q: Value = serde_json::from_slice(&q).unwrap();
+    let want = t.class.iter().filter(|&&c| c == 2).count();
+    assert_eq!(q["count"].as_u64(), Some(want as u64));
 }
 
 /// The renderer embedded in the binary and served under `/vendor/` is byte for byte the npm

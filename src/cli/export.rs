@@ -10,7 +10,7 @@ use clap::{Args, Subcommand, ValueEnum};
 use crate::citymodel::CitymodelSummary;
 use crate::layout::{Mode, Stage, Summary};
 use crate::query::ColorBy;
-use crate::query::tiles3d::{self, TilesOptions};
+use crate::tiles3d::{self, TilesOptions};
 
 #[derive(Debug, Subcommand)]
 pub enum ExportCommand {
@@ -58,7 +58,8 @@ pub struct ExportArgs {
     /// building).
     #[arg(long, value_name = "rgb|class|building", default_value = "rgb")]
     pub color_by: ColorBy,
-    /// The largest number of Gaussians in one tile (a quadtree node with more is split).
+    /// The largest number of splats in one tile: a quadtree node with more Gaussians is split,
+    /// and every inner node holds at most this many coarse splats (the root too).
     #[arg(long, default_value_t = tiles3d::MAX_SPLATS)]
     pub max_splats: usize,
     /// Store each tile's splats SPZ-compressed (`KHR_gaussian_splatting_compression_spz_2`, a
@@ -70,21 +71,29 @@ pub struct ExportArgs {
     pub out: PathBuf,
 }
 
-/// The CRS of the run: `--crs`, else the one srsName of its city model files.
-fn run_crs(a: &ExportArgs) -> anyhow::Result<String> {
+/// The CRS of the run: `--crs`, else the one srsName of its city model files (as
+/// R/citymodel/summary.json records them; a merged tile plan has none, and its scene's files
+/// are read).
+fn run_crs(a: &ExportArgs, scene: &crate::scene::Scene) -> anyhow::Result<String> {
     if let Some(c) = &a.crs {
         return Ok(c.clone());
     }
     let dir = Stage::Citymodel.path(&a.run);
-    let s = CitymodelSummary::read(&dir)
-        .with_context(|| format!("reading the city model's CRS from {}", dir.display()))?;
-    let names: BTreeSet<&str> = s
-        .files
-        .iter()
-        .filter_map(|f| f.srs_name.as_deref())
-        .collect();
+    let names: BTreeSet<String> = if dir.join("summary.json").is_file() {
+        let s = CitymodelSummary::read(&dir)
+            .with_context(|| format!("reading the city model's CRS from {}", dir.display()))?;
+        s.files.into_iter().filter_map(|f| f.srs_name).collect()
+    } else {
+        let mut names = BTreeSet::new();
+        for f in &scene.gml {
+            let m = crate::cityjson::read_any(f)
+                .with_context(|| format!("reading the city model's CRS from {}", f.display()))?;
+            names.extend(m.srs_name);
+        }
+        names
+    };
     match names.len() {
-        1 => Ok(names.into_iter().next().expect("one name").to_string()),
+        1 => Ok(names.into_iter().next().expect("one name")),
         0 => bail!(
             "{}: no city model file names a CRS (no srsName on an Envelope or a geometry; CityJSON: no metadata.referenceSystem): give the CRS with --crs, e.g. --crs EPSG:25832",
             dir.join("summary.json").display()
@@ -103,11 +112,16 @@ pub fn run(cmd: &ExportCommand) -> anyhow::Result<()> {
     if a.max_splats == 0 {
         bail!("--max-splats must be at least 1, got 0");
     }
-    let crs = run_crs(a)?;
-    let georef = crate::crs::Georef::new(&crs)?;
-    let apath = Stage::Citymodel.path(&a.run).join("alignment.json");
-    let alignment = crate::alignment::Alignment::read(&apath)?;
     let sr = super::query::open_run(&a.run, a.scene.as_deref(), a.mode)?;
+    let crs = run_crs(a, &sr.scene)?;
+    let georef = crate::crs::Georef::new(&crs)?;
+    // The run's alignment; a merged tile plan's is its scene's.
+    let apath = Stage::Citymodel.path(&a.run).join("alignment.json");
+    let apath = match (&sr.scene.alignment, apath.is_file()) {
+        (Some(scene_alignment), false) => scene_alignment.clone(),
+        _ => apath,
+    };
+    let alignment = crate::alignment::Alignment::read(&apath)?;
     let (selected, query) = match &a.where_ {
         Some(w) => {
             let expr = super::query::parse("--where", w)?;
@@ -120,18 +134,21 @@ pub fn run(cmd: &ExportCommand) -> anyhow::Result<()> {
         None => (vec![true; sr.label_of.len()], "every Gaussian".to_string()),
     };
     let opts = TilesOptions {
-        color_by: a.color_by,
         max_splats: a.max_splats,
         spz: a.spz,
     };
-    let s = tiles3d::export(&sr, &selected, &query, &alignment, &georef, &opts, &a.out)?;
+    let s = crate::query::tiles(
+        &sr, &selected, &query, a.color_by, &alignment, &georef, &opts, &a.out,
+    )?;
     println!(
-        "export 3dtiles `{}`: {} Gaussians in {} tiles ({} leaves, depth {}), {:.1} MB, CRS {} → root at lon {:.7}° lat {:.7}° h {:.2} m → {}  [{:.2} s]",
+        "export 3dtiles `{}`: {} Gaussians in {} tiles ({} leaves, depth {}; {} coarse splats, {} in the root), {:.1} MB, CRS {} → root at lon {:.7}° lat {:.7}° h {:.2} m → {}  [{:.2} s]",
         s.query,
         s.splats,
         s.tiles,
         s.leaves,
         s.depth,
+        s.coarse_splats,
+        s.root_splats,
         s.bytes as f64 / 1e6,
         s.crs,
         s.root.lon,

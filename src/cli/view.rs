@@ -22,6 +22,10 @@ pub struct ViewArgs {
     /// Port on 127.0.0.1 (0: a free one; the URL is printed).
     #[arg(long, default_value_t = 8765)]
     pub port: u16,
+    /// The page's splat budget: a run of more Gaussians is drawn as a coarse set of at most
+    /// this many splats (merged as the 3D Tiles export's inner tiles, docs/view.md).
+    #[arg(long, default_value_t = crate::view::MAX_SPLATS)]
+    pub max_splats: usize,
     /// Open the page in the desktop's browser (xdg-open).
     #[arg(long)]
     pub open: bool,
@@ -33,7 +37,7 @@ pub fn run(a: &ViewArgs) -> anyhow::Result<()> {
         anyhow::bail!("{}: not a run folder (not a directory)", a.run.display());
     }
     let scene = super::query::scene_of(&a.run, a.scene.as_deref())?;
-    let viewer = crate::view::Viewer::open(&a.run, &scene, a.mode)
+    let viewer = crate::view::Viewer::open(&a.run, &scene, a.mode, a.max_splats)
         .with_context(|| format!("opening run {} for viewing", a.run.display()))?;
     let listener = crate::view::bind(a.port)?;
     let addr = listener.local_addr()?;

@@ -54,6 +54,16 @@ pub enum ColorBy {
     Building,
 }
 
+impl std::fmt::Display for ColorBy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            ColorBy::Rgb => "rgb",
+            ColorBy::Class => "class",
+            ColorBy::Building => "building",
+        })
+    }
+}
+
 impl std::str::FromStr for ColorBy {
     type Err = String;
     fn from_str(s: &str) -> Result<ColorBy, String> {
@@ -312,30 +322,7 @@ pub fn subset(g: &Gaussians, keep: &[bool], want: bool) -> Gaussians {
 
 fn subset_where(g: &Gaussians, keep: impl Fn(usize) -> bool) -> Gaussians {
     let idx: Vec<usize> = (0..g.len()).filter(|&i| keep(i)).collect();
-    let rest = g.rest_per_gaussian();
-    let pick = |v: &Vec<[f32; 3]>| idx.iter().map(|&i| v[i]).collect::<Vec<_>>();
-    Gaussians {
-        positions: pick(&g.positions),
-        normals: g.normals.as_ref().map(pick),
-        sh_degree: g.sh_degree,
-        f_dc: pick(&g.f_dc),
-        f_rest: idx
-            .iter()
-            .flat_map(|&i| g.f_rest[i * rest..(i + 1) * rest].iter().copied())
-            .collect(),
-        opacity: idx.iter().map(|&i| g.opacity[i]).collect(),
-        scale: pick(&g.scale),
-        rotation: idx.iter().map(|&i| g.rotation[i]).collect(),
-        extras: g
-            .extras
-            .iter()
-            .map(|e| ExtraProperty {
-                name: e.name.clone(),
-                kind: e.kind,
-                values: idx.iter().map(|&i| e.values[i]).collect(),
-            })
-            .collect(),
-    }
+    g.select(&idx)
 }
 
 /// The input's Gaussians, either as raw records or decoded and prepared (columns set, colour

@@ -6,10 +6,10 @@
 //!
 //! The selections themselves are the library [`crate::selection`]; this stage writes their
 //! outputs: [`export`] (PLY split), [`sqlite`] (the semantic table), `selection.json` and the
-//! per-view masks. The paper's query-driven evaluation is `eval::by_query`.
+//! per-view masks. The paper's query-driven evaluation is `eval::by_query`. The 3D Tiles
+//! export selects and colours here ([`tiles`]) and is written by [`crate::tiles3d`].
 pub mod export;
 pub mod sqlite;
-pub mod tiles3d;
 
 use std::collections::{BTreeMap, HashSet};
 use std::path::Path;
@@ -50,11 +50,7 @@ pub enum QueryError {
     #[error(transparent)]
     Sqlite(#[from] sqlite::SqliteError),
     #[error(transparent)]
-    Crs(#[from] crate::crs::CrsError),
-    #[error(transparent)]
-    Glb(#[from] crate::glb::GlbError),
-    #[error(transparent)]
-    Spz(#[from] crate::spz::SpzError),
+    Tiles(#[from] crate::tiles3d::TilesError),
 }
 
 /// Writes `<stem>.mask.npy` (uint8 H×W) and `<stem>.mask.png` into `out`.
@@ -399,6 +395,75 @@ pub fn columns(sr: &SemanticRun) -> export::Columns {
             .collect(),
         gml_ids: sr.entities.iter().map(|e| e.object_id.clone()).collect(),
     }
+}
+
+/// `gs4city export --format 3dtiles`: the Gaussians `selected` of run `sr` (the scene's PLY,
+/// invalid ones left out, coloured by `color_by`) with their building / surface / part and
+/// class, written by [`crate::tiles3d::write`] into `out`. `query`: the selection's text.
+#[allow(clippy::too_many_arguments)]
+pub fn tiles(
+    sr: &SemanticRun,
+    selected: &[bool],
+    query: &str,
+    color_by: ColorBy,
+    alignment: &crate::alignment::Alignment,
+    georef: &crate::crs::Georef,
+    opts: &crate::tiles3d::TilesOptions,
+    out: &Path,
+) -> Result<crate::tiles3d::TilesSummary, QueryError> {
+    let t0 = Instant::now();
+    if !selected.iter().any(|&s| s) {
+        return Err(QueryError::Inputs(format!(
+            "the selection `{query}` holds no Gaussian: nothing to export"
+        )));
+    }
+    let ply = &sr.scene.ply;
+    let (mut g, _) = crate::splat::read_ply(ply, &crate::splat::ReadOptions::KEEP)?;
+    if g.len() != selected.len() {
+        return Err(QueryError::Inputs(format!(
+            "{} holds {} Gaussians, the run's labels have {}: the PLY is not the one the run was made from",
+            ply.display(),
+            g.len(),
+            selected.len()
+        )));
+    }
+    let cols = columns(sr);
+    let keep: Vec<usize> = (0..g.len())
+        .filter(|&i| selected[i] && crate::splat::ply::is_valid(&g, i))
+        .collect();
+    let invalid = selected.iter().filter(|&&s| s).count() - keep.len();
+    if keep.is_empty() {
+        return Err(QueryError::Inputs(format!(
+            "the selection `{query}` holds only invalid Gaussians (NaN or degenerate values in {}): nothing to export",
+            ply.display()
+        )));
+    }
+    for &i in &keep {
+        match color_by {
+            ColorBy::Rgb => {}
+            ColorBy::Class => {
+                crate::splat::transform::paint(&mut g, i, classes::color(cols.values[1][i]))
+            }
+            ColorBy::Building => {
+                crate::splat::transform::paint(&mut g, i, classes::building_color(cols.building[i]))
+            }
+        }
+    }
+    let splats = crate::tiles3d::Splats {
+        gaussians: g.select(&keep),
+        tags: keep
+            .iter()
+            .map(|&i| [2, 3, 4, 1].map(|c| cols.values[c][i]))
+            .collect(),
+        entities: &sr.entities,
+        query: query.to_string(),
+        invalid,
+        color_by: color_by.to_string(),
+        read_s: t0.elapsed().as_secs_f64() + sr.load_s,
+    };
+    Ok(crate::tiles3d::write(
+        &splats, alignment, georef, opts, out,
+    )?)
 }
 
 /// Runs a query: selection, `selection.json`, masks of the chosen views, exports, the SQLite

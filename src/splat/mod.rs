@@ -147,6 +147,34 @@ impl Gaussians {
     pub fn extra(&self, name: &str) -> Option<&ExtraProperty> {
         self.extras.iter().find(|e| e.name == name)
     }
+
+    /// The Gaussians `idx` (in that order), every field copied.
+    pub fn select(&self, idx: &[usize]) -> Gaussians {
+        let rest = self.rest_per_gaussian();
+        let pick = |v: &Vec<[f32; 3]>| idx.iter().map(|&i| v[i]).collect::<Vec<_>>();
+        Gaussians {
+            positions: pick(&self.positions),
+            normals: self.normals.as_ref().map(pick),
+            sh_degree: self.sh_degree,
+            f_dc: pick(&self.f_dc),
+            f_rest: idx
+                .iter()
+                .flat_map(|&i| self.f_rest[i * rest..(i + 1) * rest].iter().copied())
+                .collect(),
+            opacity: idx.iter().map(|&i| self.opacity[i]).collect(),
+            scale: pick(&self.scale),
+            rotation: idx.iter().map(|&i| self.rotation[i]).collect(),
+            extras: self
+                .extras
+                .iter()
+                .map(|e| ExtraProperty {
+                    name: e.name.clone(),
+                    kind: e.kind,
+                    values: idx.iter().map(|&i| e.values[i]).collect(),
+                })
+                .collect(),
+        }
+    }
 }
 
 /// The logistic function, as INRIA's opacity activation.

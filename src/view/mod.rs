@@ -5,8 +5,11 @@
 //! files ([`files`]):
 //!
 //! * `GET /api/meta`: Gaussian count, mode, scene up axis, centre and extent, the class legend;
-//! * `GET /api/splats.bin`: centres, scales, rotations, RGB / class / building colours
-//!   ([`splats_binary`]);
+//! * `GET /api/splats.bin`: centres, scales, rotations, RGB / class / building colours and the
+//!   Gaussian each splat stands for ([`splats_binary`]): every Gaussian, or, for a run of more
+//!   than the splat budget (`--max-splats`), the coarse set the 3D Tiles export's level of
+//!   detail merges ([`crate::tiles3d::lod::coarsen`]), each splat standing for its heaviest
+//!   Gaussian (its class, building, pick and query bit);
 //! * `GET /api/query?where=EXPR`: the selection of `gs4city query --where EXPR` — the same parser
 //!   and evaluation ([`crate::selection`]) over the same per-Gaussian labels — as a count and a
 //!   bitmask (base64, bit `i` of byte `i / 8` LSB first = Gaussian `i`); a bad expression is
@@ -36,9 +39,12 @@ use http::{Body, Request, Response};
 
 /// Magic and version of [`splats_binary`].
 pub const SPLATS_MAGIC: &[u8; 4] = b"GS4V";
-pub const SPLATS_VERSION: u32 = 2;
-/// Bytes per Gaussian in [`splats_binary`] (after the 16-byte head).
-pub const SPLATS_STRIDE: usize = 56;
+pub const SPLATS_VERSION: u32 = 3;
+/// Bytes per splat in [`splats_binary`] (after the 16-byte head).
+pub const SPLATS_STRIDE: usize = 60;
+/// The default splat budget of the page: a run with more Gaussians is served as a coarse set of
+/// at most this many splats.
+pub const MAX_SPLATS: usize = 600_000;
 
 /// Errors of opening a run for viewing or binding the server.
 #[derive(Debug, thiserror::Error)]
@@ -77,8 +83,14 @@ fn dc_rgb(dc: [f32; 3]) -> [u8; 3] {
 /// (the largest activated scale, σ in scene units); f32 activated scales `sx sy sz` × n; f32
 /// unit quaternion `x y z w` × n (identity for a zero or non-finite one); RGBA8 × n (DC colour,
 /// activated opacity); RGBA8 × n (class colour, `classes::color`); RGBA8 × n (building colour,
-/// `classes::building_color`). Non-finite scales are sent as 0.
-pub fn splats_binary(g: &splat::Gaussians, class_of: &[i32], building_of: &[i32]) -> Vec<u8> {
+/// `classes::building_color`); u32 × n (the Gaussian each splat stands for: its index in the
+/// run). Non-finite scales are sent as 0.
+pub fn splats_binary(
+    g: &splat::Gaussians,
+    class_of: &[i32],
+    building_of: &[i32],
+    gaussian: &[u32],
+) -> Vec<u8> {
     let n = g.len();
     let mut out = Vec::with_capacity(16 + n * SPLATS_STRIDE);
     out.extend_from_slice(SPLATS_MAGIC);
@@ -117,7 +129,43 @@ pub fn splats_binary(g: &splat::Gaussians, class_of: &[i32], building_of: &[i32]
         let [r, gg, bl] = classes::building_color(b);
         out.extend_from_slice(&[r, gg, bl, 255]);
     }
+    for &i in gaussian {
+        out.extend_from_slice(&i.to_le_bytes());
+    }
     out
+}
+
+/// The splats the page draws for Gaussians `g` with their classes and buildings: all of them
+/// when they are at most `max_splats`, else the coarse set of at most `max_splats` that
+/// [`crate::tiles3d::lod::coarsen`] merges (moment matching in voxel cells), each splat standing
+/// for its heaviest Gaussian. Returns the splats, their classes, buildings and Gaussians.
+pub fn budget(
+    g: splat::Gaussians,
+    class_of: &[i32],
+    building_of: &[i32],
+    max_splats: usize,
+) -> (splat::Gaussians, Vec<i32>, Vec<i32>, Vec<u32>) {
+    let n = g.len();
+    if n <= max_splats {
+        return (
+            g,
+            class_of.to_vec(),
+            building_of.to_vec(),
+            (0..n as u32).collect(),
+        );
+    }
+    let set = crate::tiles3d::lod::SplatSet {
+        g,
+        tags: (0..n)
+            .map(|i| [i as i32, class_of[i], building_of[i], 0])
+            .collect(),
+        error: vec![0.0; n],
+    };
+    let c = crate::tiles3d::lod::coarsen(&set, max_splats.max(1));
+    let class = c.tags.iter().map(|t| t[1]).collect();
+    let building = c.tags.iter().map(|t| t[2]).collect();
+    let index = c.tags.iter().map(|t| t[0] as u32).collect();
+    (c.g, class, building, index)
 }
 
 /// Standard base64 (RFC 4648, with padding) of `bytes`.
@@ -181,6 +229,7 @@ impl Viewer {
         run: &Path,
         scene: &Path,
         mode: Option<crate::layout::Mode>,
+        max_splats: usize,
     ) -> Result<Viewer, ViewError> {
         let sr = SemanticRun::open(run, scene, mode)?;
         let (g, _) = splat::read_ply(&sr.scene.ply, &ReadOptions::KEEP)?;
@@ -197,7 +246,10 @@ impl Viewer {
             .canonicalize()
             .map_err(|e| ViewError::Inputs(format!("{}: {e}", run.display())))?;
         let cols = query::columns(&sr);
-        let splats = splats_binary(&g, &sr.class_of, &cols.building);
+        let (center, extent) = bounds(&g);
+        let gaussians = g.len();
+        let (g, class, building, index) = budget(g, &sr.class_of, &cols.building, max_splats);
+        let splats = splats_binary(&g, &class, &building, &index);
         // Up in the scene frame: p_scene = s·R·(p_geo − origin) + t, so geo z is R·ẑ.
         let apath = crate::layout::Stage::Citymodel
             .path(run)
@@ -207,12 +259,12 @@ impl Viewer {
         } else {
             DVec3::Z
         };
-        let (center, extent) = bounds(&g);
         let legend: Vec<serde_json::Value> = (0..classes::NAMES.len() as i32)
             .map(|c| serde_json::json!({"id": c, "name": classes::name(c), "color": classes::color(c)}))
             .collect();
         let meta = serde_json::json!({
-            "gaussians": g.len(),
+            "gaussians": gaussians,
+            "splats": g.len(),
             "mode": sr.mode.name(),
             "run": root.display().to_string(),
             "labels_source": sr.labels_source,

@@ -6,7 +6,9 @@
 // camera matrices: every Gaussian with opacity ≥ MIN_OPACITY is drawn as a depth-tested disc of
 // diameter 4σ (σ its largest scale) with its index + 1 as its RGBA colour into an offscreen
 // target of a second WebGL2 context, the clicked pixel is read back, and the server is asked
-// for the Gaussian's hierarchy (/api/pick).
+// for the hierarchy of the Gaussian the splat stands for (/api/pick). A run of more Gaussians
+// than the server's splat budget comes as a coarse set: each splat stands for its heaviest
+// Gaussian (class, building, query bit, pick).
 import * as THREE from 'three';
 import { PackedSplats, SparkRenderer, SplatMesh, setPackedSplat, utils } from '@sparkjsdev/spark';
 
@@ -29,8 +31,8 @@ async function main() {
   const head = new DataView(buf);
   const magic = String.fromCharCode(head.getUint8(0), head.getUint8(1), head.getUint8(2), head.getUint8(3));
   const n = head.getUint32(8, true);
-  if (magic !== 'GS4V' || head.getUint32(4, true) !== 2 || buf.byteLength !== 16 + 56 * n) {
-    fail('api/splats.bin: not a version-2 GS4V buffer'); return;
+  if (magic !== 'GS4V' || head.getUint32(4, true) !== 3 || buf.byteLength !== 16 + 60 * n) {
+    fail('api/splats.bin: not a version-3 GS4V buffer'); return;
   }
   let off = 16;
   const take = (T, count, bytes) => { const a = new T(buf, off, count); off += bytes; return a; };
@@ -41,6 +43,8 @@ async function main() {
   const rgba = take(Uint8Array, 4 * n, 4 * n);
   const cls = take(Uint8Array, 4 * n, 4 * n);
   const bld = take(Uint8Array, 4 * n, 4 * n);
+  // The Gaussian each splat stands for (itself, or the heaviest of a merged splat's).
+  const gaussianOf = take(Uint32Array, n, 4 * n);
   const sel = new Uint8Array(n);
 
   // --- the splat renderer ---------------------------------------------------------------
@@ -265,7 +269,7 @@ async function main() {
     box.className = '';
     box.replaceChildren();
     if (i < 0) { box.append(el('div', { id: 'pick-none', class: 'muted' }, 'No splat under the cursor.')); api.lastPick = { gaussian: -1 }; return; }
-    const r = await fetch('api/pick?i=' + i);
+    const r = await fetch('api/pick?i=' + gaussianOf[i]);
     const j = await r.json();
     if (!r.ok) { box.append(el('div', { class: 'muted' }, j.error)); return; }
     box.append(el('div', { id: 'pick-gaussian', 'data-gaussian': String(j.gaussian) },
@@ -316,12 +320,10 @@ async function main() {
     const j = await r.json();
     if (!r.ok) { clearQuery(); $('query-error').textContent = j.error; api.lastQuery = { error: j.error }; return; }
     const bin = atob(j.mask);
+    const bit = (g) => (bin.charCodeAt(g >> 3) >> (g & 7)) & 1;
     let count = 0;
-    for (let i = 0; i < n; i++) {
-      const on = (bin.charCodeAt(i >> 3) >> (i & 7)) & 1;
-      sel[i] = on;
-      count += on;
-    }
+    for (let g = 0; g < meta.gaussians; g++) count += bit(g);
+    for (let i = 0; i < n; i++) sel[i] = bit(gaussianOf[i]);
     queryOn = 1;
     recolor();
     $('count').textContent = `${count} Gaussians`;

@@ -6,18 +6,26 @@
 // show it (and their centroid). Everything is served by a node http server on 127.0.0.1 (the
 // tileset, Cesium's build, one page; tiles whose splats are not SPZ-compressed are served with
 // their KHR_gaussian_splatting:* semantics renamed, glb_rename.mjs); no Cesium ion, no imagery, no terrain, no internet.
-// Usage: node cesium_shot.mjs TILESET_DIR OUT.png PALETTE_JSON
+// Usage: node cesium_shot.mjs TILESET_DIR OUT.png PALETTE_JSON [VIEWS_JSON]
 //   PALETTE_JSON: {"name": [r, g, b], …} the colours to count.
-import { createServer } from "node:http";
-import { readFile, stat, writeFile } from "node:fs/promises";
+//   VIEWS_JSON (optional): {"fov": radians (Cesium's: the wider side's), "wait": "splats" or
+//   "tiles", "views": [{"name", "eye": [e, n, u], "target": [e, n, u], "up": [e, n, u]}]} in
+//   the root tile's frame (east, north, up about its origin): instead of flying to the tileset,
+//   the camera is put at each view in turn and the picture measured (the peak green value and
+//   the pixels at or above half of it: count, centroid, second moments; OUT-NAME.png). The
+//   server counts every tile requested (uri, bytes), in total and per view.
+import { writeFile } from "node:fs/promises";
 import path from "node:path";
 import { fileURLToPath } from "node:url";
 import { launchChromium } from "./chromium.mjs";
 import { renameGaussianSemantics } from "./glb_rename.mjs";
+import { measureCanvas, serveFolders } from "./shot_server.mjs";
 
 const here = path.dirname(fileURLToPath(import.meta.url));
-const [tilesetDir, outPng, paletteJson] = process.argv.slice(2);
+const [tilesetDir, outPng, paletteJson, viewsJson] = process.argv.slice(2);
 const palette = JSON.parse(paletteJson);
+const viewSpec = viewsJson ? JSON.parse(viewsJson) : null;
+const requests = [];
 const cesiumDir = path.join(here, "node_modules/cesium/Build/Cesium");
 
 const page = `<!doctype html>
@@ -27,6 +35,7 @@ const page = `<!doctype html>
 <script src="/cesium/Cesium.js"></script></head>
 <body><div id="c"></div><script>
 window.CESIUM_BASE_URL = "/cesium/";
+window.__views = ${viewSpec ? "true" : "false"};
 (async () => {
   try {
     const viewer = new Cesium.Viewer("c", {
@@ -55,6 +64,12 @@ window.CESIUM_BASE_URL = "/cesium/";
     tileset.pointCloudShading.eyeDomeLighting = false;
     viewer.scene.primitives.add(tileset);
     const sphere = tileset.boundingSphere;
+    window.__viewer = viewer;
+    window.__tileset = tileset;
+    if (window.__views) {
+      window.__result = { ok: true, views: true };
+      return;
+    }
     viewer.camera.flyToBoundingSphere(sphere, {
       duration: 0,
       offset: new Cesium.HeadingPitchRange(0.3, -0.8, sphere.radius * 2.2),
@@ -123,42 +138,17 @@ window.CESIUM_BASE_URL = "/cesium/";
 })();
 </script></body></html>`;
 
-const types = { ".js": "text/javascript", ".css": "text/css", ".json": "application/json",
-  ".glb": "model/gltf-binary", ".html": "text/html", ".png": "image/png", ".wasm": "application/wasm" };
-
-function inside(root, rel) {
-  const p = path.resolve(root, "." + decodeURIComponent(rel));
-  return p.startsWith(path.resolve(root) + path.sep) ? p : null;
-}
-
-const server = createServer(async (req, res) => {
-  try {
-    const url = new URL(req.url, "http://127.0.0.1");
-    let file = null;
-    if (url.pathname === "/" || url.pathname === "/index.html") {
-      res.writeHead(200, { "content-type": "text/html" });
-      res.end(page);
-      return;
-    } else if (url.pathname.startsWith("/cesium/")) {
-      file = inside(cesiumDir, url.pathname.slice("/cesium".length));
-    } else if (url.pathname.startsWith("/tiles/")) {
-      file = inside(tilesetDir, url.pathname.slice("/tiles".length));
-    }
-    if (!file || !(await stat(file)).isFile()) throw new Error("not found");
-    res.writeHead(200, { "content-type": types[path.extname(file)] ?? "application/octet-stream" });
-    let body = await readFile(file);
-    // Uncompressed splats: their semantics renamed for Cesium's shader (docs/export.md); SPZ
-    // tiles (KHR_gaussian_splatting_compression_spz_2) are served as written.
-    if (file.endsWith(".glb") && !body.includes("KHR_gaussian_splatting_compression_spz_2")) {
-      body = Buffer.from(renameGaussianSemantics(new Uint8Array(body)));
-    }
-    res.end(body);
-  } catch {
-    res.writeHead(404);
-    res.end();
+// Tiles requested are counted; uncompressed splats are served with their semantics renamed for
+// Cesium's shader (docs/export.md); SPZ tiles (KHR_gaussian_splatting_compression_spz_2) as written.
+const server = await serveFolders(page, { "/cesium": cesiumDir, "/tiles": tilesetDir }, (pathname, file, body) => {
+  if (pathname.startsWith("/tiles/") && file.endsWith(".glb")) {
+    requests.push({ uri: pathname.slice("/tiles/".length), bytes: body.length });
   }
+  if (file.endsWith(".glb") && !body.includes("KHR_gaussian_splatting_compression_spz_2")) {
+    return Buffer.from(renameGaussianSemantics(new Uint8Array(body)));
+  }
+  return body;
 });
-await new Promise((r) => server.listen(0, "127.0.0.1", r));
 const port = server.address().port;
 
 const browser = await launchChromium();
@@ -176,40 +166,65 @@ try {
   } catch (e) {
     result = { ok: false, error: `no result: ${e.message}` };
   }
-  if (result.ok) {
+  if (result.ok && result.views) {
+    result.views = {};
+    for (const v of viewSpec.views) {
+      const before = requests.length;
+      const t0 = Date.now();
+      await tab.evaluate(async ([v, fov, wait]) => {
+        const viewer = window.__viewer, tileset = window.__tileset;
+        const m = tileset.root.computedTransform;
+        const at = (p) => Cesium.Matrix4.multiplyByPoint(m, new Cesium.Cartesian3(...p), new Cesium.Cartesian3());
+        const dirOf = (p) => Cesium.Matrix4.multiplyByPointAsVector(m, new Cesium.Cartesian3(...p), new Cesium.Cartesian3());
+        const eye = at(v.eye);
+        const dir = Cesium.Cartesian3.normalize(Cesium.Cartesian3.subtract(at(v.target), eye, new Cesium.Cartesian3()), new Cesium.Cartesian3());
+        const up = Cesium.Cartesian3.normalize(dirOf(v.up), new Cesium.Cartesian3());
+        viewer.camera.frustum.fov = fov;
+        viewer.camera.setView({ destination: eye, orientation: { direction: dir, up } });
+        const splatsDone = () => {
+          const p = tileset.gaussianSplatPrimitive;
+          if (!p) return wait !== "splats";
+          return p._indexes !== undefined && p._indexes.length === p._numSplats && p._numSplats > 0;
+        };
+        let steady = 0;
+        const t0 = performance.now();
+        await new Promise((resolve) => {
+          const done = () => {
+            steady = tileset.tilesLoaded && splatsDone() ? steady + 1 : 0;
+            if (steady > 20 || performance.now() - t0 > 240000) {
+              viewer.scene.postRender.removeEventListener(done);
+              resolve();
+            }
+          };
+          viewer.scene.postRender.addEventListener(done);
+          viewer.scene.requestRender();
+        });
+        viewer.scene.render();
+      }, [v, viewSpec.fov, viewSpec.wait ?? "splats"]);
+      const m = await tab.evaluate(measureCanvas, ["#c canvas"]);
+      Object.assign(m, await tab.evaluate(() => {
+        const p = window.__tileset.gaussianSplatPrimitive;
+        let splatContents = 0;
+        const walk = (tile) => {
+          if (tile.hasRenderableContent && tile.content instanceof Cesium.GaussianSplat3DTileContent) splatContents += 1;
+          tile.children.forEach(walk);
+        };
+        walk(window.__tileset.root);
+        return { numSplats: p ? p._numSplats : 0, splatContents };
+      }));
+      m.seconds = (Date.now() - t0) / 1000;
+      m.requests = requests.slice(before);
+      await tab.screenshot({ path: outPng.replace(/\.png$/, "") + "-" + v.name + ".png", timeout: 180000 });
+      result.views[v.name] = m;
+    }
+  } else if (result.ok) {
     // Count palette colours in the canvas (the WebGL drawing buffer is preserved).
-    result.pixels = await tab.evaluate((pal) => {
-      const src = document.querySelector("#c canvas");
-      const c = document.createElement("canvas");
-      c.width = src.width;
-      c.height = src.height;
-      const g = c.getContext("2d");
-      g.drawImage(src, 0, 0);
-      const d = g.getImageData(0, 0, c.width, c.height).data;
-      const out = {};
-      for (const [name, rgb] of Object.entries(pal)) out[name] = { count: 0, sx: 0, sy: 0 };
-      let lit = 0;
-      for (let i = 0; i < d.length; i += 4) {
-        if (d[i] + d[i + 1] + d[i + 2] > 30) lit += 1;
-        for (const [name, rgb] of Object.entries(pal)) {
-          if (Math.abs(d[i] - rgb[0]) <= 12 && Math.abs(d[i + 1] - rgb[1]) <= 12 && Math.abs(d[i + 2] - rgb[2]) <= 12) {
-            const p = i / 4;
-            out[name].count += 1;
-            out[name].sx += p % c.width;
-            out[name].sy += Math.floor(p / c.width);
-          }
-        }
-      }
-      for (const v of Object.values(out)) {
-        v.centroid = v.count ? [v.sx / v.count, v.sy / v.count] : null;
-        delete v.sx;
-        delete v.sy;
-      }
-      return { lit, byColor: out };
-    }, palette);
-    await tab.screenshot({ path: outPng });
+    const m = await tab.evaluate(measureCanvas, ["#c canvas", palette]);
+    result.pixels = { lit: m.lit, byColor: m.byColor };
+    await tab.screenshot({ path: outPng, timeout: 180000 });
   }
   result.logs = logs.slice(0, 30);
+  result.requests = requests;
 } finally {
   await browser.close();
   server.close();
