@@ -125,6 +125,10 @@ fn lod2_openings_from_the_images() {
         eprintln!("openings-lod2 score: {r}");
         assert!(r["precision"].as_f64().unwrap() >= 0.8, "{r}");
         assert!(r["matched"].as_u64().unwrap() >= 3, "{r}");
+        // Recall over the 52 dropped openings (measured 0.673; 0.769 of those seen in ≥ 3
+        // training views).
+        assert!(r["recall"].as_f64().unwrap() >= 0.6, "{r}");
+        assert!(r["recall_seen"].as_f64().unwrap() >= 0.7, "{r}");
     }
 
     // `query --id` selects an added opening and its Gaussians; `--class Window` includes it.
@@ -226,6 +230,9 @@ fn lod2_openings_from_the_images() {
         eprintln!("openings-lod2 geometry-alone score: {r}");
         assert!(r["precision"].as_f64().unwrap() >= 0.8, "{r}");
         assert!(r["matched"].as_u64().unwrap() >= 3, "{r}");
+        // Measured 0.615 (0.692 of those seen).
+        assert!(r["recall"].as_f64().unwrap() >= 0.55, "{r}");
+        assert!(r["recall_seen"].as_f64().unwrap() >= 0.62, "{r}");
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
