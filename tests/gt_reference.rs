@@ -15,12 +15,13 @@
 //!   check fails on a truth table whose labels were moved.
 //!
 //! The rule at occlusion boundaries: a sampled pixel whose 3×3 neighbourhood in the GT map is
-//! not uniform (or that lies on the image border) is counted apart and not held to the bound —
-//! there the top-1 Gaussian is decided by weights that can differ in the last f32 bits between
-//! the two implementations. Away from boundaries at least 99.5 % must agree, and at boundaries
-//! at least 95 % (near-ties aside, the two agree there too). No class is
-//! excluded: sky, buildings, ground, trees, cars, persons and floaters are all Gaussians with a
-//! truth row.
+//! not uniform (or that lies on the image border) is counted apart — there the top-1 Gaussian
+//! is decided by weights that can differ in the last f32 bits between the two implementations.
+//! Away from boundaries at least 99.9 % must agree, and at boundaries at least 97 % (measured:
+//! 100 % and 100 % on both presets; the re-derivation with its pixel centres half a pixel off
+//! leaves the interior at 100 % and the boundaries at 87–88 %, which the street test checks).
+//! No class is excluded: sky, buildings, ground, trees, cars, persons and floaters are all
+//! Gaussians with a truth row.
 use std::path::Path;
 use std::process::Command;
 
@@ -54,25 +55,16 @@ fn synthetic_ground_truth_agrees_with_a_numpy_re_derivation() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// Least agreement of interior and of boundary pixels.
+const MIN_INTERIOR: f64 = 0.999;
+const MIN_BOUNDARY: f64 = 0.97;
+
 /// Runs `scripts/gt_reference.py` on every view of `scene` (4 000 pixels each, seed 7), checks
 /// the agreement bounds and returns its totals.
 fn gt_reference(scene: &Path, views: u64, what: &str) -> serde_json::Value {
-    let out = Command::new("python3")
-        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/gt_reference.py"))
-        .arg(scene)
-        .args(["--samples", "4000", "--seed", "7"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    let t = &r["total"];
+    let t = gt_reference_totals(scene, None);
     let n = |k: &str| t[k].as_u64().unwrap();
-    assert_eq!(r["views"], views, "{r}");
-    assert_eq!(n("sampled"), views * 4000);
+    assert_eq!(n("sampled"), views * 4000, "{t}");
     eprintln!(
         "GT re-derivation, {what}: class {}/{} interior pixels agree ({} of {} at boundaries), instance {}/{} ({} of {})",
         n("class_agree"),
@@ -90,20 +82,37 @@ fn gt_reference(scene: &Path, views: u64, what: &str) -> serde_json::Value {
         // Most samples are away from boundaries, and both sky and scene are sampled.
         assert!(interior * 10 >= n("sampled") * 8, "{map}: {t}");
         assert!(
-            agree as f64 >= 0.995 * interior as f64,
+            agree as f64 >= MIN_INTERIOR * interior as f64,
             "{map}: {agree} of {interior} interior pixels agree: {t}"
         );
-        // At boundaries the two agree too, up to near-ties (all of them when this was written;
-        // a half-pixel shift of the pixel centres or a 1 % focal error leaves 75–85 % here
-        // while the interior still passes).
         let boundary = n(&format!("{map}_boundary"));
         let agree = n(&format!("{map}_boundary_agree"));
         assert!(
-            agree as f64 >= 0.95 * boundary as f64,
+            agree as f64 >= MIN_BOUNDARY * boundary as f64,
             "{map}: {agree} of {boundary} boundary pixels agree: {t}"
         );
     }
-    t.clone()
+    t
+}
+
+/// The totals of `scripts/gt_reference.py` on every view of `scene` (4 000 pixels each, seed
+/// 7), with the deliberate `defect`, if any.
+fn gt_reference_totals(scene: &Path, defect: Option<&str>) -> serde_json::Value {
+    let mut c = Command::new("python3");
+    c.arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/gt_reference.py"))
+        .arg(scene)
+        .args(["--samples", "4000", "--seed", "7"]);
+    if let Some(d) = defect {
+        c.args(["--defect", d]);
+    }
+    let out = c.output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    r["total"].clone()
 }
 
 const STREET: &str = "gt_reference::street_truth_lies_on_its_city_model_and_in_its_objects";
@@ -279,5 +288,16 @@ fn street_truth_lies_on_its_city_model_and_in_its_objects() {
     assert!(m("object_outside") * 10 >= (car[0].1 + car[1].1) * 9, "{p}");
 
     gt_reference(&scene, 4, "street preset, 2 orbit + 2 street views");
+    // The bounds notice a small defect: pixel centres half a pixel off pass the interior (the
+    // maps are the same away from edges) but not the boundaries.
+    let t = gt_reference_totals(&scene, Some("half-pixel"));
+    for map in ["class", "instance"] {
+        let n = |k: &str| t[format!("{map}_{k}")].as_u64().unwrap() as f64;
+        let share = n("boundary_agree") / n("boundary");
+        eprintln!(
+            "GT re-derivation with pixel centres half a pixel off: {map} boundaries {share:.3}"
+        );
+        assert!(share < MIN_BOUNDARY, "{map}: {t}");
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }
