@@ -250,10 +250,10 @@ fn agreement(
         a.min_iou = a.min_iou.min(inter as f64 / union.max(1) as f64);
         a.pred_iou_diff = a
             .pred_iou_diff
-            .max(f64::from((x.predicted_iou - y.predicted_iou).abs()));
+            .max((x.predicted_iou - y.predicted_iou).abs());
         a.stability_diff = a
             .stability_diff
-            .max(f64::from((x.stability_score - y.stability_score).abs()));
+            .max((x.stability_score - y.stability_score).abs());
         a.points &= x.point_coords == y.point_coords;
     }
     a
