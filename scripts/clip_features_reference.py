@@ -8,8 +8,12 @@ one space, lowercase; CLIP's split pattern, byte-level, `</w>` word ends); masks
 pycocotools.
 
   tokens   --model DIR --texts T.json --out O.json     ids [77] per text (0-padded)
-  features --model DIR --image I.npy --masks M.json --texts T.json --out DIR
+  features --model DIR --image I.npy --masks M.json --texts T.json --out DIR [--defect D]
            -> DIR/features.npy (one unit row per mask), DIR/prompts.json ({text: unit vector})
+
+--defect makes the reference deliberately wrong, to show that a bound against it notices a small
+defect: `crop-shift` (the mask, and so its box, one pixel to the right), `mean` (ImageNet's mean
+0.485, 0.456, 0.406 in place of CLIP's), `bgr` (the colour channels swapped).
 
 The crop (docs/features.md): tight box x0..x1, y0..y1 of the mask; side L = max(w, h); an L x L
 canvas of grey (123, 117, 104) with the box at ((L-w)//2, (L-h)//2), mask pixels copied;
@@ -74,7 +78,11 @@ def bilinear(img, side):
     return np.clip(np.rint(x), 0, 255).astype(np.uint8)
 
 
-def crop(rgb, m, side):
+def crop(rgb, m, side, defect=None):
+    if defect == "bgr":
+        rgb = rgb[..., ::-1]
+    if defect == "crop-shift":  # the mask, and so its box, one pixel to the right
+        m = np.concatenate([np.zeros_like(m[:, :1]), m[:, :-1]], axis=1)
     ys, xs = np.nonzero(m)
     if len(ys) == 0:
         sq = np.broadcast_to(GREY, (1, 1, 3)).copy()
@@ -88,7 +96,8 @@ def crop(rgb, m, side):
         sq[oy:oy + h, ox:ox + w] = box
     if sq.shape[0] != side:
         sq = bilinear(sq, side)
-    x = (sq.astype(np.float64) / 255.0 - MEAN) / STD
+    mean = np.array([0.485, 0.456, 0.406]) if defect == "mean" else MEAN
+    x = (sq.astype(np.float64) / 255.0 - mean) / STD
     return x.transpose(2, 0, 1).astype(np.float32)
 
 
@@ -105,6 +114,7 @@ def main():
     ap.add_argument("--image")
     ap.add_argument("--masks")
     ap.add_argument("--out", required=True)
+    ap.add_argument("--defect", choices=["crop-shift", "mean", "bgr"])
     a = ap.parse_args()
     texts = json.load(open(a.texts, encoding="utf-8"))
     ids = tokenizer(a.model)
@@ -126,7 +136,7 @@ def main():
         else:
             seg = mask_utils.frPyObjects(seg, *seg["size"])
         dec = mask_utils.decode(seg).astype(bool)
-        x = crop(rgb, dec, 224)[None]
+        x = crop(rgb, dec, 224, a.defect)[None]
         rows.append(image.run(None, {image.get_inputs()[0].name: x})[0][0])
     np.save(os.path.join(a.out, "features.npy"), unit(np.array(rows)).astype(np.float32))
     prompts = {}

@@ -26,8 +26,10 @@ differ in the last f32 bits between the two implementations, so those pixels are
 not held to the bound. Nothing is excluded by class: sky (-1), buildings, ground, objects
 (trees, cars, persons) and floaters are all Gaussians with a truth row.
 
-Usage: python3 scripts/gt_reference.py SCENE [--views N] [--samples K] [--seed S]
+Usage: python3 scripts/gt_reference.py SCENE [--views N] [--samples K] [--seed S] [--defect D]
 Prints one JSON object: per view and in total, sampled / interior / agreeing pixel counts.
+`--defect half-pixel` makes the re-derivation deliberately wrong (pixel centres half a pixel to the
+right), to show that the bounds of tests/gt_reference.rs notice a small defect.
 """
 import argparse
 import json
@@ -95,7 +97,7 @@ def read_cameras(sparse):
     return views
 
 
-def project(g, v):
+def project(g, v, shift=0.0):
     """Screen-space Gaussians of view v: depth, mean, conic, opacity and tile rectangle."""
     W, H = v["width"], v["height"]
     fx, fy, cx, cy = v["fx"], v["fy"], v["cx"], v["cy"]
@@ -132,7 +134,7 @@ def project(g, v):
     l1 = mid + np.sqrt(np.maximum(0.1, mid * mid - det))
     l2 = mid - np.sqrt(np.maximum(0.1, mid * mid - det))
     radius = np.ceil(3.0 * np.sqrt(np.maximum(l1, l2)))
-    mx = fx * t[:, 0] / tz + cx - 0.5
+    mx = fx * t[:, 0] / tz + cx - 0.5 - shift
     my = fy * t[:, 1] / tz + cy - 0.5
     gx, gy = (W + TILE - 1) // TILE, (H + TILE - 1) // TILE
     ti = lambda u, hi: np.clip(np.trunc(u), 0, hi).astype(np.int64)
@@ -182,6 +184,7 @@ def main():
     ap.add_argument("--views", type=int, default=0, help="every k-th view so that N are used (0: all)")
     ap.add_argument("--samples", type=int, default=4000, help="pixels per view")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--defect", choices=["half-pixel"])
     a = ap.parse_args()
     summary = json.load(open(os.path.join(a.scene, "summary.json")))
     min_alpha = summary["config"]["output"]["min_alpha"]
@@ -206,7 +209,7 @@ def main():
             sys.exit(f"{v['stem']}: GT {W}x{H}, camera {v['width']}x{v['height']}")
         flat = rng.choice(H * W, size=min(a.samples, H * W), replace=False)
         py, px = flat // W, flat % W
-        best, acc = top1(project(g, v), px, py)
+        best, acc = top1(project(g, v, 0.5 if a.defect == "half-pixel" else 0.0), px, py)
         hit = (best >= 0) & (acc >= min_alpha)
         cls = np.where(hit, truth[np.maximum(best, 0), 0], -1)
         ins = np.where(hit, truth[np.maximum(best, 0), 1], -1)

@@ -19,7 +19,11 @@ Writes the SAM JSON list (segmentation, area, bbox, predicted_iou, stability_sco
 point_coords, crop_box).
 Usage: sam_amg_reference.py --model DIR --image IMG.npy --out OUT.json [--points-per-side 32]
        [--pred-iou-thresh 0.88] [--stability-score-thresh 0.95] [--box-nms-thresh 0.7]
-       [--min-mask-region-area 0] [--scale 0.25] [--points-per-batch 64]
+       [--min-mask-region-area 0] [--scale 0.25] [--points-per-batch 64] [--defect D]
+
+--defect makes the reference deliberately wrong, to show that a bound against it notices a small
+defect: `shift` (the image one pixel to the right before encoding), `mean` (CLIP's pixel mean,
+122.8 116.7 104.1, in place of SAM's), `bgr` (the colour channels swapped).
 """
 import argparse
 import json
@@ -136,16 +140,22 @@ def main():
     ap.add_argument("--min-mask-region-area", type=int, default=0)
     ap.add_argument("--scale", type=float, default=0.25)
     ap.add_argument("--points-per-batch", type=int, default=64)
+    ap.add_argument("--defect", choices=["shift", "mean", "bgr"])
     a = ap.parse_args()
 
     full = np.load(a.image)
+    if a.defect == "shift":
+        full = np.concatenate([full[:, :1], full[:, :-1]], axis=1)
+    elif a.defect == "bgr":
+        full = np.ascontiguousarray(full[..., ::-1])
+    mean = np.array([122.77, 116.75, 104.09]) if a.defect == "mean" else MEAN
     H, W = full.shape[:2]
     w, h = round_half_even(W * a.scale), round_half_even(H * a.scale)
     img = full if (w, h) == (W, H) else area_resize(full, w, h)
     s = 1024.0 / max(h, w)
     nh, nw = int(h * s + 0.5), int(w * s + 0.5)
     x = bilinear_resize(img, nw, nh).astype(np.float64)
-    x = (x - MEAN) / STD
+    x = (x - mean) / STD
     inp = np.zeros((1, 3, 1024, 1024), np.float32)
     inp[0, :, :nh, :nw] = x.transpose(2, 0, 1)
     opts = ort.SessionOptions()

@@ -15,6 +15,11 @@ more, one truncated at 256 tokens: identical ids, cosine ≥ 0.99999998 (docs/qu
 Reads a JSON list of sentences on stdin; prints JSON {"model": DIR, "sentences": [{"text",
 "ids", "embedding"}]} with the tokenizer's ids and the normalised embedding of each sentence.
 Exit status 3 when the package, numpy or tokenizers is missing.
+
+`--defect D` makes the reference deliberately wrong, to show that a bound against it notices a
+small defect: `gelu-tanh` (GELU's tanh approximation in place of the erf form), `layer-norm-eps`
+(LayerNorm's eps 1e-5 in place of config.json's 1e-12), `pad-mean` (the mean pooled over the
+padding too).
 """
 import json
 import math
@@ -60,14 +65,19 @@ def layer_norm(x, w, b, eps):
 _erf = np.frompyfunc(math.erf, 1, 1)
 
 
+DEFECT = sys.argv[sys.argv.index("--defect") + 1] if "--defect" in sys.argv else None
+
+
 def gelu(x):
+    if DEFECT == "gelu-tanh":
+        return 0.5 * x * (1.0 + np.tanh(math.sqrt(2.0 / math.pi) * (x + 0.044715 * x ** 3)))
     return 0.5 * x * (1.0 + _erf(x / math.sqrt(2.0)).astype(np.float64))
 
 
 def bert_embed(w, cfg, ids, mask):
     """Mean-pooled, L2-normalised last hidden states of the token ids `ids` (batch × seq,
     padded) under the attention mask `mask` (1 for tokens, 0 for padding)."""
-    eps = cfg["layer_norm_eps"]
+    eps = 1e-5 if DEFECT == "layer-norm-eps" else cfg["layer_norm_eps"]
     heads = cfg["num_attention_heads"]
     hidden = cfg["hidden_size"]
     dh = hidden // heads
@@ -111,7 +121,7 @@ def bert_embed(w, cfg, ids, mask):
             w[p + "output.LayerNorm.bias"],
             eps,
         )
-    m = mask[:, :, None]
+    m = np.ones_like(mask)[:, :, None] if DEFECT == "pad-mean" else mask[:, :, None]
     pooled = (x * m).sum(1) / np.maximum(m.sum(1), 1e-9)
     return pooled / np.maximum(np.linalg.norm(pooled, axis=-1, keepdims=True), 1e-12)
 

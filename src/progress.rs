@@ -148,13 +148,4 @@ mod tests {
             assert!(mb > 1.0 && mb < 1e6, "{mb}");
         }
     }
-
-    #[test]
-    fn hidden_bars_count_nothing_and_never_draw() {
-        let b = Bar::hidden();
-        b.inc(5);
-        b.message("x");
-        b.finish();
-        assert!(b.0.is_hidden());
-    }
 }

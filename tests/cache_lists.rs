@@ -78,7 +78,10 @@ fn the_mass_rule_keeps_the_fewest_largest_weights_that_reach_1_minus_epsilon() {
 /// the alpha and the median plane bit for bit.
 #[test]
 fn a_python_reader_written_from_the_docs_decodes_version_4() {
-    if !crate::common::python_can_import("cache_lists::python_reader", &["struct", "json"]) {
+    if !crate::common::python_can_import(
+        "cache_lists::a_python_reader_written_from_the_docs_decodes_version_4",
+        &["struct", "json"],
+    ) {
         return;
     }
     let (w, h) = (7usize, 5usize);

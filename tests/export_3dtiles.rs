@@ -11,7 +11,8 @@
 //!   with semantic.ply and semantics.json, its colour with the class palette;
 //! - scripts/spz_reference.py (NumPy): the `--spz` tiles' SPZ blobs decoded and compared with the
 //!   uncompressed export; CesiumJS (tools/js/cesium_shot.mjs) drawing them as Gaussian splats;
-//! - `gs4city query`'s count for `--where`; bad inputs → one error line and no output folder.
+//! - `--where`: as many splats as scripts/selection_reference.py (docs/query.md's rules over
+//!   semantic.ply read by plyfile) selects; bad inputs → one error line and no output folder.
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
@@ -635,24 +636,18 @@ fn splats_carry_their_place_ids_and_class() {
     }
 }
 
-/// `--where` exports exactly the Gaussians `gs4city query --where` selects.
+/// `--where` exports exactly as many Gaussians as an independent reading of the expression over
+/// `semantic.ply` (plyfile) and `semantics.json` selects (`scripts/selection_reference.py`).
 #[test]
-fn where_exports_what_query_selects() {
+fn where_exports_what_semantic_ply_selects() {
+    const TEST: &str = "export_3dtiles::where_exports_what_semantic_ply_selects";
     let (_, run) = small_run();
     let q = "category=window or class=RoofSurface";
-    let qdir = run.parent().unwrap().join("query-where");
-    let o = Command::new(BIN)
-        .args(["-q", "query", "--run"])
-        .arg(run)
-        .args(["--where", q, "--views", "none", "--no-sqlite", "--out"])
-        .arg(&qdir)
-        .output()
-        .unwrap();
-    ok(&o);
-    let want = read_json(&qdir.join("selection.json"))["gaussians"]
-        .as_u64()
-        .unwrap();
-    assert!(want > 0);
+    let Some(want) = crate::view::reference_selections(TEST, run, &[q]) else {
+        return;
+    };
+    let want = want[0].len() as u64;
+    assert!(want > 1000, "{want}");
     let out = run.parent().unwrap().join("tiles-where");
     let _ = std::fs::remove_dir_all(&out);
     ok(&export(run, &out, &["--where", q]));

@@ -294,9 +294,25 @@ fn mesh_coordinates_beyond_the_scene_frame_are_refused_before_embree() {
         let e = TriMesh::from_ply_bytes(Path::new("far.ply"), &m.to_ply_bytes()).unwrap_err();
         assert!(check_message(&e, "far.ply").contains("vertex 2"));
     }
+    // Just inside the limit the scene builds and traces: vertex 0 at x = L = 0.99·limit makes
+    // face 0 the triangle (L, 0), (1, 0), (1, 1) and face 1 the sliver (L, 0), (1, 1), (0, 1),
+    // both at z = 5. Rays along +z from z = 0: at (2, 0.5) and (L/2, 0.25) face 0 at t = 5
+    // (face 1 spans only y ∈ [1 − x/L, 1 − (x − 1)/(L − 1)] there); at (L/2, 0.75) nothing.
     let mut m = sample_mesh();
-    m.vertices[0][0] = (SCENE_COORD_LIMIT * 0.99) as f32;
-    assert!(TwoPassScene::build(&m).is_ok());
+    let l = (SCENE_COORD_LIMIT * 0.99) as f32;
+    m.vertices[0][0] = l;
+    let scene = TwoPassScene::build(&m).unwrap();
+    for (x, y, want) in [
+        (2.0, 0.5, Some(0)),
+        (l / 2.0, 0.25, Some(0)),
+        (l / 2.0, 0.75, None),
+    ] {
+        let hit = scene.trace_global([x, y, 0.0], [0.0, 0.0, 1.0]);
+        assert_eq!(hit.map(|h| h.0), want, "ray at ({x}, {y})");
+        if let Some((_, t)) = hit {
+            assert!((t - 5.0).abs() < 1e-4, "ray at ({x}, {y}): t = {t}");
+        }
+    }
 }
 
 /// Face ids beyond the semantic table: refused with the face named, before raycasting,

@@ -58,9 +58,10 @@ fn differing(a: &[(String, Vec<u8>)], b: &[(String, Vec<u8>)]) -> Vec<String> {
 }
 
 /// The completeness score of `out` by `scripts/score_completeness.py` (NumPy; reads the
-/// SIMULATED scene's gt/), against the complete model written to `full`; `None` without NumPy.
-fn score(out: &Path, scene: &Path, full: &Path) -> Option<serde_json::Value> {
-    if !common::python_can_import("openings::score_completeness", &["numpy"]) {
+/// SIMULATED scene's gt/), against the complete model written to `full`; `None` without NumPy
+/// (a skip of the cross-check of `test`).
+fn score(test: &str, out: &Path, scene: &Path, full: &Path) -> Option<serde_json::Value> {
+    if !common::python_can_import(test, &["numpy"]) {
         return None;
     }
     if !full.join("mesh.ply").exists() {
@@ -87,6 +88,8 @@ fn score(out: &Path, scene: &Path, full: &Path) -> Option<serde_json::Value> {
     assert!(s.status.success(), "{}", String::from_utf8_lossy(&s.stderr));
     Some(serde_json::from_slice(&s.stdout).unwrap())
 }
+
+const LOD2: &str = "openings::lod2_openings_from_the_images";
 
 #[test]
 fn lod2_openings_from_the_images() {
@@ -118,10 +121,14 @@ fn lod2_openings_from_the_images() {
     // The added openings overlap the dropped ones (scored by the NumPy reference on the
     // complete model's mesh; gt/ is read by the script only).
     let full = dir.join("full");
-    if let Some(r) = score(&out, &scene, &full) {
+    if let Some(r) = score(LOD2, &out, &scene, &full) {
         eprintln!("openings-lod2 score: {r}");
         assert!(r["precision"].as_f64().unwrap() >= 0.8, "{r}");
         assert!(r["matched"].as_u64().unwrap() >= 3, "{r}");
+        // Recall over the 52 dropped openings (measured 0.673; 0.769 of those seen in ≥ 3
+        // training views).
+        assert!(r["recall"].as_f64().unwrap() >= 0.6, "{r}");
+        assert!(r["recall_seen"].as_f64().unwrap() >= 0.7, "{r}");
     }
 
     // `query --id` selects an added opening and its Gaussians; `--class Window` includes it.
@@ -170,7 +177,7 @@ fn lod2_openings_from_the_images() {
         assert_eq!(cj.objects[o.parent.unwrap()].object_id, m["wall_object_id"]);
     }
     // cjio (pip) loads it and sees the same semantic surfaces.
-    if common::python_can_import("openings::cjio_reads_the_completeness", &["cjio"]) {
+    if common::python_can_import(LOD2, &["cjio"]) {
         let s = Command::new("python3")
             .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/cjio_summary.py"))
             .arg(od.join("completeness.city.json"))
@@ -219,10 +226,13 @@ fn lod2_openings_from_the_images() {
         serde_json::from_slice(&std::fs::read(out3.join("openings/summary.json")).unwrap())
             .unwrap();
     assert!(s3["added"].as_u64().unwrap() >= 3, "geometry alone: {s3}");
-    if let Some(r) = score(&out3, &scene, &full) {
+    if let Some(r) = score(LOD2, &out3, &scene, &full) {
         eprintln!("openings-lod2 geometry-alone score: {r}");
         assert!(r["precision"].as_f64().unwrap() >= 0.8, "{r}");
         assert!(r["matched"].as_u64().unwrap() >= 3, "{r}");
+        // Measured 0.615 (0.692 of those seen).
+        assert!(r["recall"].as_f64().unwrap() >= 0.55, "{r}");
+        assert!(r["recall_seen"].as_f64().unwrap() >= 0.62, "{r}");
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -303,7 +303,17 @@ fn bad_inputs_are_errors() {
     let mut bad = m.clone();
     bad.vertices[0][2] = f32::INFINITY;
     assert!(TwoPassScene::build(&bad).is_err());
-    assert!(TwoPassScene::build(&TriMesh::default()).is_ok());
+    // An empty mesh builds and hits nothing: every pixel unlabelled, NaN depth, nothing
+    // recovered; a single ray misses too.
+    let empty = TwoPassScene::build(&TriMesh::default()).unwrap();
+    let v = raycast_view(&empty, &axis_camera(12, 8, 10.0), &opts(0.5, false));
+    assert_eq!((v.width, v.height), (12, 8));
+    for ids in [&v.feature, &v.surface, &v.part, &v.city, &v.face] {
+        assert_eq!(ids, &vec![-1; 96]);
+    }
+    assert!(v.depth.iter().all(|d| d.is_nan()));
+    assert!(v.recovered.iter().all(|r| !r) && v.undistort_failures == 0);
+    assert_eq!(empty.trace_global([0.0, 0.0, 0.0], [0.0, 0.0, 1.0]), None);
 
     let out = crate::common::temp_dir().join(format!("gs4city-rc-bad-{}", std::process::id()));
     let view = |w| gs4city::camera::View {

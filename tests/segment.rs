@@ -89,9 +89,10 @@ pub(crate) fn gs4city(args: &[&str], env: &[(&str, &str)]) -> std::process::Outp
     c.output().unwrap()
 }
 
-/// Same masks as the NumPy reference: the same count, in the same order, each with IoU ≥ 0.99
-/// (RLE decoded) and the same predicted IoU; with NMS off (every candidate that passes the
-/// filters) and with NMS and small-region removal on.
+/// Same masks as the NumPy reference: the same count, in the same order, each within the bounds
+/// of [`Agreement::holds`] (IoU, predicted IoU, stability score, point); with NMS off (every
+/// candidate that passes the filters) and with NMS and small-region removal on. The reference
+/// with a small deliberate defect falls outside the bounds.
 #[test]
 fn masks_match_the_numpy_reference() {
     const TEST: &str = "segment::masks_match_the_numpy_reference";
@@ -133,6 +134,21 @@ fn masks_match_the_numpy_reference() {
             String::from_utf8_lossy(&again.stderr)
         );
         assert_eq!(std::fs::read(s.join("masks/v000.json")).unwrap(), before);
+        // The bounds notice a small defect: the reference made deliberately wrong (the image
+        // one pixel off, a wrong pixel mean, swapped channels) leaves them.
+        for defect in ["shift", "mean", "bgr"] {
+            let a = agreement(
+                &s.join("masks/v000.json"),
+                &model,
+                &npy,
+                opts,
+                Some(defect),
+                &s.join(format!("reference-{defect}.json")),
+                [247, 330],
+            );
+            eprintln!("config {i}, reference with the defect {defect}: {a:?}");
+            assert!(!a.holds(), "config {i}, defect {defect}: {a:?}");
+        }
     }
 }
 
@@ -153,50 +169,112 @@ fn segment_ok(s: &Path, model: &Path, opts: &[&str]) -> Vec<String> {
     args
 }
 
-/// `s/masks/v000.json` against `scripts/sam_amg_reference.py` run with the same options: the
-/// same mask count and order, each with IoU ≥ 0.99 (RLE decoded), the same predicted IoU and
-/// stability score, the same point.
-fn assert_matches_reference(s: &Path, model: &Path, npy: &Path, opts: &[&str], tag: &str) {
-    let reference = s.join("reference.json");
+/// The bounds of a masks file against the reference: every mask's IoU (RLE decoded), and the
+/// largest differences of its predicted IoU and stability score. Measured when this was
+/// written: on the tiny model IoU 1 and both scores equal; on SAM ViT-B's own export IoU ≥
+/// 0.9997 and predicted IoU within 3e-6 (docs/segment.md). The image one pixel off before
+/// encoding leaves IoU 0.998 and predicted IoU 1.1e-4 off on the tiny model (the old bounds,
+/// 0.99 and 1e-3, let it pass). The stability score keeps 0.01: SAM's export was not measured
+/// for it.
+const MIN_IOU: f64 = 0.999;
+const MAX_PRED_IOU_DIFF: f64 = 1e-5;
+const MAX_STABILITY_DIFF: f64 = 0.01;
+
+/// How a masks file agrees with the reference's: the two mask counts and, over the pairs in
+/// order, the least IoU, the largest predicted-IoU and stability-score differences, whether
+/// every point agrees.
+#[derive(Debug)]
+struct Agreement {
+    ours: usize,
+    theirs: usize,
+    min_iou: f64,
+    pred_iou_diff: f64,
+    stability_diff: f64,
+    points: bool,
+}
+
+impl Agreement {
+    fn holds(&self) -> bool {
+        self.ours == self.theirs
+            && self.min_iou >= MIN_IOU
+            && self.pred_iou_diff <= MAX_PRED_IOU_DIFF
+            && self.stability_diff <= MAX_STABILITY_DIFF
+            && self.points
+    }
+}
+
+/// The masks file `ours` (of an image of `size` [h, w], also at `npy`) against
+/// `scripts/sam_amg_reference.py` run with the same options `opts` (and the deliberate
+/// `defect`, if any), its output written to `reference`.
+fn agreement(
+    ours: &Path,
+    model: &Path,
+    npy: &Path,
+    opts: &[&str],
+    defect: Option<&str>,
+    reference: &Path,
+    size: [usize; 2],
+) -> Agreement {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/sam_amg_reference.py");
-    let r = Command::new("python3")
-        .arg(&script)
+    let mut c = Command::new("python3");
+    c.arg(&script)
         .arg("--model")
         .arg(model)
         .arg("--image")
         .arg(npy)
         .arg("--out")
-        .arg(&reference)
-        .args(opts)
-        .output()
-        .unwrap();
-    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
-    let ours = sam::read_sam_json_sized(&s.join("masks/v000.json"), Some([247, 330])).unwrap();
-    let theirs = sam::read_sam_json_sized(&reference, Some([247, 330])).unwrap();
-    assert!(
-        !ours.is_empty(),
-        "{tag}: no masks: the test would prove nothing"
-    );
-    assert_eq!(ours.len(), theirs.len(), "{tag}: mask counts differ");
-    for (k, (a, b)) in ours.iter().zip(&theirs).enumerate() {
-        let (ma, mb) = (
-            a.segmentation.decode().unwrap(),
-            b.segmentation.decode().unwrap(),
-        );
-        let inter = ma.iter().zip(mb.iter()).filter(|(x, y)| **x && **y).count();
-        let union = ma.iter().zip(mb.iter()).filter(|(x, y)| **x || **y).count();
-        let iou = inter as f64 / union.max(1) as f64;
-        assert!(iou >= 0.99, "{tag} mask {k}: IoU {iou}");
-        assert!(
-            (a.predicted_iou - b.predicted_iou).abs() < 1e-3,
-            "{tag} mask {k}"
-        );
-        assert!(
-            (a.stability_score - b.stability_score).abs() < 0.01,
-            "{tag} mask {k}"
-        );
-        assert_eq!(a.point_coords, b.point_coords, "{tag} mask {k}");
+        .arg(reference)
+        .args(opts);
+    if let Some(d) = defect {
+        c.args(["--defect", d]);
     }
+    let r = c.output().unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let ours = sam::read_sam_json_sized(ours, Some(size)).unwrap();
+    let theirs = sam::read_sam_json_sized(reference, Some(size)).unwrap();
+    let mut a = Agreement {
+        ours: ours.len(),
+        theirs: theirs.len(),
+        min_iou: 1.0,
+        pred_iou_diff: 0.0,
+        stability_diff: 0.0,
+        points: true,
+    };
+    for (x, y) in ours.iter().zip(&theirs) {
+        let (mx, my) = (
+            x.segmentation.decode().unwrap(),
+            y.segmentation.decode().unwrap(),
+        );
+        let inter = mx.iter().zip(my.iter()).filter(|(p, q)| **p && **q).count();
+        let union = mx.iter().zip(my.iter()).filter(|(p, q)| **p || **q).count();
+        a.min_iou = a.min_iou.min(inter as f64 / union.max(1) as f64);
+        a.pred_iou_diff = a
+            .pred_iou_diff
+            .max((x.predicted_iou - y.predicted_iou).abs());
+        a.stability_diff = a
+            .stability_diff
+            .max((x.stability_score - y.stability_score).abs());
+        a.points &= x.point_coords == y.point_coords;
+    }
+    a
+}
+
+/// `s/masks/v000.json` against `scripts/sam_amg_reference.py` run with the same options: the
+/// same mask count and order, each within the bounds above ([`Agreement::holds`]), the same
+/// point; some masks.
+fn assert_matches_reference(s: &Path, model: &Path, npy: &Path, opts: &[&str], tag: &str) {
+    let a = agreement(
+        &s.join("masks/v000.json"),
+        model,
+        npy,
+        opts,
+        None,
+        &s.join("reference.json"),
+        [247, 330],
+    );
+    eprintln!("segment against the reference, {tag}: {a:?}");
+    assert!(a.ours > 0, "{tag}: no masks: the test would prove nothing");
+    assert!(a.holds(), "{tag}: {a:?}");
 }
 
 /// A decoder with a fixed batch of 1 (as SAM's own export: one prompt per call) is decoded by
@@ -528,12 +606,61 @@ fn run_with_a_model_segments_a_scene_without_masks() {
     );
     let images = gs4city::segment::list_images(&s.join("images")).unwrap();
     assert_eq!(images.len(), 3);
-    for img in &images {
-        let f = gs4city::segment::mask_path(&s.join("masks"), img);
-        sam::read_sam_json_sized(&f, Some([247, 330])).unwrap();
-    }
-    assert!(r.join("masks").is_dir() && r.join("lift/gaussians.npy").is_file());
+    // Each image's masks are the NumPy reference's on that image with the run's options.
+    let masks = masks_match_the_reference_per_image(&s, &model, &dir);
+    assert!(
+        masks > 0,
+        "no masks in three images: the test would prove nothing"
+    );
+    // The run used them: its masks stage read the masks of its training views (one view in
+    // three is a test view).
+    let sum: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(r.join("masks/summary.json")).unwrap()).unwrap();
+    let input = sum["input"].as_u64().unwrap() as usize;
+    assert!(
+        (1..=masks).contains(&input),
+        "{masks} masks, the masks stage read {input}: {sum}"
+    );
+    assert!(r.join("lift/gaussians.npy").is_file());
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The options `run_without_masks` segments with, as `sam_amg_reference.py` takes them: with
+/// the default thresholds (0.88, 0.95) the tiny random-weight model keeps no mask at all, and
+/// the run would go on without any.
+const RUN_OPTS: [&str; 6] = [
+    "--points-per-side",
+    "4",
+    "--pred-iou-thresh",
+    "0.8",
+    "--stability-score-thresh",
+    "0.6",
+];
+
+/// Every image of `s/images` against the reference with [`RUN_OPTS`] (within the bounds of
+/// [`Agreement::holds`]); returns the number of masks.
+pub(crate) fn masks_match_the_reference_per_image(s: &Path, model: &Path, dir: &Path) -> usize {
+    let mut total = 0;
+    for img in gs4city::segment::list_images(&s.join("images")).unwrap() {
+        let rgb = gs4city::imageio::read_rgb(&img).unwrap();
+        let (h, w, _) = rgb.dim();
+        let stem = img.file_stem().unwrap().to_string_lossy().into_owned();
+        let npy = dir.join(format!("{stem}.npy"));
+        gs4city::npy::write(&npy, &[h, w, 3], rgb.as_slice().unwrap()).unwrap();
+        let a = agreement(
+            &gs4city::segment::mask_path(&s.join("masks"), &img),
+            model,
+            &npy,
+            &RUN_OPTS,
+            None,
+            &dir.join(format!("{stem}.reference.json")),
+            [h, w],
+        );
+        eprintln!("segment in the run, {stem}: {a:?}");
+        assert!(a.holds(), "{stem}: {a:?}");
+        total += a.ours;
+    }
+    total
 }
 
 /// `gs4city run --model-dir MODEL` on a SIMULATED scene (synth small preset, 3 orbit views of
@@ -564,6 +691,10 @@ pub(crate) fn run_without_masks(
             model.to_str().unwrap(),
             "--segment-points-per-side",
             "4",
+            "--segment-pred-iou-thresh",
+            "0.8",
+            "--segment-stability-score-thresh",
+            "0.6",
             "--test-every",
             "3",
         ],

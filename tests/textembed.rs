@@ -36,8 +36,53 @@ fn cos(a: &[f32], b: &[f32]) -> f64 {
         .sum()
 }
 
-/// The Rust embeddings agree with the NumPy reference's: the same token ids, cosine ≥ 0.999
-/// (one batch with padding, so the mask is exercised too).
+/// The least cosine an embedding may have to the reference's: 1 − 1e-6. Measured when this was
+/// written: 1 − 1.7e-7 at worst (float32 against float64); the reference with GELU's tanh
+/// approximation in place of the erf form leaves 1 − 1.4e-6, a mean pooled over the padding
+/// 0.46 (checked below). A LayerNorm eps of 1e-5 for 1e-12 moves embeddings by 2e-7, inside the
+/// float32 noise: no bound on the cosine can see it.
+const MIN_COSINE: f64 = 1.0 - 1e-6;
+
+/// Runs `scripts/text_embed_reference.py` (with the deliberate `defect`, if any) on
+/// `sentences`; `Err` with the reason to skip when it cannot run.
+fn run_reference(sentences: &[&str], defect: Option<&str>) -> Result<serde_json::Value, String> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/text_embed_reference.py");
+    let mut c = Command::new("python3");
+    c.arg(&script);
+    if let Some(d) = defect {
+        c.args(["--defect", d]);
+    }
+    let mut child = c
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .map_err(|e| format!("python3: {e}"))?;
+    {
+        use std::io::Write;
+        let mut stdin = child.stdin.take().unwrap();
+        stdin
+            .write_all(serde_json::to_string(&sentences).unwrap().as_bytes())
+            .unwrap();
+    }
+    let out = child.wait_with_output().unwrap();
+    if out.status.code() == Some(3) {
+        return Err(format!(
+            "the Python reference: {} (scripts/setup.sh installs it)",
+            String::from_utf8_lossy(&out.stderr).trim()
+        ));
+    }
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    Ok(serde_json::from_slice(&out.stdout).unwrap())
+}
+
+/// The Rust embeddings agree with the NumPy reference's: the same token ids, cosine ≥
+/// [`MIN_COSINE`] (one batch with padding, so the mask is exercised too); the reference with a
+/// small deliberate defect falls below the bound.
 #[test]
 fn embeddings_match_the_numpy_reference() {
     const TEST: &str = "textembed::embeddings_match_the_numpy_reference";
@@ -55,40 +100,10 @@ fn embeddings_match_the_numpy_reference() {
         "窓 and 屋根",
         "",
     ];
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/text_embed_reference.py");
-    let mut child = match Command::new("python3")
-        .arg(&script)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-    {
-        Ok(c) => c,
-        Err(e) => return skip(TEST, &format!("python3: {e}")),
+    let reference = match run_reference(&sentences, None) {
+        Ok(r) => r,
+        Err(why) => return skip(TEST, &why),
     };
-    {
-        use std::io::Write;
-        let mut stdin = child.stdin.take().unwrap();
-        stdin
-            .write_all(serde_json::to_string(&sentences).unwrap().as_bytes())
-            .unwrap();
-    }
-    let out = child.wait_with_output().unwrap();
-    if out.status.code() == Some(3) {
-        return skip(
-            TEST,
-            &format!(
-                "the Python reference: {} (scripts/setup.sh installs it)",
-                String::from_utf8_lossy(&out.stderr).trim()
-            ),
-        );
-    }
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let reference: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let ours = m.embed(&sentences).unwrap();
     let mut worst = 1.0f64;
     for (i, r) in reference["sentences"]
@@ -108,10 +123,25 @@ fn embeddings_match_the_numpy_reference() {
         assert_eq!(e.len(), m.dim);
         let c = cos(&ours[i], &e);
         println!("cosine Rust vs NumPy reference {c:.8}  {:?}", sentences[i]);
-        assert!(c >= 0.999, "{:?}: cosine {c}", sentences[i]);
+        assert!(c >= MIN_COSINE, "{:?}: cosine {c}", sentences[i]);
         worst = worst.min(c);
     }
     println!("worst cosine {worst:.8} over {} sentences", sentences.len());
+    for defect in ["gelu-tanh", "pad-mean"] {
+        let r = run_reference(&sentences, Some(defect)).unwrap();
+        let least = r["sentences"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .zip(&ours)
+            .map(|(s, o)| {
+                let e: Vec<f32> = serde_json::from_value(s["embedding"].clone()).unwrap();
+                cos(o, &e)
+            })
+            .fold(f64::INFINITY, f64::min);
+        println!("reference with the defect {defect}: least cosine {least:.8}");
+        assert!(least < MIN_COSINE, "{defect}: least cosine {least}");
+    }
     // One sentence alone embeds like in the padded batch.
     let alone = m.embed(&[sentences[1]]).unwrap();
     assert!(cos(&alone[0], &ours[1]) > 0.99999);
@@ -359,6 +389,135 @@ fn free_text_threshold_separates_paraphrases_from_unrelated_words() {
         "paraphrases resolved elsewhere: {wrong:?}"
     );
     assert!(max_neg.0 < t && t <= min_pos.0);
+}
+
+/// The threshold on words it was not calibrated on: 20 paraphrases and 30 unrelated words
+/// written after the calibration and never used to choose [`text::MIN_MARGIN`] (none of them is
+/// in the calibration sets above, in issue 24's queries or in docs/query.md's calibration
+/// table). The criteria fixed before the first measurement — every unrelated word no match, at
+/// least 90 % of the paraphrases right — did not hold; measured (docs/query.md): "a bowl of
+/// soup" matches "water" (margin 0.132 against the threshold 0.13), "a child" finds "a person"
+/// below the threshold (0.105), and five paraphrases go to another candidate ("a taxi" → "a
+/// road", "the sea" → "the sky", "the balconies" → "the sky", "the building height" → "a
+/// building", "the front of the house" → "a door" below the threshold). No threshold separates
+/// these sets (an unrelated word at 0.132 above paraphrases at 0.101 and 0.105). The test holds
+/// the measured result as a ceiling, so that a change to the model, the candidates or the rule
+/// cannot make it worse unnoticed.
+#[test]
+fn free_text_threshold_holds_on_held_aside_words() {
+    let Some(m) = model("textembed::free_text_threshold_holds_on_held_aside_words") else {
+        return;
+    };
+    let sr = open_demo();
+    let ctx = sr.context(TextOptions::default());
+    let index = select::Index::new(&sr.entities);
+    let cands = select::candidates(&ctx, &index);
+    let p = |s: &str| Candidate::Prompt(s.into());
+    let c = |s: &str| Candidate::Class(s.into());
+    let a = |s: &str| Candidate::Attribute(s.into());
+    let wall = || {
+        vec![
+            p("a wall of a building"),
+            p("a facade of a building"),
+            c("WallSurface"),
+        ]
+    };
+    let positives: Vec<(&str, Vec<Candidate>)> = vec![
+        ("a woman", vec![p("a person")]),
+        ("a child", vec![p("a person")]),
+        ("a taxi", vec![p("a car")]),
+        ("a sedan", vec![p("a car")]),
+        ("an oak tree", vec![p("a tree")]),
+        ("a palm tree", vec![p("a tree")]),
+        ("the asphalt", vec![p("a road")]),
+        ("a highway", vec![p("a road")]),
+        ("a lake", vec![p("water")]),
+        ("the sea", vec![p("water")]),
+        ("a doorway", vec![p("a door"), c("Door"), c("DoorSurface")]),
+        (
+            "glass windows",
+            vec![p("a window of a building"), c("Window"), c("WindowSurface")],
+        ),
+        ("the roof tiles", vec![p("a roof"), c("RoofSurface")]),
+        ("an exterior wall", wall()),
+        ("the front of the house", wall()),
+        ("a skyscraper", vec![p("a building"), c("Building")]),
+        ("the balconies", vec![p("a balcony of a building")]),
+        ("the building height", vec![a("measuredHeight")]),
+        ("the clouds", vec![p("the sky")]),
+        ("the blue sky", vec![p("the sky")]),
+    ];
+    let negatives = [
+        "a giraffe",
+        "a trumpet",
+        "philosophy",
+        "a laptop",
+        "an umbrella",
+        "a butterfly",
+        "a carrot",
+        "a hamburger",
+        "a tennis racket",
+        "a lion",
+        "a teddy bear",
+        "a candle",
+        "a kite",
+        "ice cream",
+        "a shark",
+        "opera music",
+        "a diamond ring",
+        "a wallet",
+        "sunglasses",
+        "a cookie",
+        "a robot",
+        "algebra",
+        "friendship",
+        "a vacuum cleaner",
+        "a crocodile",
+        "a lemon",
+        "a saxophone",
+        "a microwave oven",
+        "a parrot",
+        "a bowl of soup",
+    ];
+    let t = text::MIN_MARGIN;
+    let (mut elsewhere, mut below) = (Vec::new(), Vec::new());
+    for (q, ok) in &positives {
+        let f = text::resolve(q, &cands, m, t).unwrap();
+        println!(
+            "held-aside positive {q:?} → {} cosine {:.3} margin {:.3}",
+            f.best, f.cosine, f.margin
+        );
+        if !ok.contains(&f.best) {
+            elsewhere.push(format!("{q:?} → {} (margin {:.3})", f.best, f.margin));
+        } else if f.resolved.is_none() {
+            below.push(format!("{q:?} → {} (margin {:.3})", f.best, f.margin));
+        }
+    }
+    let mut matched = Vec::new();
+    for q in negatives {
+        let f = text::resolve(q, &cands, m, t).unwrap();
+        println!(
+            "held-aside negative {q:?} → {} cosine {:.3} margin {:.3}",
+            f.best, f.cosine, f.margin
+        );
+        if f.resolved.is_some() {
+            matched.push(format!("{q:?} → {} (margin {:.3})", f.best, f.margin));
+        }
+    }
+    println!(
+        "held-aside: of {} paraphrases {} went to another candidate {elsewhere:?}, {} stayed below the threshold {below:?}; {} of {} unrelated words matched {matched:?}",
+        positives.len(),
+        elsewhere.len(),
+        below.len(),
+        matched.len(),
+        negatives.len()
+    );
+    assert!(matched.len() <= 1, "unrelated words matched: {matched:?}");
+    assert!(
+        below.len() <= 1,
+        "paraphrases below the threshold: {below:?}"
+    );
+    assert!(elsewhere.len() <= 5, "paraphrases elsewhere: {elsewhere:?}");
 }
 
 /// Without the model, an exact prompt still works and free text is refused in one line that

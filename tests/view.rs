@@ -1,11 +1,13 @@
 //! `gs4city view` on a finished run of a SIMULATED scene (`synth --preset small`: two real
 //! buildings, simulated Gaussians): the server listens on 127.0.0.1 only (read from
 //! /proc/net/tcp), refuses paths outside the run folder and survives malformed requests (raw TCP
-//! sockets), its query API counts what `gs4city query` selects, its pick API reports the
+//! sockets), its query API selects, Gaussian for Gaussian, what an independent reading of the
+//! expression over `semantic.ply` (`scripts/selection_reference.py`, plyfile) selects, its pick
+//! API reports the
 //! hierarchy `semantic.ply` stores, and in headless Chromium (Debian's, driven by playwright-core
 //! from tools/js) the splat renderer (Spark, vendored from npm) draws the window's class colour
 //! where the window is, a real mouse click on a window shows that window, its wall and its
-//! building, and a query typed in the box highlights as many Gaussians as `gs4city query` selects.
+//! building, and a query typed in the box highlights as many Gaussians as that reading selects.
 //! The vendored renderer is byte for byte the npm package pinned in tools/js.
 //! The truth is read here from `R/lift/semantic.ply` and `R/citymodel/semantics.json`.
 use std::io::{BufRead, BufReader, Read, Write};
@@ -188,6 +190,42 @@ fn cli_count(run: &Path, q: &str) -> Result<usize, String> {
     let s: Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     Ok(s["gaussians"].as_u64().unwrap() as usize)
+}
+
+/// What `scripts/selection_reference.py` (docs/query.md's rules over `semantic.ply` read by
+/// the pip package plyfile, no gs4city code) selects for each of `queries`: per query the
+/// selected Gaussians' indices. `None` (a counted skip of `test`) without plyfile.
+pub(crate) fn reference_selections(
+    test: &str,
+    run: &Path,
+    queries: &[&str],
+) -> Option<Vec<Vec<usize>>> {
+    if !crate::common::python_can_import(test, &["numpy", "plyfile"]) {
+        return None;
+    }
+    let o = Command::new("python3")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/selection_reference.py"))
+        .arg(run)
+        .args(queries)
+        .arg("--indices")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: Value = serde_json::from_slice(&o.stdout).unwrap();
+    Some(
+        queries
+            .iter()
+            .map(|q| {
+                let sel: Vec<usize> = serde_json::from_value(r[*q]["indices"].clone()).unwrap();
+                assert_eq!(
+                    sel.len() as u64,
+                    r[*q]["gaussians"].as_u64().unwrap(),
+                    "{q}"
+                );
+                sel
+            })
+            .collect(),
+    )
 }
 
 /// The run's truth per Gaussian from `R/lift/semantic.ply` (class, feature, surface, part
@@ -450,38 +488,49 @@ fn survives_malformed_requests() {
     assert!(meta["gaussians"].as_u64().unwrap() > 1000);
 }
 
+/// `/api/query` selects, Gaussian for Gaussian, what an independent reading of the expression
+/// over `semantic.ply` (plyfile) and `semantics.json` selects (`selection_reference`), for every
+/// expression; and the window class column of `semantic.ply` is `class=Window`.
 #[test]
-fn query_api_selects_what_gs4city_query_selects() {
-    let run = run_dir();
-    let t = truth(run);
-    let srv = Server::start(run);
-    for q in [
+fn query_api_selects_what_semantic_ply_holds() {
+    const TEST: &str = "view::query_api_selects_what_semantic_ply_holds";
+    let queries = [
         "class=Window",
         "level=part",
         "class=Building and measuredHeight > 15",
         "class=WallSurface or class=RoofSurface",
         "not class=Building",
-        "id=\"4018106\"",
+        "id=\"4018106\" or within(\"4018106_BP.vaTC1d8GxA5iZnJavLPU\")",
         "text(\"a tree\")",
-    ] {
+    ];
+    let run = run_dir();
+    let Some(want) = reference_selections(TEST, run, &queries) else {
+        return;
+    };
+    let t = truth(run);
+    let srv = Server::start(run);
+    for (q, want) in queries.iter().zip(&want) {
         let (s, j) = srv.get_json(&format!("/api/query?where={}", enc(q)));
         assert_eq!(s, 200, "{q}: {j}");
         let count = j["count"].as_u64().unwrap() as usize;
-        assert_eq!(Ok(count), cli_count(run, q), "{q}");
         let mask = base64_decode(j["mask"].as_str().unwrap());
         assert_eq!(mask.len(), t.class.len().div_ceil(8), "{q}");
-        let bits: Vec<bool> = (0..t.class.len())
-            .map(|i| mask[i / 8] >> (i % 8) & 1 == 1)
+        let bits: Vec<usize> = (0..t.class.len())
+            .filter(|&i| mask[i / 8] >> (i % 8) & 1 == 1)
             .collect();
-        assert_eq!(bits.iter().filter(|b| **b).count(), count, "{q}");
-        if q == "class=Window" {
-            let windows: Vec<bool> = t.class.iter().map(|&c| c == 2).collect();
-            let differ = (0..bits.len()).filter(|&i| bits[i] != windows[i]).count();
+        assert_eq!(bits.len(), count, "{q}");
+        assert!(
+            &bits == want,
+            "{q}: {count} selected, the reference {}",
+            want.len()
+        );
+        assert!(count > 100, "{q}: {count}");
+        if *q == "class=Window" {
+            let windows: Vec<usize> = (0..t.class.len()).filter(|&i| t.class[i] == 2).collect();
             assert_eq!(
-                differ, 0,
+                bits, windows,
                 "class=Window: the Gaussians of class window in semantic.ply"
             );
-            assert!(count > 100);
         }
     }
 }
@@ -723,14 +772,21 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
     assert_eq!(panel[0].1, "Building");
     assert_eq!(panel[1].1, "WallSurface");
     assert_eq!(panel[2].1, "Window");
-    // The queries typed in the box: the highlighted count is `gs4city query`'s.
+    // The queries typed in the box: the highlighted count is what an independent reading of
+    // `semantic.ply` selects (`selection_reference`); the bad one shows the parser's message.
+    let valid = &queries[..3];
+    let want = reference_selections(test, run, valid);
     for (q, shown) in queries.iter().zip(r["queries"].as_array().unwrap()) {
-        match cli_count(run, q) {
-            Ok(n) => {
-                assert_eq!(shown["count"].as_u64(), Some(n as u64), "{q}: {shown}");
+        match valid.iter().position(|v| v == q) {
+            Some(k) => {
+                if let Some(want) = &want {
+                    let n = want[k].len() as u64;
+                    assert_eq!(shown["count"].as_u64(), Some(n), "{q}: {shown}");
+                }
                 assert_eq!(shown["error"].as_str(), Some(""), "{q}");
             }
-            Err(e) => {
+            None => {
+                let e = cli_count(run, q).expect_err(q);
                 assert!(shown["count"].is_null(), "{q}: {shown}");
                 let msg = shown["error"].as_str().unwrap();
                 assert!(

@@ -22,6 +22,15 @@ pub struct RunArgs {
     /// Points per side of the prompt grid of that segmentation (`gs4city segment --points-per-side`).
     #[arg(long, default_value_t = crate::segment::SegmentOptions::default().points_per_side)]
     pub segment_points_per_side: usize,
+    /// Predicted-IoU threshold of that segmentation (`gs4city segment --pred-iou-thresh`).
+    /// Hidden from `--help`: stage tuning, used by the tests (a tiny model keeps no mask at the
+    /// default).
+    #[arg(long, hide = true, default_value_t = crate::segment::SegmentOptions::default().pred_iou_thresh)]
+    pub segment_pred_iou_thresh: f32,
+    /// Stability-score threshold of that segmentation (`gs4city segment
+    /// --stability-score-thresh`). Hidden from `--help`, as the one above.
+    #[arg(long, hide = true, default_value_t = crate::segment::SegmentOptions::default().stability_score_thresh)]
+    pub segment_stability_score_thresh: f64,
     /// Part-pass depth tolerance τ in metres.
     #[arg(long, default_value_t = 0.5)]
     pub tau: f64,
@@ -268,6 +277,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
                 dir,
                 &crate::segment::SegmentOptions {
                     points_per_side: args.segment_points_per_side,
+                    pred_iou_thresh: args.segment_pred_iou_thresh,
+                    stability_score_thresh: args.segment_stability_score_thresh,
                     ..Default::default()
                 },
             )?;

@@ -228,13 +228,36 @@ mod tests {
         assert!(std::mem::align_of::<sys::RTCRayHit16>() >= 64);
     }
 
+    /// The lanes of each width (the tile shapes rest on them), and the native width against
+    /// the kernel's flags (`/proc/cpuinfo`, not the `is_x86_feature_detected!` that
+    /// [`PacketWidth::native`] asks) and Embree's own report of 16-wide support.
     #[test]
     fn native_width_follows_the_cpu() {
+        assert_eq!((PacketWidth::W8.lanes(), PacketWidth::W16.lanes()), (8, 16));
         let dev = Device::new().unwrap();
-        let w = PacketWidth::native(&dev);
-        if !cpu_has_avx512() {
-            assert_eq!(w, PacketWidth::W8);
-        }
-        assert_eq!(w.lanes() % 8, 0);
+        let Ok(cpuinfo) = std::fs::read_to_string("/proc/cpuinfo") else {
+            return;
+        };
+        let avx512 = cpuinfo
+            .lines()
+            .filter(|l| l.starts_with("flags"))
+            .any(|l| l.split_whitespace().any(|f| f == "avx512f"));
+        // SAFETY: the device handle is live (held by `dev`); the property id is Embree's own.
+        let ray16 = unsafe {
+            sys::rtcGetDeviceProperty(
+                dev.inner.raw(),
+                sys::RTCDeviceProperty::RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED,
+            )
+        } == 1;
+        let want = if avx512 && ray16 {
+            PacketWidth::W16
+        } else {
+            PacketWidth::W8
+        };
+        assert_eq!(
+            PacketWidth::native(&dev),
+            want,
+            "avx512f {avx512}, ray16 {ray16}"
+        );
     }
 }

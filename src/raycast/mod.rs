@@ -208,6 +208,8 @@ pub struct ViewIds {
     pub recovered: Vec<bool>,
     /// Pixels whose ray could not be undistorted (traced as misses).
     pub undistort_failures: usize,
+    /// Lanes of the ray packets the view was traced with (8 or 16).
+    pub lanes: usize,
 }
 
 impl ViewIds {
@@ -334,6 +336,7 @@ fn trace_view<P: RayPacket>(
         face: vec![-1; n],
         recovered: vec![false; n],
         undistort_failures: 0,
+        lanes: P::LANES,
     };
     if n == 0 {
         return out;

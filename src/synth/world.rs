@@ -192,6 +192,34 @@ pub struct ObjectInfo {
     /// The window/door entity it was placed in front of, if it is an occluder.
     pub occludes: Option<i32>,
     pub gaussians: usize,
+    /// The solids its Gaussians' centres were drawn in (local metric frame), from the object's
+    /// own parameters (not from its Gaussians): every centre lies in one of them.
+    pub shapes: Vec<Shape>,
+}
+
+/// A solid an object's Gaussian centres were drawn in (local metric frame, metres).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Shape {
+    /// An oriented box: `centre`, its unit axes (rows) and the half extents along them.
+    Box {
+        centre: [f64; 3],
+        axes: [[f64; 3]; 3],
+        half: [f64; 3],
+    },
+    /// A ball.
+    Sphere { centre: [f64; 3], radius: f64 },
+}
+
+impl Shape {
+    /// The box `lo..hi` of a local frame (columns of `frame`) placed at `origin`.
+    fn framed_box(origin: DVec3, frame: DMat3, lo: DVec3, hi: DVec3) -> Shape {
+        Shape::Box {
+            centre: (origin + frame * ((lo + hi) * 0.5)).to_array(),
+            axes: [frame.x_axis, frame.y_axis, frame.z_axis].map(|a| a.to_array()),
+            half: ((hi - lo) * 0.5).to_array(),
+        }
+    }
 }
 
 /// Ground, water, objects, floaters.
@@ -409,17 +437,18 @@ pub fn objects(
                 let a = rng.random::<f64>() * std::f64::consts::TAU;
                 DVec3::new(a.cos(), a.sin(), 0.0)
             });
-            match class {
+            let shapes = match class {
                 classes::TREE => tree(base, cfg.tree_gaussians, inst, rng, out),
                 classes::CAR => car(base, facing, inst, rng, out),
                 _ => person(base, inst, rng, out),
-            }
+            };
             info.objects.push(ObjectInfo {
                 instance: inst,
                 class: classes::name(class),
                 position: base.to_array(),
                 occludes: facet.map(|f| f.entity),
                 gaussians: out.len() - before,
+                shapes,
             });
         }
     }
@@ -464,8 +493,15 @@ fn random_frame(rng: &mut ChaCha8Rng) -> DMat3 {
     frame_from_normal(n)
 }
 
-/// A tree: trunk (vertical elongated Gaussians) and an irregular crown of 3–5 blobs.
-fn tree(base: DVec3, n_crown: usize, inst: i32, rng: &mut ChaCha8Rng, out: &mut Builder) {
+/// A tree: trunk (vertical elongated Gaussians) and an irregular crown of 3–5 blobs; returns
+/// its solids (the trunk's box, one ball per blob).
+fn tree(
+    base: DVec3,
+    n_crown: usize,
+    inst: i32,
+    rng: &mut ChaCha8Rng,
+    out: &mut Builder,
+) -> Vec<Shape> {
     let t = truth(classes::TREE, inst);
     let trunk_h = 2.0 + rng.random::<f64>() * 1.5;
     let trunk_r = 0.15 + rng.random::<f64>() * 0.1;
@@ -496,6 +532,16 @@ fn tree(base: DVec3, n_crown: usize, inst: i32, rng: &mut ChaCha8Rng, out: &mut 
             (centre + off, crown_r * (0.55 + 0.3 * rng.random::<f64>()))
         })
         .collect();
+    let mut shapes = vec![Shape::framed_box(
+        base,
+        DMat3::IDENTITY,
+        DVec3::new(-trunk_r, -trunk_r, 0.0),
+        DVec3::new(trunk_r, trunk_r, trunk_h),
+    )];
+    shapes.extend(blobs.iter().map(|(c, r)| Shape::Sphere {
+        centre: c.to_array(),
+        radius: *r,
+    }));
     let green = [
         0.18 + 0.1 * rng.random::<f64>(),
         0.38 + 0.1 * rng.random::<f64>(),
@@ -524,6 +570,7 @@ fn tree(base: DVec3, n_crown: usize, inst: i32, rng: &mut ChaCha8Rng, out: &mut 
             truth: t,
         });
     }
+    shapes
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -580,8 +627,14 @@ fn box_surface(
     }
 }
 
-/// A car: body box and a shorter cabin, long axis along the façade.
-fn car(base: DVec3, facing: DVec3, inst: i32, rng: &mut ChaCha8Rng, out: &mut Builder) {
+/// A car: body box and a shorter cabin, long axis along the façade; returns the two boxes.
+fn car(
+    base: DVec3,
+    facing: DVec3,
+    inst: i32,
+    rng: &mut ChaCha8Rng,
+    out: &mut Builder,
+) -> Vec<Shape> {
     let t = truth(classes::CAR, inst);
     let nh = DVec3::new(facing.x, facing.y, 0.0)
         .try_normalize()
@@ -600,20 +653,18 @@ fn car(base: DVec3, facing: DVec3, inst: i32, rng: &mut ChaCha8Rng, out: &mut Bu
         [0.5, 0.5, 0.55],
     ];
     let paint = paints[rng.random_range(0..paints.len())];
-    box_surface(
+    let body = (
         DVec3::new(-l / 2.0, -w / 2.0, 0.3),
         DVec3::new(l / 2.0, w / 2.0, 1.0),
-        frame,
-        base,
-        80.0,
-        paint,
-        t,
-        rng,
-        out,
     );
-    box_surface(
+    let cabin = (
         DVec3::new(-l / 4.0, -w / 2.0 + 0.1, 1.0),
         DVec3::new(l / 5.0, w / 2.0 - 0.1, 1.45),
+    );
+    box_surface(body.0, body.1, frame, base, 80.0, paint, t, rng, out);
+    box_surface(
+        cabin.0,
+        cabin.1,
         frame,
         base,
         80.0,
@@ -622,10 +673,15 @@ fn car(base: DVec3, facing: DVec3, inst: i32, rng: &mut ChaCha8Rng, out: &mut Bu
         rng,
         out,
     );
+    vec![
+        Shape::framed_box(base, frame, body.0, body.1),
+        Shape::framed_box(base, frame, cabin.0, cabin.1),
+    ]
 }
 
-/// A person: a thin vertical cluster (legs/body) and a head.
-fn person(base: DVec3, inst: i32, rng: &mut ChaCha8Rng, out: &mut Builder) {
+/// A person: a thin vertical cluster (legs/body) and a head; returns the body's box and the
+/// head's ball.
+fn person(base: DVec3, inst: i32, rng: &mut ChaCha8Rng, out: &mut Builder) -> Vec<Shape> {
     let t = truth(classes::PERSON, inst);
     let h = 1.6 + rng.random::<f64>() * 0.25;
     let shirt = [
@@ -668,4 +724,16 @@ fn person(base: DVec3, inst: i32, rng: &mut ChaCha8Rng, out: &mut Builder) {
             truth: t,
         });
     }
+    vec![
+        Shape::framed_box(
+            base,
+            DMat3::IDENTITY,
+            DVec3::new(-0.2, -0.2 * 0.7, 0.0),
+            DVec3::new(0.2, 0.2 * 0.7, h - 0.25),
+        ),
+        Shape::Sphere {
+            centre: (base + DVec3::new(0.0, 0.0, h - 0.12)).to_array(),
+            radius: 0.1,
+        },
+    ]
 }

@@ -233,12 +233,40 @@ pub fn python_can_import(test: &str, modules: &[&str]) -> bool {
 /// Skips the cross-check `test` because of `why` (a package or model it needs is missing):
 /// with `CI` or `GS4CITY_REQUIRE_PY` set this panics; otherwise it prints
 /// `SKIPPED: <test>: <why>` and appends that line to `$GS4CITY_SKIP_LOG` (see
-/// [`python_can_import`]). The caller then returns.
+/// [`python_can_import`]). The caller then returns. `test` is the test's name as cargo prints
+/// it (`module::function`): `scripts/test.sh` counts each skipped test once by that name.
 pub fn skip(test: &str, why: &str) {
     assert!(
         std::env::var_os("CI").is_none() && std::env::var_os("GS4CITY_REQUIRE_PY").is_none(),
         "{test}: {why}; with CI or GS4CITY_REQUIRE_PY set this cross-check must run"
     );
+    log_skip(test, why);
+}
+
+/// Skips `test` because of `why`, a property of the machine that no installation changes (the
+/// user is not root): panics under `CI` (which must run it) but not under `GS4CITY_REQUIRE_PY`;
+/// otherwise as [`skip`].
+pub fn skip_unless_ci(test: &str, why: &str) {
+    assert!(
+        std::env::var_os("CI").is_none(),
+        "{test}: {why}; with CI set this test must run"
+    );
+    log_skip(test, why);
+}
+
+/// The real user id of this process (`Uid:` of `/proc/self/status`; `None` where it cannot
+/// be read).
+pub fn uid() -> Option<u32> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    s.lines()
+        .find_map(|l| l.strip_prefix("Uid:"))?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
+fn log_skip(test: &str, why: &str) {
     let line = format!("SKIPPED: {test}: {why}");
     eprintln!("{line}");
     if let Some(log) = std::env::var_os("GS4CITY_SKIP_LOG") {
