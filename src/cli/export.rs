@@ -103,6 +103,7 @@ pub fn run(cmd: &ExportCommand) -> anyhow::Result<()> {
     if a.max_splats == 0 {
         bail!("--max-splats must be at least 1, got 0");
     }
+    let _lock = super::query::lock_run(&a.run)?;
     let crs = run_crs(a)?;
     let georef = crate::crs::Georef::new(&crs)?;
     let apath = Stage::Citymodel.path(&a.run).join("alignment.json");

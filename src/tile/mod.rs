@@ -72,7 +72,10 @@ pub enum TileError {
     Prediction(#[from] crate::prediction::PredictionError),
     #[error(transparent)]
     Eval(#[from] crate::eval::EvalError),
+    #[error(transparent)]
+    Lock(#[from] crate::lock::LockError),
 }
+
 
 /// The file that describes a plan.
 pub const PLAN: &str = "plan.json";
