@@ -357,6 +357,67 @@ mod tests {
         assert!(parse_proc_locks(text, 0xfd, 3, 5678).is_empty());
     }
 
+    fn tmp(name: &str) -> PathBuf {
+        let d = crate::fsutil::test_temp_dir().join(format!("lock-{name}"));
+        let _ = std::fs::remove_dir_all(&d);
+        d
+    }
+
+    /// Locks taken twice in one process conflict as between processes (`flock` locks belong to
+    /// the open file, and each take opens the lock file anew).
+    #[test]
+    fn a_writer_excludes_everyone_and_readers_exclude_writers() {
+        let d = tmp("kinds");
+        let w = FolderLock::exclusive(&d).unwrap();
+        // (Something written, so that the folder stays when the writer lets go.)
+        std::fs::write(d.join("x"), "x").unwrap();
+        let rec: Holder =
+            serde_json::from_str(std::fs::read_to_string(d.join(LOCK_FILE)).unwrap().trim())
+                .unwrap();
+        assert_eq!(rec.pid, std::process::id());
+        for e in [
+            FolderLock::exclusive(&d).unwrap_err(),
+            FolderLock::shared(&d).unwrap_err(),
+        ] {
+            assert!(e.is_busy());
+            let m = e.to_string();
+            assert!(
+                m.contains(&format!("pid {}, started", std::process::id())),
+                "{m}"
+            );
+        }
+        assert!(FolderLock::holder(&d).is_some());
+        drop(w);
+        assert!(FolderLock::holder(&d).is_none());
+        let r1 = FolderLock::shared(&d).unwrap().unwrap();
+        let _r2 = FolderLock::shared(&d).unwrap().unwrap();
+        let e = FolderLock::exclusive(&d).unwrap_err();
+        assert!(e.is_busy() && e.to_string().contains("reading it"), "{e}");
+        drop(r1);
+        assert!(FolderLock::exclusive(&d).unwrap_err().is_busy(), "one reader left");
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn a_folder_the_lock_made_and_left_empty_goes_with_it_and_a_replace_keeps_the_lock() {
+        let d = tmp("made");
+        drop(FolderLock::exclusive(&d).unwrap());
+        assert!(!d.exists(), "a refused command leaves no folder");
+        let mut l = FolderLock::exclusive(&d).unwrap();
+        std::fs::write(d.join("old.txt"), "old").unwrap();
+        let partial = d.with_file_name("made.partial");
+        std::fs::create_dir_all(&partial).unwrap();
+        std::fs::write(partial.join("new.txt"), "new").unwrap();
+        l.replace_folder(&d, &partial).unwrap();
+        assert!(!partial.exists() && !d.join("old.txt").exists());
+        assert_eq!(std::fs::read_to_string(d.join("new.txt")).unwrap(), "new");
+        assert!(FolderLock::exclusive(&d).unwrap_err().is_busy(), "still held");
+        drop(l);
+        assert!(d.join("new.txt").exists(), "a folder with content stays");
+        assert!(FolderLock::holder(&d).is_none());
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
     #[test]
     fn durations_in_words() {
         assert_eq!(duration_words(0), "0 s");
