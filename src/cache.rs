@@ -142,10 +142,7 @@ impl Contributions {
 #[derive(Debug, thiserror::Error)]
 pub enum CacheError {
     #[error("cannot read {path}: {err}")]
-    Read {
-        path: PathBuf,
-        err: std::io::Error,
-    },
+    Read { path: PathBuf, err: std::io::Error },
     #[error("{path}: not a gs4city contributions file: {why}")]
     Format { path: PathBuf, why: String },
     #[error("{path}: built for {found} Gaussians, the scene has {expected}: the cache is stale")]

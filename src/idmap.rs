@@ -20,10 +20,7 @@ pub enum IdMapError {
     #[error("{path}: {why}")]
     Shape { path: PathBuf, why: String },
     #[error("cannot list {path}: {err}")]
-    ReadDir {
-        path: PathBuf,
-        err: std::io::Error,
-    },
+    ReadDir { path: PathBuf, err: std::io::Error },
 }
 
 /// Suffix of a class map (prediction or ground truth).

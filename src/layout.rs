@@ -137,7 +137,10 @@ pub fn check_outputs(dir: &Path, outputs: &[FileId]) -> Result<Vec<(usize, FileI
         .collect();
     let problems: Vec<&String> = checked.iter().filter_map(|c| c.as_ref().err()).collect();
     match problems.split_first() {
-        None => Ok(checked.into_iter().filter_map(|c| c.ok().flatten()).collect()),
+        None => Ok(checked
+            .into_iter()
+            .filter_map(|c| c.ok().flatten())
+            .collect()),
         Some((first, [])) => Err((*first).clone()),
         Some((first, rest)) => Err(format!(
             "{first} (and {} more of its {} files)",

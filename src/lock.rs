@@ -295,10 +295,7 @@ fn lock_holders(path: &Path) -> Vec<u32> {
     let Ok(text) = std::fs::read_to_string("/proc/locks") else {
         return Vec::new();
     };
-    let (major, minor) = (
-        rustix::fs::major(meta.dev()),
-        rustix::fs::minor(meta.dev()),
-    );
+    let (major, minor) = (rustix::fs::major(meta.dev()), rustix::fs::minor(meta.dev()));
     parse_proc_locks(&text, major, minor, meta.ino())
 }
 
@@ -394,7 +391,10 @@ mod tests {
         let e = FolderLock::exclusive(&d).unwrap_err();
         assert!(e.is_busy() && e.to_string().contains("reading it"), "{e}");
         drop(r1);
-        assert!(FolderLock::exclusive(&d).unwrap_err().is_busy(), "one reader left");
+        assert!(
+            FolderLock::exclusive(&d).unwrap_err().is_busy(),
+            "one reader left"
+        );
         let _ = std::fs::remove_dir_all(&d);
     }
 
@@ -411,7 +411,10 @@ mod tests {
         l.replace_folder(&d, &partial).unwrap();
         assert!(!partial.exists() && !d.join("old.txt").exists());
         assert_eq!(std::fs::read_to_string(d.join("new.txt")).unwrap(), "new");
-        assert!(FolderLock::exclusive(&d).unwrap_err().is_busy(), "still held");
+        assert!(
+            FolderLock::exclusive(&d).unwrap_err().is_busy(),
+            "still held"
+        );
         drop(l);
         assert!(d.join("new.txt").exists(), "a folder with content stays");
         assert!(FolderLock::holder(&d).is_none());

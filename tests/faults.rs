@@ -112,7 +112,12 @@ fn assert_same_files_but(a: &Path, b: &Path, rename: Option<(&str, &str)>) {
         b.display()
     );
     for (k, v) in &fa {
-        assert!(v == &fb[k], "{k} differs between {} and {}", a.display(), b.display());
+        assert!(
+            v == &fb[k],
+            "{k} differs between {} and {}",
+            a.display(),
+            b.display()
+        );
     }
 }
 
@@ -180,7 +185,8 @@ fn a_second_run_on_a_locked_folder_is_refused_naming_the_first_which_finishes_as
     let pid = first.id();
     assert!(
         wait_for(Duration::from_secs(30), || {
-            std::fs::read_to_string(r.join(".lock")).is_ok_and(|t| t.contains(&format!("\"pid\":{pid}")))
+            std::fs::read_to_string(r.join(".lock"))
+                .is_ok_and(|t| t.contains(&format!("\"pid\":{pid}")))
         }),
         "the first run never took its lock"
     );
@@ -198,7 +204,16 @@ fn a_second_run_on_a_locked_folder_is_refused_naming_the_first_which_finishes_as
         );
     }
     // A reader is refused while the run writes.
-    let (code, text) = gs(&["-q", "query", "--run", s(&r), "--class", "Window", "--out", s(&d.join("Q"))]);
+    let (code, text) = gs(&[
+        "-q",
+        "query",
+        "--run",
+        s(&r),
+        "--class",
+        "Window",
+        "--out",
+        s(&d.join("Q")),
+    ]);
     assert_eq!(code, 75, "{text}");
     assert!(text.contains(&format!("pid {pid}")), "{text}");
     let (code, text) = finish(first);
@@ -216,7 +231,16 @@ fn a_second_run_on_a_locked_folder_is_refused_naming_the_first_which_finishes_as
     assert!(wait_for(Duration::from_secs(60), || {
         lock_holders_of(&r.join(".lock")).contains(&vpid)
     }));
-    let (code, text) = gs(&["-q", "query", "--run", s(&r), "--class", "Window", "--out", s(&d.join("Q"))]);
+    let (code, text) = gs(&[
+        "-q",
+        "query",
+        "--run",
+        s(&r),
+        "--class",
+        "Window",
+        "--out",
+        s(&d.join("Q")),
+    ]);
     assert_eq!(code, 0, "a second reader: {text}");
     let (code, text) = gs(&["-q", "run", "--scene", s(sc), "--out", s(&r)]);
     assert_eq!(code, 75, "{text}");
@@ -266,7 +290,9 @@ pub fn lock_holders_of(path: &Path) -> Vec<u32> {
         .filter(|l| l.contains(" FLOCK ") && !l.contains("->"))
         .filter_map(|l| {
             let f: Vec<&str> = l.split_whitespace().collect();
-            (f.get(5) == Some(&want.as_str())).then(|| f[4].parse().ok()).flatten()
+            (f.get(5) == Some(&want.as_str()))
+                .then(|| f[4].parse().ok())
+                .flatten()
         })
         .collect()
 }
@@ -294,7 +320,10 @@ fn a_byte_flipped_with_size_and_mtime_restored_reruns_its_stage_with_a_warning()
         .set_modified(mtime)
         .unwrap();
     let after = std::fs::metadata(&f).unwrap();
-    assert_eq!((after.len(), after.modified().unwrap()), (meta.len(), mtime));
+    assert_eq!(
+        (after.len(), after.modified().unwrap()),
+        (meta.len(), mtime)
+    );
     let (code, text) = gs(&["run", "--scene", s(sc), "--out", s(&r)]);
     assert_eq!(code, 0, "{text}");
     let warnings: Vec<&str> = text
@@ -312,7 +341,10 @@ fn a_byte_flipped_with_size_and_mtime_restored_reruns_its_stage_with_a_warning()
         text.lines()
             .any(|l| l.starts_with(stage) && l.trim_end().ends_with("(resumed)"))
     };
-    assert!(!resumed("lift") && resumed("render") && resumed("citymodel"), "{text}");
+    assert!(
+        !resumed("lift") && resumed("render") && resumed("citymodel"),
+        "{text}"
+    );
     assert_eq!(result_files(&r), clean, "the rerun restored every output");
     // A truncated cache file: re-rendered, and the line says why.
     let c = std::fs::read_dir(r.join("render"))
@@ -322,12 +354,20 @@ fn a_byte_flipped_with_size_and_mtime_restored_reruns_its_stage_with_a_warning()
         .find(|p| p.extension().is_some_and(|x| x == "contrib"))
         .unwrap();
     let len = std::fs::metadata(&c).unwrap().len();
-    std::fs::File::options().write(true).open(&c).unwrap().set_len(len - 1).unwrap();
+    std::fs::File::options()
+        .write(true)
+        .open(&c)
+        .unwrap()
+        .set_len(len - 1)
+        .unwrap();
     let (code, text) = gs(&["run", "--scene", s(sc), "--out", s(&r)]);
     assert_eq!(code, 0, "{text}");
     let name = c.file_name().unwrap().to_string_lossy().into_owned();
     assert!(
-        text.lines().any(|l| l.contains(&format!("render/{name} has {} bytes, {len} when it was written", len - 1))),
+        text.lines().any(|l| l.contains(&format!(
+            "render/{name} has {} bytes, {len} when it was written",
+            len - 1
+        ))),
         "{text}"
     );
     assert_eq!(result_files(&r), clean);
@@ -335,7 +375,18 @@ fn a_byte_flipped_with_size_and_mtime_restored_reruns_its_stage_with_a_warning()
 }
 
 fn tile_plan(sc: &Path, p: &Path) {
-    let (code, out) = gs(&["-q", "tile", "--scene", s(sc), "--size", "10", "--margin", "4", "--out", s(p)]);
+    let (code, out) = gs(&[
+        "-q",
+        "tile",
+        "--scene",
+        s(sc),
+        "--size",
+        "10",
+        "--margin",
+        "4",
+        "--out",
+        s(p),
+    ]);
     assert_eq!(code, 0, "{out}");
 }
 
@@ -349,7 +400,14 @@ fn killing_run_plan_kills_its_tiles_and_a_rerun_merges_as_an_uninterrupted_plan(
     let (code, out) = gs(&["-q", "run-plan", s(&q), "--jobs", "2", "--no-test-views"]);
     assert_eq!(code, 0, "uninterrupted: {out}");
     // Killed while both tiles run (their runs have started: each has taken its run's lock).
-    let mut plan = scopeguard(spawn(&["-q", "run-plan", s(&p), "--jobs", "2", "--no-test-views"]));
+    let mut plan = scopeguard(spawn(&[
+        "-q",
+        "run-plan",
+        s(&p),
+        "--jobs",
+        "2",
+        "--no-test-views",
+    ]));
     let tiles: Vec<PathBuf> = std::fs::read_dir(p.join("tiles"))
         .unwrap()
         .flatten()
@@ -368,7 +426,11 @@ fn killing_run_plan_kills_its_tiles_and_a_rerun_merges_as_an_uninterrupted_plan(
     rustix_kill(plan.0.id());
     let _ = plan.0.wait();
     std::thread::sleep(Duration::from_secs(2));
-    assert_eq!(processes_with(&needle), Vec::<u32>::new(), "tile processes outlived run-plan");
+    assert_eq!(
+        processes_with(&needle),
+        Vec::<u32>::new(),
+        "tile processes outlived run-plan"
+    );
     // No status says a tile succeeded, and a rerun at once finishes the plan.
     let (code, out) = gs(&["-q", "run-plan", s(&p), "--jobs", "2", "--no-test-views"]);
     assert_eq!(code, 0, "rerun: {out}");
@@ -377,14 +439,21 @@ fn killing_run_plan_kills_its_tiles_and_a_rerun_merges_as_an_uninterrupted_plan(
     assert_same_files_but(&p.join("merged"), &q.join("merged"), rename);
     for t in &tiles {
         let name = t.file_name().unwrap();
-        assert_same_files_but(&t.join("run"), &q.join("tiles").join(name).join("run"), rename);
+        assert_same_files_but(
+            &t.join("run"),
+            &q.join("tiles").join(name).join("run"),
+            rename,
+        );
     }
     let _ = std::fs::remove_dir_all(&d);
 }
 
 /// `kill -9 PID` by the system's own `kill` command.
 fn rustix_kill(pid: u32) {
-    let st = Command::new("kill").args(["-9", &pid.to_string()]).status().unwrap();
+    let st = Command::new("kill")
+        .args(["-9", &pid.to_string()])
+        .status()
+        .unwrap();
     assert!(st.success());
 }
 
@@ -399,11 +468,15 @@ fn a_second_run_plan_on_a_tile_waits_for_it_and_force_reruns_its_stages() {
     let pid = first.id();
     let t0 = p.join("tiles/t000_000");
     assert!(wait_for(Duration::from_secs(30), || {
-        std::fs::read_to_string(t0.join(".lock")).is_ok_and(|t| t.contains(&format!("\"pid\":{pid}")))
+        std::fs::read_to_string(t0.join(".lock"))
+            .is_ok_and(|t| t.contains(&format!("\"pid\":{pid}")))
     }));
     let (code, text) = gs(&["-q", "run-plan", s(&p), "--tile", "0"]);
     assert_eq!(code, 75, "{text}");
-    assert!(text.contains(&format!("pid {pid}")) && text.contains("--tile 0"), "{text}");
+    assert!(
+        text.contains(&format!("pid {pid}")) && text.contains("--tile 0"),
+        "{text}"
+    );
     // The whole plan beside it: it waits for tile 0 instead of running it twice, then merges.
     let (code, text) = gs(&["run-plan", s(&p), "--jobs", "2", "--no-test-views"]);
     assert_eq!(code, 0, "{text}");
@@ -412,7 +485,14 @@ fn a_second_run_plan_on_a_tile_waits_for_it_and_force_reruns_its_stages() {
     let (code, text) = finish(first);
     assert_eq!(code, 0, "{text}");
     // --force reruns every stage of every tile (not only the plan's bookkeeping).
-    let (code, text) = gs(&["run-plan", s(&p), "--jobs", "1", "--force", "--no-test-views"]);
+    let (code, text) = gs(&[
+        "run-plan",
+        s(&p),
+        "--jobs",
+        "1",
+        "--force",
+        "--no-test-views",
+    ]);
     assert_eq!(code, 0, "{text}");
     for t in ["t000_000", "t000_001"] {
         let log = std::fs::read_to_string(p.join("tiles").join(t).join("log.txt")).unwrap();
@@ -449,7 +529,14 @@ fn merge_names_a_tile_whose_outputs_are_gone_and_allow_missing_merges_around_it(
         "{text}"
     );
     assert!(!text.contains("os error"), "{text}");
-    let (code, text) = gs(&["merge", s(&p), "--out", s(&m), "--no-test-views", "--allow-missing"]);
+    let (code, text) = gs(&[
+        "merge",
+        s(&p),
+        "--out",
+        s(&m),
+        "--no-test-views",
+        "--allow-missing",
+    ]);
     assert_eq!(code, 0, "{text}");
     assert!(text.contains("HOLE: tile t000_001 missing"), "{text}");
     let summary: serde_json::Value =
@@ -482,13 +569,65 @@ fn an_error_line_gives_the_os_reason_once() {
     let file = d.join("file");
     std::fs::write(&file, "x").unwrap();
     let cases: Vec<Vec<String>> = vec![
-        vec!["lift".into(), "--ply".into(), s(&sc.join("point_cloud.ply")).into(), "--colmap".into(), s(&sc.join("sparse/0")).into(), "--cache".into(), s(&r.join("render")).into(), "--citymodel".into(), s(&r.join("citymodel")).into(), "--fuse".into(), s(&r.join("fuse")).into(), "--out".into(), s(&d.join("L")).into()],
-        vec!["run".into(), "--scene".into(), s(&nope).into(), "--out".into(), s(&d.join("R2")).into()],
-        vec!["run".into(), "--scene".into(), s(sc).into(), "--out".into(), s(&file.join("R")).into()],
-        vec!["query".into(), "--run".into(), s(&nope).into(), "--class".into(), "Window".into(), "--out".into(), s(&d.join("Q")).into()],
-        vec!["eval".into(), "--pred".into(), s(&file).into(), "--gt".into(), s(&nope).into(), "--out".into(), s(&d.join("E")).into()],
-        vec!["merge".into(), s(&nope).into(), "--out".into(), s(&d.join("M")).into()],
-        vec!["citymodel".into(), s(&nope).into(), "--out".into(), s(&d.join("C")).into()],
+        vec![
+            "lift".into(),
+            "--ply".into(),
+            s(&sc.join("point_cloud.ply")).into(),
+            "--colmap".into(),
+            s(&sc.join("sparse/0")).into(),
+            "--cache".into(),
+            s(&r.join("render")).into(),
+            "--citymodel".into(),
+            s(&r.join("citymodel")).into(),
+            "--fuse".into(),
+            s(&r.join("fuse")).into(),
+            "--out".into(),
+            s(&d.join("L")).into(),
+        ],
+        vec![
+            "run".into(),
+            "--scene".into(),
+            s(&nope).into(),
+            "--out".into(),
+            s(&d.join("R2")).into(),
+        ],
+        vec![
+            "run".into(),
+            "--scene".into(),
+            s(sc).into(),
+            "--out".into(),
+            s(&file.join("R")).into(),
+        ],
+        vec![
+            "query".into(),
+            "--run".into(),
+            s(&nope).into(),
+            "--class".into(),
+            "Window".into(),
+            "--out".into(),
+            s(&d.join("Q")).into(),
+        ],
+        vec![
+            "eval".into(),
+            "--pred".into(),
+            s(&file).into(),
+            "--gt".into(),
+            s(&nope).into(),
+            "--out".into(),
+            s(&d.join("E")).into(),
+        ],
+        vec![
+            "merge".into(),
+            s(&nope).into(),
+            "--out".into(),
+            s(&d.join("M")).into(),
+        ],
+        vec![
+            "citymodel".into(),
+            s(&nope).into(),
+            "--out".into(),
+            s(&d.join("C")).into(),
+        ],
         vec!["check".into(), "--scene".into(), s(&file).into()],
         vec!["view".into(), s(&file).into(), "--port".into(), "0".into()],
     ];
@@ -502,7 +641,10 @@ fn an_error_line_gives_the_os_reason_once() {
             os_lines += usize::from(n == 1);
         }
     }
-    assert!(os_lines >= 3, "the cases reach the operating system's errors: {os_lines}");
+    assert!(
+        os_lines >= 3,
+        "the cases reach the operating system's errors: {os_lines}"
+    );
     let _ = std::fs::remove_dir_all(&d);
 }
 
@@ -537,12 +679,18 @@ fn no_error_message_prints_its_own_source() {
                 if *is_source
                     && (fmt.contains(&format!("{{{name}}}")) || fmt.contains(&format!("{{{name}:")))
                 {
-                    found.push(format!("{}: #[error(\"{fmt}\")] prints its source `{name}`", f.display()));
+                    found.push(format!(
+                        "{}: #[error(\"{fmt}\")] prints its source `{name}`",
+                        f.display()
+                    ));
                 }
             }
         }
     }
-    assert!(checked > 100, "only {checked} error messages found: the scan is broken");
+    assert!(
+        checked > 100,
+        "only {checked} error messages found: the scan is broken"
+    );
     assert!(found.is_empty(), "{}", found.join("\n"));
 }
 
@@ -575,7 +723,11 @@ fn error_items(text: &str) -> Vec<(String, Vec<(String, bool)>)> {
         let open = item.find(['{', '(', ',', ';']).unwrap_or(0);
         let fields = match item.as_bytes().get(open) {
             Some(b'{') | Some(b'(') => {
-                let (o, c) = if item.as_bytes()[open] == b'{' { ('{', '}') } else { ('(', ')') };
+                let (o, c) = if item.as_bytes()[open] == b'{' {
+                    ('{', '}')
+                } else {
+                    ('(', ')')
+                };
                 let mut depth = 0;
                 let mut end = open;
                 for (k, ch) in item[open..].char_indices() {

@@ -901,8 +901,11 @@ fn slow_clients_cannot_hold_the_server() {
     let lifetimes = Arc::new(Mutex::new(Vec::<(f64, String)>::new()));
     let slow: Vec<_> = (0..40)
         .map(|_| {
-            let (stop, reopened, lifetimes) =
-                (Arc::clone(&stop), Arc::clone(&reopened), Arc::clone(&lifetimes));
+            let (stop, reopened, lifetimes) = (
+                Arc::clone(&stop),
+                Arc::clone(&reopened),
+                Arc::clone(&lifetimes),
+            );
             std::thread::spawn(move || {
                 while !stop.load(Ordering::Relaxed) {
                     let Ok(mut s) = TcpStream::connect(("127.0.0.1", port)) else {
@@ -928,8 +931,9 @@ fn slow_clients_cannot_hold_the_server() {
                         match s.read(&mut buf) {
                             Ok(0) => break,
                             Ok(n) => answer.extend_from_slice(&buf[..n]),
-                            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock
-                                || e.kind() == std::io::ErrorKind::TimedOut => {}
+                            Err(e)
+                                if e.kind() == std::io::ErrorKind::WouldBlock
+                                    || e.kind() == std::io::ErrorKind::TimedOut => {}
                             Err(_) => break,
                         }
                     }
@@ -982,8 +986,15 @@ fn slow_clients_cannot_hold_the_server() {
     assert!(peak <= rss0 + 64 * 1024, "RSS {rss0} → {peak} kB");
     if window >= 6 {
         // Every slow connection that lived to the deadline was closed by it, with a 408.
-        assert!(closed.len() >= 40, "{} slow connections closed", closed.len());
-        assert!(longest < 7.0, "a slow head held its connection {longest:.2} s");
+        assert!(
+            closed.len() >= 40,
+            "{} slow connections closed",
+            closed.len()
+        );
+        assert!(
+            longest < 7.0,
+            "a slow head held its connection {longest:.2} s"
+        );
         assert!(
             closed.iter().all(|c| c.1.starts_with("HTTP/1.1 408")),
             "{:?}",
@@ -996,9 +1007,8 @@ fn slow_clients_cannot_hold_the_server() {
         .collect();
     assert_eq!(idle.len(), 512);
     std::thread::sleep(Duration::from_millis(300));
-    let (status, text, _) = srv.raw(
-        format!("GET /api/meta HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n").as_bytes(),
-    );
+    let (status, text, _) =
+        srv.raw(format!("GET /api/meta HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n").as_bytes());
     assert_eq!(status, 503, "{text}");
     assert!(text.contains("Retry-After: 1\r\n"), "{text}");
     drop(idle);

@@ -32,15 +32,9 @@ use crate::semantics::{Entity, chains};
 #[derive(Debug, thiserror::Error)]
 pub enum SqliteError {
     #[error("{path}: SQLite: {err}")]
-    Sql {
-        path: String,
-        err: rusqlite::Error,
-    },
+    Sql { path: String, err: rusqlite::Error },
     #[error("cannot write {path}: {err}")]
-    Io {
-        path: String,
-        err: std::io::Error,
-    },
+    Io { path: String, err: std::io::Error },
 }
 
 /// Everything the table holds besides the semantic table itself.

@@ -30,8 +30,8 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 use crate::fsutil::{self, FsError, mtime_ns};
-pub use crate::layout::{FileId, RunRecord, StageRecord, check_outputs, digest_file};
 use crate::layout::Stage;
+pub use crate::layout::{FileId, RunRecord, StageRecord, check_outputs, digest_file};
 
 fn digest(path: &Path) -> Result<String, StoreError> {
     digest_file(path).map_err(|err| StoreError::Io {
@@ -44,10 +44,7 @@ fn digest(path: &Path) -> Result<String, StoreError> {
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
     #[error("{path}: {err}")]
-    Io {
-        path: PathBuf,
-        err: std::io::Error,
-    },
+    Io { path: PathBuf, err: std::io::Error },
     #[error(transparent)]
     Fs(#[from] FsError),
 }
@@ -228,8 +225,8 @@ impl Store {
         {
             // Same inputs and options: resumed when its outputs are what it wrote.
             let checked = check_outputs(&dir, &r.outputs).and_then(|refreshed| {
-                let summary = fsutil::read_json::<T>(&dir.join("summary.json"))
-                    .map_err(|e| e.to_string())?;
+                let summary =
+                    fsutil::read_json::<T>(&dir.join("summary.json")).map_err(|e| e.to_string())?;
                 Ok((summary, refreshed))
             });
             match checked {
@@ -526,7 +523,10 @@ mod tests {
             .set_modified(m.modified().unwrap())
             .unwrap();
         let m2 = std::fs::metadata(&a).unwrap();
-        assert_eq!((m2.len(), m2.modified().unwrap()), (m.len(), m.modified().unwrap()));
+        assert_eq!(
+            (m2.len(), m2.modified().unwrap()),
+            (m.len(), m.modified().unwrap())
+        );
         go(&mut ra, &mut rb);
         assert_eq!((ra, rb), (2, 2), "a reran, and b after it");
         assert_eq!(std::fs::read_to_string(&a).unwrap(), "hello1");

@@ -76,7 +76,6 @@ pub enum TileError {
     Lock(#[from] crate::lock::LockError),
 }
 
-
 /// The file that describes a plan.
 pub const PLAN: &str = "plan.json";
 

@@ -101,7 +101,6 @@ impl Response {
     }
 }
 
-
 fn reason(status: u16) -> &'static str {
     match status {
         200 => "OK",
@@ -347,11 +346,7 @@ async fn drain(stream: tokio::net::TcpStream) {
 
 /// One connection: hyper reads the head and writes the response; the head must be complete by
 /// [`HEAD_DEADLINE`] (else `408`), the response sent by [`RESPONSE_DEADLINE`] after it.
-async fn connection(
-    stream: tokio::net::TcpStream,
-    handle: Arc<Handler>,
-    handlers: Arc<Semaphore>,
-) {
+async fn connection(stream: tokio::net::TcpStream, handle: Arc<Handler>, handlers: Arc<Semaphore>) {
     // A second handle on the socket, to answer 408 and to drain after hyper let go of it.
     let Ok(std) = stream.into_std() else { return };
     let Ok(keep) = std.try_clone() else { return };
