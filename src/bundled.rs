@@ -39,10 +39,10 @@ const FILES: [(&str, &[u8]); 7] = [
 
 /// Errors of unpacking the bundle.
 #[derive(Debug, thiserror::Error)]
-#[error("cannot unpack the bundled CityGML into {path}: {source}")]
+#[error("cannot unpack the bundled CityGML into {path}: {err}")]
 pub struct BundleError {
     pub path: PathBuf,
-    pub source: std::io::Error,
+    pub err: std::io::Error,
 }
 
 fn cache_root() -> PathBuf {
@@ -85,7 +85,7 @@ pub fn citygml_dir() -> Result<PathBuf, BundleError> {
 fn unpack(dir: &Path) -> Result<(), BundleError> {
     let err = |path: &Path| {
         let path = path.to_path_buf();
-        move |source| BundleError { path, source }
+        move |err| BundleError { path, err }
     };
     for (name, bytes) in FILES {
         let path = dir.join(name);

@@ -141,11 +141,8 @@ impl Contributions {
 /// Errors of reading a cache file.
 #[derive(Debug, thiserror::Error)]
 pub enum CacheError {
-    #[error("cannot read {path}: {source}")]
-    Read {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    #[error("cannot read {path}: {err}")]
+    Read { path: PathBuf, err: std::io::Error },
     #[error("{path}: not a gs4city contributions file: {why}")]
     Format { path: PathBuf, why: String },
     #[error("{path}: built for {found} Gaussians, the scene has {expected}: the cache is stale")]
@@ -333,9 +330,9 @@ impl ViewContrib {
         buf: &mut Vec<u8>,
     ) -> Result<(), CacheError> {
         use std::io::Read;
-        let err = |source| CacheError::Read {
+        let err = |err| CacheError::Read {
             path: path.to_path_buf(),
-            source,
+            err,
         };
         buf.clear();
         std::fs::File::open(path)
@@ -588,9 +585,9 @@ impl ViewPlanes {
     /// count against `expect_gaussians`, and the alpha's range.
     pub fn read(path: &Path, expect_gaussians: Option<usize>) -> Result<ViewPlanes, CacheError> {
         use std::io::{Read, Seek, SeekFrom};
-        let err = |source| CacheError::Read {
+        let err = |err| CacheError::Read {
             path: path.to_path_buf(),
-            source,
+            err,
         };
         let mut f = std::fs::File::open(path).map_err(err)?;
         let len = f.metadata().map_err(err)?.len();

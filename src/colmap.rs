@@ -82,7 +82,7 @@ pub enum ColmapError {
         extra: usize,
         what: &'static str,
     },
-    #[error("cannot write COLMAP model: {0}")]
+    #[error(transparent)]
     Write(#[from] FsError),
 }
 

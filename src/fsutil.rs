@@ -58,12 +58,13 @@ impl Write for Digesting {
     }
 }
 
-/// What [`atomic_write`] wrote to a path: size, modification time (ns since the epoch) and
-/// the xxh3-64 digest of the content (hex).
+/// What [`atomic_write`] wrote to a path: size, modification and inode change times (ns since
+/// the epoch) and the xxh3-64 digest of the content (hex).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Written {
     pub size: u64,
     pub mtime_ns: u64,
+    pub ctime_ns: u64,
     pub digest: String,
 }
 
@@ -85,15 +86,29 @@ pub fn mtime_ns(m: &fs::Metadata) -> u64 {
         .map_or(0, |d| d.as_nanos() as u64)
 }
 
+/// The inode change time of `m` in ns since the epoch: set by the kernel to the current time on
+/// every write, rename, link or attribute change of the file — including a change of its
+/// modification time — and settable by no system call (only by setting the clock back).
+pub fn ctime_ns(m: &fs::Metadata) -> u64 {
+    use std::os::unix::fs::MetadataExt;
+    u64::try_from(m.ctime())
+        .ok()
+        .and_then(|s| s.checked_mul(1_000_000_000))
+        .and_then(|ns| ns.checked_add(u64::try_from(m.ctime_nsec()).ok()?))
+        .unwrap_or(0)
+}
+
 /// Takes what this process wrote to `path` with [`atomic_write`], when the file still has that
-/// size and modification time (so it was not changed since); `None` otherwise.
+/// size, modification time and inode change time (so it was not changed since); `None`
+/// otherwise.
 pub fn written(path: &Path) -> Option<Written> {
     let w = WRITTEN
         .lock()
         .unwrap_or_else(|e| e.into_inner())
         .remove(path)?;
     let m = fs::metadata(path).ok()?;
-    (m.is_file() && m.len() == w.size && mtime_ns(&m) == w.mtime_ns).then_some(w)
+    (m.is_file() && m.len() == w.size && mtime_ns(&m) == w.mtime_ns && ctime_ns(&m) == w.ctime_ns)
+        .then_some(w)
 }
 
 /// Writes `path` through `fill`, into a temporary file that is renamed over `path` only
@@ -138,6 +153,7 @@ where
                 let w = Written {
                     size: d.bytes,
                     mtime_ns: mtime_ns(&m),
+                    ctime_ns: ctime_ns(&m),
                     digest: digest_hex(d.hash.digest()),
                 };
                 WRITTEN

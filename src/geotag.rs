@@ -29,7 +29,7 @@ use crate::crs::{CrsError, Georef};
 pub enum GeotagError {
     #[error("{path}: EXIF: {why}")]
     Exif { path: PathBuf, why: String },
-    #[error("{0}")]
+    #[error(transparent)]
     Crs(#[from] CrsError),
     #[error(transparent)]
     Align(#[from] AlignError),

@@ -19,11 +19,8 @@ pub enum IdMapError {
     Npy(#[from] NpyError),
     #[error("{path}: {why}")]
     Shape { path: PathBuf, why: String },
-    #[error("cannot list {path}: {source}")]
-    ReadDir {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    #[error("cannot list {path}: {err}")]
+    ReadDir { path: PathBuf, err: std::io::Error },
 }
 
 /// Suffix of a class map (prediction or ground truth).
@@ -154,9 +151,9 @@ pub fn read_any_map(path: &Path) -> Result<([usize; 2], Vec<i32>), IdMapError> {
 
 /// The `<stem>` → path map of the `*.class.npy` files of a folder.
 pub fn list_class_maps(dir: &Path) -> Result<BTreeMap<String, PathBuf>, IdMapError> {
-    let rd = |source| IdMapError::ReadDir {
+    let rd = |err| IdMapError::ReadDir {
         path: dir.to_path_buf(),
-        source,
+        err,
     };
     let mut out = BTreeMap::new();
     for entry in std::fs::read_dir(dir).map_err(rd)? {

@@ -1,9 +1,14 @@
 //! The run-folder layout (`docs/design.md`, "Run folder"): the stage folders ([`Stage`]), the
-//! per-Gaussian label modes ([`Mode`]) and the one `summary.json` reader and writer of every
-//! stage ([`Summary`]). A format: it imports no stage. Which stage runs after which is known to
+//! per-Gaussian label modes ([`Mode`]), the one `summary.json` reader and writer of every
+//! stage ([`Summary`]), and the run's record `run.json` ([`RunRecord`]: per stage the size and
+//! xxh3-64 digest of every file it wrote, checked by [`check_outputs`]; written by the run
+//! store, `run::store`). A format: it imports no stage. Which stage runs after which is known to
 //! the orchestrator (`run`) alone.
+use std::collections::BTreeMap;
+use std::io::Read;
 use std::path::{Path, PathBuf};
 
+use rayon::prelude::*;
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
@@ -11,6 +16,139 @@ use crate::fsutil::{self, FsError};
 
 /// The file name of every stage's summary, written last as the completion marker.
 pub const SUMMARY: &str = "summary.json";
+
+/// Identity of one file: size, modification and inode change times and content digest.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FileId {
+    /// Absolute for scene inputs; relative to the stage folder for outputs.
+    pub path: String,
+    pub size: u64,
+    pub mtime_ns: u64,
+    /// The inode change time (`fsutil::ctime_ns`); 0 where unknown (a record written before it
+    /// was kept: the content is then always read back).
+    #[serde(default)]
+    pub ctime_ns: u64,
+    /// xxh3-64 of the content, hex.
+    pub digest: String,
+}
+
+impl FileId {
+    /// Whether `m` has this identity's size and both its times: then the file has not been
+    /// written since the digest was taken (the kernel moves the inode change time on every
+    /// write, and on every change of the modification time).
+    pub fn unchanged(&self, m: &std::fs::Metadata) -> bool {
+        self.ctime_ns != 0
+            && m.len() == self.size
+            && fsutil::mtime_ns(m) == self.mtime_ns
+            && fsutil::ctime_ns(m) == self.ctime_ns
+    }
+}
+
+/// What `run.json` keeps of one completed stage.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct StageRecord {
+    pub fingerprint: String,
+    /// Unique per execution: downstream fingerprints include it, so a stage that reruns makes
+    /// every stage that reads it rerun too.
+    pub run_id: String,
+    pub options: serde_json::Value,
+    pub inputs: Vec<FileId>,
+    pub upstream: Vec<String>,
+    pub outputs: Vec<FileId>,
+    pub seconds: f64,
+}
+
+/// `run.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunRecord {
+    pub program: String,
+    pub version: String,
+    pub scene: PathBuf,
+    /// Every option of the run.
+    pub options: serde_json::Value,
+    pub stages: BTreeMap<String, StageRecord>,
+}
+
+/// xxh3-64 of a file's content, hex.
+pub fn digest_file(path: &Path) -> std::io::Result<String> {
+    let mut f = std::fs::File::open(path)?;
+    let mut h = xxhash_rust::xxh3::Xxh3::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = f.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(fsutil::digest_hex(h.digest()))
+}
+
+/// Whether the recorded outputs of the stage folder `dir` are what the stage wrote: every file
+/// present, of the recorded size, and of the recorded content — read back and digested (in
+/// parallel) unless its modification and inode change times are both still the recorded ones
+/// ([`FileId::unchanged`]: then it has not been written since its digest was taken). `Ok`
+/// gives the identities refreshed by a digest that matched (index into `outputs`, new times),
+/// for the record; `Err` is one line naming the first file that is not what was written (in the
+/// record's order) and how many others are not either.
+pub fn check_outputs(dir: &Path, outputs: &[FileId]) -> Result<Vec<(usize, FileId)>, String> {
+    let shown = |rel: &str| {
+        let d = dir
+            .file_name()
+            .map_or(String::new(), |n| format!("{}/", n.to_string_lossy()));
+        format!("{d}{rel}")
+    };
+    if !dir.is_dir() {
+        return Err(format!("{} is missing", dir.display()));
+    }
+    let checked: Vec<Result<Option<(usize, FileId)>, String>> = outputs
+        .par_iter()
+        .enumerate()
+        .map(|(i, o)| {
+            let p = dir.join(&o.path);
+            let why = match std::fs::metadata(&p) {
+                Ok(m) if !m.is_file() => "is not a file".to_string(),
+                Ok(m) if m.len() != o.size => {
+                    format!("has {} bytes, {} when it was written", m.len(), o.size)
+                }
+                Ok(m) if o.unchanged(&m) => return Ok(None),
+                Ok(m) => match digest_file(&p) {
+                    Ok(d) if d == o.digest => {
+                        return Ok(Some((
+                            i,
+                            FileId {
+                                mtime_ns: fsutil::mtime_ns(&m),
+                                ctime_ns: fsutil::ctime_ns(&m),
+                                ..o.clone()
+                            },
+                        )));
+                    }
+                    Ok(d) => format!(
+                        "has changed since it was written (xxh3 {d}, recorded {})",
+                        o.digest
+                    ),
+                    Err(e) => format!("cannot be read: {e}"),
+                },
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => "is missing".to_string(),
+                Err(e) => format!("cannot be read: {e}"),
+            };
+            Err(format!("{} {why}", shown(&o.path)))
+        })
+        .collect();
+    let problems: Vec<&String> = checked.iter().filter_map(|c| c.as_ref().err()).collect();
+    match problems.split_first() {
+        None => Ok(checked
+            .into_iter()
+            .filter_map(|c| c.ok().flatten())
+            .collect()),
+        Some((first, [])) => Err((*first).clone()),
+        Some((first, rest)) => Err(format!(
+            "{first} (and {} more of its {} files)",
+            rest.len(),
+            outputs.len()
+        )),
+    }
+}
 
 /// A stage folder of a run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]

@@ -12,6 +12,7 @@ pub mod bundled;
 pub mod cache;
 pub mod camera;
 pub mod check;
+pub mod children;
 pub mod citygml;
 pub mod cityjson;
 pub mod citymodel;
@@ -34,6 +35,7 @@ pub mod inspect;
 pub mod labels;
 pub mod layout;
 pub mod lift;
+pub mod lock;
 
 pub mod maskfile;
 pub mod masks;

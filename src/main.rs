@@ -6,7 +6,12 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
             eprintln!("error: {err:#}");
-            ExitCode::from(1)
+            // A folder locked by another process: a temporary failure (run-plan retries it).
+            let busy = err.chain().any(|e| {
+                e.downcast_ref::<gs4city::lock::LockError>()
+                    .is_some_and(|l| l.is_busy())
+            });
+            ExitCode::from(if busy { gs4city::lock::EXIT_BUSY } else { 1 })
         }
     }
 }

@@ -62,11 +62,19 @@ pub enum SpzError {
     NotFinite { index: usize },
     #[error("SPZ: {0}")]
     Shape(String),
+    /// The gzip stream's error (its message only: not also exposed as the error's source, so
+    /// an error chain prints the operating system's reason once).
     #[error("SPZ: gzip: {0}")]
-    Io(#[from] std::io::Error),
+    Io(std::io::Error),
     /// A file that cannot be read as SPZ; `why` names the part at fault.
     #[error("SPZ: {why}")]
     Read { why: String },
+}
+
+impl From<std::io::Error> for SpzError {
+    fn from(e: std::io::Error) -> SpzError {
+        SpzError::Io(e)
+    }
 }
 
 /// Gaussians to pack, in the frame they are to be stored in.

@@ -20,6 +20,7 @@ mod colmap;
 mod eval;
 mod export_3dtiles;
 mod export_ply;
+mod faults;
 mod features;
 mod fuse;
 mod gt_reference;

@@ -994,3 +994,156 @@ fn vendored_renderer_is_the_npm_package() {
         );
     }
 }
+
+/// The server's resident memory in kB (`VmRSS` of /proc/PID/status).
+fn rss_kb(pid: u32) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap()
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next()?.parse().ok())
+        .unwrap()
+}
+
+/// Slow clients cannot hold the server: 40 connections that send a partial request head,
+/// trickle one more header byte every 200 ms and reconnect as soon as they are closed, for
+/// 20 s (`GS4CITY_SLOW_CLIENT_S` seconds where set; at least 6 for the deadline checks). Meanwhile
+/// a normal client's requests all succeed, 99 % of them within 1 s; each slow connection is closed
+/// by the head deadline (5 s from its start, however it trickles: `408`); the server's resident
+/// memory stays within 64 MB of what it was before; beyond the connection limit a client gets
+/// `503` with `Retry-After`. A load generator of its own (raw sockets), no mock of the server.
+#[test]
+fn slow_clients_cannot_hold_the_server() {
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    use std::sync::{Arc, Mutex};
+    use std::time::Instant;
+    let window = std::env::var("GS4CITY_SLOW_CLIENT_S")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20u64);
+    let srv = Server::start(run_dir());
+    let (port, pid) = (srv.port, srv.child.id());
+    // Warm: the first requests map the page and the splats.
+    assert_eq!(srv.get("/api/meta").0, 200);
+    assert_eq!(srv.get("/api/splats.bin").0, 200);
+    let rss0 = rss_kb(pid);
+    let stop = Arc::new(AtomicBool::new(false));
+    let reopened = Arc::new(AtomicUsize::new(0));
+    // Per closed slow connection: how long it had lived, and what it was answered.
+    let lifetimes = Arc::new(Mutex::new(Vec::<(f64, String)>::new()));
+    let slow: Vec<_> = (0..40)
+        .map(|_| {
+            let (stop, reopened, lifetimes) = (
+                Arc::clone(&stop),
+                Arc::clone(&reopened),
+                Arc::clone(&lifetimes),
+            );
+            std::thread::spawn(move || {
+                while !stop.load(Ordering::Relaxed) {
+                    let Ok(mut s) = TcpStream::connect(("127.0.0.1", port)) else {
+                        continue;
+                    };
+                    reopened.fetch_add(1, Ordering::Relaxed);
+                    let t0 = Instant::now();
+                    let _ = s.set_read_timeout(Some(Duration::from_millis(200)));
+                    let _ = s.write_all(
+                        format!("GET /api/meta HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nX-Slow: ")
+                            .as_bytes(),
+                    );
+                    let mut answer = Vec::new();
+                    loop {
+                        if stop.load(Ordering::Relaxed) {
+                            return;
+                        }
+                        // One more byte of the header value, then see whether the server closed.
+                        if s.write_all(b"a").is_err() {
+                            break;
+                        }
+                        let mut buf = [0u8; 512];
+                        match s.read(&mut buf) {
+                            Ok(0) => break,
+                            Ok(n) => answer.extend_from_slice(&buf[..n]),
+                            Err(e)
+                                if e.kind() == std::io::ErrorKind::WouldBlock
+                                    || e.kind() == std::io::ErrorKind::TimedOut => {}
+                            Err(_) => break,
+                        }
+                    }
+                    let first = String::from_utf8_lossy(&answer)
+                        .lines()
+                        .next()
+                        .unwrap_or("")
+                        .to_string();
+                    lifetimes
+                        .lock()
+                        .unwrap()
+                        .push((t0.elapsed().as_secs_f64(), first));
+                }
+            })
+        })
+        .collect();
+    // The normal client, one request after the other, for the window.
+    let t0 = Instant::now();
+    let mut latencies = Vec::new();
+    let mut peak = rss0;
+    while t0.elapsed() < Duration::from_secs(window) {
+        let t = Instant::now();
+        let (status, body) = srv.get("/api/meta");
+        latencies.push(t.elapsed().as_secs_f64());
+        assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
+        peak = peak.max(rss_kb(pid));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    stop.store(true, Ordering::Relaxed);
+    for t in slow {
+        t.join().unwrap();
+    }
+    latencies.sort_by(f64::total_cmp);
+    let p = |q: f64| latencies[((latencies.len() - 1) as f64 * q).round() as usize];
+    let closed = lifetimes.lock().unwrap().clone();
+    let longest = closed.iter().map(|c| c.0).fold(0.0, f64::max);
+    eprintln!(
+        "slow clients: {window} s, {} connections opened, {} closed by the server (longest {longest:.2} s); \
+         normal client: {} requests, p50 {:.3} s, p99 {:.3} s, max {:.3} s; server RSS {} → {} kB",
+        reopened.load(Ordering::Relaxed),
+        closed.len(),
+        latencies.len(),
+        p(0.5),
+        p(0.99),
+        p(1.0),
+        rss0,
+        peak
+    );
+    assert!(p(0.99) <= 1.0, "p99 {:.3} s", p(0.99));
+    assert!(peak <= rss0 + 64 * 1024, "RSS {rss0} → {peak} kB");
+    if window >= 6 {
+        // Every slow connection that lived to the deadline was closed by it, with a 408.
+        assert!(
+            closed.len() >= 40,
+            "{} slow connections closed",
+            closed.len()
+        );
+        assert!(
+            longest < 7.0,
+            "a slow head held its connection {longest:.2} s"
+        );
+        assert!(
+            closed.iter().all(|c| c.1.starts_with("HTTP/1.1 408")),
+            "{:?}",
+            closed.iter().find(|c| !c.1.starts_with("HTTP/1.1 408"))
+        );
+    }
+    // Beyond the connection limit: 503 with Retry-After, and the server recovers.
+    let idle: Vec<TcpStream> = (0..512)
+        .filter_map(|_| TcpStream::connect(("127.0.0.1", port)).ok())
+        .collect();
+    assert_eq!(idle.len(), 512);
+    std::thread::sleep(Duration::from_millis(300));
+    let (status, text, _) =
+        srv.raw(format!("GET /api/meta HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n").as_bytes());
+    assert_eq!(status, 503, "{text}");
+    assert!(text.contains("Retry-After: 1\r\n"), "{text}");
+    drop(idle);
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(srv.get("/api/meta").0, 200);
+}

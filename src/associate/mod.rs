@@ -62,11 +62,11 @@ pub enum AssociateError {
     Options(String),
     #[error("{path}: {why}")]
     Invalid { path: PathBuf, why: String },
-    #[error("{path}: mask {index}: bad RLE: {source}")]
+    #[error("{path}: mask {index}: bad RLE: {err}")]
     Rle {
         path: PathBuf,
         index: usize,
-        source: crate::sam::RleError,
+        err: crate::sam::RleError,
     },
     #[error(transparent)]
     MaskFile(#[from] MaskFileError),

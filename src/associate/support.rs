@@ -453,9 +453,9 @@ fn for_each_pixel_checked(
     index: usize,
     f: impl FnMut(usize),
 ) -> Result<(), AssociateError> {
-    rle.for_each_pixel(f).map_err(|source| AssociateError::Rle {
+    rle.for_each_pixel(f).map_err(|err| AssociateError::Rle {
         path: path.to_path_buf(),
         index,
-        source,
+        err,
     })
 }

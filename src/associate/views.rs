@@ -54,10 +54,10 @@ pub(super) fn mask_view(masks_dir: &Path, view: &View) -> Result<MaskView, Assoc
         }
     }
     let rles: Vec<&crate::sam::Rle> = kept.iter().map(|k| &k.sam.segmentation).collect();
-    let vm = candidates::composite(&rles, w, h).map_err(|(index, source)| AssociateError::Rle {
+    let vm = candidates::composite(&rles, w, h).map_err(|(index, err)| AssociateError::Rle {
         path: path.clone(),
         index,
-        source,
+        err,
     })?;
     Ok(MaskView {
         stem,

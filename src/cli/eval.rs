@@ -77,6 +77,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
 
 fn run_by_query(args: &EvalArgs, run: &std::path::Path) -> anyhow::Result<()> {
     let t = std::time::Instant::now();
+    let _lock = super::query::lock_run(run)?;
     let sr = super::query::open_run(run, args.scene.as_deref(), args.mode)?;
     let gt =
         match &args.gt {

@@ -112,6 +112,7 @@ pub fn run(cmd: &ExportCommand) -> anyhow::Result<()> {
     if a.max_splats == 0 {
         bail!("--max-splats must be at least 1, got 0");
     }
+    let _lock = super::query::lock_run(&a.run)?;
     let sr = super::query::open_run(&a.run, a.scene.as_deref(), a.mode)?;
     let crs = run_crs(a, &sr.scene)?;
     let georef = crate::crs::Georef::new(&crs)?;

@@ -40,6 +40,9 @@ pub struct Cli {
         help_heading = "Global options"
     )]
     quiet: bool,
+    /// Die with process PID (set by the `gs4city` process that starts this one).
+    #[arg(long, global = true, hide = true, value_name = "PID")]
+    owned_by: Option<u32>,
     #[command(subcommand)]
     command: Command,
 }
@@ -140,6 +143,9 @@ enum Command {
 /// Parses the process arguments and runs the chosen subcommand.
 pub fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    if let Some(parent) = cli.owned_by {
+        crate::children::die_with_parent(parent).map_err(anyhow::Error::msg)?;
+    }
     crate::progress::init(if cli.quiet {
         -1
     } else {

@@ -115,6 +115,13 @@ pub(crate) fn scene_of(run: &Path, scene: Option<&Path>) -> anyhow::Result<PathB
     Ok(rec.scene)
 }
 
+/// The shared lock of a run folder that a command only reads (query, view, export, eval
+/// --by-query): held while the guard lives, it keeps a `gs4city run` (or merge) from writing
+/// the folder meanwhile, and is refused while one does (`crate::lock`).
+pub(crate) fn lock_run(run: &Path) -> anyhow::Result<Option<crate::lock::FolderLock>> {
+    Ok(crate::lock::FolderLock::shared(run)?)
+}
+
 /// Loads a run for queries.
 pub(crate) fn open_run(
     run: &Path,
@@ -269,6 +276,7 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
         text,
         sqlite: !a.no_sqlite,
     };
+    let _lock = lock_run(&a.run)?;
     let sr = open_run(&a.run, a.scene.as_deref(), a.mode)?;
     // Each flag's part on its own first: an error names the flag and its own text.
     for (flag, text, expr) in &parts {

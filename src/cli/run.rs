@@ -305,7 +305,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             super::features::report(&f, t.elapsed().as_secs_f64());
         }
     }
-    let s = run::run(&args.scene, &args.out, &opts)?;
+    let s = run::run(&args.scene, &args.out, &opts).map_err(|e| match e {
+        // Kept as itself, so that the exit status says "busy" (`lock::EXIT_BUSY`).
+        run::RunError::Lock(l) => anyhow::Error::from(l),
+        e => e.into(),
+    })?;
     print_run(&s);
     Ok(())
 }

@@ -195,7 +195,7 @@ fn run_plan(a: &RunPlanArgs) -> anyhow::Result<()> {
         return run_one(a, i);
     }
     let exe = std::env::current_exe().context("finding the gs4city binary")?;
-    let r = exec::run_tiles(&a.plan, &exe, a.jobs, a.keep_cache, a.force)?;
+    let r = exec::run_tiles(&a.plan, &exe, a.jobs, a.keep_cache, a.force).map_err(busy_aware)?;
     println!(
         "{} tiles run, {} reused, {} failed, in {:.1} s with {} jobs",
         r.ran.len(),
@@ -229,7 +229,8 @@ fn run_plan(a: &RunPlanArgs) -> anyhow::Result<()> {
             allow_missing: false,
             test_views: !a.no_test_views,
         },
-    )?;
+    )
+    .map_err(busy_aware)?;
     print_merge(&s, &out);
     Ok(())
 }
@@ -254,6 +255,9 @@ fn run_one(a: &RunPlanArgs, i: usize) -> anyhow::Result<()> {
             dir.display()
         );
     }
+    // One job per tile at a time (a second one, or a second run-plan, is refused with the
+    // holder's name and `lock::EXIT_BUSY`); held until the status is written.
+    let _lock = crate::lock::FolderLock::exclusive(&dir)?;
     exec::start(&dir)?;
     let t0 = Instant::now();
     if !t.runnable {
@@ -290,6 +294,15 @@ fn run_one(a: &RunPlanArgs, i: usize) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A tile error as `anyhow` carries it: a lock held by another process kept as itself, so that
+/// `gs4city` exits with `lock::EXIT_BUSY`.
+fn busy_aware(e: tile::TileError) -> anyhow::Error {
+    match e {
+        tile::TileError::Lock(l) => l.into(),
+        e => e.into(),
+    }
+}
+
 fn merge_cmd(a: &MergeArgs) -> anyhow::Result<()> {
     let s = merge::merge(
         &a.plan,
@@ -298,7 +311,8 @@ fn merge_cmd(a: &MergeArgs) -> anyhow::Result<()> {
             allow_missing: a.allow_missing,
             test_views: !a.no_test_views,
         },
-    )?;
+    )
+    .map_err(busy_aware)?;
     print_merge(&s, &a.out);
     Ok(())
 }

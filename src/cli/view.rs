@@ -36,6 +36,8 @@ pub fn run(a: &ViewArgs) -> anyhow::Result<()> {
     if !a.run.is_dir() {
         anyhow::bail!("{}: not a run folder (not a directory)", a.run.display());
     }
+    // Held while the server runs: a rerun into R waits until the viewer is stopped.
+    let _lock = super::query::lock_run(&a.run)?;
     let scene = super::query::scene_of(&a.run, a.scene.as_deref())?;
     let viewer = crate::view::Viewer::open(&a.run, &scene, a.mode, a.max_splats)
         .with_context(|| format!("opening run {} for viewing", a.run.display()))?;
@@ -58,6 +60,6 @@ pub fn run(a: &ViewArgs) -> anyhow::Result<()> {
     {
         eprintln!("warning: --open: cannot start xdg-open ({e}); open {url} by hand");
     }
-    crate::view::serve(viewer, listener);
+    crate::view::serve(viewer, listener)?;
     Ok(())
 }

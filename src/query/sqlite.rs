@@ -31,16 +31,10 @@ use crate::semantics::{Entity, chains};
 /// Errors of writing the table.
 #[derive(Debug, thiserror::Error)]
 pub enum SqliteError {
-    #[error("{path}: SQLite: {source}")]
-    Sql {
-        path: String,
-        source: rusqlite::Error,
-    },
-    #[error("cannot write {path}: {source}")]
-    Io {
-        path: String,
-        source: std::io::Error,
-    },
+    #[error("{path}: SQLite: {err}")]
+    Sql { path: String, err: rusqlite::Error },
+    #[error("cannot write {path}: {err}")]
+    Io { path: String, err: std::io::Error },
 }
 
 /// Everything the table holds besides the semantic table itself.
@@ -73,9 +67,9 @@ fn level_name(l: crate::citygml::Level) -> &'static str {
 /// Writes the table to `path` (atomically).
 pub fn write(path: &Path, t: &TableInputs<'_>) -> Result<(), SqliteError> {
     let tmp = path.with_extension("sqlite.tmp");
-    let err = |source| SqliteError::Sql {
+    let err = |err| SqliteError::Sql {
         path: path.display().to_string(),
-        source,
+        err,
     };
     let _ = std::fs::remove_file(&tmp);
     let _ = std::fs::remove_file(path);
@@ -83,9 +77,9 @@ pub fn write(path: &Path, t: &TableInputs<'_>) -> Result<(), SqliteError> {
         let mut db = Connection::open(&tmp).map_err(err)?;
         fill(&mut db, t).map_err(err)?;
         db.close().map_err(|(_, e)| err(e))?;
-        std::fs::rename(&tmp, path).map_err(|source| SqliteError::Io {
+        std::fs::rename(&tmp, path).map_err(|err| SqliteError::Io {
             path: path.display().to_string(),
-            source,
+            err,
         })
     })();
     if result.is_err() {

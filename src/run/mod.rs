@@ -73,6 +73,8 @@ pub enum RunError {
     #[error(transparent)]
     Store(#[from] StoreError),
     #[error(transparent)]
+    Lock(#[from] crate::lock::LockError),
+    #[error(transparent)]
     CityModel(#[from] citymodel::CityModelError),
     #[error(transparent)]
     Semantics(#[from] semantics::SemanticsError),
@@ -278,11 +280,15 @@ struct Running {
     /// The scene check's warnings (CityGML warnings stay in `R/citymodel/summary.json`).
     check_warnings: Vec<String>,
     sparse_files: Vec<PathBuf>,
+    /// The run folder's exclusive lock, held for the whole run.
+    _lock: crate::lock::FolderLock,
 }
 
 /// Validates everything before anything is written, then opens the run store.
 fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunError> {
     store::check_out_dir(scene_dir, out, &Stage::ALL).map_err(RunError::Refused)?;
+    // Before anything in the folder is touched: one run at a time, and none beside a reader.
+    let lock = crate::lock::FolderLock::exclusive(out)?;
     // The run's own completion markers are written last; a run that fails part-way (or at
     // the scene check) must not leave the previous run's summary and report looking like
     // this one's.
@@ -379,6 +385,7 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         test_every,
         check_warnings,
         sparse_files,
+        _lock: lock,
     })
 }
 

@@ -9,15 +9,19 @@
 //!   the old complete folder with its old record, or no folder: never half old, half new.
 //!   Leftover `.partial`/`.old` folders are removed when the store is opened.
 //! * A stage is resumed only when its record's fingerprint equals the new one **and** every
-//!   recorded output still exists with the recorded size and content (the digest is recomputed
-//!   when the modification time differs). Otherwise it reruns, with a new run id; downstream
-//!   fingerprints include the run ids of their upstream stages, so everything that depends on a
-//!   rerun stage reruns too.
+//!   recorded output still exists with the recorded size and content ([`check_outputs`]): a
+//!   file is read back and its digest recomputed unless both its modification time and its
+//!   inode change time are the recorded ones. The kernel moves the inode change time on every
+//!   write and on every change of the modification time, and no system call sets it back, so a
+//!   file changed in place with its size and modification time restored is read back and found.
+//!   An output that is not what the stage wrote is one warning naming it, and the stage reruns,
+//!   with a new run id; downstream fingerprints include the run ids of their upstream stages,
+//!   so everything that depends on a rerun stage reruns too.
+//! * The caller holds the run folder's exclusive lock (`crate::lock`) while the store is open:
+//!   two processes never write one run folder.
 //! * Scene inputs are identified by path, size and an xxh3-64 content digest (recomputed only
-//!   when size or modification time differ from the last record), so touching a file does not
-//!   force work but changing it does.
-use std::collections::BTreeMap;
-use std::io::Read;
+//!   when size, modification time or inode change time differ from the last record), so
+//!   touching a file does not force work but changing it does.
 use std::path::{Path, PathBuf};
 use std::time::{Instant, UNIX_EPOCH};
 
@@ -27,60 +31,29 @@ use serde::{Deserialize, Serialize};
 
 use crate::fsutil::{self, FsError, mtime_ns};
 use crate::layout::Stage;
+pub use crate::layout::{FileId, RunRecord, StageRecord, check_outputs, digest_file};
+
+fn digest(path: &Path) -> Result<String, StoreError> {
+    digest_file(path).map_err(|err| StoreError::Io {
+        path: path.to_path_buf(),
+        err,
+    })
+}
 
 /// Errors of the run store.
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
-    #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    #[error("{path}: {err}")]
+    Io { path: PathBuf, err: std::io::Error },
     #[error(transparent)]
     Fs(#[from] FsError),
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
-    move |source| StoreError::Io {
+    move |err| StoreError::Io {
         path: path.to_path_buf(),
-        source,
+        err,
     }
-}
-
-/// Identity of one file: size, modification time and content digest.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct FileId {
-    /// Absolute for scene inputs; relative to the stage folder for outputs.
-    pub path: String,
-    pub size: u64,
-    pub mtime_ns: u64,
-    /// xxh3-64 of the content, hex.
-    pub digest: String,
-}
-
-/// What `run.json` keeps of one completed stage.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct StageRecord {
-    pub fingerprint: String,
-    /// Unique per execution: downstream fingerprints include it, so a stage that reruns makes
-    /// every stage that reads it rerun too.
-    pub run_id: String,
-    pub options: serde_json::Value,
-    pub inputs: Vec<FileId>,
-    pub upstream: Vec<String>,
-    pub outputs: Vec<FileId>,
-    pub seconds: f64,
-}
-
-/// `run.json`.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct RunRecord {
-    pub program: String,
-    pub version: String,
-    pub scene: PathBuf,
-    /// Every option of the run.
-    pub options: serde_json::Value,
-    pub stages: BTreeMap<String, StageRecord>,
 }
 
 /// What happened to one stage in this invocation.
@@ -96,34 +69,19 @@ pub struct StageReport {
     pub out: PathBuf,
 }
 
-/// xxh3-64 of a file's content, hex.
-pub fn digest_file(path: &Path) -> Result<String, StoreError> {
-    let mut f = std::fs::File::open(path).map_err(io(path))?;
-    let mut h = xxhash_rust::xxh3::Xxh3::new();
-    let mut buf = vec![0u8; 1 << 20];
-    loop {
-        let n = f.read(&mut buf).map_err(io(path))?;
-        if n == 0 {
-            break;
-        }
-        h.update(&buf[..n]);
-    }
-    Ok(fsutil::digest_hex(h.digest()))
-}
-
 /// The identity of `path` (`shown` is the path recorded); the digest of `previous` is reused
-/// when size and modification time are unchanged.
+/// when size, modification time and inode change time are unchanged ([`FileId::unchanged`]).
 fn file_id(path: &Path, shown: String, previous: Option<&FileId>) -> Result<FileId, StoreError> {
     let m = std::fs::metadata(path).map_err(io(path))?;
-    let (size, mtime_ns) = (m.len(), mtime_ns(&m));
     let digest = match previous {
-        Some(p) if p.size == size && p.mtime_ns == mtime_ns => p.digest.clone(),
-        _ => digest_file(path)?,
+        Some(p) if p.unchanged(&m) => p.digest.clone(),
+        _ => digest(path)?,
     };
     Ok(FileId {
         path: shown,
-        size,
-        mtime_ns,
+        size: m.len(),
+        mtime_ns: mtime_ns(&m),
+        ctime_ns: fsutil::ctime_ns(&m),
         digest,
     })
 }
@@ -147,19 +105,6 @@ fn list_files(dir: &Path) -> Result<Vec<PathBuf>, StoreError> {
     }
     out.sort();
     Ok(out)
-}
-
-/// Whether every recorded output of a stage folder is present and unchanged.
-fn outputs_intact(dir: &Path, outputs: &[FileId]) -> bool {
-    outputs.iter().all(|o| {
-        let p = dir.join(&o.path);
-        match std::fs::metadata(&p) {
-            Ok(m) if m.is_file() && m.len() == o.size => {
-                mtime_ns(&m) == o.mtime_ns || digest_file(&p).is_ok_and(|d| d == o.digest)
-            }
-            _ => false,
-        }
-    })
 }
 
 /// The run folder and its record.
@@ -277,21 +222,41 @@ impl Store {
         if !self.force
             && let Some(r) = &old
             && r.fingerprint == fp
-            && outputs_intact(&dir, &r.outputs)
-            && let Ok(summary) = fsutil::read_json::<T>(&dir.join("summary.json"))
         {
-            log::info!(
-                "{stage}: complete and unchanged, resumed ({})",
-                dir.display()
-            );
-            self.reports.push(StageReport {
-                stage,
-                resumed: true,
-                seconds: t0.elapsed().as_secs_f64(),
-                compute_seconds: r.seconds,
-                out: dir,
+            // Same inputs and options: resumed when its outputs are what it wrote.
+            let checked = check_outputs(&dir, &r.outputs).and_then(|refreshed| {
+                let summary =
+                    fsutil::read_json::<T>(&dir.join("summary.json")).map_err(|e| e.to_string())?;
+                Ok((summary, refreshed))
             });
-            return Ok(summary);
+            match checked {
+                Ok((summary, refreshed)) => {
+                    // Files read back whose content matched (copied, linked, their mode
+                    // changed): their new times go into the record, so that the next resume
+                    // need not read them again.
+                    if !refreshed.is_empty()
+                        && let Some(rec) = self.record.stages.get_mut(stage.dir())
+                    {
+                        for (i, id) in refreshed {
+                            rec.outputs[i] = id;
+                        }
+                        self.save().map_err(E::from)?;
+                    }
+                    log::info!(
+                        "{stage}: complete and unchanged, resumed ({})",
+                        dir.display()
+                    );
+                    self.reports.push(StageReport {
+                        stage,
+                        resumed: true,
+                        seconds: t0.elapsed().as_secs_f64(),
+                        compute_seconds: r.seconds,
+                        out: dir,
+                    });
+                    return Ok(summary);
+                }
+                Err(why) => log::warn!("{stage}: {why}; the stage runs again"),
+            }
         }
         // Run into a fresh partial folder.
         let partial = self.root.join(format!(".{stage}.partial"));
@@ -317,6 +282,7 @@ impl Store {
                         path: shown,
                         size: w.size,
                         mtime_ns: w.mtime_ns,
+                        ctime_ns: w.ctime_ns,
                         digest: w.digest,
                     }),
                     None => file_id(&path, shown, None),
@@ -528,6 +494,53 @@ mod tests {
         std::fs::write(&input, "HELLO").unwrap();
         go(2, &mut ra, &mut rb);
         assert_eq!((ra, rb), (4, 5), "input content changed");
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn a_change_with_size_and_mtime_restored_is_found_and_a_chmod_is_not_a_change() {
+        let d = tmp("content");
+        let input = d.join("in.txt");
+        std::fs::write(&input, "hello").unwrap();
+        let root = d.join("run");
+        let (mut ra, mut rb) = (0, 0);
+        let go = |ra: &mut u32, rb: &mut u32| {
+            let mut s = Store::open(&root, &d, serde_json::json!({}), false).unwrap();
+            stage_a(&mut s, &input, 1, ra);
+            stage_b(&mut s, rb);
+        };
+        go(&mut ra, &mut rb);
+        // One byte of a's output changed, its size and modification time put back (a moment
+        // later: the kernel's clock for file times advances in steps of a few ms).
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        let a = root.join("citymodel/a.txt");
+        let m = std::fs::metadata(&a).unwrap();
+        std::fs::write(&a, "jello1").unwrap();
+        std::fs::File::options()
+            .write(true)
+            .open(&a)
+            .unwrap()
+            .set_modified(m.modified().unwrap())
+            .unwrap();
+        let m2 = std::fs::metadata(&a).unwrap();
+        assert_eq!(
+            (m2.len(), m2.modified().unwrap()),
+            (m.len(), m.modified().unwrap())
+        );
+        go(&mut ra, &mut rb);
+        assert_eq!((ra, rb), (2, 2), "a reran, and b after it");
+        assert_eq!(std::fs::read_to_string(&a).unwrap(), "hello1");
+        // The mode set again (the inode change time moves, the content does not): resumed, and
+        // the record takes the new times, so the next resume reads nothing back.
+        use std::os::unix::fs::PermissionsExt;
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        std::fs::set_permissions(&a, std::fs::Permissions::from_mode(0o644)).unwrap();
+        let ctime = crate::fsutil::ctime_ns(&std::fs::metadata(&a).unwrap());
+        go(&mut ra, &mut rb);
+        assert_eq!((ra, rb), (2, 2), "nothing reran");
+        let rec: RunRecord = crate::fsutil::read_json(&root.join("run.json")).unwrap();
+        let id = &rec.stages["citymodel"].outputs[0];
+        assert_eq!((id.path.as_str(), id.ctime_ns), ("a.txt", ctime));
         let _ = std::fs::remove_dir_all(&d);
     }
 

@@ -66,11 +66,11 @@ pub enum SynthError {
     Ply(#[from] crate::splat::PlyError),
     #[error(transparent)]
     Colmap(#[from] crate::colmap::ColmapError),
-    #[error("copy {from} → {to}: {source}")]
+    #[error("copy {from} → {to}: {err}")]
     Copy {
         from: PathBuf,
         to: PathBuf,
-        source: std::io::Error,
+        err: std::io::Error,
     },
 }
 
@@ -426,10 +426,10 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| format!("{i}.gml"));
         let dst = out.join("citymodel").join(format!("{i:02}_{name}"));
-        std::fs::copy(f, &dst).map_err(|source| SynthError::Copy {
+        std::fs::copy(f, &dst).map_err(|err| SynthError::Copy {
             from: f.clone(),
             to: dst.clone(),
-            source,
+            err,
         })?;
         copied.push(dst.file_name().map(|n| n.to_string_lossy().into_owned()));
     }

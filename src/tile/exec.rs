@@ -3,7 +3,7 @@
 //! its run is done, and the local executor of `gs4city run-plan P --jobs N` (one `gs4city
 //! run-plan P --tile I` process per tile, at most N at a time).
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Stdio};
 use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
@@ -79,6 +79,43 @@ pub fn cpu_seconds() -> Option<f64> {
     Some(ticks / 100.0)
 }
 
+/// Whether a tile whose status says it succeeded still holds what the merge reads: its
+/// `source.npy`, its run folder, and the outputs of the run's citymodel, fuse, lift and train
+/// stages as its `run.json` records them (present, of the same size and content:
+/// `layout::check_outputs`). `Err` is one line saying what is missing or changed.
+pub fn check_outputs(tile_dir: &Path) -> Result<(), String> {
+    use crate::layout::{RunRecord, Stage};
+    let run = run_dir(tile_dir);
+    if !run.is_dir() {
+        return Err(format!(
+            "its run folder {} is missing, though its {STATUS} says it succeeded",
+            run.display()
+        ));
+    }
+    let source = tile_dir.join("source.npy");
+    if !source.is_file() {
+        return Err(format!("{} is missing", source.display()));
+    }
+    let rec: RunRecord =
+        crate::fsutil::read_json(&run.join("run.json")).map_err(|e| e.to_string())?;
+    for stage in [Stage::Citymodel, Stage::Fuse, Stage::Lift, Stage::Train] {
+        match rec.stages.get(stage.dir()) {
+            Some(r) => {
+                crate::layout::check_outputs(&stage.path(&run), &r.outputs)
+                    .map_err(|why| format!("in its run folder {}: {why}", run.display()))?;
+            }
+            None if matches!(stage, Stage::Citymodel | Stage::Lift) => {
+                return Err(format!(
+                    "{} records no {stage} stage: its run did not finish",
+                    run.join("run.json").display()
+                ));
+            }
+            None => {}
+        }
+    }
+    Ok(())
+}
+
 /// The run folder of a tile.
 pub fn run_dir(tile_dir: &Path) -> PathBuf {
     tile_dir.join("run")
@@ -141,8 +178,13 @@ pub struct PlanRun {
 }
 
 /// Runs every runnable tile of the plan in `plan_dir` that has no successful status yet (all of
-/// them with `force`), `jobs` at a time, each as `exe run-plan P --tile I [--keep-cache]` with
-/// its output in the tile's `log.txt`.
+/// them with `force`, which also forces every stage of their runs), `jobs` at a time, each as
+/// `exe run-plan P --tile I [--keep-cache] [--force]` with its output in the tile's `log.txt`.
+///
+/// The jobs die with this process (`crate::children`: killing `run-plan` kills its tiles). A
+/// tile whose folder another process holds locked (another `run-plan` running it) is waited
+/// for, then taken as that process left it: reused when it succeeded (unless `force`), run
+/// otherwise.
 pub fn run_tiles(
     plan_dir: &Path,
     exe: &Path,
@@ -163,20 +205,55 @@ pub fn run_tiles(
                 dir.display()
             )));
         }
-        match TileStatus::read(&dir)? {
-            Some(s) if s.ok && !force => reused.push(t.name.clone()),
-            _ => todo.push(t),
+        if crate::lock::FolderLock::holder(&dir).is_none()
+            && matches!(TileStatus::read(&dir)?, Some(s) if s.ok && !force)
+        {
+            reused.push(t.name.clone());
+        } else {
+            todo.push(t);
         }
     }
     let bar = crate::progress::Bar::new("run-plan", todo.len() as u64, "tiles");
     let mut running: Vec<(&TilePlan, Child)> = Vec::new();
     let mut ran = Vec::new();
     let mut failed = Vec::new();
-    let mut queue = todo.into_iter();
+    // Tiles not started yet, in plan order; and those found locked by another process (each
+    // with whether that was said already).
+    let mut queue: std::collections::VecDeque<&TilePlan> = todo.into_iter().collect();
+    let mut waiting: Vec<(&TilePlan, bool)> = Vec::new();
     loop {
-        while running.len() < jobs.max(1) {
-            let Some(t) = queue.next() else { break };
+        // Tiles another process held: take them back once it let go.
+        let mut k = 0;
+        while k < waiting.len() {
+            let (t, said) = waiting[k];
             let dir = Plan::tile_dir(plan_dir, t);
+            match crate::lock::FolderLock::holder(&dir) {
+                Some(who) => {
+                    if !said {
+                        log::warn!("tile {}: run by {who}; waiting for it", t.name);
+                        waiting[k].1 = true;
+                    }
+                    k += 1;
+                }
+                None => {
+                    waiting.swap_remove(k);
+                    match TileStatus::read(&dir)? {
+                        Some(s) if s.ok && !force => {
+                            reused.push(t.name.clone());
+                            bar.inc(1);
+                        }
+                        _ => queue.push_front(t),
+                    }
+                }
+            }
+        }
+        while running.len() < jobs.max(1) {
+            let Some(t) = queue.pop_front() else { break };
+            let dir = Plan::tile_dir(plan_dir, t);
+            if crate::lock::FolderLock::holder(&dir).is_some() {
+                waiting.push((t, false));
+                continue;
+            }
             let log_path = dir.join("log.txt");
             let log = std::fs::File::create(&log_path).map_err(|err| TileError::Io {
                 path: log_path.clone(),
@@ -186,13 +263,18 @@ pub fn run_tiles(
                 path: log_path.clone(),
                 err,
             })?;
-            let mut cmd = Command::new(exe);
+            // Spawned from this thread (the command's main thread), which lives as long as the
+            // plan: the children's parent-death signal is tied to it.
+            let mut cmd = crate::children::command(exe);
             cmd.arg("run-plan")
                 .arg(plan_dir)
                 .arg("--tile")
                 .arg(t.index.to_string());
             if keep_cache {
                 cmd.arg("--keep-cache");
+            }
+            if force {
+                cmd.arg("--force");
             }
             let child = cmd
                 .stdin(Stdio::null())
@@ -205,7 +287,7 @@ pub fn run_tiles(
                 })?;
             running.push((t, child));
         }
-        if running.is_empty() {
+        if running.is_empty() && waiting.is_empty() && queue.is_empty() {
             break;
         }
         std::thread::sleep(Duration::from_millis(100));
@@ -220,6 +302,11 @@ pub fn run_tiles(
                 continue;
             };
             let (t, _) = running.swap_remove(k);
+            if exit.code() == Some(i32::from(crate::lock::EXIT_BUSY)) {
+                // Another process took the tile between the look and the start: wait for it.
+                waiting.push((t, false));
+                continue;
+            }
             let dir = Plan::tile_dir(plan_dir, t);
             let status = TileStatus::read(&dir).ok().flatten();
             match status {
@@ -241,6 +328,7 @@ pub fn run_tiles(
     }
     bar.finish();
     ran.sort();
+    reused.sort();
     failed.sort();
     Ok(PlanRun {
         seconds: t0.elapsed().as_secs_f64(),

@@ -150,13 +150,19 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
                     row.state = "failed".into();
                     row.why = Some(s.error.clone().unwrap_or_else(|| "failed".into()));
                 }
-                Some(s) => {
-                    row.seconds = Some(s.seconds);
-                    row.cpu_seconds = s.cpu_seconds;
-                    row.peak_rss_mb = s.peak_rss_mb;
-                    row.disk_bytes = Some(s.disk_bytes);
-                    status = Some(s);
-                }
+                Some(s) => match super::exec::check_outputs(&dir) {
+                    Err(why) => {
+                        row.state = "missing".into();
+                        row.why = Some(why);
+                    }
+                    Ok(()) => {
+                        row.seconds = Some(s.seconds);
+                        row.cpu_seconds = s.cpu_seconds;
+                        row.peak_rss_mb = s.peak_rss_mb;
+                        row.disk_bytes = Some(s.disk_bytes);
+                        status = Some(s);
+                    }
+                },
             }
         }
         if row.state == "failed" || row.state == "missing" {
@@ -356,6 +362,8 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "merged".into());
     let partial = out.with_file_name(format!(".{name}.partial"));
+    // One merge into `out` at a time, and none while a command reads it.
+    let mut lock = crate::lock::FolderLock::exclusive(out)?;
     if partial.exists() {
         std::fs::remove_dir_all(&partial).map_err(io(&partial))?;
     }
@@ -487,10 +495,7 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
     summary.peak_rss_mb = crate::progress::peak_rss_mb();
     summary.disk_bytes = disk_bytes(&partial);
     crate::layout::Summary::write(&summary, &partial)?;
-    if out.exists() {
-        std::fs::remove_dir_all(out).map_err(io(out))?;
-    }
-    std::fs::rename(&partial, out).map_err(io(out))?;
+    lock.replace_folder(out, &partial)?;
     crate::progress::done(
         "merge",
         &format!(

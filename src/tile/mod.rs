@@ -72,6 +72,8 @@ pub enum TileError {
     Prediction(#[from] crate::prediction::PredictionError),
     #[error(transparent)]
     Eval(#[from] crate::eval::EvalError),
+    #[error(transparent)]
+    Lock(#[from] crate::lock::LockError),
 }
 
 /// The file that describes a plan.

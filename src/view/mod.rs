@@ -59,6 +59,8 @@ pub enum ViewError {
     Inputs(String),
     #[error("cannot listen on 127.0.0.1:{port}: {err}")]
     Bind { port: u16, err: std::io::Error },
+    #[error("cannot serve on 127.0.0.1:{port}: {err}")]
+    Serve { port: u16, err: std::io::Error },
 }
 
 /// A finished run, loaded for serving.
@@ -443,15 +445,17 @@ pub fn bind(port: u16) -> Result<TcpListener, ViewError> {
     TcpListener::bind(("127.0.0.1", port)).map_err(|err| ViewError::Bind { port, err })
 }
 
-/// Serves `viewer` on `listener` until the process ends.
-pub fn serve(viewer: Viewer, listener: TcpListener) {
+/// Serves `viewer` on `listener` until the process ends (returns only when the server cannot
+/// start).
+pub fn serve(viewer: Viewer, listener: TcpListener) -> Result<(), ViewError> {
     let port = listener.local_addr().map(|a| a.port()).unwrap_or(0);
     let viewer = Arc::new(viewer);
     http::serve(listener, move |req| {
         let r = viewer.handle(req, port);
         log::debug!("view: {} {} → {}", req.method, req.path, r.status);
         r
-    });
+    })
+    .map_err(|err| ViewError::Serve { port, err })
 }
 
 #[cfg(test)]
