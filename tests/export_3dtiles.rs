@@ -68,7 +68,7 @@ fn small_run() -> &'static (PathBuf, PathBuf) {
 
 fn export(run: &Path, out: &Path, extra: &[&str]) -> Output {
     Command::new(BIN)
-        .args(["-q", "export", "--format", "3dtiles", "--run"])
+        .args(["-q", "export", "--run"])
         .arg(run)
         .arg("--out")
         .arg(out)

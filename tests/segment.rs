@@ -553,6 +553,9 @@ pub(crate) fn run_without_masks(
     std::fs::remove_dir_all(s.join("masks")).unwrap();
     let _ = std::fs::remove_dir_all(s.join("features"));
     let r = dir.join("out");
+    // The segmentation's options of a run come from its config file.
+    let config = dir.join("segment.toml");
+    std::fs::write(&config, "[segment]\npoints_per_side = 4\n").unwrap();
     let out = gs4city(
         &[
             "run",
@@ -562,8 +565,8 @@ pub(crate) fn run_without_masks(
             r.to_str().unwrap(),
             "--model-dir",
             model.to_str().unwrap(),
-            "--segment-points-per-side",
-            "4",
+            "--config",
+            config.to_str().unwrap(),
             "--test-every",
             "3",
         ],
