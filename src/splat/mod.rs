@@ -6,6 +6,7 @@
 //! This is a reader module: it depends on no pipeline stage. The 3DGS layout lives in [`ply`],
 //! on top of the shared PLY format layer [`crate::ply`].
 pub mod ply;
+pub mod surface;
 pub mod transform;
 
 pub use ply::{
