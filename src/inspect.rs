@@ -1017,20 +1017,28 @@ fn plausibility(
     } else {
         let reach = crate::alignment::REFINE_REACH_M;
         let s = root.display();
-        // The advice the next command follows: the refinement only within its reach.
-        let fix = if quartile <= reach && share >= opts.min_view_share {
+        // The advice the next command follows. The refinement's first search radius is its
+        // reach: it needs Gaussians within it of the surface they belong to. Half of the opaque
+        // centres within it (the median) is where it was measured to recover the alignment
+        // (SIMULATED small preset: shifts up to 4 m along a facade, 8 m diagonally, median
+        // ≤ 2.8 m / 4.6 m; refused from 5 m along a facade, median 3.4 m; docs/capture.md);
+        // the lower quartile underestimates a shift along the facades by a factor of about
+        // three, so it does not decide this.
+        let fix = if median <= reach && share >= opts.min_view_share {
             format!(
-                "within the reach of `gs4city align --refine` ({reach} m): refine it \
-                 (`gs4city run --scene {s} --out R --refine-alignment`, or `gs4city align \
-                 --refine --citymodel {s}/citymodel --ply {s}/point_cloud.ply --colmap \
-                 {s}/sparse/0 --out A/alignment.json`)"
+                "half of the opaque Gaussian centres lie within the reach of `gs4city align \
+                 --refine` ({reach} m, its first search radius): refine it (`gs4city run --scene \
+                 {s} --out R --refine-alignment`, or `gs4city align --refine --citymodel \
+                 {s}/citymodel --ply {s}/point_cloud.ply --colmap {s}/sparse/0 --out \
+                 A/alignment.json`)"
             )
         } else {
             format!(
-                "beyond the reach of `gs4city align --refine` ({reach} m): collect \
-                 ground-control points again (`gs4city view --scene {s}` gives a clicked point's \
-                 scene coordinates) and `gs4city align --points pairs.csv --out \
-                 {s}/citymodel/alignment.json` (README, \"Run it on your own capture\")"
+                "beyond the reach of `gs4city align --refine` (its first search radius is \
+                 {reach} m; the median distance is {median:.1} m): collect ground-control points \
+                 again (`gs4city view --scene {s}` gives a clicked point's scene coordinates) and \
+                 `gs4city align --points pairs.csv --out {s}/citymodel/alignment.json` (README, \
+                 \"Run it on your own capture\")"
             )
         };
         let msg = format!(

@@ -327,6 +327,70 @@ fn check_names_each_defect_in_one_line_and_run_stops_before_any_stage() {
         );
     }
 
+    // The verdict's advice is what works: beyond the refinement's reach (50 m) it asks for new
+    // ground-control points, and `align --refine` indeed refuses; within it (2 m diagonally,
+    // judged implausible with `[check] max_offset = 0.5`) it advises the refinement, which
+    // recovers the alignment.
+    let refine = |d: &Path| {
+        let out = d.join("refined/alignment.json");
+        std::fs::create_dir_all(out.parent().unwrap()).unwrap();
+        let (ok, _, err) = cli_in(
+            None,
+            &[
+                "align",
+                "--refine",
+                "--citymodel",
+                s(&d.join("citymodel")),
+                "--ply",
+                s(&d.join("point_cloud.ply")),
+                "--colmap",
+                s(&d.join("sparse/0")),
+                "--out",
+                s(&out),
+            ],
+        );
+        (ok, err, out)
+    };
+    let far = r.join("shifted-50m");
+    let (_, _, err) = cli_in(None, &["check", "--scene", s(&far)]);
+    assert!(
+        err.contains("beyond the reach of `gs4city align --refine`")
+            && err.contains("gs4city align --points"),
+        "{err}"
+    );
+    let (ok, err, _) = refine(&far);
+    assert!(
+        !ok,
+        "refine recovered what check called beyond its reach: {err}"
+    );
+    let near = r.join("shifted-2m");
+    variant(&base, &near, &["citymodel"]);
+    write_alignment(&near, &|a| {
+        for k in 0..3 {
+            let t = a["translation"][k].as_f64().unwrap();
+            a["translation"][k] = serde_json::json!(t + 2.0 * scale / 3f64.sqrt());
+        }
+    });
+    let strict = r.join("strict.toml");
+    std::fs::write(&strict, "[check]\nmax_offset = 0.5\n").unwrap();
+    let (ok, _, err) = cli_in(
+        None,
+        &["check", "--scene", s(&near), "--config", s(&strict)],
+    );
+    assert!(!ok, "{err}");
+    assert!(
+        err.contains("within the reach of `gs4city align --refine`")
+            && err.contains("--refine-alignment"),
+        "{err}"
+    );
+    let (ok, err, out) = refine(&near);
+    assert!(ok, "check advised a refinement that refuses: {err}");
+    let got = gs4city::alignment::Alignment::read(&out).unwrap();
+    let want = gs4city::alignment::Alignment::read(&base.join("citymodel/alignment.json")).unwrap();
+    let p = want.origin + glam::DVec3::new(10.0, 10.0, 5.0);
+    let off = (got.apply(p) - want.apply(p)).length() / scale;
+    assert!(off < 0.01, "refined {off} m from the truth");
+
     // Before `run --refine-alignment` the same alignment is a warning: the refinement runs next.
     let report = gs4city::inspect::check(
         &r.join("shifted-50m"),
@@ -874,6 +938,36 @@ fn the_readme_capture_guide_runs_as_written() {
     );
     assert!(ok, "{err}");
     assert!(out.contains("match true"), "{out}");
+
+    // An unfinished run (its vote missing, as after a run stopped before the lift stage): the
+    // commands that read it name the stage and the command that resumes it.
+    std::fs::rename(run.join("lift"), r.join("lift.away")).unwrap();
+    for args in [
+        vec![
+            "query",
+            "--run",
+            s(&run),
+            "--class",
+            "Window",
+            "--out",
+            s(&q),
+        ],
+        vec!["view", "--run", s(&run), "--port", "0"],
+        vec!["export", "--run", s(&run), "--out", s(&r.join("T"))],
+    ] {
+        let (ok, _, err) = cli_in(Some(Path::new("/")), &args);
+        assert!(!ok, "{args:?}");
+        assert!(
+            err.contains("has not finished: stage lift")
+                && err.contains(&format!(
+                    "`gs4city run --scene {} --out {}` resumes the run",
+                    abs.display(),
+                    run.display()
+                )),
+            "{args:?}: {err}"
+        );
+        assert_eq!(err.lines().count(), 1, "{err}");
+    }
     let _ = std::fs::remove_dir_all(&r);
 }
 

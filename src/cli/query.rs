@@ -155,7 +155,9 @@ pub(crate) fn check_finished(
     let rec = record(run);
     let done: Vec<&str> = Stage::ALL
         .iter()
-        .filter(|s| rec.as_ref().is_some_and(|r| r.stages.contains_key(s.dir())))
+        .filter(|s| {
+            rec.as_ref().is_some_and(|r| r.stages.contains_key(s.dir())) && s.path(run).is_dir()
+        })
         .map(|s| s.dir())
         .collect();
     let scene = scene
