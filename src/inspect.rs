@@ -330,7 +330,7 @@ fn gml_files(root: &Path, f: &mut Findings) -> Vec<PathBuf> {
 /// `scene.json` (optional): readable, and its test views images of the COLMAP model; a note
 /// says which split the run will use.
 fn scene_meta(root: &Path, views: Option<&[View]>, f: &mut Findings) {
-    let p = root.join(crate::scene::META_FILE);
+    let p = root.join(crate::scene::SceneMeta::FILE);
     let meta = match crate::scene::SceneMeta::read(root) {
         Ok(Some(m)) => m,
         Ok(None) => {

@@ -9,8 +9,8 @@
 //!   masks/<stem>.json        optional: SAM automatic masks per view
 //!   features/<stem>.npy      optional: one feature row per SAM mask; features/prompts.json
 //!   gt/                      optional: ground truth, read only by evaluation
-//!   scene.json               optional: the scene's metadata (SceneMeta): the declared test
-//!                            views, whether it is SIMULATED, what wrote it
+//!   scene.json               optional: the scene's own description ([`SceneMeta`]: the
+//!                            declared test views, whether it is SIMULATED, what wrote it)
 //! ```
 //! Pipeline stages take the paths they need from [`Scene`]; only evaluation uses [`Scene::gt`].
 //! Nothing else of the folder is listed here: a simulator's own files are not inputs
@@ -28,9 +28,6 @@ pub struct SceneError {
     pub scene: PathBuf,
     pub why: String,
 }
-
-/// The scene folder's metadata file (`docs/design.md`, "scene.json").
-pub const META_FILE: &str = "scene.json";
 
 /// `scene.json`: what a scene folder declares about itself. Written by `gs4city synth` (a
 /// SIMULATED scene with its test views) and `gs4city scene import` (the parts it linked, no test
@@ -57,9 +54,13 @@ pub struct SceneMeta {
 }
 
 impl SceneMeta {
-    /// Reads `root/scene.json`; `Ok(None)` when the folder has none.
+    /// The file name inside the scene folder (`docs/design.md`, "scene.json").
+    pub const FILE: &'static str = "scene.json";
+
+    /// Reads `root/scene.json`; `Ok(None)` when the folder has none. A file that is not such a
+    /// JSON object is an error naming it.
     pub fn read(root: &Path) -> Result<Option<SceneMeta>, SceneError> {
-        let p = root.join(META_FILE);
+        let p = root.join(Self::FILE);
         if !p.is_file() {
             return Ok(None);
         }
@@ -73,7 +74,7 @@ impl SceneMeta {
 
     /// Writes `root/scene.json` (atomically).
     pub fn write(&self, root: &Path) -> Result<(), SceneError> {
-        crate::fsutil::write_json(&root.join(META_FILE), self).map_err(|e| SceneError {
+        crate::fsutil::write_json(&root.join(Self::FILE), self).map_err(|e| SceneError {
             scene: root.to_path_buf(),
             why: e.to_string(),
         })
@@ -99,8 +100,9 @@ pub struct Scene {
     pub features: Option<PathBuf>,
     /// `gt/` where it exists: for evaluation only.
     pub gt: Option<PathBuf>,
-    /// `scene.json`, where the folder has one.
-    pub meta: Option<SceneMeta>,
+    /// `scene.json`: the scene's own description (a scene without it is a real capture with
+    /// no declared test views, as far as anything here can tell).
+    pub meta: SceneMeta,
 }
 
 impl Scene {
@@ -135,7 +137,7 @@ impl Scene {
             return Err(bad("no point_cloud.ply (the pre-trained 3DGS scene)".into()));
         }
         let dir = |name: &str| Some(root.join(name)).filter(|p| p.is_dir());
-        let meta = SceneMeta::read(root)?;
+        let meta = SceneMeta::read(root)?.unwrap_or_default();
         Ok(Scene {
             root: root.to_path_buf(),
             gml,
@@ -152,17 +154,17 @@ impl Scene {
 
     /// Whether the scene declares itself SIMULATED (`scene.json`).
     pub fn simulated(&self) -> bool {
-        self.meta.as_ref().is_some_and(|m| m.simulated)
+        self.meta.simulated
     }
 
     /// The split of `views` the scene declares (`scene.json`'s test views; without them every
     /// view trains). A declared name that is not a view is an error naming it.
     pub fn declared_split(&self, views: Vec<View>) -> Result<Split, SceneError> {
-        match self.meta.as_ref().and_then(|m| m.test_views.as_ref()) {
+        match &self.meta.test_views {
             None => Ok(Split::new(views, 0)),
             Some(names) => Split::declared(views, names).map_err(|why| SceneError {
                 scene: self.root.clone(),
-                why: format!("{META_FILE}: {why}"),
+                why: format!("{}: {why}", SceneMeta::FILE),
             }),
         }
     }
@@ -256,7 +258,8 @@ pub struct ImportSpec {
     pub model: Option<PathBuf>,
     /// The iteration to take (default: the highest `point_cloud/iteration_N`).
     pub iteration: Option<u32>,
-    /// A PLY in the INRIA layout (nerfstudio `ns-export gaussian-splat`, gsplat's export);
+    /// A PLY in the INRIA layout (nerfstudio `ns-export gaussian-splat`, gsplat's export), or
+    /// a `.splat`, `.spz` or SuperSplat compressed PLY (converted to an INRIA PLY on import);
     /// overrides the training output's.
     pub ply: Option<PathBuf>,
     /// The COLMAP folder the scene was trained from (`sparse/0/`, `images/`); default: the
@@ -506,6 +509,15 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
         remove_part(&dst).map_err(|e| bad(format!("{part}: {e}")))?;
         // alignment.json is always copied: it is edited and refined in place.
         let copy = spec.copy || part == "citymodel/alignment.json";
+        if part == "point_cloud.ply" && !is_inria_ply(src) {
+            // .splat, .spz, compressed PLY: converted once into the INRIA layout, which every
+            // stage (and `gs4city tile`'s streaming cut) reads
+            let (g, _) = crate::splat::read_ply(src, &crate::splat::ReadOptions::KEEP)
+                .map_err(|e| bad(e.to_string()))?;
+            crate::splat::write_ply(&dst, &g, crate::splat::PlyEncoding::BinaryLittleEndian)
+                .map_err(|e| bad(e.to_string()))?;
+            continue;
+        }
         let r = if copy {
             copy_tree(src, &dst)
         } else {
@@ -528,6 +540,21 @@ fn remove_part(p: &Path) -> std::io::Result<()> {
         Err(e) => Err(e),
         Ok(m) if m.is_dir() => std::fs::remove_dir_all(p),
         Ok(_) => std::fs::remove_file(p),
+    }
+}
+
+/// Whether `path` is an INRIA PLY (not a `.splat`, SPZ or compressed PLY, which [`import`]
+/// converts).
+fn is_inria_ply(path: &Path) -> bool {
+    use crate::splat::SplatFormat;
+    let mut head = [0u8; 4];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
+        .unwrap_or(0);
+    match crate::splat::formats::detect(path, &head[..n]) {
+        SplatFormat::Ply | SplatFormat::CompressedPly => crate::ply::read_header(path)
+            .map_or(true, |(h, _)| !crate::splat::compressed::is_compressed(&h)),
+        SplatFormat::Splat | SplatFormat::Spz => false,
     }
 }
 

@@ -906,12 +906,12 @@ impl SplitArgs {
                     format!(
                         "--split {}: no {} there",
                         s.display(),
-                        crate::scene::META_FILE
+                        crate::scene::SceneMeta::FILE
                     )
                 })?;
                 match &meta.test_views {
                     Some(names) => Split::declared(views, names).map_err(|why| {
-                        anyhow::anyhow!("{}: {why}", root.join(crate::scene::META_FILE).display())
+                        anyhow::anyhow!("{}: {why}", root.join(crate::scene::SceneMeta::FILE).display())
                     })?,
                     None => Split::new(views, 0),
                 }
