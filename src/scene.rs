@@ -72,6 +72,18 @@ impl SceneMeta {
             })
     }
 
+    /// The split of `views` this file declares for the scene folder `root`: its test views,
+    /// without them every view trains. A declared name that is not a view is an error naming it.
+    pub fn split(&self, root: &Path, views: Vec<View>) -> Result<Split, SceneError> {
+        match &self.test_views {
+            None => Ok(Split::new(views, 0)),
+            Some(names) => Split::declared(views, names).map_err(|why| SceneError {
+                scene: root.to_path_buf(),
+                why: format!("{}: {why}", Self::FILE),
+            }),
+        }
+    }
+
     /// Writes `root/scene.json` (atomically).
     pub fn write(&self, root: &Path) -> Result<(), SceneError> {
         crate::fsutil::write_json(&root.join(Self::FILE), self).map_err(|e| SceneError {
@@ -157,16 +169,9 @@ impl Scene {
         self.meta.simulated
     }
 
-    /// The split of `views` the scene declares (`scene.json`'s test views; without them every
-    /// view trains). A declared name that is not a view is an error naming it.
+    /// The split of `views` the scene declares ([`SceneMeta::split`]).
     pub fn declared_split(&self, views: Vec<View>) -> Result<Split, SceneError> {
-        match &self.meta.test_views {
-            None => Ok(Split::new(views, 0)),
-            Some(names) => Split::declared(views, names).map_err(|why| SceneError {
-                scene: self.root.clone(),
-                why: format!("{}: {why}", SceneMeta::FILE),
-            }),
-        }
+        self.meta.split(&self.root, views)
     }
 
     /// The SAM list of view `stem` (`masks/<stem>.json`), where it exists.

@@ -902,19 +902,15 @@ impl SplitArgs {
                 } else {
                     s.clone()
                 };
-                let meta = crate::scene::SceneMeta::read(&root)?.with_context(|| {
-                    format!(
-                        "--split {}: no {} there",
-                        s.display(),
-                        crate::scene::SceneMeta::FILE
-                    )
-                })?;
-                match &meta.test_views {
-                    Some(names) => Split::declared(views, names).map_err(|why| {
-                        anyhow::anyhow!("{}: {why}", root.join(crate::scene::SceneMeta::FILE).display())
-                    })?,
-                    None => Split::new(views, 0),
-                }
+                crate::scene::SceneMeta::read(&root)?
+                    .with_context(|| {
+                        format!(
+                            "--split {}: no {} there",
+                            s.display(),
+                            crate::scene::SceneMeta::FILE
+                        )
+                    })?
+                    .split(&root, views)?
             }
             (None, None) => Split::new(views, 0),
         };

@@ -372,6 +372,59 @@ mod tests {
         assert!(order.windows(2).all(|w| w[0] < w[1]), "{text}");
     }
 
+    /// The documents' `gs4city run` commands parse as written (an ablation that still named a
+    /// switch `run` no longer has would not), and every `configs/….toml` they name exists and
+    /// parses: BENCHMARKS.md's ablation rows reproduce through `--config`.
+    #[test]
+    fn documented_run_commands_parse_and_name_existing_configs() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+        let mut files = vec![root.join("BENCHMARKS.md"), root.join("README.md")];
+        for e in std::fs::read_dir(root.join("docs")).unwrap() {
+            let p = e.unwrap().path();
+            if p.extension().is_some_and(|x| x == "md") {
+                files.push(p);
+            }
+        }
+        let (mut commands, mut configs) = (0, 0);
+        for f in &files {
+            let text = std::fs::read_to_string(f).unwrap();
+            let mut in_code = false;
+            for line in text.lines() {
+                if line.trim_start().starts_with("```") {
+                    in_code = !in_code;
+                    continue;
+                }
+                for (i, _) in line.match_indices("configs/") {
+                    let rest = &line[i..];
+                    let end = rest.find(".toml").map(|e| e + 5);
+                    if let Some(end) = end {
+                        let path = root.join(&rest[..end]);
+                        super::groups::Config::read(&path)
+                            .unwrap_or_else(|e| panic!("{}: `{}`: {e}", f.display(), &rest[..end]));
+                        configs += 1;
+                    }
+                }
+                let cmd = line.split('#').next().unwrap().trim();
+                // Synopses (`[--x]`, `a|b`) are not commands.
+                if !in_code
+                    || !cmd.starts_with("gs4city run ")
+                    || cmd.contains(['[', '|', '…', '&'])
+                {
+                    continue;
+                }
+                let words: Vec<&str> = cmd.split_whitespace().collect();
+                if let Err(e) = super::Cli::try_parse_from(&words) {
+                    panic!("{}: `{cmd}` does not parse: {e}", f.display());
+                }
+                commands += 1;
+            }
+        }
+        assert!(
+            commands >= 5 && configs >= 5,
+            "{commands} commands, {configs} configs"
+        );
+    }
+
     /// Every subcommand's `--help` ends with an example, and every example parses.
     #[test]
     fn every_command_has_an_example_that_parses() {
