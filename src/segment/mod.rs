@@ -54,6 +54,9 @@ pub enum SegmentError {
     Options(#[from] crate::check::OutOfRange),
     #[error("empty prompt {0:?}")]
     EmptyPrompt(String),
+    /// An image too large for the network's buffers (the caller names the image).
+    #[error("{0}")]
+    TooLarge(String),
     #[error(transparent)]
     Cv(#[from] ImageError),
     #[error(transparent)]
