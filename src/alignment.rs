@@ -13,6 +13,12 @@ use serde::{Deserialize, Serialize};
 
 use crate::numfmt::Num;
 
+/// How far (metres) `gs4city align --refine` reaches: its first search radius for
+/// closest points (`refine::RefineOptions::initial_radius_m`), which bounds the error it can
+/// recover. `gs4city check` advises the refinement within it and new ground-control points
+/// beyond it.
+pub const REFINE_REACH_M: f64 = 3.0;
+
 /// Errors of alignment reading and estimation.
 #[derive(Debug, thiserror::Error)]
 pub enum AlignError {

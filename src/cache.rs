@@ -832,14 +832,14 @@ impl Default for CacheOptions {
 impl CacheOptions {
     /// Checks the options (the wording of [`crate::check::range`]): `top_k` at most
     /// [`MAX_LIST`], `epsilon` and `t_stop` in `[0, 1)`.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::check::OutOfRange> {
         use crate::check::{End, range};
-        if self.top_k > MAX_LIST {
-            return Err(format!(
-                "top_k {} exceeds the longest possible list ({MAX_LIST}); 0 keeps complete lists",
-                self.top_k
-            ));
-        }
+        range(
+            "top_k",
+            self.top_k,
+            End::Closed(0.0),
+            End::Closed(MAX_LIST as f64),
+        )?;
         range("epsilon", self.epsilon, End::Closed(0.0), End::Open(1.0))?;
         range("t_stop", self.t_stop, End::Closed(0.0), End::Open(1.0))
     }

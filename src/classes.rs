@@ -166,6 +166,117 @@ pub const CLASS_PROMPTS: [(&str, Option<i32>); 14] = [
     ("a building", None),
 ];
 
+/// Keyword table of [`class_from_text`], in match order: the first row with a word of the
+/// prompt wins. Words match whole (lowercase, split at non-letters), also with a plural `s`/`es`.
+/// Things are listed before stuff ("a street tree" is a tree, "a street lamp" an object, "a
+/// window of a building" a window), building parts before the building itself.
+pub const KEYWORDS: [(&[&str], i32); 13] = [
+    (&["ground surface"], GROUND_SURFACE),
+    (
+        &[
+            "tree",
+            "trees",
+            "vegetation",
+            "bush",
+            "shrub",
+            "hedge",
+            "leaf",
+            "leaves",
+            "branch",
+            "plant",
+            "foliage",
+        ],
+        TREE,
+    ),
+    (
+        &[
+            "person",
+            "pedestrian",
+            "people",
+            "man",
+            "men",
+            "woman",
+            "women",
+            "human",
+            "child",
+            "children",
+            "cyclist",
+        ],
+        PERSON,
+    ),
+    (
+        &[
+            "car",
+            "bus",
+            "truck",
+            "vehicle",
+            "van",
+            "automobile",
+            "taxi",
+            "motorcycle",
+        ],
+        CAR,
+    ),
+    (
+        &[
+            "sign",
+            "pole",
+            "lamp",
+            "streetlight",
+            "bench",
+            "bicycle",
+            "bike",
+            "hydrant",
+            "fence",
+            "bollard",
+            "object",
+        ],
+        OTHER,
+    ),
+    (&["window", "glass", "pane"], WINDOW),
+    (&["door", "entrance", "gate"], DOOR),
+    (&["roof", "rooftop"], ROOF),
+    (
+        &["balcony", "chimney", "dormer", "installation", "awning"],
+        INSTALLATION,
+    ),
+    (&["wall", "facade", "façade", "building", "house"], WALL),
+    (
+        &[
+            "road", "street", "ground", "pavement", "sidewalk", "asphalt", "grass", "terrain",
+            "lawn",
+        ],
+        ROAD,
+    ),
+    (&["water", "river", "lake", "pond", "canal"], WATER),
+    (&["sky", "cloud", "clouds"], NONE),
+];
+
+/// The class of a prompt from its text (the [`KEYWORDS`] table); `OTHER` (11, a foreground
+/// object) when no keyword matches.
+pub fn class_from_text(text: &str) -> i32 {
+    let lower = text.to_lowercase();
+    let words: Vec<&str> = lower
+        .split(|c: char| !c.is_alphabetic())
+        .filter(|w| !w.is_empty())
+        .collect();
+    let has = |kw: &str| -> bool {
+        if kw.contains(' ') {
+            let k: Vec<&str> = kw.split(' ').collect();
+            return words.windows(k.len()).any(|w| w == k.as_slice());
+        }
+        words.iter().any(|w| {
+            *w == kw || w.strip_suffix('s') == Some(kw) || w.strip_suffix("es") == Some(kw)
+        })
+    };
+    for (kws, class) in KEYWORDS {
+        if kws.iter().any(|k| has(k)) {
+            return class;
+        }
+    }
+    OTHER
+}
+
 /// A semantic network's class set mapped onto the evaluation classes (`gs4city segment
 /// --semantic`, docs/segment.md): `(name, class)`, `None` = no class (no mask is made of it).
 /// Sky is class −1 (`NONE`): masks are made of it (the features test puts class −1 in neither

@@ -53,7 +53,7 @@ pub enum InspectError {
     )]
     Problems { scene: PathBuf, lines: Vec<String> },
     #[error("invalid check option: {0}")]
-    Options(String),
+    Options(#[from] crate::check::OutOfRange),
 }
 
 /// How much a finding matters.
@@ -145,6 +145,10 @@ impl CheckReport {
 pub struct CheckOptions {
     /// A scene without `citymodel/alignment.json` is fine (the run uses a local origin).
     pub local_origin: bool,
+    /// The alignment is written next (`scene import` before `gs4city align`): a missing
+    /// `citymodel/alignment.json` is a note naming the command that writes it.
+    #[serde(default)]
+    pub pending_alignment: bool,
     /// Largest plausible lower-quartile distance (metres) of opaque Gaussian centres to the city
     /// model.
     pub max_offset_m: f64,
@@ -161,6 +165,7 @@ impl Default for CheckOptions {
     fn default() -> Self {
         CheckOptions {
             local_origin: false,
+            pending_alignment: false,
             max_offset_m: 2.0,
             min_view_share: 0.5,
             max_samples: 100_000,
@@ -172,10 +177,10 @@ impl Default for CheckOptions {
 impl CheckOptions {
     /// Range checks.
     pub fn validate(&self) -> Result<(), InspectError> {
-        crate::check::positive("max_offset_m", self.max_offset_m)
-            .and_then(|_| crate::check::unit("min_view_share", self.min_view_share))
-            .and_then(|_| crate::check::positive("max_samples", self.max_samples as f64))
-            .map_err(InspectError::Options)
+        crate::check::positive("max_offset_m", self.max_offset_m)?;
+        crate::check::unit("min_view_share", self.min_view_share)?;
+        crate::check::at_least("max_samples", self.max_samples, 1)?;
+        Ok(())
     }
 }
 
@@ -284,6 +289,7 @@ pub fn check(root: &Path, opts: &CheckOptions) -> CheckReport {
     report.images = images;
     report.gaussians = gaussians.as_ref().map_or(0, Gaussians::len);
     optional_parts(root, views.as_deref(), &mut f);
+    scene_meta(root, views.as_deref(), &mut f);
     if let (Some(models), Some(a)) = (&models, alignment) {
         let a = a.unwrap_or_else(|| local_alignment(models));
         if scene_frame(models, &a, &mut f)
@@ -321,7 +327,46 @@ fn gml_files(root: &Path, f: &mut Findings) -> Vec<PathBuf> {
     gml
 }
 
-/// `Some(Some(a))`: read; `Some(None)`: a local origin is asked for; `None`: unusable.
+/// `scene.json` (optional): readable, and its test views images of the COLMAP model; a note
+/// says which split the run will use.
+fn scene_meta(root: &Path, views: Option<&[View]>, f: &mut Findings) {
+    let p = root.join(crate::scene::SceneMeta::FILE);
+    let meta = match crate::scene::SceneMeta::read(root) {
+        Ok(Some(m)) => m,
+        Ok(None) => {
+            f.note(
+                &p,
+                "absent: no declared test views, every view trains (`gs4city run --test-every N` holds every N-th back)",
+            );
+            return;
+        }
+        Err(e) => {
+            f.error(&p, e.why);
+            return;
+        }
+    };
+    match (&meta.test_views, views) {
+        (Some(names), Some(views)) => match crate::scene::Split::declared(views.to_vec(), names) {
+            Ok(s) if s.train.is_empty() => {
+                f.error(&p, "every view is a declared test view: nothing trains")
+            }
+            Ok(s) => f.note(
+                &p,
+                format!(
+                    "{} declared test views, {} training views",
+                    s.test.len(),
+                    s.train.len()
+                ),
+            ),
+            Err(why) => f.error(&p, why),
+        },
+        (None, _) => f.note(&p, "no declared test views: every view trains"),
+        (Some(_), None) => {}
+    }
+}
+
+/// `Some(Some(a))`: read; `Some(None)`: a local origin is asked for; `None`: unusable (or still
+/// to be written).
 fn read_alignment(root: &Path, opts: &CheckOptions, f: &mut Findings) -> Option<Option<Alignment>> {
     let p = root.join("citymodel/alignment.json");
     if !p.is_file() {
@@ -331,6 +376,13 @@ fn read_alignment(root: &Path, opts: &CheckOptions, f: &mut Findings) -> Option<
                 "absent: the CityGML coordinates minus a local origin are the scene frame (--local-origin)",
             );
             return Some(None);
+        }
+        if opts.pending_alignment {
+            f.note(
+                &p,
+                "absent: the next step writes it from ground-control points (`gs4city align --points pairs.csv --out <scene>/citymodel/alignment.json`; README, \"Run it on your own capture\")",
+            );
+            return None;
         }
         f.error(
             &p,
@@ -963,10 +1015,35 @@ fn plausibility(
     if plausible {
         f.note(&file, format!("alignment plausible: {facts}"));
     } else {
+        let reach = crate::alignment::REFINE_REACH_M;
+        let s = root.display();
+        // The advice the next command follows. The refinement's first search radius is its
+        // reach: it needs Gaussians within it of the surface they belong to. Half of the opaque
+        // centres within it (the median) is where it was measured to recover the alignment
+        // (SIMULATED small preset: shifts up to 4 m along a facade, 8 m diagonally, median
+        // ≤ 2.8 m / 4.6 m; refused from 5 m along a facade, median 3.4 m; docs/capture.md);
+        // the lower quartile underestimates a shift along the facades by a factor of about
+        // three, so it does not decide this.
+        let fix = if median <= reach && share >= opts.min_view_share {
+            format!(
+                "half of the opaque Gaussian centres lie within the reach of `gs4city align \
+                 --refine` ({reach} m, its first search radius): refine it (`gs4city run --scene \
+                 {s} --out R --refine-alignment`, or `gs4city align --refine --citymodel \
+                 {s}/citymodel --ply {s}/point_cloud.ply --colmap {s}/sparse/0 --out \
+                 A/alignment.json`)"
+            )
+        } else {
+            format!(
+                "beyond the reach of `gs4city align --refine` (its first search radius is \
+                 {reach} m; the median distance is {median:.1} m): collect ground-control points \
+                 again (`gs4city view --scene {s}` gives a clicked point's scene coordinates) and \
+                 `gs4city align --points pairs.csv --out {s}/citymodel/alignment.json` (README, \
+                 \"Run it on your own capture\")"
+            )
+        };
         let msg = format!(
             "alignment looks off by ~{:.0} m ({facts}; plausible: a lower quartile ≤ {} m \
-                 and ≥ {:.0} % of views): run `gs4city align --refine`, or check the \
-                 ground-control points (README, \"alignment.json\")",
+                 and ≥ {:.0} % of views); {fix}",
             quartile.max(0.5),
             opts.max_offset_m,
             100.0 * opts.min_view_share

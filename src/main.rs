@@ -1,17 +1,18 @@
-//! `gs4city` binary: parse the command line, run it, map the result to an exit code.
+//! `gs4city` binary: parse the command line, run it, map the result to an exit code (1: an
+//! error; 3: a text query that matched nothing, `cli::NO_MATCH_STATUS`).
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
     match gs4city::cli::main() {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
-            eprintln!("error: {err:#}");
-            // A folder locked by another process: a temporary failure (run-plan retries it).
-            let busy = err.chain().any(|e| {
-                e.downcast_ref::<gs4city::lock::LockError>()
-                    .is_some_and(|l| l.is_busy())
-            });
-            ExitCode::from(if busy { gs4city::lock::EXIT_BUSY } else { 1 })
+            let status = gs4city::cli::exit_status(&err);
+            if status == gs4city::cli::NO_MATCH_STATUS {
+                eprintln!("{err:#}");
+            } else {
+                eprintln!("error: {err:#}");
+            }
+            ExitCode::from(status)
         }
     }
 }

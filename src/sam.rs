@@ -656,9 +656,20 @@ pub struct Prompts {
     /// Prompt text → vector.
     pub prompts: BTreeMap<String, Vec<f32>>,
     /// Optional prompt text → class id (`docs/design.md` class table, −1 = none). Prompts not listed
-    /// get their class from their text (`masks::prompts::class_from_text`).
+    /// get their class from their text (`classes::class_from_text`, [`Prompts::class_of`]).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub classes: BTreeMap<String, i32>,
+}
+
+impl Prompts {
+    /// The class of prompt `text`: the file's `classes` entry, else from its words
+    /// ([`crate::classes::class_from_text`]).
+    pub fn class_of(&self, text: &str) -> i32 {
+        self.classes
+            .get(text)
+            .copied()
+            .unwrap_or_else(|| crate::classes::class_from_text(text))
+    }
 }
 
 /// Writes per-mask features as a float32 `N×dim` `.npy` (N = 0 gives shape `(0, dim)`).

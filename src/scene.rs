@@ -9,13 +9,14 @@
 //!   masks/<stem>.json        optional: SAM automatic masks per view
 //!   features/<stem>.npy      optional: one feature row per SAM mask; features/prompts.json
 //!   gt/                      optional: ground truth, read only by evaluation
-//!   scene.json               optional: the scene's own description ([`SceneMeta`]: whether it is
-//!                            SIMULATED); written by `gs4city synth`
+//!   scene.json               optional: the scene's own description ([`SceneMeta`]: the
+//!                            declared test views, whether it is SIMULATED, what wrote it)
 //! ```
 //! Pipeline stages take the paths they need from [`Scene`]; only evaluation uses [`Scene::gt`].
 //! Nothing else of the folder is listed here: a simulator's own files are not inputs
-//! (`docs/design.md`, "Inputs the algorithms may read").
-use std::collections::BTreeSet;
+//! (`docs/design.md`, "Inputs the algorithms may read"). `scene.json` is an input (the split
+//! a dataset declares, like its image list), never simulation truth.
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 use crate::camera::View;
@@ -26,6 +27,70 @@ use crate::camera::View;
 pub struct SceneError {
     pub scene: PathBuf,
     pub why: String,
+}
+
+/// `scene.json`: what a scene folder declares about itself. Written by `gs4city synth` (a
+/// SIMULATED scene with its test views) and `gs4city scene import` (the parts it linked, no test
+/// views); a user may write one by hand (e.g. to declare a capture's test views).
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneMeta {
+    /// The scene is SIMULATED (`gs4city synth`): its images, Gaussians and masks are synthetic;
+    /// reports say so in a banner.
+    #[serde(default)]
+    pub simulated: bool,
+    /// What wrote the folder (e.g. `gs4city synth --preset small --seed 1`).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub generator: String,
+    /// The declared test views (image names as in COLMAP, or their stems): held back from
+    /// labelling, predicted as novel views, evaluated where `gt/` has them. Absent: every view
+    /// trains (`gs4city run --test-every N` makes a split of its own).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test_views: Option<Vec<String>>,
+    /// `scene import`: each part it linked or copied (`point_cloud.ply`, `sparse/0`, …) and its
+    /// source, so that a second import into the folder replaces what the first one made.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub imported: BTreeMap<String, PathBuf>,
+}
+
+impl SceneMeta {
+    /// The file name inside the scene folder (`docs/design.md`, "scene.json").
+    pub const FILE: &'static str = "scene.json";
+
+    /// Reads `root/scene.json`; `Ok(None)` when the folder has none. A file that is not such a
+    /// JSON object is an error naming it.
+    pub fn read(root: &Path) -> Result<Option<SceneMeta>, SceneError> {
+        let p = root.join(Self::FILE);
+        if !p.is_file() {
+            return Ok(None);
+        }
+        crate::fsutil::read_json(&p)
+            .map(Some)
+            .map_err(|e| SceneError {
+                scene: root.to_path_buf(),
+                why: e.to_string(),
+            })
+    }
+
+    /// The split of `views` this file declares for the scene folder `root`: its test views,
+    /// without them every view trains. A declared name that is not a view is an error naming it.
+    pub fn split(&self, root: &Path, views: Vec<View>) -> Result<Split, SceneError> {
+        match &self.test_views {
+            None => Ok(Split::new(views, 0)),
+            Some(names) => Split::declared(views, names).map_err(|why| SceneError {
+                scene: root.to_path_buf(),
+                why: format!("{}: {why}", Self::FILE),
+            }),
+        }
+    }
+
+    /// Writes `root/scene.json` (atomically).
+    pub fn write(&self, root: &Path) -> Result<(), SceneError> {
+        crate::fsutil::write_json(&root.join(Self::FILE), self).map_err(|e| SceneError {
+            scene: root.to_path_buf(),
+            why: e.to_string(),
+        })
+    }
 }
 
 /// The parts of a scene folder.
@@ -47,43 +112,9 @@ pub struct Scene {
     pub features: Option<PathBuf>,
     /// `gt/` where it exists: for evaluation only.
     pub gt: Option<PathBuf>,
-    /// `scene.json`: the scene's own description (a scene without it is a real capture as far
-    /// as anything here can tell).
+    /// `scene.json`: the scene's own description (a scene without it is a real capture with
+    /// no declared test views, as far as anything here can tell).
     pub meta: SceneMeta,
-}
-
-/// The scene's own description, `S/scene.json`. It is metadata, not truth: what it says is
-/// shown (`report.html` says SIMULATED at the top), never used to compute anything.
-#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct SceneMeta {
-    /// True for a scene that `gs4city synth` simulated.
-    #[serde(default)]
-    pub simulated: bool,
-}
-
-impl SceneMeta {
-    /// The file name inside the scene folder.
-    pub const FILE: &'static str = "scene.json";
-
-    /// Reads `root/scene.json`; a scene without one gets the default (not simulated). A file
-    /// that is not such a JSON object is an error naming it.
-    pub fn read(root: &Path) -> Result<SceneMeta, SceneError> {
-        let path = root.join(Self::FILE);
-        let bytes = match std::fs::read(&path) {
-            Ok(b) => b,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(SceneMeta::default()),
-            Err(e) => {
-                return Err(SceneError {
-                    scene: root.to_path_buf(),
-                    why: format!("{}: {e}", Self::FILE),
-                });
-            }
-        };
-        serde_json::from_slice(&bytes).map_err(|e| SceneError {
-            scene: root.to_path_buf(),
-            why: format!("{}: {e}", Self::FILE),
-        })
-    }
 }
 
 impl Scene {
@@ -118,6 +149,7 @@ impl Scene {
             return Err(bad("no point_cloud.ply (the pre-trained 3DGS scene)".into()));
         }
         let dir = |name: &str| Some(root.join(name)).filter(|p| p.is_dir());
+        let meta = SceneMeta::read(root)?.unwrap_or_default();
         Ok(Scene {
             root: root.to_path_buf(),
             gml,
@@ -128,8 +160,18 @@ impl Scene {
             masks: dir("masks"),
             features: dir("features"),
             gt: dir("gt"),
-            meta: SceneMeta::read(root)?,
+            meta,
         })
+    }
+
+    /// Whether the scene declares itself SIMULATED (`scene.json`).
+    pub fn simulated(&self) -> bool {
+        self.meta.simulated
+    }
+
+    /// The split of `views` the scene declares ([`SceneMeta::split`]).
+    pub fn declared_split(&self, views: Vec<View>) -> Result<Split, SceneError> {
+        self.meta.split(&self.root, views)
     }
 
     /// The SAM list of view `stem` (`masks/<stem>.json`), where it exists.
@@ -180,6 +222,28 @@ impl Split {
         s
     }
 
+    /// Splits views sorted by name into the test views named in `names` (image names or
+    /// stems) and the training views; a name that matches no view is an error naming it.
+    pub fn declared(mut views: Vec<View>, names: &[String]) -> Result<Split, String> {
+        views.sort_by(|a, b| a.name.cmp(&b.name));
+        for n in names {
+            if !views.iter().any(|v| &v.name == n || &v.stem() == n) {
+                return Err(format!(
+                    "test view `{n}` is not an image of the COLMAP model"
+                ));
+            }
+        }
+        let mut s = Split::default();
+        for v in views {
+            if names.iter().any(|n| *n == v.name || *n == v.stem()) {
+                s.test.push(v)
+            } else {
+                s.train.push(v)
+            }
+        }
+        Ok(s)
+    }
+
     /// Every view, training views first.
     pub fn all(&self) -> impl Iterator<Item = &View> {
         self.train.iter().chain(&self.test)
@@ -215,6 +279,9 @@ pub struct ImportSpec {
     pub features: Option<PathBuf>,
     /// Copy the files instead of linking them.
     pub copy: bool,
+    /// Import into a folder that holds other files (not an earlier import's): the parts it
+    /// makes are replaced, the rest stays.
+    pub force: bool,
 }
 
 /// What [`import`] made: every part of the scene folder and where it points.
@@ -225,6 +292,8 @@ pub struct ImportReport {
     pub parts: Vec<(String, PathBuf)>,
     /// The parts that could not be found (the scene check names what they are for).
     pub missing: Vec<String>,
+    /// The folder held an earlier import, whose parts this one replaced.
+    pub reimported: bool,
 }
 
 /// The highest `point_cloud/iteration_N/point_cloud.ply` of a training output (or `N` itself).
@@ -260,21 +329,36 @@ fn cfg_field(model: &Path, name: &str) -> Option<String> {
 
 /// Builds the scene folder `out` (`docs/design.md`) from a 3DGS training output, the COLMAP
 /// folder it was trained from and the CityGML model, by symbolic links (or copies with
-/// [`ImportSpec::copy`]); nothing is renamed by hand. `out` must not exist or be empty. A part
-/// that cannot be found is listed in [`ImportReport::missing`], not an error: `gs4city check`
-/// then says what it is for.
+/// [`ImportSpec::copy`]); nothing is renamed by hand, and `out/scene.json` records what was
+/// linked (no test views: an imported capture trains on every view). `out` is a new or empty
+/// folder, or one an earlier import wrote (its parts are replaced and parts it no longer has are
+/// removed; `citymodel/alignment.json`, written by `gs4city align` after an import, stays unless
+/// this import brings one), or any folder with [`ImportSpec::force`]. A part that cannot be found
+/// is listed in [`ImportReport::missing`], not an error: `gs4city check` then says what it is for.
 pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError> {
     let bad = |why: String| SceneError {
         scene: out.to_path_buf(),
         why,
     };
-    if out.exists()
+    let nonempty = out.exists()
         && std::fs::read_dir(out)
             .map(|mut d| d.next().is_some())
-            .unwrap_or(true)
-    {
+            .unwrap_or(true);
+    // An earlier import's record (a scene.json that is not an import's, or none, is not one).
+    let earlier = match SceneMeta::read(out) {
+        Ok(m) => m.filter(|m| !m.imported.is_empty()),
+        Err(e) if spec.force => {
+            log::warn!("{e}: replaced (--force)");
+            None
+        }
+        Err(e) => return Err(e),
+    };
+    if nonempty && earlier.is_none() && !spec.force {
         return Err(bad(
-            "exists and is not empty: scene import writes a new folder".into(),
+            "exists and holds files that `scene import` did not write (no scene.json of an \
+             import): give a new --out folder, or --force to import into this one (the parts it \
+             links are replaced, other files stay)"
+                .into(),
         ));
     }
     let abs = |p: &Path| {
@@ -402,13 +486,32 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
             parts.push((name.into(), abs(p)?));
         }
     }
-    // Write: the folder, then one link (or copy) per part.
+    // Write: the folder, then one link (or copy) per part; an earlier import's parts that
+    // this one does not make are removed first (never the alignment: `gs4city align` writes
+    // it into the folder after an import).
     crate::fsutil::create_dir(&out.join("citymodel")).map_err(|e| bad(e.to_string()))?;
+    if let Some(old) = &earlier {
+        for part in old.imported.keys() {
+            if part != "citymodel/alignment.json" && !parts.iter().any(|(p, _)| p == part) {
+                remove_part(&out.join(part)).map_err(|e| bad(format!("{part}: {e}")))?;
+            }
+        }
+    }
+    // scene.json first: an interrupted import is imported again into the same folder.
+    let meta = SceneMeta {
+        simulated: false,
+        generator: "gs4city scene import".into(),
+        // A split the user declared by hand survives a second import.
+        test_views: earlier.as_ref().and_then(|m| m.test_views.clone()),
+        imported: parts.iter().cloned().collect(),
+    };
+    meta.write(out)?;
     for (part, src) in &parts {
         let dst = out.join(part);
         if let Some(parent) = dst.parent() {
             crate::fsutil::create_dir(parent).map_err(|e| bad(e.to_string()))?;
         }
+        remove_part(&dst).map_err(|e| bad(format!("{part}: {e}")))?;
         // alignment.json is always copied: it is edited and refined in place.
         let copy = spec.copy || part == "citymodel/alignment.json";
         if part == "point_cloud.ply" && !is_inria_ply(src) {
@@ -431,7 +534,18 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
         scene: out.to_path_buf(),
         parts,
         missing,
+        reimported: earlier.is_some(),
     })
+}
+
+/// Removes what lies at a part's place (a link, a file or a folder); nothing there is fine.
+fn remove_part(p: &Path) -> std::io::Result<()> {
+    match std::fs::symlink_metadata(p) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        Err(e) => Err(e),
+        Ok(m) if m.is_dir() => std::fs::remove_dir_all(p),
+        Ok(_) => std::fs::remove_file(p),
+    }
 }
 
 /// Whether `path` is an INRIA PLY (not a `.splat`, SPZ or compressed PLY, which [`import`]

@@ -30,7 +30,7 @@ pub enum VoteError {
     #[error(transparent)]
     IdMap(#[from] IdMapError),
     #[error("invalid option: {0}")]
-    Options(String),
+    Options(#[from] crate::check::OutOfRange),
     #[error(transparent)]
     Ply(#[from] crate::splat::PlyError),
     #[error("{path}: {n} Gaussians, but the contributions cache was built from {cache}")]
@@ -154,14 +154,13 @@ impl VoteOptions {
     /// Checks γ and the gate.
     pub fn validate(&self) -> Result<(), VoteError> {
         use crate::check::{End, non_negative, range};
-        self.gamma
-            .map_or(Ok(()), |g| {
-                range("gamma", g, End::Closed(-1.0), End::Closed(1.0))
-            })
-            .and_then(|()| non_negative("city_gate_m", self.city_gate_m))
-            .and_then(|()| non_negative("model_prior", self.model_prior))
-            .and_then(|()| non_negative("model_prior_m", self.model_prior_m))
-            .map_err(VoteError::Options)
+        if let Some(g) = self.gamma {
+            range("gamma", g, End::Closed(-1.0), End::Closed(1.0))?;
+        }
+        non_negative("city_gate_m", self.city_gate_m)?;
+        non_negative("model_prior", self.model_prior)?;
+        non_negative("model_prior_m", self.model_prior_m)?;
+        Ok(())
     }
 }
 

@@ -121,6 +121,8 @@ fn demo_associate_fuse_and_train_through_the_binary_give_measured_values() {
         &s("features"),
         "--sam",
         &s("masks"),
+        "--split",
+        &s("scene.json"),
         "--out",
         &p("assoc"),
     ]);
@@ -172,6 +174,8 @@ fn demo_associate_fuse_and_train_through_the_binary_give_measured_values() {
         &s("masks"),
         "--masks",
         &r("masks"),
+        "--split",
+        &s("scene.json"),
         "--out",
         &p("fuse"),
     ]);
@@ -216,6 +220,8 @@ fn demo_associate_fuse_and_train_through_the_binary_give_measured_values() {
         &p("fuse"),
         "--iterations",
         "300",
+        "--split",
+        &s("scene.json"),
         "--out",
         &p("train"),
     ]);

@@ -83,7 +83,7 @@ fn gs4city_ok(args: &[&str]) {
 
 fn export(run: &Path, out: &Path, extra: &[&str]) -> Output {
     Command::new(BIN)
-        .args(["-q", "export", "--format", "3dtiles", "--run"])
+        .args(["-q", "export", "--run"])
         .arg(run)
         .arg("--out")
         .arg(out)

@@ -274,49 +274,46 @@ fn bad_options_are_one_clear_line() {
         o.validate().unwrap_err().to_string().contains("recess_m"),
         "{o:?}"
     );
-    // The command line names the cue choices.
-    let out = Command::new(env!("CARGO_BIN_EXE_gs4city"))
-        .args([
-            "run",
-            "--scene",
-            "s",
-            "--out",
-            "o",
-            "--opening-cues",
-            "depth",
-        ])
-        .output()
-        .unwrap();
-    let e = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        !out.status.success() && e.contains("features, geometry, both"),
-        "{e}"
-    );
-    // m_view 0 of either stage is refused before any stage runs (nothing is written).
+    // The config file names the cue choices (one line naming the file, the line and the key).
     let dir =
         crate::common::temp_dir().join(format!("gs4city-openings-mview0-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
-    for (flag, want) in [
-        (
-            "--opening-views",
-            "m_view (--opening-views) must be at least 1",
-        ),
-        ("--min-views", "--min-views) must be ≥ 1"),
+    let cues = dir.join("cues.toml");
+    std::fs::write(&cues, "[openings]\ncues = \"depth\"\n").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_gs4city"))
+        .args(["run", "--scene", "s", "--out", "o", "--config"])
+        .arg(&cues)
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success()
+            && e.contains("cues.toml:2")
+            && e.contains("features, geometry, both"),
+        "{e}"
+    );
+    // m_view 0 of either stage is refused before any stage runs (nothing is written).
+    for (section, key, want) in [
+        ("openings", "m_view", "m_view must be ≥ 1, got 0"),
+        ("associate", "min_views", "min_views must be ≥ 1, got 0"),
     ] {
-        let out_dir = dir.join(flag.trim_start_matches('-'));
+        let config = dir.join(format!("{key}.toml"));
+        std::fs::write(&config, format!("[{section}]\n{key} = 0\n")).unwrap();
+        let out_dir = dir.join(key);
         let out = Command::new(env!("CARGO_BIN_EXE_gs4city"))
             .args(["run", "--scene"])
             .arg(dir.join("no-scene"))
             .arg("--out")
             .arg(&out_dir)
-            .args([flag, "0"])
+            .arg("--config")
+            .arg(&config)
             .output()
             .unwrap();
         let e = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success() && e.contains(want), "{flag}: {e}");
-        assert_eq!(e.trim().lines().count(), 1, "{flag}: {e}");
-        assert!(!out_dir.exists(), "{flag}: a run folder was written");
+        assert!(!out.status.success() && e.contains(want), "{key}: {e}");
+        assert_eq!(e.trim().lines().count(), 1, "{key}: {e}");
+        assert!(!out_dir.exists(), "{key}: a run folder was written");
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }

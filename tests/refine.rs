@@ -758,14 +758,15 @@ fn cli_refines_a_synthetic_scene() {
     let input = scene.join("citymodel/alignment.json");
     let (ok, log) = gs4city(&args(&input).iter().map(String::as_str).collect::<Vec<_>>());
     assert!(!ok && log.contains("input alignment"), "{log}");
-    // Refine options from a JSON file: unknown keys are errors naming the file.
-    let bad = dir.join("opts.json");
-    std::fs::write(&bad, r#"{"voxel_m": 0.5, "voxel": 1}"#).unwrap();
+    // Refine options from the config file's [refine] section: unknown keys are errors naming
+    // the file and the line.
+    let bad = dir.join("opts.toml");
+    std::fs::write(&bad, "[refine]\nvoxel_m = 0.5\nvoxel = 1\n").unwrap();
     let mut with_opts = args(&out);
-    with_opts.extend(["--options".to_string(), s(&bad)]);
+    with_opts.extend(["--config".to_string(), s(&bad)]);
     let (ok, log) = gs4city(&with_opts.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(
-        !ok && log.contains("opts.json") && log.contains("voxel"),
+        !ok && log.contains("opts.toml:3") && log.contains("voxel"),
         "{log}"
     );
     // Point-pair mode still works, and the two modes exclude each other.

@@ -680,6 +680,13 @@ pub(crate) fn run_without_masks(
     std::fs::remove_dir_all(s.join("masks")).unwrap();
     let _ = std::fs::remove_dir_all(s.join("features"));
     let r = dir.join("out");
+    // The segmentation's options of a run come from its config file.
+    let config = dir.join("segment.toml");
+    std::fs::write(
+        &config,
+        "[segment]\npoints_per_side = 4\npred_iou_thresh = 0.8\nstability_score_thresh = 0.6\n",
+    )
+    .unwrap();
     let out = gs4city(
         &[
             "run",
@@ -689,12 +696,8 @@ pub(crate) fn run_without_masks(
             r.to_str().unwrap(),
             "--model-dir",
             model.to_str().unwrap(),
-            "--segment-points-per-side",
-            "4",
-            "--segment-pred-iou-thresh",
-            "0.8",
-            "--segment-stability-score-thresh",
-            "0.6",
+            "--config",
+            config.to_str().unwrap(),
             "--test-every",
             "3",
         ],

@@ -75,14 +75,15 @@ struct Server {
 
 impl Server {
     fn start(run: &Path) -> Server {
-        Server::start_with(run, &[])
+        Server::start_with(&["--run", run.to_str().unwrap()])
     }
 
-    /// The server with extra options (`--max-splats N`).
-    fn start_with(run: &Path, extra: &[&str]) -> Server {
+    /// `gs4city view ARGS --port 0`.
+    fn start_with(args: &[&str]) -> Server {
         let mut child = Command::new(env!("CARGO_BIN_EXE_gs4city"))
-            .args(["view", run.to_str().unwrap(), "--port", "0"])
-            .args(extra)
+            .arg("view")
+            .args(args)
+            .args(["--port", "0"])
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()
@@ -804,6 +805,151 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
     }
 }
 
+/// `gs4city view --scene S` (no run) in headless Chromium: the page shows the scene in RGB
+/// without the run's buttons, and a real mouse click on a window shows the clicked point's scene
+/// coordinates and lists them — the point on the clicked Gaussian's splat surface, on the ray
+/// through the clicked pixel (within 1 cm of it, checked here from the page's camera matrix), and
+/// within the clicked Gaussian's reach (2σ + 5 cm) of its centre; the server's `/api/point` for
+/// the same camera and position answers the same point.
+#[test]
+fn a_click_in_view_scene_shows_the_point_in_headless_chromium() {
+    let test = "view::a_click_in_view_scene_shows_the_point_in_headless_chromium";
+    let tools = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/js");
+    if !tools.join("node_modules/playwright-core").is_dir() {
+        crate::common::skip(
+            test,
+            "tools/js/node_modules/playwright-core is missing (scripts/setup.sh runs npm ci in tools/js)",
+        );
+        return;
+    }
+    if !Path::new("/usr/bin/chromium").is_file() {
+        crate::common::skip(
+            test,
+            "/usr/bin/chromium is missing (scripts/setup.sh installs Debian's chromium)",
+        );
+        return;
+    }
+    let run = run_dir();
+    let t = truth(run);
+    let (_, g, eye, target) = window_shot(&t);
+    let scene = run.parent().unwrap().join("scene");
+    let srv = Server::start_with(&["--scene", scene.to_str().unwrap()]);
+    let (st, meta) = srv.get_json("/api/meta");
+    assert_eq!(st, 200);
+    assert!(meta["run"].is_null(), "{meta}");
+    let (st, _) = srv.get_json("/api/pick?i=0");
+    assert_eq!(st, 404, "no run: no hierarchy to pick");
+    let dir = run.parent().unwrap();
+    let spec = serde_json::json!({
+        "url": srv.url,
+        "eye": eye.to_array(),
+        "target": target.to_array(),
+        "click": t.pos[g].to_array(),
+        "queries": [],
+        "scene_only": true,
+        "screenshot": dir.join("view-scene.png"),
+        "width": 960,
+        "height": 640,
+    });
+    let spec_path = dir.join("click-scene-spec.json");
+    std::fs::write(&spec_path, spec.to_string()).unwrap();
+    let o = Command::new("node")
+        .arg(tools.join("view_click.mjs"))
+        .arg(&spec_path)
+        .current_dir(&tools)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "node: {stdout}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let r: Value = serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"));
+    assert!(r["error"].is_null(), "{r}");
+    assert!(r["status"].as_str().unwrap().contains("no run yet"), "{r}");
+    let p = &r["point"];
+    assert_eq!(p["hit"], true, "{r}");
+    assert_eq!(
+        p["buttons_shown"], false,
+        "the run's colour buttons are hidden: {r}"
+    );
+    let xyz: Vec<f64> = (0..3).map(|k| p["scene"][k].as_f64().unwrap()).collect();
+    let q = DVec3::new(xyz[0], xyz[1], xyz[2]);
+    // On the ray from the eye through the clicked Gaussian (the click is that Gaussian's pixel,
+    // rounded to a CSS pixel by the mouse: within 1 cm at this distance).
+    let ray = (t.pos[g] - eye).normalize();
+    let off = ((q - eye) - ray * (q - eye).dot(ray)).length();
+    assert!(
+        off < 0.01 * (t.pos[g] - eye).length(),
+        "{off} off the ray: {r}"
+    );
+    assert!(
+        (q - t.pos[g]).length() < 2.0 * t.sigma[g] + 0.05,
+        "{q} vs the clicked Gaussian at {} (σ {}): {r}",
+        t.pos[g],
+        t.sigma[g]
+    );
+    // Shown and listed with 4 decimals.
+    let text = p["text"].as_str().unwrap();
+    assert!(text.contains(&format!("{:.4}", q.x)), "{text}");
+    assert!(
+        p["list"]
+            .as_str()
+            .unwrap()
+            .contains(&format!("{:.4} {:.4} {:.4}", q.x, q.y, q.z))
+    );
+    // The API for the same camera and position: the same point.
+    let up: Vec<f64> = (0..3).map(|k| meta["up"][k].as_f64().unwrap()).collect();
+    let px = &r["pixel"];
+    let (st, j) = srv.get_json(&format!(
+        "/api/point?eye={},{},{}&target={},{},{}&up={},{},{}&fovy=50&width=960&height=640&x={}&y={}",
+        eye.x, eye.y, eye.z, target.x, target.y, target.z, up[0], up[1], up[2],
+        px[0].as_f64().unwrap(), px[1].as_f64().unwrap()
+    ));
+    assert_eq!(st, 200, "{j}");
+    let a: Vec<f64> = (0..3).map(|k| j["scene"][k].as_f64().unwrap()).collect();
+    assert!(
+        (DVec3::new(a[0], a[1], a[2]) - q).length() < 0.01,
+        "{j} vs {r}"
+    );
+}
+
+/// `/api/point` refuses what it cannot answer, each with its reason: a missing parameter, a
+/// view that is not the scene's, a position outside the image.
+#[test]
+fn point_api_names_what_is_wrong() {
+    let srv = Server::start(run_dir());
+    for (q, want) in [
+        ("x=1&y=1", "eye"),
+        ("view=nope&x=1&y=1", "nope"),
+        (
+            "eye=0,0,0&target=0,0,1&up=0,1,0&fovy=50&width=10&height=10&x=11&y=1",
+            "outside",
+        ),
+        (
+            "eye=0,0,0&target=0,0,1&up=0,1,0&fovy=500&width=10&height=10&x=1&y=1",
+            "fovy",
+        ),
+        (
+            "eye=0,0,0&target=0,0,0&up=0,1,0&fovy=50&width=10&height=10&x=1&y=1",
+            "eye equals target",
+        ),
+        (
+            "eye=0,0,nan&target=0,0,1&up=0,1,0&fovy=50&width=10&height=10&x=1&y=1",
+            "eye",
+        ),
+    ] {
+        let (st, j) = srv.get_json(&format!("/api/point?{q}"));
+        assert_eq!(st, 400, "{q}: {j}");
+        assert!(j["error"].as_str().unwrap().contains(want), "{q}: {j}");
+    }
+    // A view of the scene: the centre pixel of its first view hits something or says why not.
+    let (st, j) = srv.get_json("/api/point?view=orbit_000&x=10.5&y=10.5");
+    assert_eq!(st, 200, "{j}");
+    assert!(j["hit"].is_boolean(), "{j}");
+}
+
 /// `/api/splats.bin` (version 3) holds what Spark draws: per Gaussian the centre, σ, the three
 /// activated scales and the unit quaternion in Spark's `x y z w` order, checked against the
 /// raw `semantic.ply` columns (exp of the log scales, the quaternion normalised here), and, the
@@ -859,7 +1005,7 @@ fn splats_binary_holds_centres_scales_and_rotations() {
 fn a_run_beyond_the_budget_is_served_as_a_coarse_set_standing_for_its_gaussians() {
     let run = run_dir();
     let t = truth(run);
-    let srv = Server::start_with(run, &["--max-splats", "20000"]);
+    let srv = Server::start_with(&["--run", run.to_str().unwrap(), "--max-splats", "20000"]);
     let (status, meta) = srv.get("/api/meta");
     assert_eq!(status, 200);
     let meta: Value = serde_json::from_slice(&meta).unwrap();
@@ -989,7 +1135,8 @@ fn vendored_renderer_is_the_npm_package() {
         };
         assert!(
             text.lines()
-                .any(|l| l.starts_with("Content-Type: ") && l.contains(ct)),
+                // Header names are case-insensitive (RFC 9110 §5.1); hyper writes them lower-case.
+                .any(|l| l.to_ascii_lowercase().starts_with("content-type: ") && l.contains(ct)),
             "{url}: not {ct}"
         );
     }

@@ -59,7 +59,9 @@ use crate::npy::{self, NpyError};
 #[derive(Debug, thiserror::Error)]
 pub enum AssociateError {
     #[error("invalid option: {0}")]
-    Options(String),
+    Options(#[from] crate::check::OutOfRange),
+    #[error("two views share the stem `{0}`")]
+    SharedStem(String),
     #[error("{path}: {why}")]
     Invalid { path: PathBuf, why: String },
     #[error("{path}: mask {index}: bad RLE: {err}")]
@@ -206,42 +208,41 @@ impl Default for AssociateOptions {
 impl AssociateOptions {
     /// Checks the ranges.
     pub fn validate(&self) -> Result<(), AssociateError> {
-        use crate::check::{End, range};
-        let bad = |s: String| Err(AssociateError::Options(s));
-        range("tau_geo", self.tau_geo, End::Closed(0.0), End::Open(1.0))
-            .and_then(|_| range("tau_sim", self.tau_sim, End::Closed(-1.0), End::Open(1.0)))
-            .and_then(|_| {
-                range(
-                    "far_field_m",
-                    self.far_field_m,
-                    End::Open(0.0),
-                    End::Unbounded,
-                )
-            })
-            .map_err(AssociateError::Options)?;
+        use crate::check::{End, at_least, non_negative, range};
+        range("tau_geo", self.tau_geo, End::Closed(0.0), End::Open(1.0))?;
+        range("tau_sim", self.tau_sim, End::Closed(-1.0), End::Open(1.0))?;
+        range(
+            "far_field_m",
+            self.far_field_m,
+            End::Open(0.0),
+            End::Unbounded,
+        )?;
         let w = &self.weighted;
-        if !((0.0..1.0).contains(&w.min_share) && w.min_mass >= 0.0 && w.min_mass.is_finite()) {
-            return bad(format!(
-                "weighted limits out of range: min_share {} (0 ≤ · < 1), min_mass {} (≥ 0)",
-                w.min_share, w.min_mass
-            ));
+        range(
+            "weighted.min_share",
+            w.min_share,
+            End::Closed(0.0),
+            End::Open(1.0),
+        )?;
+        non_negative("weighted.min_mass", w.min_mass)?;
+        at_least("join_views", self.join_views as usize, 1)?;
+        at_least("min_views", self.min_views, 1)?;
+        if let Some(f) = self.fill {
+            range("fill", f, End::Open(0.0), End::Closed(1.0))?;
         }
         let p = &self.projected;
-        if self.join_views == 0 {
-            return bad("join_views must be ≥ 1".into());
-        }
-        if self.min_views == 0 {
-            return bad("min_views (m_view, --min-views) must be ≥ 1".into());
-        }
-        if let Some(f) = self.fill {
-            range("fill", f, End::Open(0.0), End::Closed(1.0)).map_err(AssociateError::Options)?;
-        }
-        if !(p.front_fraction > 0.0 && p.front_fraction <= 1.0) || p.grid == 0 || p.grid > 4096 {
-            return bad(format!(
-                "projected limits out of range: front_fraction {} (0 < · ≤ 1), grid {} (1–4096)",
-                p.front_fraction, p.grid
-            ));
-        }
+        range(
+            "projected.front_fraction",
+            p.front_fraction,
+            End::Open(0.0),
+            End::Closed(1.0),
+        )?;
+        range(
+            "projected.grid",
+            p.grid,
+            End::Closed(1.0),
+            End::Closed(4096.0),
+        )?;
         Ok(())
     }
 }
@@ -446,20 +447,12 @@ fn views_in_order<'a>(
     opts: &AssociateOptions,
 ) -> Result<Vec<&'a View>, AssociateError> {
     opts.validate()?;
-    if !(inp.scale.is_finite() && inp.scale > 0.0) {
-        return Err(AssociateError::Options(format!(
-            "the alignment scale must be finite and > 0, got {}",
-            crate::numfmt::Num(inp.scale)
-        )));
-    }
+    crate::check::positive("the alignment scale", inp.scale)?;
     let mut views: Vec<&View> = inp.views.iter().collect();
     views.sort_by(|a, b| a.name.cmp(&b.name));
     for w in views.windows(2) {
         if w[0].stem() == w[1].stem() {
-            return Err(AssociateError::Options(format!(
-                "two views share the stem `{}`",
-                w[0].stem()
-            )));
+            return Err(AssociateError::SharedStem(w[0].stem()));
         }
     }
     Ok(views)

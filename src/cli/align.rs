@@ -47,9 +47,8 @@ pub struct AlignArgs {
     /// With --refine: start from this alignment.json instead of the citymodel folder's.
     #[arg(long, value_name = "JSON", requires = "refine")]
     initial: Option<PathBuf>,
-    /// With --refine: a JSON object of refine options (keys of summary.json's `options`).
-    #[arg(long, value_name = "JSON", requires = "refine")]
-    options: Option<PathBuf>,
+    #[command(flatten)]
+    config: super::groups::ConfigArg,
     /// With --refine: rigid (6 DoF), keep the initial scale.
     #[arg(long, requires = "refine")]
     rigid: bool,
@@ -267,15 +266,8 @@ fn run_refine(args: &AlignArgs) -> anyhow::Result<()> {
     let (Some(cm_dir), Some(ply)) = (&args.citymodel, &args.ply) else {
         bail!("--refine needs --citymodel DIR and --ply FILE");
     };
-    let mut opts = match &args.options {
-        None => RefineOptions::default(),
-        Some(p) => {
-            let text =
-                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-            serde_json::from_str(&text)
-                .with_context(|| format!("{}: not refine options", p.display()))?
-        }
-    };
+    // The refinement's options: the config file's [refine] section (docs/config.md).
+    let mut opts: RefineOptions = args.config.load()?.refine;
     if args.rigid {
         opts.estimate_scale = false;
     }

@@ -14,10 +14,10 @@ pub struct CheckArgs {
     /// A scene without citymodel/alignment.json is fine (`run --local-origin`).
     #[arg(long)]
     pub local_origin: bool,
-    /// Largest plausible distance (metres, lower quartile) between opaque Gaussian centres and
-    /// the nearest city-model surface; beyond it the alignment is reported as off.
-    #[arg(long, default_value_t = CheckOptions::default().max_offset_m)]
-    pub max_offset: f64,
+    #[command(flatten)]
+    pub config: super::groups::ConfigArg,
+    #[command(flatten, next_help_heading = "The alignment verdict (config [check])")]
+    pub tuning: super::groups::CheckTuning,
     /// Write the report as JSON to this file.
     #[arg(long, value_name = "FILE")]
     pub json: Option<PathBuf>,
@@ -26,9 +26,10 @@ pub struct CheckArgs {
 impl CheckArgs {
     /// Validated options.
     pub fn options(&self) -> anyhow::Result<CheckOptions> {
+        let t = super::groups::merged(&self.config.load()?.check, &self.tuning);
         let o = CheckOptions {
             local_origin: self.local_origin,
-            max_offset_m: self.max_offset,
+            max_offset_m: t.max_offset,
             ..CheckOptions::default()
         };
         o.validate()?;

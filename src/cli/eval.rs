@@ -11,7 +11,7 @@ use crate::layout::{Mode, Summary};
 use crate::selection::{MaskRule, TextOptions};
 
 /// Evaluate predicted class maps against ground truth (coarse and fine, paper and dataset level).
-#[derive(Debug, Clone, clap::Args, serde::Serialize)]
+#[derive(Debug, Clone, clap::Args)]
 pub struct EvalArgs {
     /// Folder of predictions `<stem>.class.npy` (int32 H×W, −1 = no class).
     #[arg(long, value_name = "DIR", required_unless_present = "by_query")]
@@ -24,20 +24,21 @@ pub struct EvalArgs {
     /// (with --by-query: the run's test views).
     #[arg(long, value_delimiter = ',')]
     pub views: Vec<String>,
-    /// Query-driven evaluation of run R (paper §4): the coarse level from the mask of the
-    /// "building" selection, each fine class from the mask of its own selection.
-    #[arg(long, value_name = "R", conflicts_with = "pred")]
-    pub by_query: Option<PathBuf>,
+    /// Query-driven evaluation of the run given with --run (paper §4): the coarse level from
+    /// the mask of the "building" selection, each fine class from the mask of its own selection.
+    #[arg(long, conflicts_with = "pred", requires = "run")]
+    pub by_query: bool,
+    /// With --by-query: the run (`gs4city run --scene S --out R`).
+    #[arg(long, value_name = "R", requires = "by_query")]
+    pub run: Option<PathBuf>,
     /// With --by-query: the scene folder; default: the one in R/run.json.
-    #[arg(long, value_name = "DIR", requires = "by_query")]
+    #[arg(long, value_name = "S", requires = "by_query")]
     pub scene: Option<PathBuf>,
     /// With --by-query: vote (R/lift) or learned (R/train); default: learned when R/train exists.
     #[arg(long, requires = "by_query")]
-    #[serde(skip)]
     pub mode: Option<Mode>,
     /// With --by-query: the pixel rule of the masks.
     #[arg(long, default_value = "argmax")]
-    #[serde(skip)]
     pub mask_rule: MaskRule,
     /// Output folder (metrics.json, summary.json; with --by-query: metrics_by_query.json).
     #[arg(long, value_name = "DIR")]
@@ -46,7 +47,7 @@ pub struct EvalArgs {
 
 /// Runs the evaluation, writes `summary.json`, prints warnings and the tables.
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
-    if let Some(r) = &args.by_query {
+    if let (true, Some(r)) = (args.by_query, &args.run) {
         return run_by_query(args, r);
     }
     let (Some(pred), Some(gt)) = (&args.pred, &args.gt) else {
@@ -78,7 +79,14 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
 fn run_by_query(args: &EvalArgs, run: &std::path::Path) -> anyhow::Result<()> {
     let t = std::time::Instant::now();
     let _lock = super::query::lock_run(run)?;
-    let sr = super::query::open_run(run, args.scene.as_deref(), args.mode)?;
+    let sr = super::query::open_run(
+        &super::groups::RunRef {
+            run: run.to_path_buf(),
+            scene: args.scene.clone(),
+            mode: args.mode,
+        },
+        true,
+    )?;
     let gt =
         match &args.gt {
             Some(g) => g.clone(),

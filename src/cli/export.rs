@@ -5,23 +5,12 @@ use std::collections::BTreeSet;
 use std::path::PathBuf;
 
 use anyhow::{Context, bail};
-use clap::{Args, Subcommand, ValueEnum};
+use clap::{Args, ValueEnum};
 
 use crate::citymodel::CitymodelSummary;
-use crate::layout::{Mode, Stage, Summary};
+use crate::layout::{Stage, Summary};
 use crate::query::ColorBy;
 use crate::tiles3d::{self, TilesOptions};
-
-#[derive(Debug, Subcommand)]
-pub enum ExportCommand {
-    /// Export a finished run (or a --where selection of it) as a georeferenced 3D Tiles 1.1
-    /// tileset: glTF tiles with KHR_gaussian_splatting, per-splat building / surface / part
-    /// feature ids (EXT_mesh_features) and property tables (EXT_structural_metadata).
-    #[command(
-        after_help = "Example:\n  gs4city export --run R --format 3dtiles --out T\n  gs4city export --run R --format 3dtiles --where 'class=Building' --color-by class --crs EPSG:25832 --out T"
-    )]
-    Export(ExportArgs),
-}
 
 /// The export formats.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -33,18 +22,10 @@ pub enum Format {
 
 #[derive(Debug, Args)]
 pub struct ExportArgs {
-    /// A finished run folder (`gs4city run --scene S --out R`).
-    #[arg(long, value_name = "R")]
-    pub run: PathBuf,
-    /// The scene folder the run was made from; default: the one recorded in R/run.json.
-    #[arg(long, value_name = "DIR")]
-    pub scene: Option<PathBuf>,
-    /// Which per-Gaussian labels: `vote` (R/lift) or `learned` (R/train); default: learned when
-    /// R/train/gaussians.npy exists.
-    #[arg(long)]
-    pub mode: Option<Mode>,
+    #[command(flatten)]
+    pub run: super::groups::RunRef,
     /// The output format.
-    #[arg(long, value_enum)]
+    #[arg(long, value_enum, default_value = "3dtiles")]
     pub format: Format,
     /// Export only the Gaussians this selection holds (the query language of `gs4city query
     /// --where`, docs/query.md); default: every Gaussian.
@@ -78,7 +59,7 @@ fn run_crs(a: &ExportArgs, scene: &crate::scene::Scene) -> anyhow::Result<String
     if let Some(c) = &a.crs {
         return Ok(c.clone());
     }
-    let dir = Stage::Citymodel.path(&a.run);
+    let dir = Stage::Citymodel.path(&a.run.run);
     let names: BTreeSet<String> = if dir.join("summary.json").is_file() {
         let s = CitymodelSummary::read(&dir)
             .with_context(|| format!("reading the city model's CRS from {}", dir.display()))?;
@@ -106,18 +87,18 @@ fn run_crs(a: &ExportArgs, scene: &crate::scene::Scene) -> anyhow::Result<String
     }
 }
 
-pub fn run(cmd: &ExportCommand) -> anyhow::Result<()> {
-    let ExportCommand::Export(a) = cmd;
+pub fn run(a: &ExportArgs) -> anyhow::Result<()> {
     let Format::Tiles3d = a.format;
     if a.max_splats == 0 {
         bail!("--max-splats must be at least 1, got 0");
     }
-    let _lock = super::query::lock_run(&a.run)?;
-    let sr = super::query::open_run(&a.run, a.scene.as_deref(), a.mode)?;
+    let _lock = super::query::lock_run(&a.run.run)?;
+    super::query::check_finished(&a.run.run, a.run.scene.as_deref(), a.run.mode, false)?;
+    let sr = super::query::open_run(&a.run, false)?;
     let crs = run_crs(a, &sr.scene)?;
     let georef = crate::crs::Georef::new(&crs)?;
     // The run's alignment; a merged tile plan's is its scene's.
-    let apath = Stage::Citymodel.path(&a.run).join("alignment.json");
+    let apath = Stage::Citymodel.path(&a.run.run).join("alignment.json");
     let apath = match (&sr.scene.alignment, apath.is_file()) {
         (Some(scene_alignment), false) => scene_alignment.clone(),
         _ => apath,

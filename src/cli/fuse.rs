@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use anyhow::bail;
 use clap::Args;
 
-use crate::fuse::{self, FuseOptions};
-use crate::scene::Split;
+use super::groups::{ConfigArg, FuseTuning, SplitArgs, merged};
+use crate::fuse;
 use crate::{colmap, semantics};
 
 #[derive(Debug, Args)]
@@ -32,30 +32,26 @@ pub struct FuseArgs {
     /// The masks stage's folder (kept masks; snapping only considers masks it dropped).
     #[arg(long)]
     masks: Option<PathBuf>,
-    /// No city-part snapping (by default windows/doors follow the image's own masks where the
-    /// raycast outline disagrees; that needs --sam and --masks).
-    #[arg(long)]
-    no_snap: bool,
-    /// Every N-th view (sorted by name) is a test view and is not fused (3DGS --eval: 8).
-    #[arg(long, default_value_t = 8)]
-    test_every: usize,
+    #[command(flatten)]
+    split: SplitArgs,
+    #[command(flatten)]
+    config: ConfigArg,
+    #[command(flatten, next_help_heading = "Fusion (config [fuse])")]
+    tuning: FuseTuning,
     /// Output folder.
     #[arg(long)]
     out: PathBuf,
 }
 
 pub fn run(args: &FuseArgs) -> anyhow::Result<()> {
-    let opts = FuseOptions {
-        snap: !args.no_snap,
-        ..Default::default()
-    };
-    if !args.no_snap && (args.sam.is_none() || args.masks.is_none()) {
+    let opts = merged(&args.config.load()?.fuse, &args.tuning).options();
+    if opts.snap && (args.sam.is_none() || args.masks.is_none()) {
         bail!(
             "city-part snapping needs --sam (the scene's SAM lists) and --masks (the kept masks); \
              give both, or --no-snap"
         );
     }
-    let split = Split::new(colmap::read_model(&args.colmap)?, args.test_every);
+    let split = args.split.split(colmap::read_model(&args.colmap)?)?;
     let entities = semantics::read(&args.citymodel.join("semantics.json"))?;
     let s = fuse::run(
         &fuse::FuseInputs {

@@ -5,47 +5,29 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::Args;
 
+use super::groups::{ConfigArg, PriorTuning, SplitArgs, VoteTuning, merged};
 use crate::cache::Cache;
 use crate::idmap::LabelMaps;
 use crate::labels::LabelTable;
-use crate::lift::{self, LiftOptions};
+use crate::lift;
 use crate::scene::Split;
 use crate::semantics;
 use crate::{classes, colmap};
 
 #[derive(Debug, Args)]
 pub struct LiftArgs {
-    #[command(flatten)]
+    #[command(flatten, next_help_heading = "Inputs")]
     src: LabelSourceArgs,
-    /// Background bias γ in [-1, 1] (FlashSplat), added to the normalised background vote.
-    /// Default: −1 with fused (mask) supervision, −0.5 with the city model alone.
-    #[arg(long, allow_negative_numbers = true)]
-    gamma: Option<f32>,
-    /// Depth gate of city votes in metres: a Gaussian more than this in front of the city
-    /// surface its pixel's ray hits takes no vote from that surface's label (needs the raycast's
-    /// depth: --raycast, or --depth with --fuse); 0 = off.
-    #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]
-    city_gate_m: f32,
-    /// No centre gate of city votes: without this, a city-labelled pixel gives no vote to a
-    /// Gaussian whose centre projects onto a city label of another class in the same view (a
-    /// wall Gaussian straddling a door's outline takes no door votes); part of the depth gate
-    /// (off with it).
-    #[arg(long)]
-    no_centre_gate: bool,
-    /// Weight of the city-model prior in 3D: each Gaussian within --model-prior-m of a
-    /// city-model triangle gets one vote for that triangle's label, of this share of the median
-    /// Gaussian's vote weight (well-seen Gaussians outweigh it, barely seen ones follow the
-    /// model); 0 = off.
-    #[arg(long, default_value_t = crate::vote::MODEL_PRIOR)]
-    model_prior: f32,
-    /// Reach of the city-model prior in metres.
-    #[arg(long, default_value_t = crate::vote::MODEL_PRIOR_M)]
-    model_prior_m: f32,
-    /// Every N-th view (sorted by name) is a test view, not voted on (3DGS --eval: 8); 0 = none.
-    #[arg(long, default_value_t = 8)]
-    test_every: usize,
+    #[command(flatten)]
+    split: SplitArgs,
+    #[command(flatten)]
+    config: ConfigArg,
+    #[command(flatten, next_help_heading = "Vote (config [vote])")]
+    vote: VoteTuning,
+    #[command(flatten, next_help_heading = "City-model prior (config [prior])")]
+    prior: PriorTuning,
     /// Output folder.
-    #[arg(long)]
+    #[arg(long, help_heading = "Outputs")]
     out: PathBuf,
 }
 
@@ -92,13 +74,9 @@ pub(super) struct Loaded {
 }
 
 impl LabelSourceArgs {
-    /// Reads the views (split every `test_every`-th), the cache, the hierarchy table and the
-    /// label source.
-    pub(super) fn load(&self, test_every: usize) -> anyhow::Result<Loaded> {
-        let split = Split::new(colmap::read_model(&self.colmap)?, test_every);
-        if split.train.is_empty() {
-            bail!("no training views: every view is a test view (--test-every 1?)");
-        }
+    /// Reads the views (split by `split`), the cache, the hierarchy table and the label source.
+    pub(super) fn load(&self, split: &SplitArgs) -> anyhow::Result<Loaded> {
+        let split = split.split(colmap::read_model(&self.colmap)?)?;
         let cache = Cache::open(&self.cache)
             .with_context(|| format!("opening the contributions cache {}", self.cache.display()))?;
         let entities = semantics::read(&self.citymodel.join("semantics.json"))?;
@@ -146,15 +124,12 @@ impl Loaded {
 }
 
 pub fn run(args: &LiftArgs) -> anyhow::Result<()> {
-    let opts = LiftOptions {
-        gamma: args.gamma,
-        city_gate_m: args.city_gate_m,
-        centre_gate: !args.no_centre_gate,
-        model_prior: args.model_prior,
-        model_prior_m: args.model_prior_m,
-    };
-    opts.validate()?;
-    let l = args.src.load(args.test_every)?;
+    let cfg = args.config.load()?;
+    let opts = super::groups::vote_options(
+        &merged(&cfg.vote, &args.vote),
+        &merged(&cfg.prior, &args.prior),
+    )?;
+    let l = args.src.load(&args.split)?;
     let s = lift::run(&l.inputs(&args.src.ply), &opts, &args.out)?;
     println!(
         "lifted labels into {} Gaussians ({} assigned) from {} training views: vote {:.2} s (load {:.2} s, accumulate {:.2} s, assign {:.3} s); {} test-view maps → {}",

@@ -5,23 +5,16 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 use clap::Args;
 
+use super::groups::RunRef;
 use crate::citygml::Level;
-use crate::layout::Mode;
+use crate::layout::{Mode, Stage};
 use crate::query::{self, QueryOptions, Request, Views};
 use crate::selection::{self, Expr, MaskRule, SemanticRun, TextOptions};
 
 #[derive(Debug, Args)]
 pub struct QueryArgs {
-    /// A finished run folder (`gs4city run --scene S --out R`).
-    #[arg(long, value_name = "R")]
-    pub run: PathBuf,
-    /// The scene folder the run was made from; default: the one recorded in R/run.json.
-    #[arg(long, value_name = "DIR")]
-    pub scene: Option<PathBuf>,
-    /// Which per-Gaussian labels: `vote` (R/lift) or `learned` (R/train); default: learned when
-    /// R/train/gaussians.npy exists.
-    #[arg(long)]
-    pub mode: Option<Mode>,
+    #[command(flatten)]
+    pub run: RunRef,
     /// A CityGML class with its descendants (`Building` selects its surfaces and openings;
     /// 2.0 and 3.0 names, e.g. Window = WindowSurface).
     #[arg(long, value_name = "NAME")]
@@ -100,6 +93,11 @@ pub struct QueryArgs {
     pub out: PathBuf,
 }
 
+/// The record of run `run` (`R/run.json`), where it has one.
+fn record(run: &Path) -> Option<crate::run::store::RunRecord> {
+    crate::fsutil::read_json(&run.join("run.json")).ok()
+}
+
 /// The scene folder of run `run`: `scene`, else the one recorded in `R/run.json`.
 pub(crate) fn scene_of(run: &Path, scene: Option<&Path>) -> anyhow::Result<PathBuf> {
     if let Some(s) = scene {
@@ -122,17 +120,81 @@ pub(crate) fn lock_run(run: &Path) -> anyhow::Result<Option<crate::lock::FolderL
     Ok(crate::lock::FolderLock::shared(run)?)
 }
 
-/// Loads a run for queries.
-pub(crate) fn open_run(
+/// What a stage's output is to a reader of the run.
+fn stage_role(s: Stage) -> &'static str {
+    match s {
+        Stage::Citymodel => "the city model's hierarchy",
+        Stage::Render => "the contributions cache",
+        Stage::Lift => "the vote's labels",
+        Stage::Train => "the learned labels (--mode learned)",
+        _ => "its output",
+    }
+}
+
+/// Checks that run `run` holds what a reader needs (the city model, the mode's labels and,
+/// with `cache`, the contributions cache): a missing one is named with the stages the run
+/// completed and the command that resumes it (`R/run.json` knows what ran).
+pub(crate) fn check_finished(
     run: &Path,
     scene: Option<&Path>,
     mode: Option<Mode>,
-) -> anyhow::Result<SemanticRun> {
+    cache: bool,
+) -> anyhow::Result<()> {
     if !run.is_dir() {
-        bail!("--run {}: not a directory", run.display());
+        bail!(
+            "--run {}: not a run folder (make one with `gs4city run --scene S --out {}`)",
+            run.display(),
+            run.display()
+        );
     }
-    let scene = scene_of(run, scene)?;
-    Ok(SemanticRun::open(run, &scene, mode)?)
+    let mode = mode.unwrap_or_else(|| Mode::default_for(run));
+    let mut needs = vec![(Stage::Citymodel, "semantics.json")];
+    if cache {
+        needs.push((Stage::Render, "summary.json"));
+    }
+    needs.push((mode.stage(), "gaussians.npy"));
+    let Some((missing, file)) = needs
+        .into_iter()
+        .find(|(s, f)| !s.path(run).join(f).is_file())
+    else {
+        return Ok(());
+    };
+    let rec = record(run);
+    let done: Vec<&str> = Stage::ALL
+        .iter()
+        .filter(|s| {
+            rec.as_ref().is_some_and(|r| r.stages.contains_key(s.dir())) && s.path(run).is_dir()
+        })
+        .map(|s| s.dir())
+        .collect();
+    let scene = scene
+        .map(Path::to_path_buf)
+        .or_else(|| rec.as_ref().map(|r| r.scene.clone()))
+        .map_or_else(|| "S".to_string(), |p| p.display().to_string());
+    let how = match mode {
+        Mode::Learned if missing == Stage::Train => " --mode learned",
+        _ => "",
+    };
+    bail!(
+        "run {} has not finished: stage {} ({}, {}) is missing{}; `gs4city run --scene {scene} --out {}{how}` resumes the run",
+        run.display(),
+        missing.dir(),
+        stage_role(missing),
+        missing.path(run).join(file).display(),
+        if done.is_empty() {
+            " (no stage has completed)".to_string()
+        } else {
+            format!(" (complete: {})", done.join(", "))
+        },
+        run.display()
+    )
+}
+
+/// Loads a run for queries, after [`check_finished`].
+pub(crate) fn open_run(r: &RunRef, cache: bool) -> anyhow::Result<SemanticRun> {
+    check_finished(&r.run, r.scene.as_deref(), r.mode, cache)?;
+    let scene = scene_of(&r.run, r.scene.as_deref())?;
+    Ok(SemanticRun::open(&r.run, &scene, r.mode)?)
 }
 
 fn parse_level(s: &str, flag: &str) -> anyhow::Result<Level> {
@@ -249,6 +311,87 @@ fn request(a: &QueryArgs) -> anyhow::Result<(Request, Vec<Part>)> {
     Ok((Request::Select(expr), parts))
 }
 
+/// A text term that matched nothing (its best relevancy below the threshold, or free text
+/// nearer to "object" than to any city word): the query's outputs are written, and the
+/// command ends with [`NO_MATCH_STATUS`] (docs/query.md, "Exit status").
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct NoMatch(pub String);
+
+/// The exit status of a text query that matched nothing (1: an error, 2: a usage error).
+pub const NO_MATCH_STATUS: u8 = 3;
+
+/// The city model's CRS name of run `run` (the srsName its CityGML names, when one).
+pub(crate) fn run_crs(run: &Path) -> Option<String> {
+    use crate::layout::Summary;
+    let s = crate::citymodel::CitymodelSummary::read(&Stage::Citymodel.path(run)).ok()?;
+    let names: std::collections::BTreeSet<String> =
+        s.files.iter().filter_map(|f| f.srs_name.clone()).collect();
+    (names.len() == 1).then(|| names.into_iter().next().expect("one name"))
+}
+
+/// Prints what the free-text terms resolved to and which of their words that stands for.
+fn report_free_text(sel: &query::SelectionFile) {
+    for f in &sel.free_text {
+        match &f.resolved {
+            Some(c) => {
+                eprintln!(
+                    "free text \"{}\" → {c} (cosine {:.3}, margin {:.3} ≥ {:.2}); words used: {}",
+                    f.query,
+                    f.cosine,
+                    f.margin,
+                    f.threshold,
+                    quoted(&f.used)
+                );
+                if !f.ignored.is_empty() {
+                    eprintln!(
+                        "warning: free text \"{}\": {} not used — a free-text term stands for one prompt, class or attribute; combine terms with --where (e.g. 'text(\"windows\") and measuredHeight > 15'; docs/query.md)",
+                        f.query,
+                        quoted(&f.ignored)
+                    );
+                }
+            }
+            None => eprintln!(
+                "free text \"{}\": no match (nearest: {}, cosine {:.3}; margin over \"{}\" {:.3} < {:.2})",
+                f.query, f.best, f.cosine, f.canonical, f.margin, f.threshold
+            ),
+        }
+    }
+}
+
+fn quoted(words: &[String]) -> String {
+    if words.is_empty() {
+        return "none".into();
+    }
+    words
+        .iter()
+        .map(|w| format!("\"{w}\""))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// The text terms that matched nothing, in one line each.
+fn unmatched(sel: &query::SelectionFile) -> Vec<String> {
+    let mut out: Vec<String> = sel
+        .free_text
+        .iter()
+        .filter(|f| f.resolved.is_none())
+        .map(|f| format!("free text \"{}\" resolves to nothing", f.query))
+        .collect();
+    out.extend(sel.text.iter().filter(|t| t.labels_matched == 0).map(|t| {
+        format!(
+            "text \"{}\": best relevancy {} < {}",
+            t.query,
+            t.best
+                .map_or("none (no label has a feature)".into(), |b| format!(
+                    "{b:.3}"
+                )),
+            t.threshold
+        )
+    }));
+    out
+}
+
 pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
     let (req, parts) = request(a)?;
     let text = TextOptions {
@@ -264,6 +407,7 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
         ["none"] => Views::None,
         _ => Views::Named(a.views.clone()),
     };
+    let needs_cache = !a.pick.is_empty() || views != Views::None;
     let opts = QueryOptions {
         views,
         export: a.export,
@@ -276,31 +420,20 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
         text,
         sqlite: !a.no_sqlite,
     };
-    let _lock = lock_run(&a.run)?;
-    let sr = open_run(&a.run, a.scene.as_deref(), a.mode)?;
+    let _lock = lock_run(&a.run.run)?;
+    let sr = open_run(&a.run, needs_cache)?;
     // Each flag's part on its own first: an error names the flag and its own text.
     for (flag, text, expr) in &parts {
         sr.select_as(flag, text, expr, opts.text)?;
     }
     let s = query::run(&sr, &req, &opts, &a.out)?;
+    // Messages on stderr, the result (data) once on stdout.
     for w in &s.warnings {
         eprintln!("warning: {w}");
     }
-    let sel: serde_json::Value = crate::fsutil::read_json(&a.out.join("selection.json"))?;
-    for f in sel["free_text"].as_array().into_iter().flatten() {
-        if let (Some(k), Some(n)) = (
-            f["resolved"]["kind"].as_str(),
-            f["resolved"]["name"].as_str(),
-        ) {
-            println!(
-                "free text \"{}\" → {k} {n} (cosine {:.3})",
-                f["query"].as_str().unwrap_or_default(),
-                f["cosine"].as_f64().unwrap_or(f64::NAN)
-            );
-        }
-    }
-    if let Some(p) = sel.get("pick").filter(|p| !p.is_null()) {
-        let p: query::Pick = serde_json::from_value(p.clone())?;
+    let sel: query::SelectionFile = crate::fsutil::read_json(&a.out.join("selection.json"))?;
+    report_free_text(&sel);
+    if let Some(p) = &sel.pick {
         println!(
             "pixel ({}, {}) of {}: label {} ({}{}), alpha {:.3}",
             p.x,
@@ -314,6 +447,24 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
                 .unwrap_or_default(),
             p.alpha
         );
+        match (p.point, p.geo) {
+            (Some(sp), geo) => {
+                println!(
+                    "  point (scene frame): {:.4} {:.4} {:.4}",
+                    sp[0], sp[1], sp[2]
+                );
+                if let Some(g) = geo {
+                    println!(
+                        "  point ({}): {:.3} {:.3} {:.3}",
+                        run_crs(&a.run.run).unwrap_or_else(|| "the city model's CRS".into()),
+                        g[0],
+                        g[1],
+                        g[2]
+                    );
+                }
+            }
+            (None, _) => println!("  point: none (the pixel's alpha stays below one half)"),
+        }
         for c in &p.chain {
             let attrs = crate::semantics::attribute_texts(&c.attributes);
             println!(
@@ -364,5 +515,14 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<()> {
         s.timing.masks_s,
         s.timing.sqlite_s,
     );
+    let none = unmatched(&sel);
+    if !none.is_empty() {
+        return Err(NoMatch(format!(
+            "no match: {} (outputs written to {}; exit status {NO_MATCH_STATUS})",
+            none.join("; "),
+            a.out.display()
+        ))
+        .into());
+    }
     Ok(())
 }

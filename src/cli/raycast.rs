@@ -9,7 +9,7 @@ use crate::raycast::RaycastOptions;
 use crate::{colmap, mesh::TriMesh, raycast};
 
 /// Two-pass raycasting of the city mesh into every COLMAP view.
-#[derive(Debug, Clone, clap::Args, serde::Serialize)]
+#[derive(Debug, Clone, clap::Args)]
 pub struct RaycastArgs {
     /// Output folder of the `citymodel` stage (reads mesh.ply and alignment.json).
     #[arg(long, value_name = "DIR")]
@@ -17,12 +17,10 @@ pub struct RaycastArgs {
     /// COLMAP sparse model folder (cameras, images: .bin or .txt).
     #[arg(long, value_name = "SPARSE_DIR")]
     pub colmap: PathBuf,
-    /// Depth tolerance τ of the part pass, in metres (scaled by alignment.scale).
-    #[arg(long, default_value_t = 0.5)]
-    pub tau: f64,
-    /// Disable the part pass (single-pass labels).
-    #[arg(long)]
-    pub single_pass: bool,
+    #[command(flatten)]
+    pub config: super::groups::ConfigArg,
+    #[command(flatten, next_help_heading = "Raycasting (config [raycast])")]
+    pub tuning: super::groups::RaycastTuning,
     /// Images for the overlays (default: <colmap dir>/../../images if it exists).
     #[arg(long, value_name = "DIR")]
     pub images: Option<PathBuf>,
@@ -33,12 +31,8 @@ pub struct RaycastArgs {
 
 /// Parses the inputs, validates them, runs the stage, writes `summary.json` and prints a table.
 pub fn run(args: &RaycastArgs) -> anyhow::Result<()> {
-    if !args.tau.is_finite() || args.tau < 0.0 {
-        bail!(
-            "--tau must be finite and ≥ 0 metres, got {}",
-            crate::numfmt::Num(args.tau)
-        );
-    }
+    let t = super::groups::merged(&args.config.load()?.raycast, &args.tuning);
+    crate::check::non_negative("tau", t.tau)?;
     let mesh_path = args.citymodel.join("mesh.ply");
     let mesh = TriMesh::read_ply(&mesh_path)
         .with_context(|| format!("reading the city mesh {}", mesh_path.display()))?;
@@ -61,8 +55,8 @@ pub fn run(args: &RaycastArgs) -> anyhow::Result<()> {
             .filter(|d| d.is_dir()),
     };
     let opts = RaycastOptions {
-        tau: args.tau * scale,
-        single_pass: args.single_pass,
+        tau: t.tau * scale,
+        single_pass: t.single_pass,
     };
     let summary =
         raycast::run(&mesh, &views, &opts, images.as_deref(), &args.out).context("raycasting")?;
@@ -74,7 +68,7 @@ pub fn run(args: &RaycastArgs) -> anyhow::Result<()> {
         summary.scene_build_seconds,
         summary.faces,
         summary.part_faces,
-        args.tau,
+        t.tau,
         opts.tau,
         if opts.single_pass {
             ", single pass"

@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::Args;
 
+use super::groups::{CacheTuning, ConfigArg, merged};
 use crate::render::{self, PreparedScene, RenderOptions};
 use crate::splat::{self, InvalidPolicy, ReadOptions};
 use crate::{colmap, fsutil};
@@ -36,18 +37,10 @@ pub struct RenderArgs {
     /// per-pixel top-k (Gaussian id, α·T) lists, alpha and expected depth.
     #[arg(long)]
     cache: bool,
-    /// Longest list of the cache (0 = no bound); with `--epsilon 0` the top-k by α·T.
-    #[arg(long, default_value_t = crate::cache::TOP_K, requires = "cache")]
-    top_k: usize,
-    /// Mass rule of the cache: a pixel keeps its largest α·T until they reach 1 − ε of its
-    /// mass (at most --top-k); 0 = plain top-k lists.
-    #[arg(long, default_value_t = crate::cache::EPSILON, requires = "cache")]
-    epsilon: f32,
-    /// Early stop of the cache's blend: a pixel stops once its transmittance falls below T
-    /// (what lies behind, at most T of its mass, is not listed); 0 = the rasterizer's own
-    /// stop only (exact lists).
-    #[arg(long, value_name = "T", default_value_t = crate::cache::T_STOP, requires = "cache")]
-    t_stop: f32,
+    #[command(flatten)]
+    config: ConfigArg,
+    #[command(flatten, next_help_heading = "The cache (--cache; config [cache])")]
+    tuning: CacheTuning,
     /// Output folder.
     #[arg(long)]
     out: PathBuf,
@@ -61,15 +54,9 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             args.background
         );
     }
-    let cache_options = crate::cache::CacheOptions {
-        top_k: args.top_k,
-        epsilon: args.epsilon,
-        t_stop: args.t_stop,
-    };
+    let cache_options = merged(&args.config.load()?.cache, &args.tuning).options();
     if args.cache {
-        cache_options
-            .validate()
-            .map_err(|e| anyhow::anyhow!("cache options: {e}"))?;
+        cache_options.validate()?;
     }
     let mut views = colmap::read_model(&args.colmap)?;
     if !args.views.is_empty() {

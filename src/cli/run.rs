@@ -3,237 +3,99 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use crate::lift::LiftOptions;
-use crate::masks::{Source, Test};
+use super::groups::{Config, ConfigArg};
 use crate::run::{self, Mode, RunOptions, RunSummary, Supervision};
 
+/// `gs4city run`: the user's options only, under four headings; every tuning and ablation
+/// switch of the stages is in `--config` (docs/config.md, [`super::groups`]).
 #[derive(Debug, Args)]
 pub struct RunArgs {
     /// Scene folder (`docs/design.md`): images/, sparse/0/, point_cloud.ply, citymodel/*.gml +
-    /// alignment.json, optional masks/, features/, gt/.
-    #[arg(long)]
+    /// alignment.json, optional masks/, features/, scene.json, gt/.
+    #[arg(long, value_name = "S", help_heading = "Inputs")]
     pub scene: PathBuf,
+    #[command(flatten, next_help_heading = "Inputs")]
+    pub config: ConfigArg,
     /// A model folder: with SAM-family files (docs/segment.md), when the scene has no
-    /// masks/<stem>.json, `gs4city segment` writes them (into the scene's masks/, default
-    /// options) before the run; with CLIP files (docs/features.md), when the scene has no
-    /// features/prompts.json, `gs4city features` then writes the masks' features.
-    #[arg(long, value_name = "DIR")]
+    /// masks/<stem>.json, `gs4city segment` writes them first (config [segment]); with CLIP
+    /// files (docs/features.md), `gs4city features` then writes the masks' features.
+    #[arg(long, value_name = "DIR", help_heading = "Inputs")]
     pub model_dir: Option<PathBuf>,
-    /// Points per side of the prompt grid of that segmentation (`gs4city segment --points-per-side`).
-    #[arg(long, default_value_t = crate::segment::SegmentOptions::default().points_per_side)]
-    pub segment_points_per_side: usize,
-    /// Predicted-IoU threshold of that segmentation (`gs4city segment --pred-iou-thresh`).
-    /// Hidden from `--help`: stage tuning, used by the tests (a tiny model keeps no mask at the
-    /// default).
-    #[arg(long, hide = true, default_value_t = crate::segment::SegmentOptions::default().pred_iou_thresh)]
-    pub segment_pred_iou_thresh: f32,
-    /// Stability-score threshold of that segmentation (`gs4city segment
-    /// --stability-score-thresh`). Hidden from `--help`, as the one above.
-    #[arg(long, hide = true, default_value_t = crate::segment::SegmentOptions::default().stability_score_thresh)]
-    pub segment_stability_score_thresh: f64,
-    /// Part-pass depth tolerance τ in metres.
-    #[arg(long, default_value_t = 0.5)]
-    pub tau: f64,
-    /// Single-pass raycasting (no part pass), for comparison.
-    #[arg(long)]
-    pub single_pass: bool,
-    /// Background bias γ of the vote, in [-1, 1].
-    /// Default: −1 with fused (mask) supervision, −0.5 with the city model alone.
-    #[arg(long, allow_negative_numbers = true)]
-    pub gamma: Option<f32>,
-    /// Depth gate of city votes in metres: a Gaussian more than this in front of the city
-    /// surface its pixel's ray hits takes no vote from that surface's label; 0 = off.
-    #[arg(long, default_value_t = crate::vote::CITY_GATE_M)]
-    pub city_gate_m: f32,
-    /// No centre gate of city votes: without this, a city-labelled pixel gives no vote to a
-    /// Gaussian whose centre projects onto a city label of another class in the same view (a
-    /// wall Gaussian straddling a door's outline takes no door votes); part of the depth gate
-    /// (off with it).
-    #[arg(long)]
-    pub no_centre_gate: bool,
-    /// Weight of the city-model prior in 3D: each Gaussian within --model-prior-m of a
-    /// city-model triangle gets one vote for that triangle's label, of this share of the median
-    /// Gaussian's vote weight (well-seen Gaussians outweigh it, barely seen ones follow the
-    /// model); 0 = off.
-    #[arg(long, default_value_t = crate::vote::MODEL_PRIOR)]
-    pub model_prior: f32,
-    /// Reach of the city-model prior in metres.
-    #[arg(long, default_value_t = crate::vote::MODEL_PRIOR_M)]
-    pub model_prior_m: f32,
-    /// Longest contribution list per pixel in the cache (0 = no bound); with `--epsilon 0`
-    /// the top-k by α·T.
-    #[arg(long, default_value_t = crate::cache::TOP_K)]
-    pub top_k: usize,
-    /// Mass rule of the cache: a pixel keeps its largest α·T until they reach 1 − ε of its
-    /// mass (at most --top-k); 0 = plain top-k lists.
-    #[arg(long, default_value_t = crate::cache::EPSILON)]
-    pub epsilon: f32,
-    /// Early stop of the cache's blend: a pixel stops once its transmittance falls below T
-    /// (what lies behind, at most T of its mass, is not listed); 0 = the rasterizer's own
-    /// stop only (exact lists).
-    #[arg(long, value_name = "T", default_value_t = crate::cache::T_STOP)]
-    pub t_stop: f32,
-    /// Every N-th view (by name) is held back as a test view, not voted on and predicted as a
-    /// novel view (default 8, 3DGS --eval); 0 = every view trains (a capture without ground
-    /// truth loses nothing to evaluation then). The split never depends on gt/.
-    #[arg(long, value_name = "N")]
-    pub test_every: Option<usize>,
-    /// Run a scene without citymodel/alignment.json: CityGML coordinates minus a local origin.
-    #[arg(long)]
+    /// Run a scene without citymodel/alignment.json: the CityGML coordinates minus a local
+    /// origin are the scene frame (a capture reconstructed in the city model's frame).
+    #[arg(long, help_heading = "Inputs")]
     pub local_origin: bool,
-    /// Refine the alignment from the 3DGS scene first (robust ICP, `align --refine`); the whole
-    /// run uses the refined transform (R/align/alignment.json, recorded in run.json).
-    #[arg(long)]
-    pub refine_alignment: bool,
-    /// Label supervision: fused (the city model fused with the scene's filtered, associated
-    /// masks: also trees, cars, people; paper §3.2) or city (the city model alone, §3.1).
-    #[arg(long, default_value = "fused")]
-    pub supervision: Supervision,
-    /// Mask source of the masks stage: auto (the scene's SAM lists when it has masks/, else
-    /// the mask-free depth source), sam, depth.
-    #[arg(long, default_value = "auto")]
-    pub masks_source: Source,
-    /// Test of the masks stage for masks on the building: auto, features, geometry, both, overlap.
-    #[arg(long, default_value = "auto")]
-    pub masks_test: Test,
-    /// τ_q of the masks stage: SAM masks with a lower predicted_iou are dropped.
-    #[arg(long, default_value_t = crate::masks::MasksOptions::default().tau_q)]
-    pub tau_q: f64,
-    /// m_view: an associated group must be seen in at least this many views.
-    #[arg(long, default_value_t = crate::associate::AssociateOptions::default().min_views)]
-    pub min_views: usize,
-    /// Openings (windows, doors) the images show but the city model lacks: missing (add them
-    /// to the semantic table under their wall and raycast the completed model again) or off
-    /// (the completeness report only); docs/completeness.md. Their m_view: --opening-views.
-    #[arg(long, default_value = "missing")]
-    pub openings: crate::openings::Add,
-    /// m_view of the openings stage: an opening the model lacks is added when at least this
-    /// many training views show it (the association's m_view is --min-views).
-    #[arg(long, default_value_t = crate::openings::OpeningsOptions::default().m_view)]
-    pub opening_views: usize,
-    /// Where opening candidates come from: features (dropped building masks whose best prompt
-    /// is a window or door prompt), geometry (regions recessed behind the wall in the 3DGS
-    /// depth) or both; docs/completeness.md.
-    #[arg(long, default_value = "both")]
-    pub opening_cues: crate::openings::Cues,
-    /// No city-part snapping of windows and doors to the image's own masks in the fuse stage.
-    #[arg(long)]
-    pub no_snap: bool,
-    /// Support-only masks (fail only τ_q) do not join associated groups (the ablation).
-    #[arg(long)]
-    pub no_support_masks: bool,
-    /// Feature cosine τ_sim of the association: the cap of the value calibrated on the scene's
-    /// own mask pairs, or the value itself with --no-calibrate.
-    #[arg(long, default_value_t = crate::associate::AssociateOptions::default().tau_sim)]
-    pub tau_sim: f64,
-    /// Use --tau-sim as given instead of calibrating it on the scene (docs/associate.md).
-    #[arg(long)]
-    pub no_calibrate: bool,
-    /// Per-Gaussian labels that are evaluated and queried: vote (closed form) or learned
-    /// (identity codes trained from the vote, the train stage).
-    #[arg(long, default_value = "vote")]
-    pub mode: Mode,
-    /// Training iterations of --mode learned.
-    #[arg(long, default_value_t = crate::train::TrainOptions::default().iterations)]
-    pub iterations: usize,
-    /// The scene check that runs first: largest plausible distance (metres, lower quartile)
-    /// between opaque Gaussian centres and the city model (`gs4city check --max-offset`).
-    #[arg(long, default_value_t = crate::inspect::CheckOptions::default().max_offset_m)]
-    pub max_offset: f64,
-    /// Rerun every stage even when its output is complete.
-    #[arg(long)]
-    pub force: bool,
-    /// Output folder (one sub-folder per stage, run.json, report.html); not inside the scene.
-    #[arg(long)]
+    /// Output folder: one sub-folder per stage, run.json, report.html; not inside the scene.
+    #[arg(long, value_name = "R", help_heading = "Outputs")]
     pub out: PathBuf,
+    /// Rerun every stage even when its output is complete (by default a run resumes).
+    #[arg(long, help_heading = "Outputs")]
+    pub force: bool,
+    /// Label supervision: fused (the city model fused with the scene's masks: also trees,
+    /// cars, people; paper §3.2) or city (the city model alone, §3.1).
+    #[arg(long, default_value = "fused", help_heading = "Supervision")]
+    pub supervision: Supervision,
+    /// Per-Gaussian labels that are evaluated and queried: vote (closed form) or learned
+    /// (identity codes trained from the vote, paper §3.3; config [train]).
+    #[arg(long, default_value = "vote", help_heading = "Supervision")]
+    pub mode: Mode,
+    /// Refine the alignment from the 3DGS scene first (robust ICP, `align --refine`, reach
+    /// about 3 m); the whole run uses the refined transform (R/align/alignment.json).
+    #[arg(long, help_heading = "Supervision")]
+    pub refine_alignment: bool,
+    /// Every N-th view (by name) is held back as a test view: not labelled, predicted as a
+    /// novel view, evaluated against gt/ (3DGS's --eval: 8). Default: the test views the scene
+    /// declares (scene.json; `gs4city synth` writes them), else every view trains.
+    #[arg(long, value_name = "N", help_heading = "Supervision")]
+    pub test_every: Option<usize>,
+    /// Worker threads (default: every core).
+    #[arg(long, value_name = "N", help_heading = "Performance")]
+    pub threads: Option<usize>,
 }
 
 impl RunArgs {
-    /// Validated options.
+    /// Validated options: the user's flags and the `--config` file's sections.
     pub fn options(&self) -> anyhow::Result<RunOptions> {
-        if !(self.tau.is_finite() && self.tau >= 0.0) {
-            anyhow::bail!(
-                "--tau must be a finite number ≥ 0 (metres), got {}",
-                crate::numfmt::Num(self.tau)
-            );
-        }
-        let lift = LiftOptions {
-            gamma: self.gamma,
-            city_gate_m: self.city_gate_m,
-            centre_gate: !self.no_centre_gate,
-            model_prior: self.model_prior,
-            model_prior_m: self.model_prior_m,
-        };
-        lift.validate()?;
-        crate::cache::CacheOptions {
-            top_k: self.top_k,
-            epsilon: self.epsilon,
-            t_stop: self.t_stop,
-        }
-        .validate()
-        .map_err(|e| anyhow::anyhow!("cache options: {e}"))?;
-        let d = RunOptions::default();
-        let masks = crate::masks::MasksOptions {
-            source: self.masks_source,
-            test: self.masks_test,
-            tau_q: self.tau_q,
-            ..d.masks.clone()
-        };
-        masks.validate()?;
-        let associate = crate::associate::AssociateOptions {
-            min_views: self.min_views,
-            support_masks: !self.no_support_masks,
-            tau_sim: self.tau_sim,
-            calibrate: !self.no_calibrate,
-            ..d.associate
-        };
-        associate.validate()?;
-        let fuse = crate::fuse::FuseOptions {
-            snap: !self.no_snap,
-            ..d.fuse
-        };
-        let train = crate::train::TrainOptions {
-            iterations: self.iterations,
-            city_gate_m: self.city_gate_m,
-            centre_gate: !self.no_centre_gate,
-            ..d.train
-        };
-        train.validate()?;
-        let check = crate::inspect::CheckOptions {
-            max_offset_m: self.max_offset,
-            local_origin: self.local_origin,
-            ..Default::default()
-        };
-        check.validate()?;
-        let openings = crate::openings::OpeningsOptions {
-            add: self.openings,
-            cues: self.opening_cues,
-            m_view: self.opening_views,
-            ..Default::default()
-        };
-        openings.validate()?;
-        Ok(RunOptions {
-            tau_m: self.tau,
-            single_pass: self.single_pass,
-            top_k: self.top_k,
-            epsilon: self.epsilon,
-            t_stop: self.t_stop,
-            lift,
-            supervision: self.supervision,
-            masks,
-            openings,
-            associate,
-            fuse,
-            mode: self.mode,
-            train,
-            test_every: self.test_every,
-            local_origin: self.local_origin,
-            refine_alignment: self.refine_alignment,
-            refine: Default::default(),
-            check,
-            force: self.force,
-        })
+        let cfg = self.config.load()?;
+        run_options(&cfg, self)
     }
+}
+
+/// The run's options from a config file and the run's own flags.
+fn run_options(cfg: &Config, a: &RunArgs) -> anyhow::Result<RunOptions> {
+    crate::check::non_negative("tau", cfg.raycast.tau)?;
+    let lift = super::groups::vote_options(&cfg.vote, &cfg.prior)?;
+    let cache = cfg.cache.options();
+    cache.validate()?;
+    let train = cfg.train.options(&cfg.vote)?;
+    let check = crate::inspect::CheckOptions {
+        max_offset_m: cfg.check.max_offset,
+        local_origin: a.local_origin,
+        ..Default::default()
+    };
+    check.validate()?;
+    cfg.refine.validate()?;
+    Ok(RunOptions {
+        tau_m: cfg.raycast.tau,
+        single_pass: cfg.raycast.single_pass,
+        top_k: cache.top_k,
+        epsilon: cache.epsilon,
+        t_stop: cache.t_stop,
+        lift,
+        supervision: a.supervision,
+        masks: cfg.masks.options()?,
+        openings: cfg.openings.options()?,
+        associate: cfg.associate.options()?,
+        fuse: cfg.fuse.options(),
+        mode: a.mode,
+        train,
+        test_every: a.test_every,
+        local_origin: a.local_origin,
+        refine_alignment: a.refine_alignment,
+        refine: cfg.refine.clone(),
+        check,
+        force: a.force,
+    })
 }
 
 /// Prints the stage table and the metrics tables of a run.
@@ -263,7 +125,15 @@ pub fn print_run(s: &RunSummary) {
 }
 
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
-    let opts = args.options()?;
+    let cfg = args.config.load()?;
+    let opts = run_options(&cfg, args)?;
+    if let Some(n) = args.threads {
+        crate::check::at_least("threads", n, 1)?;
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build_global()
+            .map_err(|e| anyhow::anyhow!("--threads {n}: {e}"))?;
+    }
     if let Some(dir) = &args.model_dir {
         let masks = args.scene.join("masks");
         let has_masks = std::fs::read_dir(&masks).is_ok_and(|rd| {
@@ -272,16 +142,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         });
         if !has_masks {
             let t = std::time::Instant::now();
-            let seg = crate::segment::run(
-                &args.scene,
-                dir,
-                &crate::segment::SegmentOptions {
-                    points_per_side: args.segment_points_per_side,
-                    pred_iou_thresh: args.segment_pred_iou_thresh,
-                    stability_score_thresh: args.segment_stability_score_thresh,
-                    ..Default::default()
-                },
-            )?;
+            let seg = crate::segment::run(&args.scene, dir, &cfg.segment.options()?)?;
             crate::progress::done(
                 "segment",
                 &format!(

@@ -15,9 +15,10 @@ pub struct SceneArgs {
 #[derive(Debug, Subcommand)]
 pub enum SceneCommand {
     /// Build a scene folder by links (or copies) from a 3DGS training output, its COLMAP
-    /// folder and the CityGML model; then checks it (`gs4city check`).
+    /// folder and the CityGML model; then checks it (`gs4city check`). Importing again into
+    /// the same folder replaces what the earlier import made.
     #[command(
-        after_help = "Example:\n  gs4city scene import --model output/street --citygml lod3/ --alignment alignment.json --out S"
+        after_help = "Example:\n  gs4city scene import --model output --citygml lod3/ --out S\n  gs4city scene import --ply splat.ply --source data --citygml lod3/ --alignment alignment.json --out S"
     )]
     Import(ImportArgs),
 }
@@ -42,7 +43,8 @@ pub struct ImportArgs {
     /// CityGML files, or folders holding them.
     #[arg(long, value_name = "PATH", required = true, num_args = 1..)]
     pub citygml: Vec<PathBuf>,
-    /// alignment.json (CityGML CRS → scene frame; README, "alignment.json"); copied.
+    /// alignment.json (CityGML CRS → scene frame), copied; without it the scene is imported
+    /// for `gs4city align` to write S/citymodel/alignment.json next.
     #[arg(long, value_name = "JSON")]
     pub alignment: Option<PathBuf>,
     /// SAM automatic masks per view (masks/<stem>.json).
@@ -54,8 +56,12 @@ pub struct ImportArgs {
     /// Copy the files instead of linking them.
     #[arg(long)]
     pub copy: bool,
-    /// The new scene folder.
+    /// Import into a folder that holds other files (its parts are replaced, the rest stays);
+    /// a folder an earlier import wrote is imported into again without it.
     #[arg(long)]
+    pub force: bool,
+    /// The scene folder (new, empty, or an earlier import's).
+    #[arg(long, value_name = "S")]
     pub out: PathBuf,
 }
 
@@ -76,19 +82,33 @@ fn import(a: &ImportArgs) -> anyhow::Result<()> {
         masks: a.masks.clone(),
         features: a.features.clone(),
         copy: a.copy,
+        force: a.force,
     };
     let r = scene::import(&spec, &a.out)?;
+    if r.reimported {
+        println!(
+            "scene {}: imported again (the earlier import's parts replaced)",
+            a.out.display()
+        );
+    }
     for (part, src) in &r.parts {
         println!("{:<28} ← {}", part, src.display());
     }
-    for m in &r.missing {
+    for m in r
+        .missing
+        .iter()
+        .filter(|m| *m != "citymodel/alignment.json")
+    {
         println!("not found: {m}");
     }
-    // The check says what is missing or wrong, and what it is for.
+    // The check says what is missing or wrong, and what it is for; an alignment still to be
+    // written (the next step of the guide) is no error here.
+    let pending = !a.out.join("citymodel/alignment.json").is_file();
     let report = crate::inspect::check(
         &a.out,
         &crate::inspect::CheckOptions {
             local_origin: false,
+            pending_alignment: pending,
             ..Default::default()
         },
     );
@@ -102,10 +122,13 @@ fn import(a: &ImportArgs) -> anyhow::Result<()> {
             a.out.display()
         );
     }
-    println!(
-        "scene {}: ready (gs4city run --scene {} --out RUN)",
-        a.out.display(),
-        a.out.display()
-    );
+    let s = a.out.display();
+    if pending {
+        println!(
+            "scene {s}: imported; next, its alignment: collect ground-control points (`gs4city view --scene {s}` gives a clicked point's scene coordinates), then `gs4city align --points pairs.csv --out {s}/citymodel/alignment.json`"
+        );
+    } else {
+        println!("scene {s}: ready (gs4city run --scene {s} --out R)");
+    }
     Ok(())
 }

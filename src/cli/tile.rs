@@ -42,9 +42,10 @@ pub struct TileArgs {
     #[arg(long, default_value_t = TileOptions::default().margin_m)]
     pub margin: f64,
     /// Every N-th view by name is a test view of the whole plan, held back from every tile
-    /// (as `gs4city run`); 0 = none.
-    #[arg(long, default_value_t = TileOptions::default().test_every)]
-    pub test_every: usize,
+    /// (as `gs4city run`); 0 = none. Default: the test views the scene declares (scene.json),
+    /// else none.
+    #[arg(long, value_name = "N")]
+    pub test_every: Option<usize>,
     /// Share of a view's screen a tile must take for the view to join it (a coarse screen grid,
     /// each cell won by the nearest visible sample point); 0 = every view that sees the tile.
     #[arg(long, default_value_t = TileOptions::default().min_share)]
@@ -52,7 +53,8 @@ pub struct TileArgs {
     /// Views each tile keeps whatever their share (its best), when that many see it.
     #[arg(long, default_value_t = TileOptions::default().min_views)]
     pub min_views: usize,
-    /// Options of each tile's `gs4city run`, as one string (e.g. "--supervision city").
+    /// Options of each tile's `gs4city run`, as one string (e.g. "--supervision city" or
+    /// "--config ablation.toml").
     #[arg(long, default_value = "", allow_hyphen_values = true)]
     pub run_args: String,
     /// Plan folder to create.

@@ -14,7 +14,12 @@
 //! zero rows where a label has none): groups keep their running-mean feature; a city entity
 //! averages the features of the SAM masks that cover it in the fused maps, each weighted by
 //! `overlap² / mask area` (the overlap, discounted by how much of the mask lies elsewhere), then
-//! normalised — the paper's crop-feature average with the masks standing in for the crops.
+//! normalised — the paper's crop-feature average with the masks standing in for the crops. Only
+//! masks that look like a part of a building vote there: a mask whose feature is nearest to a
+//! prompt of another class (a person, a car, a tree, the sky; `features/prompts.json`) shows
+//! that object, not the surface behind it, even where its group did not survive the association
+//! and its pixels kept the city label (without this a pedestrian in front of a wall made the
+//! wall's feature a person's, and `text("a person")` selected the wall).
 //!
 //! Outputs (`docs/design.md`): `<stem>.ids.npy` (int32 H×W), `labels.json` ([`LabelTable`]: every city
 //! entity and every group, with source, entity/group, class, level), `label_features.npy` (when
@@ -145,6 +150,69 @@ struct ViewOut {
     dim: Option<usize>,
 }
 
+/// The prompts' unit vectors and classes (`features/prompts.json`), to tell which SAM masks
+/// look like a part of a building.
+struct PromptClasses {
+    dim: usize,
+    unit: Vec<f32>,
+    class: Vec<i32>,
+}
+
+impl PromptClasses {
+    fn read(features: &Path) -> Result<Option<PromptClasses>, FuseError> {
+        let path = features.join("prompts.json");
+        if !path.is_file() {
+            return Ok(None);
+        }
+        let p = crate::sam::read_prompts_json(&path)?;
+        let mut unit = Vec::with_capacity(p.prompts.len() * p.dim);
+        let mut class = Vec::with_capacity(p.prompts.len());
+        for (text, v) in &p.prompts {
+            let n = v.iter().map(|&x| f64::from(x).powi(2)).sum::<f64>().sqrt();
+            if v.len() != p.dim || !(n.is_finite() && n > 0.0) {
+                return Err(FuseError::Invalid {
+                    path: path.clone(),
+                    why: format!(
+                        "prompt {text:?}: not a finite non-zero vector of {} values",
+                        p.dim
+                    ),
+                });
+            }
+            unit.extend(v.iter().map(|&x| (f64::from(x) / n) as f32));
+            class.push(p.class_of(text));
+        }
+        Ok(Some(PromptClasses {
+            dim: p.dim,
+            unit,
+            class,
+        }))
+    }
+
+    /// Whether a mask feature's nearest prompt (by cosine) is of a building class (0–5).
+    fn building_like(&self, f: &[f32]) -> bool {
+        if f.len() != self.dim || self.class.is_empty() {
+            return true;
+        }
+        let best = self
+            .unit
+            .chunks(self.dim)
+            .map(|u| {
+                u.iter()
+                    .zip(f)
+                    .map(|(&a, &b)| f64::from(a) * f64::from(b))
+                    .sum::<f64>()
+            })
+            .enumerate()
+            .fold(
+                (0, f64::NEG_INFINITY),
+                |a, (i, c)| if c > a.1 { (i, c) } else { a },
+            )
+            .0;
+        classes::is_building(self.class[best])
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
 fn fuse_view(
     inp: &FuseInputs<'_>,
     opts: &FuseOptions,
@@ -152,6 +220,7 @@ fn fuse_view(
     delta: i32,
     class: &[i32],
     building: &[i32],
+    prompts: Option<&PromptClasses>,
     out: &Path,
 ) -> Result<ViewOut, FuseError> {
     let stem = view.stem();
@@ -241,6 +310,11 @@ fn fuse_view(
         features = data;
         let mut counts: BTreeMap<i32, u64> = BTreeMap::new();
         for (i, m) in sam.iter().enumerate() {
+            // A mask that shows a person, a car, a tree or the sky says nothing of the city
+            // surface behind it (module docs).
+            if prompts.is_some_and(|p| !p.building_like(&features[i * d..(i + 1) * d])) {
+                continue;
+            }
             counts.clear();
             let mut n = 0u64;
             let _ = &m.segmentation.for_each_pixel(|q| {
@@ -302,12 +376,25 @@ pub fn run(inp: &FuseInputs<'_>, opts: &FuseOptions, out: &Path) -> Result<FuseS
 
     let mut views: Vec<&View> = inp.views.iter().collect();
     views.sort_by(|a, b| a.name.cmp(&b.name));
+    let prompts = match inp.features {
+        Some(dir) => PromptClasses::read(dir)?,
+        None => None,
+    };
     let t = Instant::now();
     let bar = Bar::new("fuse", views.len() as u64, "views");
     let outs: Vec<Result<ViewOut, FuseError>> = views
         .par_iter()
         .map(|v| {
-            let r = fuse_view(inp, opts, v, delta, &class, &building, out);
+            let r = fuse_view(
+                inp,
+                opts,
+                v,
+                delta,
+                &class,
+                &building,
+                prompts.as_ref(),
+                out,
+            );
             bar.inc(1);
             r
         })

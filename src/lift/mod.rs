@@ -34,8 +34,8 @@ pub enum LiftError {
     Npy(#[from] crate::npy::NpyError),
     #[error("{path}: {why}")]
     Labels { path: PathBuf, why: String },
-    #[error("invalid option: {0}")]
-    Options(String),
+    #[error("no training views (every view is a test view)")]
+    NoTrainingViews,
     #[error(transparent)]
     Ply(#[from] crate::splat::PlyError),
     #[error(transparent)]
@@ -86,9 +86,7 @@ impl crate::layout::Summary for LiftSummary {}
 pub fn run(inp: &LiftInputs<'_>, opts: &LiftOptions, out: &Path) -> Result<LiftSummary, LiftError> {
     let t0 = Instant::now();
     if inp.train.is_empty() {
-        return Err(LiftError::Options(
-            "no training views (every view is a test view)".into(),
-        ));
+        return Err(LiftError::NoTrainingViews);
     }
     crate::fsutil::create_dir(out)?;
     let _ = std::fs::remove_file(out.join("summary.json"));

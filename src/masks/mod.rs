@@ -69,7 +69,9 @@ pub enum MasksError {
     #[error("{path}: {why}")]
     Invalid { path: PathBuf, why: String },
     #[error("masks options: {0}")]
-    Options(String),
+    Options(#[from] crate::check::OutOfRange),
+    #[error("{0}")]
+    Unavailable(String),
     #[error(transparent)]
     Sam(#[from] SamError),
     #[error(transparent)]
@@ -234,7 +236,6 @@ fn default_support_floor() -> Option<f64> {
 impl MasksOptions {
     /// Checks ranges.
     pub fn validate(&self) -> Result<(), MasksError> {
-        let bad = |s: String| Err(MasksError::Options(s));
         let unit = [
             ("tau_q", self.tau_q),
             ("area_frac", self.area_frac),
@@ -244,28 +245,32 @@ impl MasksOptions {
             ("min_alpha", self.min_alpha),
         ];
         for (k, v) in unit {
-            crate::check::unit(k, v).map_err(MasksError::Options)?;
+            crate::check::unit(k, v)?;
         }
         if let Some(f) = self.support_floor {
-            crate::check::unit("support_floor", f).map_err(MasksError::Options)?;
+            crate::check::unit("support_floor", f)?;
         }
-        if !self.delta.is_finite() {
-            return bad(format!("delta = {} is not finite", self.delta));
-        }
+        use crate::check::End;
+        crate::check::range(
+            "delta",
+            self.delta,
+            End::Open(f64::NEG_INFINITY),
+            End::Open(f64::INFINITY),
+        )?;
         for (k, v) in [
             ("tau_occ_m", self.tau_occ_m),
             ("tau_rel", self.tau_rel),
             ("bias_max_m", self.bias_max_m),
             ("split_rel", self.split_rel),
         ] {
-            crate::check::non_negative(k, v).map_err(MasksError::Options)?;
+            crate::check::non_negative(k, v)?;
         }
-        if self.surface_radius_px > 16 {
-            return bad(format!(
-                "surface_radius_px = {} is over 16",
-                self.surface_radius_px
-            ));
-        }
+        crate::check::range(
+            "surface_radius_px",
+            self.surface_radius_px,
+            End::Closed(0.0),
+            End::Closed(16.0),
+        )?;
         Ok(())
     }
 
@@ -405,12 +410,7 @@ pub fn run(
 ) -> Result<MasksSummary, MasksError> {
     let t0 = Instant::now();
     opts.validate()?;
-    if !(inp.alignment_scale.is_finite() && inp.alignment_scale > 0.0) {
-        return Err(MasksError::Options(format!(
-            "alignment scale {} must be finite and positive",
-            inp.alignment_scale
-        )));
-    }
+    crate::check::positive("the alignment scale", inp.alignment_scale)?;
     let source = match opts.source {
         Source::Auto if inp.scene.masks.is_some() => Source::Sam,
         Source::Auto => Source::Depth,
@@ -431,17 +431,17 @@ pub fn run(
     };
     let root = inp.scene.root.display();
     if source == Source::Sam && inp.scene.masks.is_none() {
-        return Err(MasksError::Options(format!(
+        return Err(MasksError::Unavailable(format!(
             "source sam: the scene {root} has no masks/ folder"
         )));
     }
     if matches!(test, Test::Features | Test::Both) && prompts_file.is_none() {
-        return Err(MasksError::Options(format!(
+        return Err(MasksError::Unavailable(format!(
             "test {test:?}: the scene {root} has no features/prompts.json (use the geometry test)"
         )));
     }
     if (matches!(test, Test::Geometry | Test::Both) || source == Source::Depth) && !have_depth {
-        return Err(MasksError::Options(
+        return Err(MasksError::Unavailable(
             "the depth test and the mask-free source need the 3DGS depth: give the contributions cache (--cache)".into(),
         ));
     }

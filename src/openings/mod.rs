@@ -63,7 +63,7 @@ pub enum OpeningsError {
     #[error("{path}: {why}")]
     Invalid { path: PathBuf, why: String },
     #[error("openings options: {0}")]
-    Options(String),
+    Options(#[from] crate::check::OutOfRange),
     #[error(transparent)]
     IdMap(#[from] idmap::IdMapError),
     #[error(transparent)]
@@ -212,34 +212,29 @@ impl Default for OpeningsOptions {
 impl OpeningsOptions {
     /// Range checks (one wording, `crate::check`).
     pub fn validate(&self) -> Result<(), OpeningsError> {
-        use crate::check::{End, range, unit};
-        let e = OpeningsError::Options;
-        if self.m_view == 0 {
-            return Err(e("m_view (--opening-views) must be at least 1".into()));
-        }
-        unit("min_wall_share", self.min_wall_share).map_err(e)?;
-        unit("support_floor", self.support_floor).map_err(e)?;
-        range("trim", self.trim, End::Closed(0.0), End::Open(0.5)).map_err(e)?;
-        unit("join_iou", self.join_iou).map_err(e)?;
-        unit("match_overlap", self.match_overlap).map_err(e)?;
-        unit("part_share", self.part_share).map_err(e)?;
-        crate::check::positive("plane_tol_m", self.plane_tol_m).map_err(e)?;
-        unit("seen_px_frac", self.seen_px_frac).map_err(e)?;
-        unit("max_tilt_cos", self.max_tilt_cos).map_err(e)?;
+        use crate::check::{End, at_least, positive, range, unit};
+        at_least("m_view", self.m_view, 1)?;
+        unit("min_wall_share", self.min_wall_share)?;
+        unit("support_floor", self.support_floor)?;
+        range("trim", self.trim, End::Closed(0.0), End::Open(0.5))?;
+        unit("join_iou", self.join_iou)?;
+        unit("match_overlap", self.match_overlap)?;
+        unit("part_share", self.part_share)?;
+        positive("plane_tol_m", self.plane_tol_m)?;
+        unit("seen_px_frac", self.seen_px_frac)?;
+        unit("max_tilt_cos", self.max_tilt_cos)?;
         for (name, [lo, hi]) in [("size_m", self.size_m), ("recess_m", self.recess_m)] {
-            if !(lo.is_finite() && hi.is_finite() && 0.0 < lo && lo < hi) {
-                return Err(e(format!("{name} must be 0 < lo < hi, got [{lo}, {hi}]")));
-            }
+            positive(&format!("{name}[1]"), hi)?;
+            range(&format!("{name}[0]"), lo, End::Open(0.0), End::Open(hi))?;
         }
-        crate::check::positive("door_sill_m", self.door_sill_m).map_err(e)?;
-        crate::check::positive("door_height_m", self.door_height_m).map_err(e)?;
+        positive("door_sill_m", self.door_sill_m)?;
+        positive("door_height_m", self.door_height_m)?;
         range(
             "max_aspect",
             self.max_aspect,
             End::Closed(1.0),
             End::Open(f64::INFINITY),
-        )
-        .map_err(e)?;
+        )?;
         Ok(())
     }
 }

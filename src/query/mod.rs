@@ -168,6 +168,15 @@ pub struct Pick {
     pub gaussians: Vec<PickEntry>,
     /// City labels: feature → surface → part, each with its attributes.
     pub chain: Vec<ChainEntry>,
+    /// The point of the splat surface under the pixel, in the scene frame (the ray through
+    /// the pixel's centre where its transmittance falls to one half, `splat::surface`); `None`
+    /// where the pixel's alpha stays below one half.
+    #[serde(default)]
+    pub point: Option<[f64; 3]>,
+    /// The same point in the city model's CRS (f64, through the inverse of the run's
+    /// `citymodel/alignment.json`).
+    #[serde(default)]
+    pub geo: Option<[f64; 3]>,
 }
 
 /// Pixels of one view's mask.
@@ -181,7 +190,7 @@ pub struct ViewCount {
 
 /// `selection.json` (`docs/design.md`: `match`, `labels`, `entities`, `gaussians`, `score`; the rest
 /// is detail).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SelectionFile {
     /// Whether the selection holds at least one Gaussian.
     #[serde(rename = "match")]
@@ -296,7 +305,46 @@ pub fn chain(sr: &SemanticRun, chains: &[crate::mesh::FaceLabel], label: i32) ->
         .unwrap_or_default()
 }
 
-/// Picks pixel (x, y) of `view`: the predicted label there and its chain.
+/// The point of the splat surface under pixel (x, y) of view `stem` (its ray through the
+/// pixel's centre, the cached list `ids`/`ws` of the pixel), and that point in the city model's
+/// CRS through the run's alignment.
+fn pick_point(
+    sr: &SemanticRun,
+    stem: &str,
+    (x, y): (usize, usize),
+    ids: &[u32],
+    ws: &[f32],
+) -> Result<(Option<[f64; 3]>, Option<[f64; 3]>), QueryError> {
+    let views = crate::colmap::read_model(&sr.scene.sparse)
+        .map_err(|e| QueryError::Inputs(e.to_string()))?;
+    let Some(v) = views.iter().find(|v| v.stem() == stem) else {
+        return Err(QueryError::Inputs(format!(
+            "view `{stem}` is in the cache but not in {}",
+            sr.scene.sparse.display()
+        )));
+    };
+    let (g, _) = crate::splat::read_ply(&sr.scene.ply, &crate::splat::ReadOptions::KEEP)?;
+    let cam = &v.camera;
+    let dir = cam.pose.rotation.transpose() * cam.pixel_ray(x as f64 + 0.5, y as f64 + 0.5);
+    let list = ids.iter().copied().zip(ws.iter().copied());
+    let Some(p) = crate::splat::surface::surface_point(&g, list, cam.pose.center(), dir) else {
+        return Ok((None, None));
+    };
+    let apath = crate::layout::Stage::Citymodel
+        .path(&sr.run)
+        .join("alignment.json");
+    let geo = if apath.is_file() {
+        let a = crate::alignment::Alignment::read(&apath)
+            .map_err(|e| QueryError::Inputs(e.to_string()))?;
+        Some(a.unapply(p.point).to_array())
+    } else {
+        None
+    };
+    Ok((Some(p.point.to_array()), geo))
+}
+
+/// Picks pixel (x, y) of `view`: the predicted label there and its chain, and the point of the
+/// splat surface under it (scene frame and the city model's CRS).
 pub fn pick(
     sr: &SemanticRun,
     cache: &Cache,
@@ -318,6 +366,7 @@ pub fn pick(
     let (ids, ws) = c.pixel(p);
     let l = sr.labels.get(label);
     let chain = chain(sr, &semantics::chains(&sr.entities), label);
+    let (point, geo) = pick_point(sr, &v.stem, (x, y), ids, ws)?;
     Ok(Pick {
         view: v.stem.clone(),
         x,
@@ -343,6 +392,8 @@ pub fn pick(
             })
             .collect(),
         chain,
+        point,
+        geo,
     })
 }
 
@@ -732,16 +783,5 @@ pub fn run(
         warnings,
     };
     crate::layout::Summary::write(&summary, out)?;
-    crate::progress::done(
-        "query",
-        &format!(
-            "{} labels, {} entities, {} Gaussians selected{}",
-            summary.labels,
-            summary.entities,
-            summary.gaussians,
-            if summary.matched { "" } else { " (no match)" }
-        ),
-        summary.timing.total_s,
-    );
     Ok(summary)
 }

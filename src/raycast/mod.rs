@@ -37,6 +37,9 @@ use crate::mesh::{FaceLabel, TriMesh};
 
 pub use output::{RaycastSummary, ViewSummary, run};
 
+/// The default depth tolerance τ of the part pass, in metres (× the alignment scale).
+pub const TAU_M: f64 = 0.5;
+
 /// Errors of the raycasting stage.
 #[derive(Debug, thiserror::Error)]
 pub enum RaycastError {
@@ -45,7 +48,7 @@ pub enum RaycastError {
     #[error("invalid mesh: {0}")]
     Mesh(String),
     #[error("invalid option: {0}")]
-    Option(String),
+    Option(#[from] crate::check::OutOfRange),
     #[error("view {name}: {why}")]
     View { name: String, why: String },
     #[error(transparent)]
@@ -79,7 +82,7 @@ impl Default for RaycastOptions {
 impl RaycastOptions {
     /// Checks τ (finite, ≥ 0).
     pub fn validate(&self) -> Result<(), RaycastError> {
-        crate::check::non_negative("tau", self.tau).map_err(RaycastError::Option)
+        Ok(crate::check::non_negative("tau", self.tau)?)
     }
 }
 

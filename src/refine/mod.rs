@@ -30,7 +30,7 @@ use solve::{Normal7, Solution};
 #[derive(Debug, thiserror::Error)]
 pub enum RefineError {
     #[error("invalid refine option: {0}")]
-    Options(String),
+    Options(#[from] crate::check::OutOfRange),
     #[error("city model: {0}")]
     Mesh(String),
     #[error(transparent)]
@@ -137,7 +137,7 @@ impl Default for RefineOptions {
             max_points: 200_000,
             min_points: 200,
             max_camera_distance_m: 150.0,
-            initial_radius_m: 3.0,
+            initial_radius_m: crate::alignment::REFINE_REACH_M,
             final_radius_m: 0.1,
             max_normal_angle_deg: 30.0,
             tukey_k: 4.685,
@@ -157,63 +157,53 @@ impl Default for RefineOptions {
 impl RefineOptions {
     /// Checks ranges (every length positive and finite, angles in range).
     pub fn validate(&self) -> Result<(), RefineError> {
-        let bad = |w: String| Err(RefineError::Options(w));
         let pos = [
             ("voxel_m", self.voxel_m),
             ("max_camera_distance_m", self.max_camera_distance_m),
             ("initial_radius_m", self.initial_radius_m),
-            ("final_radius_m", self.final_radius_m),
             ("tukey_k", self.tukey_k),
             ("min_cutoff_m", self.min_cutoff_m),
             ("tolerance_m", self.tolerance_m),
-            ("min_eigen_ratio", self.min_eigen_ratio),
             ("max_sigma_m", self.max_sigma_m),
             ("max_rotation_deg", self.max_rotation_deg),
             ("max_scale_change", self.max_scale_change),
         ];
-        use crate::check::{End, positive, range, unit};
+        use crate::check::{End, at_least, positive, range, unit};
         for (k, v) in pos {
-            positive(k, v).map_err(RefineError::Options)?;
+            positive(k, v)?;
         }
-        unit("min_opacity", self.min_opacity)
-            .and_then(|_| {
-                range(
-                    "max_flatness",
-                    self.max_flatness,
-                    End::Open(0.0),
-                    End::Closed(1.0),
-                )
-            })
-            .and_then(|_| {
-                range(
-                    "max_normal_angle_deg",
-                    self.max_normal_angle_deg,
-                    End::Open(0.0),
-                    End::Closed(90.0),
-                )
-            })
-            .map_err(RefineError::Options)?;
-        if self.final_radius_m > self.initial_radius_m {
-            return bad(format!(
-                "final_radius_m ({}) exceeds initial_radius_m ({})",
-                self.final_radius_m, self.initial_radius_m
-            ));
-        }
-        if self.max_points < self.min_points || self.min_points < 7 {
-            return bad(format!(
-                "need 7 ≤ min_points ≤ max_points, got {} and {}",
-                self.min_points, self.max_points
-            ));
-        }
-        if self.max_iterations == 0 {
-            return bad("max_iterations must be ≥ 1".into());
-        }
-        if self.min_eigen_ratio >= 1.0 {
-            return bad(format!(
-                "min_eigen_ratio must be < 1, got {}",
-                crate::numfmt::Num(self.min_eigen_ratio)
-            ));
-        }
+        unit("min_opacity", self.min_opacity)?;
+        range(
+            "max_flatness",
+            self.max_flatness,
+            End::Open(0.0),
+            End::Closed(1.0),
+        )?;
+        range(
+            "max_normal_angle_deg",
+            self.max_normal_angle_deg,
+            End::Open(0.0),
+            End::Closed(90.0),
+        )?;
+        range(
+            "final_radius_m",
+            self.final_radius_m,
+            End::Open(0.0),
+            End::Closed(self.initial_radius_m),
+        )?;
+        range(
+            "min_points",
+            self.min_points,
+            End::Closed(7.0),
+            End::Closed(self.max_points as f64),
+        )?;
+        at_least("max_iterations", self.max_iterations, 1)?;
+        range(
+            "min_eigen_ratio",
+            self.min_eigen_ratio,
+            End::Open(0.0),
+            End::Open(1.0),
+        )?;
         Ok(())
     }
 }

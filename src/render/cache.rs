@@ -92,7 +92,7 @@ pub fn build(
     opts: &CacheOptions,
     out_dir: &Path,
 ) -> Result<CacheSummary, RenderError> {
-    opts.validate().map_err(RenderError::Options)?;
+    opts.validate()?;
     super::check_inputs(scene, views)?;
     let t0 = Instant::now();
     fsutil::create_dir(out_dir)?;

@@ -48,7 +48,7 @@ pub enum RenderError {
     #[error("invalid scene: {0}")]
     Scene(String),
     #[error("cache options: {0}")]
-    Options(String),
+    Options(#[from] crate::check::OutOfRange),
     #[error("features: {found} values for {gaussians} Gaussians × {channels} channels")]
     Features {
         found: usize,

@@ -148,8 +148,9 @@ pub struct RunOptions {
     /// (the `train` stage, which starts from the vote).
     pub mode: Mode,
     pub train: TrainOptions,
-    /// Every `test_every`-th view (by name) is a test view; 0 = none. `None`:
-    /// [`DEFAULT_TEST_EVERY`] (whether the scene has `gt/` never changes the split).
+    /// Every `test_every`-th view (by name) is a test view; 0 = none. `None`: the split the
+    /// scene declares (`scene.json`'s test views; without them every view trains). Whether
+    /// the scene has `gt/` never changes the split.
     pub test_every: Option<usize>,
     /// Run without `citymodel/alignment.json` (the CityGML coordinates minus a local origin).
     pub local_origin: bool,
@@ -167,7 +168,7 @@ pub struct RunOptions {
 impl Default for RunOptions {
     fn default() -> Self {
         RunOptions {
-            tau_m: 0.5,
+            tau_m: raycast::TAU_M,
             single_pass: false,
             top_k: cache::TOP_K,
             epsilon: cache::EPSILON,
@@ -266,17 +267,12 @@ fn canonical(scene_dir: &Path) -> Result<PathBuf, RunError> {
     })
 }
 
-/// The default split: every 8th view by name is a test view (3DGS's `--eval`).
-pub const DEFAULT_TEST_EVERY: usize = 8;
-
 /// What every step of a run shares.
 struct Running {
     scene: Scene,
     views: Vec<View>,
     split: Split,
     st: Store,
-    /// The test-view split: `RunOptions::test_every`, resolved.
-    test_every: usize,
     /// The scene check's warnings (CityGML warnings stay in `R/citymodel/summary.json`).
     check_warnings: Vec<String>,
     sparse_files: Vec<PathBuf>,
@@ -357,12 +353,21 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
     }
     let views = colmap::read_model(&scene.sparse)?;
     // Never from `gt/`: a run must give the same outputs with the simulation truth deleted.
-    let test_every = opts.test_every.unwrap_or(DEFAULT_TEST_EVERY);
-    let split = Split::new(views.clone(), test_every);
+    let split = match opts.test_every {
+        Some(every) => Split::new(views.clone(), every),
+        None => scene.declared_split(views.clone())?,
+    };
     if split.train.is_empty() {
-        return Err(RunError::Refused(
-            "no training views: every view is a test view (--test-every 1?)".into(),
-        ));
+        return Err(RunError::Refused(format!(
+            "no training views: every view is a test view ({})",
+            match opts.test_every {
+                Some(n) => format!("--test-every {n}"),
+                None => format!(
+                    "the test views of {}",
+                    scene.root.join(crate::scene::SceneMeta::FILE).display()
+                ),
+            }
+        )));
     }
     if scene.gt.is_some() && split.test.is_empty() {
         log::warn!(
@@ -382,7 +387,6 @@ fn open(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<Running, RunE
         views,
         split,
         st,
-        test_every,
         check_warnings,
         sparse_files,
         _lock: lock,
@@ -771,7 +775,9 @@ fn vote_steps(
         labels: &sup.labels,
         entities,
     };
-    let lift_opts = (opts.lift, r.test_every);
+    // The split is part of each labelling stage's fingerprint: the test views' names.
+    let test_views = r.split.test_stems();
+    let lift_opts = (opts.lift, &test_views);
     let _lift: LiftSummary = r.st.stage(
         Stage::Lift,
         &lift_opts,
@@ -781,7 +787,7 @@ fn vote_steps(
     )?;
     match opts.mode {
         Mode::Learned => {
-            let train_opts = (opts.train, r.test_every);
+            let train_opts = (opts.train, &test_views);
             let _t: TrainSummary = r.st.stage(
                 Stage::Train,
                 &train_opts,
@@ -860,10 +866,20 @@ fn finish(
     let semantics = crate::selection::SemanticRun::open(out, &r.scene.root, Some(opts.mode))?;
     let ply = pred_dir.join("semantic.ply");
     let command = command_line();
+    // The views the report shows: the test views, or without any a few training views (their
+    // class colours).
+    let shown: Vec<View> = if r.split.test.is_empty() {
+        let n = r.split.train.len();
+        let k = n.min(4);
+        (0..k).map(|i| r.split.train[i * n / k].clone()).collect()
+    } else {
+        r.split.test.clone()
+    };
     let report = report::write(&report::ReportInputs {
         scene: &r.scene,
         out,
-        views: &r.split.test,
+        views: &shown,
+        predicted: !r.split.test.is_empty(),
         predictions: pred_dir,
         stages: &r.st.reports,
         eval: eval.as_ref(),

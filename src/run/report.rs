@@ -88,8 +88,10 @@ pub struct ReportInputs<'a> {
     pub scene: &'a Scene,
     /// The run folder (`report.html` and `report/` are written into it).
     pub out: &'a Path,
-    /// The views shown (the test views).
+    /// The views shown: the test views, or (without any) a few training views.
     pub views: &'a [View],
+    /// Whether `views` have predictions (test views): the prediction panel.
+    pub predicted: bool,
     /// The folder of the scored predictions (`<stem>.class.npy`).
     pub predictions: &'a Path,
     pub stages: &'a [StageReport],
@@ -345,11 +347,29 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
         html.push_str(&class_table(&sr.class_of));
         html.push_str(&building_table(sr));
     }
-    html.push_str(if r.semantics.is_some() {
-        "<h2>Test views: image | semantic Gaussians in class colours (from the contributions cache) | ground truth | prediction</h2><p>"
-    } else {
-        "<h2>Test views: image | ground truth | prediction</h2><p>"
-    });
+    // The panels: a ground-truth panel only where the scene has ground truth, a prediction only
+    // for test views.
+    let has_gt = scene.gt.is_some();
+    let mut columns = vec!["image"];
+    if r.semantics.is_some() {
+        columns.push("semantic Gaussians in class colours (from the contributions cache)");
+    }
+    if has_gt {
+        columns.push("ground truth");
+    }
+    if r.predicted {
+        columns.push("prediction");
+    }
+    let _ = write!(
+        html,
+        "<h2>{}: {}</h2><p>",
+        if r.predicted {
+            "Test views"
+        } else {
+            "Views (the scene declares no test views: every view trains)"
+        },
+        columns.join(" | ")
+    );
     for (k, name) in classes::NAMES.iter().enumerate() {
         let [r, g, b] = classes::PALETTE[k];
         let _ = write!(
@@ -476,11 +496,6 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             },
             _ => grey(),
         };
-        let pred = read_map(&crate::idmap::class_file(r.predictions, stem), h, w)?;
-        let gt = match scene.gt.as_ref().map(|g| crate::idmap::class_file(g, stem)) {
-            Some(p) if p.is_file() => read_map(&p, h, w)?,
-            _ => vec![-1; w * h],
-        };
         let mut panels = vec![img.clone()];
         if let Some(colours) = &colours {
             let c = cache.load(stem)?;
@@ -492,7 +507,19 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             }
             panels.push(composite(&c, colours));
         }
-        panels.extend([overlay(&img, &gt), overlay(&img, &pred)]);
+        if let Some(g) = &scene.gt {
+            let p = crate::idmap::class_file(g, stem);
+            let gt = if p.is_file() {
+                read_map(&p, h, w)?
+            } else {
+                vec![-1; w * h]
+            };
+            panels.push(overlay(&img, &gt));
+        }
+        if r.predicted {
+            let pred = read_map(&crate::idmap::class_file(r.predictions, stem), h, w)?;
+            panels.push(overlay(&img, &pred));
+        }
         crate::imageio::write_png(&dir.join(format!("{stem}.png")), &hstack(&panels))?;
         Ok(())
     };

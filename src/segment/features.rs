@@ -41,10 +41,9 @@ impl FeaturesOptions {
     /// Checks every option's range.
     pub fn validate(&self) -> Result<(), SegmentError> {
         use check::End::Closed;
-        check::range("batch", self.batch as f64, Closed(1.0), Closed(1024.0))
-            .map_err(SegmentError::Options)?;
+        check::range("batch", self.batch, Closed(1.0), Closed(1024.0))?;
         if let Some(p) = self.prompts.iter().find(|p| p.trim().is_empty()) {
-            return Err(SegmentError::Options(format!("empty prompt {p:?}")));
+            return Err(SegmentError::EmptyPrompt(p.clone()));
         }
         Ok(())
     }

@@ -51,7 +51,12 @@ pub enum SegmentError {
     #[error("{dir}: no images (png, jpg, jpeg)")]
     NoImages { dir: PathBuf },
     #[error("invalid option: {0}")]
-    Options(String),
+    Options(#[from] crate::check::OutOfRange),
+    #[error("empty prompt {0:?}")]
+    EmptyPrompt(String),
+    /// An image too large for the network's buffers (the caller names the image).
+    #[error("{0}")]
+    TooLarge(String),
     #[error(transparent)]
     Cv(#[from] ImageError),
     #[error(transparent)]
@@ -74,7 +79,7 @@ const LOW_RES: usize = native::LOW;
 const NATIVE_CHUNK: usize = 4;
 
 /// The options of automatic mask generation (SAM's `SamAutomaticMaskGenerator` names).
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct SegmentOptions {
     /// Points per side of the prompt grid (SAM: 32).
     pub points_per_side: usize,
@@ -121,7 +126,7 @@ impl SegmentOptions {
     /// Checks every option's range.
     pub fn validate(&self) -> Result<(), SegmentError> {
         use check::End::{Closed, Open};
-        let r = || -> Result<(), String> {
+        let r = || -> Result<(), check::OutOfRange> {
             check::range(
                 "points-per-side",
                 self.points_per_side as f64,
@@ -146,7 +151,7 @@ impl SegmentOptions {
             check::range("scale", self.scale, Open(0.0), Closed(1.0))?;
             Ok(())
         };
-        r().map_err(SegmentError::Options)
+        Ok(r()?)
     }
 }
 

@@ -330,7 +330,7 @@ impl SemanticModel {
         let c = self.card.classes.len();
         let bytes = (c as u64) * (h as u64) * (w as u64) * 4;
         if bytes > MAX_PROBABILITY_BYTES {
-            return Err(SegmentError::Options(format!(
+            return Err(SegmentError::TooLarge(format!(
                 "a {w}×{h} image needs {:.1} GiB of class probabilities for {c} classes (at most {} GiB): downscale the images",
                 bytes as f64 / f64::from(1u32 << 30),
                 MAX_PROBABILITY_BYTES >> 30
@@ -657,7 +657,7 @@ pub fn run(
         let rgb = crate::imageio::read_rgb(path)?;
         let t = Instant::now();
         let p = model.probabilities(&rgb).map_err(|e| match e {
-            SegmentError::Options(why) => SegmentError::Image {
+            SegmentError::TooLarge(why) => SegmentError::Image {
                 path: path.clone(),
                 why,
             },

@@ -39,6 +39,8 @@ pub enum TextError {
     #[error("{0}")]
     Refused(String),
     #[error(transparent)]
+    Options(#[from] crate::check::OutOfRange),
+    #[error(transparent)]
     Embed(#[from] crate::textembed::EmbedError),
 }
 
@@ -89,25 +91,21 @@ impl TextOptions {
     /// Checks the ranges.
     pub fn validate(&self) -> Result<(), TextError> {
         use crate::check::{End, positive, range, unit};
-        positive("temperature", self.temperature)
-            .and_then(|_| unit("min relevancy", self.min_relevancy))
-            .and_then(|_| {
-                range(
-                    "synonym cosine",
-                    self.synonym_cos,
-                    End::Closed(-1.0),
-                    End::Closed(1.0),
-                )
-            })
-            .and_then(|_| {
-                range(
-                    "free-text margin",
-                    self.min_margin,
-                    End::Closed(-2.0),
-                    End::Closed(2.0),
-                )
-            })
-            .map_err(TextError::Refused)
+        positive("temperature", self.temperature)?;
+        unit("min relevancy", self.min_relevancy)?;
+        range(
+            "synonym cosine",
+            self.synonym_cos,
+            End::Closed(-1.0),
+            End::Closed(1.0),
+        )?;
+        range(
+            "free-text margin",
+            self.min_margin,
+            End::Closed(-2.0),
+            End::Closed(2.0),
+        )?;
+        Ok(())
     }
 }
 
@@ -302,7 +300,7 @@ pub fn relevancy(q: &TextQuery, f: &[f32], temperature: f64) -> (f64, usize) {
 }
 
 /// One text term's outcome.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TextMatch {
     pub query: String,
     pub threshold: f64,
@@ -376,7 +374,7 @@ impl Embed for crate::textembed::Lazy {
 }
 
 /// What free text can resolve to.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(tag = "kind", content = "name", rename_all = "lowercase")]
 pub enum Candidate {
     /// A prompt of `prompts.json` (then scored against the label features like `text(P)`).
@@ -431,7 +429,7 @@ impl std::fmt::Display for Candidate {
 }
 
 /// One free-text term's resolution.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FreeText {
     /// The text as given.
     pub query: String,
@@ -450,6 +448,47 @@ pub struct FreeText {
     pub margin: f64,
     /// Up to 5 nearest candidates with their cosines.
     pub top: Vec<(Candidate, f64)>,
+    /// The text's content words ([`content_words`]) the resolution stands for: each one whose
+    /// own nearest candidate is the resolved one, or that is a word of the resolved
+    /// candidate's phrase (plural or not). Empty when nothing is resolved.
+    #[serde(default)]
+    pub used: Vec<String>,
+    /// The content words the resolution does not stand for: one free-text term resolves to one
+    /// prompt, class or attribute, so "windows of the tallest building" selects windows and
+    /// says that "tallest" and "building" were not used.
+    #[serde(default)]
+    pub ignored: Vec<String>,
+}
+
+/// Words that carry no content of their own in a query.
+const STOP_WORDS: [&str; 30] = [
+    "a", "an", "the", "of", "in", "on", "at", "with", "and", "or", "to", "for", "by", "from",
+    "that", "which", "is", "are", "all", "any", "some", "its", "their", "this", "these", "those",
+    "show", "find", "select", "me",
+];
+
+/// The content words of a text: lowercase runs of letters and digits, stop words dropped, each
+/// once, in order.
+pub fn content_words(text: &str) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    for w in text
+        .split(|c: char| !c.is_alphanumeric())
+        .filter(|w| !w.is_empty())
+        .map(str::to_lowercase)
+    {
+        if !STOP_WORDS.contains(&w.as_str()) && !out.contains(&w) {
+            out.push(w);
+        }
+    }
+    out
+}
+
+/// A word without a plural `s` (`windows` → `window`), for comparing words.
+fn singular(w: &str) -> &str {
+    match w.strip_suffix('s') {
+        Some(s) if s.chars().count() >= 3 && !s.ends_with('s') => s,
+        _ => w,
+    }
 }
 
 /// Resolves free text `query` to the nearest of `candidates` by the cosine of their sentence
@@ -467,12 +506,17 @@ pub fn resolve(
         )));
     }
     let phrases: Vec<String> = candidates.iter().map(Candidate::phrase).collect();
+    let words = content_words(query);
+    // Each content word alone too, when there are several: which of them the result stands for.
+    let alone: &[String] = if words.len() > 1 { &words } else { &[] };
     let mut texts: Vec<&str> = vec![query];
     texts.extend(CANONICAL);
     texts.extend(phrases.iter().map(String::as_str));
+    texts.extend(alone.iter().map(String::as_str));
     let e = model.embed(&texts)?;
     let (q, rest) = e.split_first().expect("one embedding per text");
     let (canon, rest) = rest.split_at(CANONICAL.len());
+    let (rest, word_vecs) = rest.split_at(phrases.len());
     let (canonical, canonical_cosine) = CANONICAL
         .iter()
         .zip(canon)
@@ -483,10 +527,36 @@ pub fn resolve(
     ranked.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
     let (best, cosine) = ranked[0];
     let margin = cosine - canonical_cosine;
+    let resolved = margin >= min_margin;
+    let phrase_words: Vec<String> = content_words(&phrases[best])
+        .iter()
+        .map(|w| singular(w).to_string())
+        .collect();
+    let (mut used, mut ignored) = (Vec::new(), Vec::new());
+    for (k, w) in words.iter().enumerate() {
+        let own_nearest = word_vecs.get(k).map(|v| {
+            rest.iter()
+                .map(|c| dot(v, c))
+                .enumerate()
+                .fold(
+                    (0, f64::NEG_INFINITY),
+                    |a, (i, c)| if c > a.1 { (i, c) } else { a },
+                )
+                .0
+        });
+        let stands_for = words.len() == 1
+            || own_nearest == Some(best)
+            || phrase_words.iter().any(|p| p == singular(w));
+        if resolved && stands_for {
+            used.push(w.clone());
+        } else {
+            ignored.push(w.clone());
+        }
+    }
     Ok(FreeText {
         query: query.to_string(),
         threshold: min_margin,
-        resolved: (margin >= min_margin).then(|| candidates[best].clone()),
+        resolved: resolved.then(|| candidates[best].clone()),
         best: candidates[best].clone(),
         cosine,
         canonical,
@@ -497,6 +567,8 @@ pub fn resolve(
             .take(5)
             .map(|&(i, c)| (candidates[i].clone(), c))
             .collect(),
+        used,
+        ignored,
     })
 }
 
@@ -607,6 +679,57 @@ mod tests {
         assert_eq!(words("storeys_above-ground2D"), "storeys above ground2 d");
         assert_eq!(cands[2].phrase(), "measured height");
         assert!(resolve("x", &[], &model, MIN_MARGIN).is_err());
+    }
+
+    /// A text of several content words says which of them its resolution stands for.
+    #[test]
+    fn free_text_names_the_words_it_used_and_those_it_ignored() {
+        // Axes: 0 car, 1 window, 2 the canonical phrases' direction, 3 height.
+        let mut t = vec![
+            ("a car", vec![1.0, 0.0, 0.0, 0.0]),
+            ("window", vec![0.0, 1.0, 0.0, 0.0]),
+            ("measured height", vec![0.0, 0.0, 0.0, 1.0]),
+            ("windows of the tallest building", vec![0.1, 0.9, 0.2, 0.3]),
+            ("windows", vec![0.0, 1.0, 0.1, 0.0]),
+            ("tallest", vec![0.0, 0.0, 0.3, 1.0]),
+            ("building", vec![0.3, 0.1, 0.5, 0.2]),
+            ("the car windows", vec![0.7, 0.7, 0.1, 0.0]),
+            ("car", vec![1.0, 0.0, 0.1, 0.0]),
+        ];
+        t.extend(CANONICAL.map(|c| (c, vec![0.0, 0.0, 1.0, 0.0])));
+        let model = Table(t);
+        let cands = [
+            Candidate::Prompt("a car".into()),
+            Candidate::Class("Window".into()),
+            Candidate::Attribute("measuredHeight".into()),
+        ];
+        assert_eq!(
+            content_words("Windows of the tallest building"),
+            ["windows", "tallest", "building"]
+        );
+        let f = resolve(
+            "windows of the tallest building",
+            &cands,
+            &model,
+            MIN_MARGIN,
+        )
+        .unwrap();
+        assert_eq!(f.resolved, Some(Candidate::Class("Window".into())));
+        assert_eq!(f.used, ["windows"]);
+        assert_eq!(f.ignored, ["tallest", "building"]);
+        // A tie between car and window goes to the earlier candidate, "a car": "windows" is
+        // then the word left out.
+        let f = resolve("the car windows", &cands, &model, MIN_MARGIN).unwrap();
+        assert_eq!(f.resolved, Some(Candidate::Prompt("a car".into())));
+        assert_eq!(
+            (f.used, f.ignored),
+            (vec!["car".to_string()], vec!["windows".to_string()])
+        );
+        // A single word is what it resolves to; nothing resolved uses nothing.
+        let f = resolve("automobile", &cands, &model, MIN_MARGIN);
+        assert!(f.is_err(), "no vector for automobile in this table");
+        assert_eq!(singular("windows"), "window");
+        assert_eq!(singular("glass"), "glass");
     }
 
     #[test]

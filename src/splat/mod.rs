@@ -10,6 +10,7 @@
 pub mod compressed;
 pub mod formats;
 pub mod ply;
+pub mod surface;
 pub mod transform;
 
 pub use formats::SplatFormat;

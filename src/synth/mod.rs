@@ -66,6 +66,8 @@ pub enum SynthError {
     Ply(#[from] crate::splat::PlyError),
     #[error(transparent)]
     Colmap(#[from] crate::colmap::ColmapError),
+    #[error(transparent)]
+    Scene(#[from] crate::scene::SceneError),
     #[error("copy {from} → {to}: {err}")]
     Copy {
         from: PathBuf,
@@ -505,13 +507,20 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
     crate::fsutil::write_json(&out.join("gt/instances.json"), &inst)?;
 
     let n = sim.views.len();
-    let test_views: Vec<&str> = sim
-        .views
-        .iter()
-        .enumerate()
-        .filter(|(i, _)| i % cfg.cameras.test_every == 0)
-        .map(|(_, v)| v.name.as_str())
-        .collect();
+    // The test split, declared in scene.json (3DGS's every 8th view by name): an input of the
+    // pipeline like the images, not simulation truth.
+    let split = crate::scene::Split::new(sim.views.clone(), cfg.cameras.test_every);
+    let test_views: Vec<&str> = split.test.iter().map(|v| v.name.as_str()).collect();
+    crate::scene::SceneMeta {
+        simulated: true,
+        generator: format!(
+            "gs4city synth (seed {}, {} views, every {}th a test view)",
+            cfg.seed, n, cfg.cameras.test_every
+        ),
+        test_views: Some(test_views.iter().map(|s| s.to_string()).collect()),
+        imported: Default::default(),
+    }
+    .write(out)?;
     sim.timings.insert("total_s", t_all.elapsed().as_secs_f64());
     let summary = SynthSummary {
         simulated: true,
@@ -543,10 +552,6 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
         timing: sim.timings.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
         config: serde_json::to_value(cfg).unwrap_or_default(),
     };
-    crate::fsutil::write_json(
-        &out.join(crate::scene::SceneMeta::FILE),
-        &crate::scene::SceneMeta { simulated: true },
-    )?;
     crate::fsutil::write_json(&out.join("summary.json"), &summary)?;
     crate::progress::done(
         "synth",

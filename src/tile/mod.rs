@@ -42,6 +42,8 @@ use crate::scene::{Scene, Split};
 pub enum TileError {
     #[error("{0}")]
     Invalid(String),
+    #[error(transparent)]
+    Options(#[from] crate::check::OutOfRange),
     #[error("{path}: {err}")]
     Io { path: PathBuf, err: std::io::Error },
     #[error(transparent)]
@@ -88,8 +90,10 @@ pub struct TileOptions {
     /// the tile.
     pub margin_m: f64,
     /// Every `test_every`-th view by name is a test view of the whole plan, held back from every
-    /// tile (as `gs4city run`; 0 = none).
-    pub test_every: usize,
+    /// tile (as `gs4city run`; 0 = none). `None`: the test views the scene declares
+    /// (`scene.json`; none: every view trains).
+    #[serde(default)]
+    pub test_every: Option<usize>,
     /// Opaque core Gaussians per tile sampled for the view test.
     pub sample: usize,
     /// Sample points that must be visible for a view to join a tile.
@@ -113,7 +117,7 @@ impl Default for TileOptions {
         TileOptions {
             size_m: 150.0,
             margin_m: 25.0,
-            test_every: 8,
+            test_every: None,
             sample: 2048,
             min_visible: 3,
             min_share: 0.0,
@@ -127,24 +131,20 @@ impl TileOptions {
     /// Checks the ranges (one line naming the option).
     pub fn validate(&self) -> Result<(), TileError> {
         use crate::check::{End, range};
-        range("size", self.size_m, End::Closed(1.0), End::Closed(1e6))
-            .map_err(TileError::Invalid)?;
-        range("margin", self.margin_m, End::Closed(0.0), End::Closed(1e6))
-            .map_err(TileError::Invalid)?;
+        range("size", self.size_m, End::Closed(1.0), End::Closed(1e6))?;
+        range("margin", self.margin_m, End::Closed(0.0), End::Closed(1e6))?;
         range(
             "sample",
             self.sample as f64,
             End::Closed(16.0),
             End::Closed(1e7),
-        )
-        .map_err(TileError::Invalid)?;
+        )?;
         range(
             "min-share",
             self.min_share,
             End::Closed(0.0),
             End::Closed(1.0),
-        )
-        .map_err(TileError::Invalid)?;
+        )?;
         Ok(())
     }
 }
@@ -574,7 +574,10 @@ pub fn plan(
         )));
     }
     let views = crate::colmap::read_model(&scene.sparse)?;
-    let split = Split::new(views, opts.test_every);
+    let split = match opts.test_every {
+        Some(every) => Split::new(views, every),
+        None => scene.declared_split(views)?,
+    };
     let test_views: Vec<String> = split.test.iter().map(|v| v.name.clone()).collect();
 
     // The grid over the footprint centres, centred on them.
@@ -808,9 +811,16 @@ fn write_tile_scene(
     if let Some(p) = scene.prompts_file() {
         gml::link(&p, &sdir.join("features/prompts.json"))?;
     }
-    // A tile of a SIMULATED scene is simulated too (its report says so).
-    if scene.meta != crate::scene::SceneMeta::default() {
-        crate::fsutil::write_json(&sdir.join(crate::scene::SceneMeta::FILE), &scene.meta)?;
+    // A tile of a SIMULATED scene is simulated too (its report says so). Its views are the
+    // plan's training views only (the test views are held back from every tile), so it
+    // declares no test views; nor is it an import.
+    let meta = crate::scene::SceneMeta {
+        test_views: None,
+        imported: Default::default(),
+        ..scene.meta.clone()
+    };
+    if meta != crate::scene::SceneMeta::default() {
+        meta.write(sdir)?;
     }
     Ok(())
 }

@@ -68,7 +68,9 @@ pub enum TrainError {
     #[error("{path}: {why}")]
     Labels { path: PathBuf, why: String },
     #[error("invalid option: {0}")]
-    Options(String),
+    Options(#[from] crate::check::OutOfRange),
+    #[error("no training views (every view is a test view)")]
+    NoTrainingViews,
 }
 
 /// How the softmax over the classes is evaluated during training.
@@ -186,16 +188,10 @@ impl Default for TrainOptions {
 impl TrainOptions {
     /// Checks the options.
     pub fn validate(&self) -> Result<(), TrainError> {
-        let bad = |s: String| Err(TrainError::Options(s));
-        if self.dim == 0 || self.dim > 256 {
-            return bad(format!("dim must lie in 1..=256, got {}", self.dim));
-        }
-        if self.pixels == 0 {
-            return bad("pixels per iteration must be positive".into());
-        }
-        if self.stride == 0 {
-            return bad("stride must be positive".into());
-        }
+        use crate::check::{End, at_least, range};
+        range("dim", self.dim, End::Closed(1.0), End::Closed(256.0))?;
+        at_least("pixels", self.pixels, 1)?;
+        at_least("stride", self.stride, 1)?;
         for (name, v) in [
             ("lr_codes", self.lr_codes),
             ("lr_classifier", self.lr_classifier),
@@ -204,15 +200,13 @@ impl TrainOptions {
             ("tol", self.tol),
             ("class_weight", self.class_weight),
         ] {
-            crate::check::non_negative(name, v).map_err(TrainError::Options)?;
+            crate::check::non_negative(name, v)?;
         }
-        crate::check::unit("class_weight", self.class_weight).map_err(TrainError::Options)?;
-        if let Softmax::Sampled { negatives: 0 } = self.softmax {
-            return bad("sampled softmax needs at least one negative".into());
+        crate::check::unit("class_weight", self.class_weight)?;
+        if let Softmax::Sampled { negatives } = self.softmax {
+            at_least("negatives", negatives, 1)?;
         }
-        if self.window == 0 {
-            return bad("window must be positive".into());
-        }
+        at_least("window", self.window, 1)?;
         VoteOptions {
             gamma: self.gamma,
             city_gate_m: self.city_gate_m,
@@ -658,9 +652,7 @@ pub fn run(
     let t0 = Instant::now();
     opts.validate()?;
     if inp.train.is_empty() {
-        return Err(TrainError::Options(
-            "no training views (every view is a test view)".into(),
-        ));
+        return Err(TrainError::NoTrainingViews);
     }
     crate::fsutil::create_dir(out)?;
     let _ = std::fs::remove_file(out.join("summary.json"));

@@ -1,10 +1,19 @@
-//! `gs4city view R`: a local interactive viewer of a finished run (docs/view.md). A small HTTP
-//! server ([`http`], bound to 127.0.0.1 only) serves the page, its script and the splat renderer
-//! it draws with (Spark on three.js, vendored from npm; all embedded in the binary, [`assets`]),
-//! the run's Gaussians in a compact binary ([`splats_binary`]), a JSON API and the run folder's
-//! files ([`files`]):
+//! `gs4city view --run R` / `gs4city view --scene S`: a local interactive viewer of a finished
+//! run, or of a scene before any run (its own Gaussians in RGB, to collect ground-control
+//! points) (docs/view.md). A small HTTP server ([`http`], bound to 127.0.0.1 only) serves the
+//! page, its script and the splat renderer it draws with (Spark on three.js, vendored from npm;
+//! all embedded in the binary, [`assets`]), the Gaussians in a compact binary
+//! ([`splats_binary`]), a JSON API and the run folder's files ([`files`]):
 //!
-//! * `GET /api/meta`: Gaussian count, mode, scene up axis, centre and extent, the class legend;
+//! * `GET /api/meta`: Gaussian count, mode, scene up axis, centre and extent, the class legend
+//!   (`run` is null for a scene);
+//! * `GET /api/point?eye=X,Y,Z&target=X,Y,Z&up=X,Y,Z&fovy=DEG&width=W&height=H&x=U&y=V` (the
+//!   page's camera and a position in its canvas, CSS pixels from the top left) or
+//!   `GET /api/point?view=IMAGE&x=U&y=V` (a position in a COLMAP image, pixel (i, j) covering
+//!   [i, i+1) × [j, j+1)): the point of the splat surface under that position
+//!   ([`crate::splat::surface`]: the renderer's own blend list of that one pixel, the Gaussian
+//!   where the transmittance falls to one half, the ray's peak of its density), in the scene
+//!   frame and, where an alignment is known, in the city model's CRS (f64);
 //! * `GET /api/splats.bin`: centres, scales, rotations, RGB / class / building colours and the
 //!   Gaussian each splat stands for ([`splats_binary`]): every Gaussian, or, for a run of more
 //!   than the splat budget (`--max-splats`), the coarse set the 3D Tiles export's level of
@@ -14,13 +23,14 @@
 //!   and evaluation ([`crate::selection`]) over the same per-Gaussian labels — as a count and a
 //!   bitmask (base64, bit `i` of byte `i / 8` LSB first = Gaussian `i`); a bad expression is
 //!   answered 400 with the parser's one-line message;
-//! * `GET /api/pick?i=N`: Gaussian `N`'s label, class and city hierarchy building → surface →
-//!   part with gml:ids and attributes ([`crate::query::chain`], as `query --pick`);
+//! * `GET /api/pick?i=N` (a run): Gaussian `N`'s label, class and city hierarchy building →
+//!   surface → part with gml:ids and attributes ([`crate::query::chain`], as `query --pick`);
 //! * `GET /files/PATH`: a regular file inside the run folder, nothing outside it.
 //!
-//! The page picks on the client: with the renderer's camera it draws every splat's index + 1 as an
-//! RGBA colour into an offscreen target of its own and reads the clicked pixel, then asks
-//! `/api/pick`.
+//! A click on the page asks `/api/point` for the clicked point's coordinates; with a run it also
+//! picks the splat on the client (every splat's index + 1 drawn as an RGBA colour into an
+//! offscreen target with the renderer's camera, the clicked pixel read back) and asks
+//! `/api/pick` for its hierarchy.
 pub mod assets;
 pub mod files;
 pub mod http;
@@ -31,9 +41,11 @@ use std::sync::Arc;
 
 use glam::DVec3;
 
+use crate::camera::{Camera, Distortion, Intrinsics, Pose, View};
 use crate::mesh::FaceLabel;
+use crate::render::{PreparedScene, RenderOptions};
 use crate::selection::{SelectionError, SemanticRun, TextOptions};
-use crate::splat::{self, ReadOptions};
+use crate::splat::{self, Gaussians, ReadOptions};
 use crate::{alignment, classes, query, semantics};
 use http::{Body, Request, Response};
 
@@ -55,6 +67,12 @@ pub enum ViewError {
     Ply(#[from] splat::PlyError),
     #[error(transparent)]
     Alignment(#[from] alignment::AlignError),
+    #[error(transparent)]
+    Scene(#[from] crate::scene::SceneError),
+    #[error(transparent)]
+    Colmap(#[from] crate::colmap::ColmapError),
+    #[error(transparent)]
+    Render(#[from] crate::render::RenderError),
     #[error("{0}")]
     Inputs(String),
     #[error("cannot listen on 127.0.0.1:{port}: {err}")]
@@ -63,15 +81,28 @@ pub enum ViewError {
     Serve { port: u16, err: std::io::Error },
 }
 
-/// A finished run, loaded for serving.
-pub struct Viewer {
+/// A finished run's semantics, when one is viewed.
+struct RunPart {
     sr: SemanticRun,
     /// The run folder, canonical (the root of `/files/`).
     root: PathBuf,
     chains: Vec<FaceLabel>,
+    text: TextOptions,
+}
+
+/// A scene's Gaussians (and, with `--run`, a finished run of it), loaded for serving.
+pub struct Viewer {
+    run: Option<RunPart>,
+    /// The Gaussians as the renderer draws them (invalid ones hidden) and as picked.
+    gaussians: Gaussians,
+    prepared: PreparedScene,
+    /// The scene's COLMAP views (`/api/point?view=`).
+    views: Vec<View>,
+    /// Scene frame → the city model's CRS, where an alignment is known, and the CRS's name.
+    alignment: Option<alignment::Alignment>,
+    crs: Option<String>,
     splats: Arc<Vec<u8>>,
     meta: serde_json::Value,
-    text: TextOptions,
 }
 
 /// The DC colour of a Gaussian as 8-bit RGB (`0.5 + C0·f_dc`, clamped).
@@ -226,12 +257,13 @@ fn bounds(g: &splat::Gaussians) -> (DVec3, f64) {
 impl Viewer {
     /// Loads run folder `run` made from scene folder `scene` in `mode` (as `gs4city query`),
     /// and its Gaussians (the scene's `point_cloud.ply`, every Gaussian kept in file order as
-    /// the pipeline reads it).
+    /// the pipeline reads it). `crs`: the city model's CRS name, when known.
     pub fn open(
         run: &Path,
         scene: &Path,
         mode: Option<crate::layout::Mode>,
         max_splats: usize,
+        crs: Option<String>,
     ) -> Result<Viewer, ViewError> {
         let sr = SemanticRun::open(run, scene, mode)?;
         let (g, _) = splat::read_ply(&sr.scene.ply, &ReadOptions::KEEP)?;
@@ -248,62 +280,125 @@ impl Viewer {
             .canonicalize()
             .map_err(|e| ViewError::Inputs(format!("{}: {e}", run.display())))?;
         let cols = query::columns(&sr);
-        let (center, extent) = bounds(&g);
-        let gaussians = g.len();
-        let (g, class, building, index) = budget(g, &sr.class_of, &cols.building, max_splats);
-        let splats = splats_binary(&g, &class, &building, &index);
-        // Up in the scene frame: p_scene = s·R·(p_geo − origin) + t, so geo z is R·ẑ.
+        let (bg, class, building, index) =
+            budget(g.clone(), &sr.class_of, &cols.building, max_splats);
+        let n_splats = bg.len();
+        let splats = splats_binary(&bg, &class, &building, &index);
+        drop(bg);
+        // The run's alignment (its citymodel stage's: refined where the run refined it).
         let apath = crate::layout::Stage::Citymodel
             .path(run)
             .join("alignment.json");
-        let up = if apath.is_file() {
-            alignment::Alignment::read(&apath)?.rotation * DVec3::Z
+        let alignment = if apath.is_file() {
+            Some(alignment::Alignment::read(&apath)?)
         } else {
-            DVec3::Z
+            None
         };
+        let views = crate::colmap::read_model(&sr.scene.sparse)?;
+        let mut v = Viewer::new(g, views, alignment, crs, splats, n_splats)?;
+        v.meta["mode"] = sr.mode.name().into();
+        v.meta["run"] = root.display().to_string().into();
+        v.meta["labels_source"] = sr.labels_source.clone().into();
+        v.meta["files"] =
+            serde_json::json!(["report.html", format!("{}/semantic.ply", sr.mode.dir())]);
+        v.run = Some(RunPart {
+            chains: semantics::chains(&sr.entities),
+            sr,
+            root,
+            text: TextOptions::default(),
+        });
+        Ok(v)
+    }
+
+    /// Loads scene folder `scene` before any run: its Gaussians in RGB, clicks giving the
+    /// points' scene coordinates (and, once `citymodel/alignment.json` exists, their
+    /// coordinates in the city model's CRS).
+    pub fn open_scene(scene: &Path, crs: Option<String>) -> Result<Viewer, ViewError> {
+        let s = crate::scene::Scene::open(scene)?;
+        let (g, _) = splat::read_ply(&s.ply, &ReadOptions::KEEP)?;
+        let none = vec![-1; g.len()];
+        let index: Vec<u32> = (0..g.len() as u32).collect();
+        let splats = splats_binary(&g, &none, &none, &index);
+        let n_splats = g.len();
+        let alignment = s
+            .alignment
+            .as_deref()
+            .map(alignment::Alignment::read)
+            .transpose()?;
+        let views = crate::colmap::read_model(&s.sparse)?;
+        let mut v = Viewer::new(g, views, alignment, crs, splats, n_splats)?;
+        v.meta["scene"] = s.root.display().to_string().into();
+        v.meta["simulated"] = s.simulated().into();
+        Ok(v)
+    }
+
+    fn new(
+        mut gaussians: Gaussians,
+        views: Vec<View>,
+        alignment: Option<alignment::Alignment>,
+        crs: Option<String>,
+        splats: Vec<u8>,
+        n_splats: usize,
+    ) -> Result<Viewer, ViewError> {
+        // Up in the scene frame: p_scene = s·R·(p_geo − origin) + t, so geo z is R·ẑ.
+        let up = alignment
+            .as_ref()
+            .map_or(DVec3::Z, |a| a.rotation * DVec3::Z);
+        let (center, extent) = bounds(&gaussians);
         let legend: Vec<serde_json::Value> = (0..classes::NAMES.len() as i32)
             .map(|c| serde_json::json!({"id": c, "name": classes::name(c), "color": classes::color(c)}))
             .collect();
         let meta = serde_json::json!({
-            "gaussians": gaussians,
-            "splats": g.len(),
-            "mode": sr.mode.name(),
-            "run": root.display().to_string(),
-            "labels_source": sr.labels_source,
+            "gaussians": gaussians.len(),
+            "splats": n_splats,
+            "mode": null,
+            "run": null,
+            "scene": null,
+            "simulated": false,
+            "labels_source": null,
             "up": up.normalize_or(DVec3::Z).to_array(),
             "center": center.to_array(),
             "extent": extent,
             "classes": legend,
-            "files": ["report.html", format!("{}/semantic.ply", sr.mode.dir())],
+            "files": [],
+            "georeferenced": alignment.is_some(),
+            "crs": crs,
         });
+        splat::ply::hide_invalid(&mut gaussians);
+        let prepared = PreparedScene::new(&gaussians)?;
         Ok(Viewer {
-            chains: semantics::chains(&sr.entities),
-            sr,
-            root,
+            run: None,
+            gaussians,
+            prepared,
+            views,
+            alignment,
+            crs,
             splats: Arc::new(splats),
             meta,
-            text: TextOptions::default(),
         })
     }
 
     /// Number of Gaussians served.
     pub fn len(&self) -> usize {
-        self.sr.label_of.len()
+        self.gaussians.len()
     }
 
-    /// Whether the run has no Gaussians.
+    /// Whether the scene has no Gaussians.
     pub fn is_empty(&self) -> bool {
-        self.sr.label_of.is_empty()
+        self.gaussians.is_empty()
     }
 
     /// `/api/query?where=EXPR`.
     pub fn query(&self, expr: &str) -> Response {
-        match self.sr.select_text("where", expr, self.text) {
+        let Some(run) = &self.run else {
+            return Response::error(404, NO_RUN);
+        };
+        match run.sr.select_text("where", expr, run.text) {
             Ok((e, sel)) => {
-                let selected = self.sr.gaussian_selection(&sel.labels);
+                let selected = run.sr.gaussian_selection(&sel.labels);
                 let count = selected.iter().filter(|s| **s).count();
                 let gml = |id: &i32| {
-                    self.sr
+                    run.sr
                         .entities
                         .get(*id as usize)
                         .map(|e| e.object_id.clone())
@@ -330,6 +425,9 @@ impl Viewer {
 
     /// `/api/pick?i=N`.
     pub fn pick(&self, i: &str) -> Response {
+        let Some(run) = &self.run else {
+            return Response::error(404, NO_RUN);
+        };
         let Ok(i) = i.trim().parse::<usize>() else {
             return Response::error(400, format!("i `{i}`: expected a Gaussian index ≥ 0"));
         };
@@ -339,23 +437,166 @@ impl Viewer {
                 format!("Gaussian {i}: the run has {} Gaussians", self.len()),
             );
         }
-        let label = self.sr.label_of[i];
-        let l = self.sr.labels.get(label);
+        let sr = &run.sr;
+        let label = sr.label_of[i];
+        let l = sr.labels.get(label);
         Response::json(
             200,
             &serde_json::json!({
                 "gaussian": i,
                 "label": label,
-                "class": self.sr.class_of[i],
-                "category": classes::name(self.sr.class_of[i]),
+                "class": sr.class_of[i],
+                "category": classes::name(sr.class_of[i]),
                 "source": l.map(|l| match l.source {
                     crate::labels::Source::City => "city",
                     crate::labels::Source::Image => "image",
                 }),
                 "group": l.and_then(|l| l.group),
-                "chain": query::chain(&self.sr, &self.chains, label),
+                "chain": query::chain(sr, &run.chains, label),
             }),
         )
+    }
+
+    /// `/api/point?…` (module docs): the camera and the position, parsed.
+    fn point_camera(
+        &self,
+        param: &dyn Fn(&str) -> Option<String>,
+    ) -> Result<(Camera, f64, f64), String> {
+        let num = |k: &str| -> Result<f64, String> {
+            let v = param(k).ok_or_else(|| format!("give {k}="))?;
+            v.trim()
+                .parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| format!("{k} `{v}`: expected a finite number"))
+        };
+        let vec3 = |k: &str| -> Result<DVec3, String> {
+            let v = param(k).ok_or_else(|| format!("give {k}=X,Y,Z"))?;
+            let xs: Vec<f64> = v
+                .split(',')
+                .map(|t| t.trim().parse::<f64>())
+                .collect::<Result<_, _>>()
+                .map_err(|_| format!("{k} `{v}`: expected three numbers X,Y,Z"))?;
+            match xs[..] {
+                [x, y, z] if xs.iter().all(|v| v.is_finite()) => Ok(DVec3::new(x, y, z)),
+                _ => Err(format!("{k} `{v}`: expected three finite numbers X,Y,Z")),
+            }
+        };
+        let (x, y) = (num("x")?, num("y")?);
+        if let Some(name) = param("view") {
+            let v = self
+                .views
+                .iter()
+                .find(|v| v.name == name || v.stem() == name)
+                .ok_or_else(|| {
+                    format!("view `{name}` is not an image of the scene's COLMAP model")
+                })?;
+            return Ok((v.camera, x, y));
+        }
+        let (eye, target, up) = (vec3("eye")?, vec3("target")?, vec3("up")?);
+        let (fovy, w, h) = (num("fovy")?, num("width")?, num("height")?);
+        if !(fovy > 0.0 && fovy < 180.0) {
+            return Err(format!("fovy {fovy}: expected degrees in (0, 180)"));
+        }
+        if !(w >= 1.0 && h >= 1.0 && w <= 32768.0 && h <= 32768.0) {
+            return Err(format!(
+                "width × height {w} × {h}: expected 1 to 32768 pixels each"
+            ));
+        }
+        let pose = Pose::look_at(eye, target, up)
+            .ok_or_else(|| "eye equals target, or the view looks along up".to_string())?;
+        let f = (h / 2.0) / (fovy.to_radians() / 2.0).tan();
+        let intrinsics = Intrinsics {
+            width: w.round() as u32,
+            height: h.round() as u32,
+            fx: f,
+            fy: f,
+            cx: w / 2.0,
+            cy: h / 2.0,
+            distortion: Distortion::None,
+        };
+        Ok((Camera { intrinsics, pose }, x, y))
+    }
+
+    /// `/api/point?…`: the point of the splat surface under position (x, y) of a camera
+    /// (module docs), in the scene frame and the city model's CRS.
+    pub fn point(&self, param: &dyn Fn(&str) -> Option<String>) -> Response {
+        let (cam, x, y) = match self.point_camera(param) {
+            Ok(c) => c,
+            Err(e) => return Response::error(400, e),
+        };
+        let k = &cam.intrinsics;
+        if !(x >= 0.0 && y >= 0.0 && x <= f64::from(k.width) && y <= f64::from(k.height)) {
+            return Response::error(
+                400,
+                format!(
+                    "position ({x}, {y}) lies outside the {}×{} image",
+                    k.width, k.height
+                ),
+            );
+        }
+        // The renderer's blend list of one pixel centred on (x, y): the same camera, an image
+        // of 1×1 pixels whose principal point is moved so that its pixel covers (x, y) ± ½.
+        let one = Camera {
+            intrinsics: Intrinsics {
+                width: 1,
+                height: 1,
+                cx: k.cx - (x - 0.5),
+                cy: k.cy - (y - 0.5),
+                ..*k
+            },
+            pose: cam.pose,
+        };
+        let opts = RenderOptions {
+            features: false,
+            max_sh_degree: 0,
+            images: false,
+            contributions: crate::render::ContributionMode::All,
+            t_stop: 0.0,
+            ..Default::default()
+        };
+        let out = match crate::render::render_view(&self.prepared, &one, &opts) {
+            Ok(o) => o,
+            Err(e) => return Response::error(400, e.to_string()),
+        };
+        let c = out.contributions.unwrap_or_default();
+        let (ids, ws) = if c.offsets.len() >= 2 {
+            c.pixel(0)
+        } else {
+            (&[][..], &[][..])
+        };
+        let origin = cam.pose.center();
+        let dir = cam.pose.rotation.transpose() * cam.pixel_ray(x, y);
+        let list = ids.iter().copied().zip(ws.iter().copied());
+        let alpha: f64 = ws.iter().map(|&w| f64::from(w)).sum();
+        match splat::surface::surface_point(&self.gaussians, list, origin, dir) {
+            None => Response::json(
+                200,
+                &serde_json::json!({
+                    "hit": false,
+                    "alpha": alpha,
+                    "why": "the splats under this position are less than half opaque (sky, a gap)",
+                }),
+            ),
+            Some(p) => {
+                let geo = self
+                    .alignment
+                    .as_ref()
+                    .map(|a| a.unapply(p.point).to_array());
+                Response::json(
+                    200,
+                    &serde_json::json!({
+                        "hit": true,
+                        "scene": p.point.to_array(),
+                        "geo": geo,
+                        "crs": self.crs,
+                        "gaussian": p.gaussian,
+                        "distance": p.t,
+                        "alpha": p.alpha,
+                    }),
+                )
+            }
+        }
     }
 
     /// Answers one request.
@@ -371,6 +612,7 @@ impl Viewer {
         }
         let params = parse_query(&req.query);
         let param = |k: &str| params.iter().find(|(n, _)| n == k).map(|(_, v)| v.as_str());
+        let owned = |k: &str| param(k).map(str::to_string);
         if let Some(a) = assets::find(&req.path) {
             return Response {
                 status: 200,
@@ -396,8 +638,11 @@ impl Viewer {
                 Some(i) => self.pick(i),
                 None => Response::error(400, "give i=N (a Gaussian index)"),
             },
+            "/api/point" => self.point(&owned),
             p => match p.strip_prefix("/files/") {
-                Some(rel) => match files::resolve(&self.root, rel) {
+                None => Response::text(404, format!("{p}: no such page")),
+                Some(_) if self.run.is_none() => Response::text(404, NO_RUN),
+                Some(rel) => match files::resolve(&self.run.as_ref().expect("a run").root, rel) {
                     Ok(f) => match std::fs::metadata(&f) {
                         Ok(m) => Response {
                             status: 200,
@@ -409,11 +654,15 @@ impl Viewer {
                     Err(files::Refusal::Outside(m)) => Response::text(403, m),
                     Err(files::Refusal::Missing(m)) => Response::text(404, m),
                 },
-                None => Response::text(404, format!("{p}: no such page")),
             },
         }
     }
 }
+
+/// The answer of the run's routes when a scene is viewed before any run.
+const NO_RUN: &str = "no run is loaded (gs4city view --scene S shows the scene before a run: \
+                      colours and clicked points only; `gs4city view --run R` after \
+                      `gs4city run --scene S --out R`)";
 
 fn content_type(p: &Path) -> &'static str {
     match p.extension().and_then(|e| e.to_str()) {

@@ -8,7 +8,11 @@
 // target of a second WebGL2 context, the clicked pixel is read back, and the server is asked
 // for the hierarchy of the Gaussian the splat stands for (/api/pick). A run of more Gaussians
 // than the server's splat budget comes as a coarse set: each splat stands for its heaviest
-// Gaussian (class, building, query bit, pick).
+// Gaussian (class, building, query bit, pick). Every click also asks the server for the point of the
+// splat surface under the cursor (/api/point: the renderer's own blend list of that pixel, with
+// this page's camera), shown in the scene frame and, once the scene is aligned, in the city
+// model's CRS, and listed for copying (ground-control points). Without a run (`gs4city view
+// --scene S`) the page shows the scene's own colours and the clicked points only.
 import * as THREE from 'three';
 import { PackedSplats, SparkRenderer, SplatMesh, setPackedSplat, utils } from '@sparkjsdev/spark';
 
@@ -27,7 +31,8 @@ async function main() {
     const r = await fetch('api/splats.bin');
     if (!r.ok) throw new Error('api/splats.bin: HTTP ' + r.status);
     buf = await r.arrayBuffer();
-  } catch (e) { fail('Cannot load the run: ' + e); return; }
+  } catch (e) { fail('Cannot load the scene: ' + e); return; }
+  const isRun = !!meta.run;
   const head = new DataView(buf);
   const magic = String.fromCharCode(head.getUint8(0), head.getUint8(1), head.getUint8(2), head.getUint8(3));
   const n = head.getUint32(8, true);
@@ -264,6 +269,37 @@ async function main() {
     return e;
   };
   const LEVEL = { feature: 'building', surface: 'surface', part: 'part' };
+  // The point of the splat surface under CSS pixel (x, y) of the canvas, from the server.
+  const pointAt = async (x, y) => {
+    applyCamera();
+    const q = new URLSearchParams({
+      eye: eye().join(','), target: cam.target.join(','), up: camera.up.toArray().join(','),
+      fovy: String(FOVY), width: String(canvas.clientWidth), height: String(canvas.clientHeight),
+      x: String(x), y: String(y),
+    });
+    const r = await fetch('api/point?' + q.toString());
+    const j = await r.json();
+    if (!r.ok) throw new Error(j.error);
+    return j;
+  };
+  const fmt = (v, d) => v.map((c) => c.toFixed(d)).join(' ');
+  const showPoint = async (x, y) => {
+    const box = $('point');
+    box.replaceChildren();
+    let j;
+    try { j = await pointAt(x, y); } catch (e) { box.append(el('div', { class: 'muted' }, String(e.message || e))); return; }
+    api.lastPoint = j;
+    if (!j.hit) { box.append(el('div', { id: 'pick-point', 'data-hit': '0', class: 'muted' }, 'No surface under the cursor (' + j.why + ').')); return; }
+    const d = el('div', { id: 'pick-point', 'data-hit': '1', 'data-scene': j.scene.join(','), 'data-geo': j.geo ? j.geo.join(',') : '' });
+    d.append(el('div', {}, 'scene: ' + fmt(j.scene, 4)));
+    if (j.geo) d.append(el('div', {}, (j.crs || 'CRS') + ': ' + fmt(j.geo, 3)));
+    box.append(d);
+    const list = $('points');
+    list.value += (j.geo ? fmt(j.geo, 3) + '   ' : '') + fmt(j.scene, 4) + '\n';
+    list.scrollTop = list.scrollHeight;
+  };
+  $('copy-points').addEventListener('click', () => { $('points').select(); navigator.clipboard?.writeText($('points').value); });
+  $('clear-points').addEventListener('click', () => { $('points').value = ''; });
   const showPick = async (i) => {
     const box = $('pick');
     box.className = '';
@@ -363,7 +399,9 @@ async function main() {
     const d = drag; drag = null;
     if (d && !d.moved && e.button === 0) {
       const r = canvas.getBoundingClientRect();
-      showPick(pickAt(e.clientX - r.left, e.clientY - r.top));
+      const x = e.clientX - r.left, y = e.clientY - r.top;
+      showPoint(x, y);
+      if (isRun) showPick(pickAt(x, y));
     }
   });
   canvas.addEventListener('wheel', (e) => { e.preventDefault(); cam.dist *= Math.exp(e.deltaY * 0.001); redraw(); }, { passive: false });
@@ -399,11 +437,17 @@ async function main() {
     setCamera,
     resetCamera,
     pickAt,
+    pointAt,
     runQuery,
     setMode,
     settled,
   });
-  $('status').textContent = `${n} Gaussians · ${meta.mode} labels · ${meta.run}`;
+  if (isRun) {
+    $('status').textContent = `${n} Gaussians · ${meta.mode} labels · ${meta.run}`;
+  } else {
+    for (const id of ['colour', 'query-section', 'pick-section', 'files-section']) $(id).style.display = 'none';
+    $('status').textContent = `${n} Gaussians · scene ${meta.scene}${meta.simulated ? ' (SIMULATED)' : ''} · no run yet: a click gives the point's coordinates`;
+  }
   requestAnimationFrame(() => { draw(); api.ready = true; document.body.dataset.ready = '1'; });
 }
 

@@ -2,12 +2,15 @@
 // for tests/view.rs: sets the camera, waits until Spark has sorted and drawn the splats, reads
 // the colour Spark drew at a 3D point (projected with the page's own camera matrix) in the Class
 // mode, clicks there with the real mouse, reads the pick panel, types queries into the box and
-// reads the highlighted count, and takes a screenshot. Prints one JSON object on stdout.
+// reads the highlighted count, and takes a screenshot. Prints one JSON object on stdout. With
+// `scene_only` (`gs4city view --scene S`, no run) it clicks at the point and reads the clicked
+// point's coordinates the page shows (#pick-point) and lists (#points) instead.
 //
 //   node view_click.mjs SPEC.json
 //
 // SPEC: { url, eye: [x,y,z], target: [x,y,z], click: [x,y,z], queries: [..], screenshot: PATH,
-//         screenshot_query, screenshot_overview (the page's first view), width, height }
+//         screenshot_query, screenshot_overview (the page's first view), width, height,
+//         scene_only }
 import { readFileSync } from 'node:fs';
 import { launchChromium } from './chromium.mjs';
 
@@ -55,6 +58,28 @@ try {
   const py = box.y + (1 - c[1] / c[3]) / 2 * box.height;
   out.pixel = [px, py];
   await settle();
+  // The clicked point's coordinates, as the page shows them after a click.
+  const readPoint = async () => {
+    await page.waitForSelector('#pick-point', { timeout: 180000 });
+    return page.evaluate(() => {
+      const p = document.querySelector('#pick-point');
+      return {
+        hit: p.dataset.hit === '1',
+        scene: p.dataset.scene ? p.dataset.scene.split(',').map(Number) : null,
+        geo: p.dataset.geo ? p.dataset.geo.split(',').map(Number) : null,
+        text: p.innerText,
+        list: document.querySelector('#points').value,
+        buttons_shown: getComputedStyle(document.querySelector('#colour')).display !== 'none',
+      };
+    });
+  };
+  if (spec.scene_only) {
+    out.status = await page.evaluate(() => document.querySelector('#status').textContent);
+    await page.mouse.click(px, py);
+    out.point = await readPoint();
+    if (spec.screenshot) await page.screenshot({ path: spec.screenshot });
+    throw null; // done: nothing of a run to look at
+  }
   out.rgb_at_click = await drawn(px - box.x, py - box.y, 2);
   await page.click('#color-class');
   await settle();
@@ -68,6 +93,7 @@ try {
   out.panel = await page.$$eval('#pick .entry', (es) => es.map((e) => ({
     level: e.dataset.level, class: e.dataset.class, gml_id: e.dataset.gmlid, text: e.innerText,
   })));
+  out.point = await readPoint();
 
   // Each query typed into the box (Class colours).
   out.queries = [];
@@ -102,7 +128,7 @@ try {
     await page.screenshot({ path: spec.screenshot });
   }
 } catch (e) {
-  out.error = String(e && e.stack || e);
+  if (e !== null) out.error = String(e && e.stack || e);
 } finally {
   await browser.close();
 }
