@@ -196,6 +196,25 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
+    /// The intrinsics of the same camera at `1/s` of its resolution (`s ≥ 1`): pixel `(i, j)`
+    /// of the result covers pixels `[s·i, s·i + s) × [s·j, s·j + s)` of the original (clipped
+    /// to the image), so the image is `⌈W/s⌉ × ⌈H/s⌉` and every focal length and principal
+    /// point coordinate is divided by `s` (COLMAP's pixel frame: pixel `i` spans `[i, i + 1)`);
+    /// the lens model, in normalised coordinates, is unchanged. `s = 1` is the identity.
+    pub fn downscaled(&self, s: u32) -> Intrinsics {
+        let s = s.max(1);
+        let f = f64::from(s);
+        Intrinsics {
+            width: self.width.div_ceil(s),
+            height: self.height.div_ceil(s),
+            fx: self.fx / f,
+            fy: self.fy / f,
+            cx: self.cx / f,
+            cy: self.cy / f,
+            distortion: self.distortion,
+        }
+    }
+
     /// Checks the image size, focal lengths, principal point and distortion (module docs).
     pub fn validate(&self) -> Result<(), CameraError> {
         let (w, h) = (self.width, self.height);
@@ -420,6 +439,13 @@ pub struct View {
 }
 
 impl View {
+    /// The view with its camera at `1/s` of the resolution ([`Intrinsics::downscaled`]).
+    pub fn downscaled(&self, s: u32) -> View {
+        let mut v = self.clone();
+        v.camera.intrinsics = v.camera.intrinsics.downscaled(s);
+        v
+    }
+
     /// The image name without directories and extension: the `<stem>` of every per-view file.
     pub fn stem(&self) -> String {
         let file = self.name.rsplit('/').next().unwrap_or(&self.name);
@@ -428,6 +454,21 @@ impl View {
             _ => file.to_string(),
         }
     }
+}
+
+/// Largest resolution divisor [`downscale_factor`] recognises.
+pub const MAX_DOWNSCALE: usize = 16;
+
+/// The divisor `s` (1 ≤ s ≤ [`MAX_DOWNSCALE`], the smallest that fits) for which an image of
+/// `full = (width, height)` pixels at `1/s` of its resolution ([`Intrinsics::downscaled`]) is
+/// `small = (width, height)`; `None` when no such `s` exists. A per-view file made at a
+/// view's full resolution (a SAM list, an image) is box-averaged to a view that works at a
+/// lower one ([`crate::sam::downscale`], `imageio::read_rgb_sized`).
+pub fn downscale_factor(full: (usize, usize), small: (usize, usize)) -> Option<usize> {
+    if small.0 == 0 || small.1 == 0 {
+        return None;
+    }
+    (1..=MAX_DOWNSCALE).find(|&s| full.0.div_ceil(s) == small.0 && full.1.div_ceil(s) == small.1)
 }
 
 /// The views whose per-view files cannot be named: `(image name, why)` for each view whose

@@ -94,6 +94,41 @@ pub fn read_rgb(path: &Path) -> Result<Array3<u8>, ImageError> {
     Array3::from_shape_vec((h, w, 3), bytes.to_vec()).map_err(|e| err(e.to_string()))
 }
 
+/// [`read_rgb`] for a view of `width × height` pixels: an image of that size as it is, one
+/// of an integer multiple of it (a view worked at `1/s` of its resolution,
+/// [`crate::camera::downscale_factor`]) averaged over each `s × s` block (clipped to the
+/// image; rounded half up); any other size is an error naming the file and both sizes.
+pub fn read_rgb_sized(path: &Path, width: usize, height: usize) -> Result<Array3<u8>, ImageError> {
+    let img = read_rgb(path)?;
+    let (h, w, _) = img.dim();
+    match crate::camera::downscale_factor((w, h), (width, height)) {
+        Some(1) => Ok(img),
+        Some(s) => Ok(box_downscale(&img, s, width, height)),
+        None => Err(ImageError::Read {
+            path: path.to_path_buf(),
+            why: format!("{w}×{h} pixels, the view's camera is {width}×{height}"),
+        }),
+    }
+}
+
+/// The mean of each `s × s` block of `img` (clipped at the image's edges), rounded half up:
+/// an `height × width` image.
+fn box_downscale(img: &Array3<u8>, s: usize, width: usize, height: usize) -> Array3<u8> {
+    let (h, w, _) = img.dim();
+    Array3::from_shape_fn((height, width, 3), |(y, x, c)| {
+        let (y0, x0) = (y * s, x * s);
+        let (y1, x1) = ((y0 + s).min(h), (x0 + s).min(w));
+        let mut sum = 0u32;
+        for yy in y0..y1 {
+            for xx in x0..x1 {
+                sum += u32::from(img[[yy, xx, c]]);
+            }
+        }
+        let n = ((y1 - y0) * (x1 - x0)) as u32;
+        ((sum + n / 2) / n) as u8
+    })
+}
+
 /// Writes an 8-bit RGB `H×W×3` array as PNG, atomically (temporary file, then rename). The
 /// encoder is the `png` crate's fast setting (adaptive row filters, `fdeflate`): about 4×
 /// faster than OpenCV's encoder, with files no larger (BENCHMARKS.md, "PNG writing").

@@ -534,7 +534,10 @@ pub fn read_sam_json(path: &Path) -> Result<Vec<SamMask>, SamError> {
     read_sam_json_sized(path, None)
 }
 
-/// [`read_sam_json`], additionally requiring every mask to be `[h, w]` = `image_size`.
+/// [`read_sam_json`], additionally requiring every mask to be `[h, w]` = `image_size`, or an
+/// integer multiple of it (a view worked at `1/s` of its resolution,
+/// [`crate::camera::downscale_factor`]): such masks are validated at their own size and
+/// then box-downscaled to `image_size` ([`downscale`]).
 pub fn read_sam_json_sized(
     path: &Path,
     image_size: Option<[usize; 2]>,
@@ -557,6 +560,8 @@ pub fn parse_sam_json(
         .map_err(|err| SamError::Json { path: p(), err })?;
     let mut out = Vec::with_capacity(items.len());
     let mut expected = image_size.map(|s| (s, "the image size"));
+    // The divisor to the expected image size of a file made at a multiple of it (1: as is).
+    let mut factor = 1;
     for (index, item) in items.into_iter().enumerate() {
         if item.get("segmentation").is_some_and(|s| s.is_array()) {
             return Err(SamError::Mask {
@@ -581,6 +586,13 @@ pub fn parse_sam_json(
                 h,
                 w,
             });
+        }
+        if let (0, Some([eh, ew])) = (index, image_size)
+            && [eh, ew] != size
+            && let Some(f) = crate::camera::downscale_factor((w, h), (ew, eh))
+        {
+            factor = f;
+            expected = Some((size, "the size of mask 0"));
         }
         match expected {
             Some((e, what)) if e != size => {
@@ -625,8 +637,45 @@ pub fn parse_sam_json(
                 });
             }
         }
-        out.push(m);
+        out.push(if factor > 1 {
+            downscale(&m, factor).map_err(|err| SamError::Rle {
+                path: p(),
+                index,
+                err,
+            })?
+        } else {
+            m
+        });
     }
+    Ok(out)
+}
+
+/// The mask at `1/s` of its resolution (`s ≥ 1`): pixel `(i, j)` of the `⌈h/s⌉ × ⌈w/s⌉` result
+/// is set when at least half of the pixels of its `s × s` block (clipped to the image) are; the
+/// area and the box are recomputed, the prompt points and the crop box divided by `s`, the
+/// scores kept. Costs `O(area + ⌈h/s⌉·⌈w/s⌉)`.
+pub fn downscale(m: &SamMask, s: usize) -> Result<SamMask, RleError> {
+    let s = s.max(1);
+    let [h, w] = m.segmentation.size;
+    let (sh, sw) = (h.div_ceil(s), w.div_ceil(s));
+    let mut count = vec![0u32; sh * sw];
+    m.segmentation
+        .for_each_pixel(|p| count[(p / w / s) * sw + (p % w) / s] += 1)?;
+    let block = |i: usize, n: usize| ((i + 1) * s).min(n) - i * s;
+    let small = Array2::from_shape_fn((sh, sw), |(y, x)| {
+        2 * count[y * sw + x] as usize >= block(y, h) * block(x, w)
+    });
+    let f = s as f64;
+    let mut out = SamMask::from_rle(
+        Rle::encode(&small),
+        m.predicted_iou,
+        m.stability_score,
+        m.point_coords.iter().map(|&[x, y]| [x / f, y / f]).collect(),
+    )?;
+    let si = s as i64;
+    out.crop_box = m
+        .crop_box
+        .map(|[x, y, bw, bh]| [x / si, y / si, (bw + si - 1) / si, (bh + si - 1) / si]);
     Ok(out)
 }
 

@@ -23,8 +23,12 @@ pub struct RaycastArgs {
     /// Disable the part pass (single-pass labels).
     #[arg(long)]
     pub single_pass: bool,
+    /// Also write `<stem>.overlay.png` per view: the city ids in colour over the image (for a
+    /// person to look at; no stage reads them).
+    #[arg(long)]
+    pub overlays: bool,
     /// Images for the overlays (default: <colmap dir>/../../images if it exists).
-    #[arg(long, value_name = "DIR")]
+    #[arg(long, value_name = "DIR", requires = "overlays")]
     pub images: Option<PathBuf>,
     /// Output folder.
     #[arg(long, value_name = "DIR")]
@@ -64,8 +68,11 @@ pub fn run(args: &RaycastArgs) -> anyhow::Result<()> {
         tau: args.tau * scale,
         single_pass: args.single_pass,
     };
-    let summary =
-        raycast::run(&mesh, &views, &opts, images.as_deref(), &args.out).context("raycasting")?;
+    let overlays = match args.overlays {
+        true => raycast::Overlays::On(images.as_deref()),
+        false => raycast::Overlays::Off,
+    };
+    let summary = raycast::run(&mesh, &views, &opts, overlays, &args.out).context("raycasting")?;
     println!(
         "{} views, {} rays, {:.1} Mrays/s, scene build {:.3} s ({} faces, {} part faces), τ = {} m = {} scene units{}",
         summary.views,

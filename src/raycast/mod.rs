@@ -35,7 +35,7 @@ use crate::embree::{
 };
 use crate::mesh::{FaceLabel, TriMesh};
 
-pub use output::{RaycastSummary, ViewSummary, run};
+pub use output::{Overlays, RaycastSummary, ViewSummary, run};
 
 /// Errors of the raycasting stage.
 #[derive(Debug, thiserror::Error)]

@@ -461,19 +461,18 @@ fn raycast_step(r: &mut Running, scale: f64, opts: &RunOptions) -> Result<(), Ru
         tau: opts.tau_m * scale,
         single_pass: opts.single_pass,
     };
-    let mut inputs = r.sparse_files.clone();
-    if let Some(d) = &r.scene.images {
-        inputs.extend(files_in(d));
-    }
+    // No overlays (pictures no stage reads; `gs4city raycast --overlays`), so the images are
+    // not read either.
+    let inputs = r.sparse_files.clone();
     let cm_dir = r.st.dir(Stage::Citymodel);
-    let (views, images) = (&r.views, r.scene.images.as_deref());
+    let views = &r.views;
     let _rc: RaycastSummary =
         r.st.stage(Stage::Raycast, &ro, &inputs, &[Stage::Citymodel], |dir| {
             let mesh_path = cm_dir.join("mesh.ply");
             let mesh = crate::mesh::TriMesh::read_ply(&mesh_path)?;
             let entities = semantics::read(&cm_dir.join("semantics.json"))?;
             semantics::check_mesh_labels(&mesh_path, &mesh, &entities)?;
-            Ok::<_, RunError>(raycast::run(&mesh, views, &ro, images, dir)?)
+            Ok::<_, RunError>(raycast::run(&mesh, views, &ro, raycast::Overlays::Off, dir)?)
         })?;
     Ok(())
 }
@@ -643,7 +642,7 @@ fn fused_supervision(
                 let rdir = dir.join("raycast");
                 fsutil::create_dir(&rdir)?;
                 semantics::check_mesh_labels(&dir.join("mesh.ply"), m, e)?;
-                let _rc: RaycastSummary = raycast::run(m, all_views, &ro, None, &rdir)?;
+                let _rc: RaycastSummary = raycast::run(m, all_views, &ro, raycast::Overlays::Off, &rdir)?;
             }
             Ok::<_, RunError>(out.summary)
         },
