@@ -1,9 +1,9 @@
-//! Association + fusion benchmark (issue 13) on a scene folder and a run folder of the core
+//! Association + fusion benchmark on a scene folder and a run folder of the core
 //! pipeline (citymodel/, raycast/, render/ = contributions cache):
 //!
 //! ```text
-//! cargo bench --bench associate -- --scene /work/scenes/street --run /work/runs/street_core \
-//!     --masks /work/runs/assoc-masks-street --out /work/runs/assoc-bench \
+//! cargo bench --bench associate -- --scene out/results/street/scene --run out/results/street/run \
+//!     --masks out/results/street/run/masks --out out/results/street/assoc-bench \
 //!     [--configs default,mview1,...] [--keep] [--quick]
 //! ```
 //! Kept masks come from the real masks stage (`gs4city::masks::run`, default options, all views):
@@ -54,10 +54,10 @@ fn args() -> Args {
         }
     }
     Args {
-        scene: scene.unwrap_or_else(|| "/work/scenes/street".into()),
-        run: run.unwrap_or_else(|| "/work/runs/street_core".into()),
-        out: out.unwrap_or_else(|| "/work/runs/assoc-bench".into()),
-        masks: masks.unwrap_or_else(|| "/work/runs/assoc-masks-street".into()),
+        scene: scene.unwrap_or_else(|| "out/results/street/scene".into()),
+        run: run.unwrap_or_else(|| "out/results/street/run".into()),
+        out: out.unwrap_or_else(|| "out/results/street/assoc-bench".into()),
+        masks: masks.unwrap_or_else(|| "out/results/street/run/masks".into()),
         configs: configs
             .unwrap_or_else(|| {
                 "default,mview1,mview5,projected,single_pass,shuffle1,shuffle2,shuffle3,nosnap"

@@ -1,17 +1,17 @@
-//! The loss budget per class: where the fine mIoU points are lost (issue 23, BENCHMARKS.md
-//! "Loss budget"). Benchmarks may read the simulation truth; no stage does.
+//! The loss budget per class: where the fine mIoU points are lost. Benchmarks may read the
+//! simulation truth; no stage does.
 //!
 //! ```text
 //! cargo bench --bench budget -- --scene S --run NAME=RUN [--run NAME=RUN …] [--every 8] [--abstain 0.5,0.7] [--refuse TMP]
 //! ```
-//! `--refuse TMP` adds, per run, the re-fusion of issue 23 (the vote as a prior): the run's
+//! `--refuse TMP` adds, per run, a re-fusion (the vote as a prior): the run's
 //! voted labels (`lift/gaussians.npy`) are rendered into every training view with the
 //! pipeline's pixel rule, the fused pixels no label covers take the rendered label (only an
 //! image group's, then any), the repaired maps are written under `TMP/NAME`, and the gated
 //! vote of `lift` runs again over them; next to it, the same vote over the run's own maps.
 //! `--abstain θ,…` adds, per run and θ, the test views predicted with the Gaussians whose
 //! `label_confidence` (`lift/semantic.ply`) is below θ abstaining: their weight leaves the
-//! pixel's competition instead of voting for their class (per-Gaussian "unknown", issue 23).
+//! pixel's competition instead of voting for their class (per-Gaussian "unknown").
 //! All runs must share the scene's geometry (the same `point_cloud.ply` and cameras; the
 //! perception may differ). Rows:
 //! - **(0) truth Gaussians → pixel rule**: the simulator's own per-Gaussian classes
@@ -335,7 +335,7 @@ impl<'a> Revote<'a> {
         asg.iter().map(|a| self.s.table.class_of(a.label)).collect()
     }
 
-    /// Re-fusion with the vote as a prior (issue 23): `label` (the run's vote) is rendered
+    /// Re-fusion with the vote as a prior: `label` (the run's vote) is rendered
     /// into every training view with the pipeline's pixel rule, and a fused pixel no label
     /// covers takes the rendered label (`images_only`: only an image group's, i.e. person,
     /// car, tree). Writes the repaired maps into `tmp` and returns their number of repaired

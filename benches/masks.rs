@@ -4,7 +4,7 @@
 //! stage.
 //!
 //! ```text
-//! cargo bench --bench masks -- [--scene /work/scenes/street] [--run /work/runs/street_core]
+//! cargo bench --bench masks -- [--scene out/results/street/scene] [--run out/results/street/run]
 //!     [--out DIR] [--repeat 2] [--no-sweep]
 //! ```
 //! `--run` is a `gs4city run` folder with `raycast/`, `render/` (the contributions cache) and
@@ -38,8 +38,8 @@ struct Args {
 
 fn args() -> Args {
     let mut a = Args {
-        scene: "/work/scenes/street".into(),
-        run: "/work/runs/street_core".into(),
+        scene: "out/results/street/scene".into(),
+        run: "out/results/street/run".into(),
         out: std::env::temp_dir().join("gs4city_masks_bench"),
         repeat: 2,
         sweep: true,

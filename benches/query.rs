@@ -8,7 +8,7 @@
 //!    with a target class (`synth::masks::PROMPTS`), the relevancy of every group: the groups of
 //!    the target class should reach the threshold, all others (what a query for an *absent*
 //!    class sees) should not. Printed for single masks and for groups of ≥ 3 masks.
-//! 2. **Timing** on a finished street run (`GS4CITY_QUERY_RUN`, default `/work/runs/street_core`):
+//! 2. **Timing** on a finished street run (`GS4CITY_QUERY_RUN`, default `out/results/street/run`):
 //!    loading, selection, PLY export, one view's mask, a full query with the 16 test-view masks.
 //!
 //! Prints Markdown. The machine is shared: times are the best of N repetitions.
@@ -283,7 +283,7 @@ fn timing(run: &Path) {
 
 fn main() {
     let run = std::env::var_os("GS4CITY_QUERY_RUN")
-        .map_or_else(|| PathBuf::from("/work/runs/street_core"), PathBuf::from);
+        .map_or_else(|| PathBuf::from("out/results/street/run"), PathBuf::from);
     println!(
         "Command: `cargo bench --bench query` (GS4CITY_QUERY_RUN={}). Shared machine: best of N.\n",
         run.display()

@@ -1,4 +1,4 @@
-//! Benchmark of `align --refine` on a SIMULATED street scene (default /work/scenes/street, or
+//! Benchmark of `align --refine` on a SIMULATED street scene (default out/results/street/scene, or
 //! `REFINE_BENCH_SCENE`): the basin of convergence (a sweep of initial alignment errors →
 //! final error vs the truth and success rate), the same with noisy Gaussian centres, and
 //! speed against error for the `max_points` knob. The truth (`summary.json` →
@@ -24,7 +24,7 @@ use gs4city::synth::{self, config::Noise};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-/// Success: the targets of issue 16.
+/// Success: the error targets (3 cm RMS, 0.05°, 0.2 % scale).
 const OK_CM: f64 = 3.0;
 const OK_DEG: f64 = 0.05;
 const OK_PCT: f64 = 0.2;
@@ -239,7 +239,8 @@ fn jittered(g: &Gaussians, sigma: f64, seed: u64) -> Gaussians {
 }
 
 fn main() {
-    let dir = std::env::var("REFINE_BENCH_SCENE").unwrap_or_else(|_| "/work/scenes/street".into());
+    let dir =
+        std::env::var("REFINE_BENCH_SCENE").unwrap_or_else(|_| "out/results/street/scene".into());
     let dir = PathBuf::from(dir);
     if !dir.join("summary.json").is_file() {
         println!(

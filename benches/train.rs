@@ -1,7 +1,7 @@
 //! Identity training on a finished run folder: speed against error.
 //!
 //! ```text
-//! cargo bench --bench train -- --run /work/runs/street_core --scene /work/scenes/street \
+//! cargo bench --bench train -- --run out/results/street/run --scene out/results/street/scene \
 //!     [--fuse FUSE_DIR] [--exp sweep|softmax|simfuse|all] [--stride 2] [--top-k 0] \
 //!     [--checkpoints 0,500,…] [--configs default,lr=10:mu=0.5,…|none] \
 //!     [--rules gaussians,label,class] [--holdout 8] [--out FILE.json]
@@ -45,8 +45,8 @@ struct Args {
 
 fn parse() -> Args {
     let mut a = Args {
-        run: PathBuf::from("/work/runs/street_core"),
-        scene: PathBuf::from("/work/scenes/street"),
+        run: PathBuf::from("out/results/street/run"),
+        scene: PathBuf::from("out/results/street/scene"),
         exp: "sweep".into(),
         strides: vec![2],
         top_ks: vec![0],

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Multiply-accumulates of one prompt through a SAM-family ONNX decoder (issue 25's bound).
+"""Multiply-accumulates of one prompt through a SAM-family ONNX decoder (the bound on the decoder's cost per prompt).
 
     python3 scripts/decoder_flops.py DIR/decoder.onnx
 

@@ -511,6 +511,8 @@ def main():
                     help="decoder inputs with batch 1, as SAM's own export (one prompt per call)")
     ap.add_argument("--decoder-depth", type=int,
                     help="two-way transformer layers (default: 1 tiny, 2 as SAM otherwise)")
+    ap.add_argument("--decoder-only", action="store_true",
+                    help="write decoder.onnx alone (no encoder, no model.json): the decoder checks")
     a = ap.parse_args()
     if (a.size is None) == (a.clip is None):
         ap.error("give one of --size (SAM family) and --clip")
@@ -520,8 +522,10 @@ def main():
         save(clip_image(a.clip, a.seed), os.path.join(a.out, "clip_image.onnx"))
         save(clip_text(a.clip, a.seed, CLIP_SIZES[a.clip]["vocab"] or n), os.path.join(a.out, "clip_text.onnx"))
         return
-    save(encoder(a.size, a.seed), os.path.join(a.out, "encoder.onnx"))
     save(decoder(a.size, a.seed, a.fixed_batch, a.decoder_depth), os.path.join(a.out, "decoder.onnx"))
+    if a.decoder_only:
+        return
+    save(encoder(a.size, a.seed), os.path.join(a.out, "encoder.onnx"))
     family = {"tiny": "test", "mobilesam": "mobile_sam", "vit_b": "sam"}[a.size]
     with open(os.path.join(a.out, "model.json"), "w") as f:
         json.dump({"family": family, "size": a.size, "generated": True,

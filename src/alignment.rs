@@ -485,6 +485,285 @@ pub fn estimate(path: &Path, pairs: &[(DVec3, DVec3)]) -> Result<Estimate, Align
     })
 }
 
+/// How [`estimate_robust`] fixes the vertical.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Vertical {
+    /// The scene's up (unit, scene frame) is known: the geo frame's `+z` maps onto it; the
+    /// fit is a horizontal similarity and one vertical offset (the median of the height
+    /// residuals), so the geo heights never tilt it.
+    Level(DVec3),
+    /// The full 3D similarity, from every coordinate.
+    Free,
+}
+
+/// A robust similarity ([`estimate_robust`]).
+#[derive(Debug, Clone)]
+pub struct RobustFit {
+    pub alignment: Alignment,
+    pub vertical: Vertical,
+    /// Per pair, the scene point mapped back to the geo frame minus the geo point (CRS units).
+    pub residuals: Vec<DVec3>,
+    /// Whether each pair is an inlier (the refit uses the inliers only).
+    pub inliers: Vec<bool>,
+    /// The inlier bound on a residual (horizontal for [`Vertical::Level`], CRS units).
+    pub threshold: f64,
+    /// RMS of the inliers' residuals (horizontal, vertical, 3D; CRS units).
+    pub rms: [f64; 3],
+    pub warnings: Vec<String>,
+}
+
+/// LMedS' scale of the residuals: `1.4826 · (1 + 5/(n − p)) · √median(r²)` (Rousseeuw & Leroy).
+fn lmeds_sigma(median_sq: f64, n: usize, p: usize) -> f64 {
+    1.4826 * (1.0 + 5.0 / (n.saturating_sub(p).max(1)) as f64) * median_sq.sqrt()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// The index sets LMedS tries: every `k`-subset of `0..n` when there are at most `cap`, else
+/// `cap` subsets drawn by SplitMix64 (deterministic), without repeated indices.
+fn subsets(n: usize, k: usize, cap: usize) -> Vec<Vec<usize>> {
+    let mut all = Vec::new();
+    let mut idx: Vec<usize> = (0..k).collect();
+    let total = (0..k).fold(1f64, |c, i| c * (n - i) as f64 / (i + 1) as f64);
+    if total <= cap as f64 {
+        loop {
+            all.push(idx.clone());
+            let mut i = k;
+            while i > 0 && idx[i - 1] == n - k + i - 1 {
+                i -= 1;
+            }
+            if i == 0 {
+                break;
+            }
+            idx[i - 1] += 1;
+            for j in i..k {
+                idx[j] = idx[j - 1] + 1;
+            }
+        }
+        return all;
+    }
+    let mut x = 0x5eed_a11e_u64;
+    while all.len() < cap {
+        let mut s: Vec<usize> = Vec::with_capacity(k);
+        while s.len() < k {
+            x = crate::hash::splitmix64(x);
+            let i = (x % n as u64) as usize;
+            if !s.contains(&i) {
+                s.push(i);
+            }
+        }
+        all.push(s);
+    }
+    all
+}
+
+/// Subsets LMedS tries at most.
+const LMEDS_SUBSETS: usize = 3000;
+/// Inliers lie within this many LMedS sigmas.
+const INLIER_SIGMAS: f64 = 2.5;
+/// Fewer pairs than this: every pair counts (LMedS needs redundancy to tell an outlier).
+const MIN_ROBUST_PAIRS: usize = 5;
+
+/// A similarity from geo ↔ scene point pairs that a few gross outliers do not spoil: least
+/// median of squares over minimal subsets (2 pairs for [`Vertical::Level`], 3 for
+/// [`Vertical::Free`]; every subset up to 3000, else 3000 drawn), the inliers within 2.5 LMedS
+/// sigmas of the best, a least-squares refit on them (Umeyama for the free model), inliers
+/// again from the refit and a last refit. Residuals are in the geo frame. Fewer than 5 pairs:
+/// a plain least-squares fit of all.
+pub fn estimate_robust(
+    path: &Path,
+    pairs: &[(DVec3, DVec3)],
+    vertical: Vertical,
+) -> Result<RobustFit, AlignError> {
+    let bad = |why: String| AlignError::Invalid {
+        path: path.to_path_buf(),
+        why,
+    };
+    let n = pairs.len();
+    if n < 3 {
+        return Err(bad(format!("need at least 3 point pairs, got {n}")));
+    }
+    let origin = pairs.iter().map(|p| p.0).sum::<DVec3>() / n as f64;
+    let mut warnings = Vec::new();
+    // a model from a subset, and the residuals (geo frame) of every pair under it
+    let fit_on = |set: &[usize]| -> Option<Alignment> {
+        match vertical {
+            Vertical::Level(up) => level_fit(pairs, set, origin, up),
+            Vertical::Free => {
+                let sub: Vec<(DVec3, DVec3)> = set.iter().map(|&i| pairs[i]).collect();
+                estimate(path, &sub).ok().map(|e| e.alignment)
+            }
+        }
+    };
+    let residual = |a: &Alignment, i: usize| -> DVec3 { a.unapply(pairs[i].1) - pairs[i].0 };
+    let size = |r: DVec3| -> f64 {
+        match vertical {
+            Vertical::Level(_) => r.truncate().length(),
+            Vertical::Free => r.length(),
+        }
+    };
+    let (k, robust) = match vertical {
+        Vertical::Level(_) => (2, n >= MIN_ROBUST_PAIRS),
+        Vertical::Free => (3, n >= MIN_ROBUST_PAIRS),
+    };
+    let all: Vec<usize> = (0..n).collect();
+    let mut inliers = vec![true; n];
+    let mut threshold = f64::INFINITY;
+    let mut best: Option<Alignment> = None;
+    if robust {
+        let mut best_med = f64::INFINITY;
+        for set in subsets(n, k, LMEDS_SUBSETS) {
+            let Some(a) = fit_on(&set) else { continue };
+            let med = median((0..n).map(|i| size(residual(&a, i)).powi(2)).collect());
+            if med < best_med {
+                best_med = med;
+                best = Some(a);
+            }
+        }
+        let Some(a) = best else {
+            return Err(bad(
+                "no subset of the point pairs determines a similarity (coincident or collinear points)".into(),
+            ));
+        };
+        let spread = (pairs
+            .iter()
+            .map(|p| (p.0 - origin).length_squared())
+            .sum::<f64>()
+            / n as f64)
+            .sqrt();
+        threshold = (INLIER_SIGMAS * lmeds_sigma(best_med, n, k)).max(1e-9 * spread.max(1e-300));
+        let mut current = a;
+        for _ in 0..2 {
+            inliers = (0..n)
+                .map(|i| size(residual(&current, i)) <= threshold)
+                .collect();
+            let set: Vec<usize> = all.iter().copied().filter(|&i| inliers[i]).collect();
+            if set.len() < k + 1 {
+                break;
+            }
+            match fit_on(&set) {
+                Some(a) => current = a,
+                None => break,
+            }
+        }
+        best = Some(current);
+        let out = inliers.iter().filter(|b| !**b).count();
+        if out * 2 > n {
+            warnings.push(format!(
+                "{out} of {n} pairs are outliers: the fit rests on a minority, check the inputs"
+            ));
+        }
+    } else {
+        warnings.push(format!(
+            "only {n} pairs: every pair is used (outliers can be told apart from {MIN_ROBUST_PAIRS} on)"
+        ));
+    }
+    let alignment = match best {
+        Some(a) => a,
+        None => fit_on(&all).ok_or_else(|| {
+            bad(
+                "the point pairs do not determine a similarity (coincident or collinear points)"
+                    .into(),
+            )
+        })?,
+    };
+    check_scale(alignment.scale).map_err(|why| bad(format!("the estimated {why}")))?;
+    let residuals: Vec<DVec3> = (0..n).map(|i| residual(&alignment, i)).collect();
+    let m = inliers.iter().filter(|b| **b).count().max(1) as f64;
+    let rms_of = |f: &dyn Fn(DVec3) -> f64| {
+        (residuals
+            .iter()
+            .zip(&inliers)
+            .filter(|(_, b)| **b)
+            .map(|(r, _)| f(*r).powi(2))
+            .sum::<f64>()
+            / m)
+            .sqrt()
+    };
+    let rms = [
+        rms_of(&|r| r.truncate().length()),
+        rms_of(&|r| r.z),
+        rms_of(&|r| r.length()),
+    ];
+    Ok(RobustFit {
+        alignment,
+        vertical,
+        residuals,
+        inliers,
+        threshold,
+        rms,
+        warnings,
+    })
+}
+
+/// The level model on the pairs `set` (module [`Vertical::Level`]): `L` turns the geo `+z`
+/// onto the scene's `up`; in `L`'s frame the scene points are `s·Rz(θ)·(g − o) + t`, the
+/// horizontal part a 2D least-squares similarity (complex numbers: `w = a·z + b`), the
+/// vertical offset the median of `q_z − s·(g − o)_z`. `None` when the geo points of `set`
+/// coincide horizontally.
+fn level_fit(
+    pairs: &[(DVec3, DVec3)],
+    set: &[usize],
+    origin: DVec3,
+    up: DVec3,
+) -> Option<Alignment> {
+    let l = DMat3::from_quat(glam::DQuat::from_rotation_arc(DVec3::Z, up.normalize()));
+    let lt = l.transpose();
+    let g: Vec<DVec3> = set.iter().map(|&i| pairs[i].0 - origin).collect();
+    let q: Vec<DVec3> = set.iter().map(|&i| lt * pairs[i].1).collect();
+    let m = set.len() as f64;
+    let (gz, qz) = (
+        g.iter().map(|p| p.truncate()).sum::<glam::DVec2>() / m,
+        q.iter().map(|p| p.truncate()).sum::<glam::DVec2>() / m,
+    );
+    // a = Σ conj(z)·w / Σ |z|² over the centred points
+    let (mut re, mut im, mut den) = (0.0, 0.0, 0.0);
+    for (p, r) in g.iter().zip(&q) {
+        let (z, w) = (p.truncate() - gz, r.truncate() - qz);
+        re += z.x * w.x + z.y * w.y;
+        im += z.x * w.y - z.y * w.x;
+        den += z.length_squared();
+    }
+    if den.is_nan() || den <= 0.0 {
+        return None;
+    }
+    let (ar, ai) = (re / den, im / den);
+    let scale = (ar * ar + ai * ai).sqrt();
+    if !scale.is_finite() || scale <= 0.0 {
+        return None;
+    }
+    let (c, s) = (ar / scale, ai / scale);
+    let rz = DMat3::from_cols(DVec3::new(c, s, 0.0), DVec3::new(-s, c, 0.0), DVec3::Z);
+    let b = qz - glam::DVec2::new(ar * gz.x - ai * gz.y, ar * gz.y + ai * gz.x);
+    let tz = median(g.iter().zip(&q).map(|(p, r)| r.z - scale * p.z).collect());
+    Some(Alignment {
+        origin,
+        scale,
+        rotation: l * rz,
+        translation: l * DVec3::new(b.x, b.y, tz),
+    })
+}
+
+/// Eigenvalues (descending) and unit eigenvectors of a symmetric 3×3 matrix.
+pub fn symmetric_eigen3(m: &DMat3) -> ([f64; 3], [DVec3; 3]) {
+    let (vals, vecs) = jacobi_eigen::<3>(mat3_to_arr(m));
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| vals[b].total_cmp(&vals[a]));
+    let col = |k: usize| DVec3::new(vecs[0][k], vecs[1][k], vecs[2][k]).normalize();
+    (order.map(|k| vals[k]), order.map(col))
+}
+
 fn outer(p: DVec3, q: DVec3) -> DMat3 {
     // Column j is p * q_j, so entry (i, j) = p_i q_j.
     DMat3::from_cols(p * q.x, p * q.y, p * q.z)
@@ -552,6 +831,116 @@ pub(crate) fn jacobi_eigen<const N: usize>(mut a: [[f64; N]; N]) -> ([f64; N], [
 mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
+
+    /// Geo points from a known similarity plus noise and two gross outliers: the robust fit
+    /// recovers the similarity and names the outliers, in both vertical models; plain
+    /// least squares on the same points does not.
+    #[test]
+    fn robust_fits_recover_a_known_similarity_despite_two_gross_outliers() {
+        let truth = Alignment {
+            origin: DVec3::new(374_200.0, 6_176_500.0, 35.0),
+            scale: 0.137,
+            rotation: DMat3::from_euler(glam::EulerRot::XYZ, 1.9, -0.3, 2.4),
+            translation: DVec3::new(0.4, -1.1, 3.2),
+        };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(59);
+        let mut gauss = |s: f64| -> f64 {
+            // Box–Muller
+            let (u, v): (f64, f64) = (rng.random_range(1e-12..1.0), rng.random_range(0.0..1.0));
+            s * (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let angle = |a: &DMat3, b: &DMat3| rotation_angle_deg(&(a.transpose() * *b));
+        for level in [true, false] {
+            // a street of 30 cameras (level) or a drone block (free)
+            let truth_geo: Vec<DVec3> = (0..30)
+                .map(|k| {
+                    let t = k as f64 / 29.0;
+                    if level {
+                        truth.origin + DVec3::new(170.0 * t - 85.0, 25.0 * (3.0 * t).sin(), 0.5 * t)
+                    } else {
+                        truth.origin
+                            + DVec3::new(
+                                (k % 6) as f64 * 20.0 - 50.0,
+                                (k / 6) as f64 * 20.0 - 40.0,
+                                20.0 + (k % 4) as f64 * 10.0,
+                            )
+                    }
+                })
+                .collect();
+            let mut pairs: Vec<(DVec3, DVec3)> = truth_geo
+                .iter()
+                .map(|g| {
+                    // GPS: 2 m horizontal; altitude 4 m (phone) or 0.5 m (drone)
+                    let zs = if level { 4.0 } else { 0.5 };
+                    let noisy = *g + DVec3::new(gauss(2.0), gauss(2.0), gauss(zs));
+                    (noisy, truth.apply(*g))
+                })
+                .collect();
+            pairs[4].0 += DVec3::new(70.0, -40.0, 0.0);
+            pairs[17].0 += DVec3::new(-55.0, 0.0, 30.0);
+            let up = truth.rotation * DVec3::Z;
+            let vertical = if level {
+                Vertical::Level(up)
+            } else {
+                Vertical::Free
+            };
+            let fit = estimate_robust(Path::new("gps"), &pairs, vertical).unwrap();
+            let a = fit.alignment;
+            let what = if level { "level" } else { "free" };
+            assert!(!fit.inliers[4] && !fit.inliers[17], "{what}: outliers kept");
+            assert!(
+                fit.inliers.iter().filter(|b| !**b).count() <= 4,
+                "{what}: too many outliers {:?}",
+                fit.inliers
+            );
+            assert!(
+                (a.scale / truth.scale - 1.0).abs() < 0.02,
+                "{what}: scale {}",
+                a.scale
+            );
+            assert!(
+                angle(&a.rotation, &truth.rotation) < 1.5,
+                "{what}: rotation"
+            );
+            // the true camera positions map to their scene points within a few metres
+            for (g, (_, sc)) in truth_geo.iter().zip(&pairs) {
+                let err = (a.apply(*g) - *sc).length() / truth.scale;
+                assert!(err < 3.5, "{what}: {err} m");
+            }
+            assert!(
+                fit.rms[0] < 3.5 && fit.rms[0] > 1.0,
+                "{what}: rms {:?}",
+                fit.rms
+            );
+            if level {
+                // the vertical is the cameras' up exactly, however noisy the altitudes
+                assert!((a.rotation * DVec3::Z - up).length() < 1e-9);
+            }
+            // least squares over every pair is pulled away by the outliers
+            let ls = estimate(Path::new("gps"), &pairs).unwrap().alignment;
+            assert!(
+                angle(&ls.rotation, &truth.rotation) > 2.0
+                    || (ls.scale / truth.scale - 1.0).abs() > 0.05,
+                "{what}: the outliers should spoil least squares"
+            );
+        }
+    }
+
+    #[test]
+    fn lmeds_subsets_are_every_subset_or_a_deterministic_draw() {
+        let s = subsets(5, 2, 100);
+        assert_eq!(s.len(), 10);
+        assert_eq!(s[0], vec![0, 1]);
+        assert_eq!(s[9], vec![3, 4]);
+        assert_eq!(subsets(6, 3, 100).len(), 20);
+        let d = subsets(100, 3, 50);
+        assert_eq!(d.len(), 50);
+        assert_eq!(d, subsets(100, 3, 50));
+        assert!(
+            d.iter()
+                .all(|v| v[0] != v[1] && v[1] != v[2] && v[0] != v[2])
+        );
+    }
 
     #[test]
     fn estimate_recovers_a_utm_similarity() {

@@ -815,9 +815,9 @@ pub struct CacheOptions {
     pub t_stop: f32,
 }
 
-/// The cache's default mass share ε (BENCHMARKS.md, "Adaptive contribution lists").
+/// The cache's default mass share ε (BENCHMARKS.md's git history, "Adaptive contribution lists").
 pub const EPSILON: f32 = 0.05;
-/// The cache's default early stop (BENCHMARKS.md, "Early stop of the cache's blend").
+/// The cache's default early stop (BENCHMARKS.md's git history, "Early stop of the cache's blend").
 pub const T_STOP: f32 = 0.02;
 /// The cache's default bound on a list's length.
 pub const TOP_K: usize = 32;

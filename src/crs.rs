@@ -134,6 +134,7 @@ pub struct Georef {
     /// The name PROJ accepted.
     pub crs: String,
     to_lonlat: Proj,
+    from_lonlat: Proj,
     cart_xy: Proj,
     cart_zx: Proj,
 }
@@ -158,6 +159,13 @@ impl Georef {
             }
             match Proj::new_known_crs(&name, "EPSG:4326", None) {
                 Ok(to_lonlat) => {
+                    let from_lonlat =
+                        Proj::new_known_crs("EPSG:4326", &name, None).map_err(|e| {
+                            CrsError::Unknown {
+                                crs: name.clone(),
+                                why: format!("the projection from longitude/latitude: {e}"),
+                            }
+                        })?;
                     let cart = |tail: &str| {
                         Proj::new(&format!(
                             "+proj=pipeline +step +proj=unitconvert +xy_in=deg +xy_out=rad \
@@ -171,6 +179,7 @@ impl Georef {
                     return Ok(Georef {
                         crs: name.clone(),
                         to_lonlat,
+                        from_lonlat,
                         cart_xy: cart("")?,
                         cart_zx: cart(" +step +proj=axisswap +order=3,1,2")?,
                     });
@@ -208,6 +217,20 @@ impl Georef {
             ));
         }
         Ok((lon, lat))
+    }
+
+    /// The CRS point `(x, y)` of a longitude and latitude (degrees, WGS 84); heights are not
+    /// converted (a photo's GPS altitude is taken as the CRS's height: the difference between
+    /// datums is far below a phone's altitude error).
+    pub fn xy(&self, lon: f64, lat: f64) -> Result<(f64, f64), CrsError> {
+        let (x, y) = self
+            .from_lonlat
+            .convert((lon, lat))
+            .map_err(|e| self.fail(lon, lat, e))?;
+        if !(x.is_finite() && y.is_finite()) {
+            return Err(self.fail(lon, lat, format!("gives ({}, {})", Num(x), Num(y))));
+        }
+        Ok((x, y))
     }
 
     /// ECEF (EPSG:4978, metres) of CRS point `p` (`p.z` the height; module docs).

@@ -131,7 +131,7 @@ fn box_downscale(img: &Array3<u8>, s: usize, width: usize, height: usize) -> Arr
 
 /// Writes an 8-bit RGB `H×W×3` array as PNG, atomically (temporary file, then rename). The
 /// encoder is the `png` crate's fast setting (adaptive row filters, `fdeflate`): about 4×
-/// faster than OpenCV's encoder, with files no larger (BENCHMARKS.md, "PNG writing").
+/// faster than OpenCV's encoder, with files no larger (BENCHMARKS.md's git history, "PNG writing").
 pub fn write_png(path: &Path, rgb: &Array3<u8>) -> Result<(), ImageError> {
     let err = |why: String| ImageError::Write {
         path: path.to_path_buf(),

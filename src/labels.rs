@@ -1,4 +1,4 @@
-//! The fused label space (`docs/design.md`, "Wave 2 contract", `fuse/labels.json`): every label id
+//! The fused label space (`docs/design.md`, "Stage contract", `fuse/labels.json`): every label id
 //! that a fused per-view map can hold, with where it comes from and its class.
 //!
 //! * City labels are the entity ids of `semantics.json` (`0 … E−1`), `source = "city"`.

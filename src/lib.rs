@@ -24,6 +24,7 @@ pub mod eval;
 pub mod fastmath;
 pub mod fsutil;
 pub mod fuse;
+pub mod geotag;
 pub mod glb;
 pub mod groups;
 pub mod hash;

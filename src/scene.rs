@@ -9,6 +9,8 @@
 //!   masks/<stem>.json        optional: SAM automatic masks per view
 //!   features/<stem>.npy      optional: one feature row per SAM mask; features/prompts.json
 //!   gt/                      optional: ground truth, read only by evaluation
+//!   scene.json               optional: the scene's own description ([`SceneMeta`]: whether it is
+//!                            SIMULATED); written by `gs4city synth`
 //! ```
 //! Pipeline stages take the paths they need from [`Scene`]; only evaluation uses [`Scene::gt`].
 //! Nothing else of the folder is listed here: a simulator's own files are not inputs
@@ -45,6 +47,43 @@ pub struct Scene {
     pub features: Option<PathBuf>,
     /// `gt/` where it exists: for evaluation only.
     pub gt: Option<PathBuf>,
+    /// `scene.json`: the scene's own description (a scene without it is a real capture as far
+    /// as anything here can tell).
+    pub meta: SceneMeta,
+}
+
+/// The scene's own description, `S/scene.json`. It is metadata, not truth: what it says is
+/// shown (`report.html` says SIMULATED at the top), never used to compute anything.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SceneMeta {
+    /// True for a scene that `gs4city synth` simulated.
+    #[serde(default)]
+    pub simulated: bool,
+}
+
+impl SceneMeta {
+    /// The file name inside the scene folder.
+    pub const FILE: &'static str = "scene.json";
+
+    /// Reads `root/scene.json`; a scene without one gets the default (not simulated). A file
+    /// that is not such a JSON object is an error naming it.
+    pub fn read(root: &Path) -> Result<SceneMeta, SceneError> {
+        let path = root.join(Self::FILE);
+        let bytes = match std::fs::read(&path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(SceneMeta::default()),
+            Err(e) => {
+                return Err(SceneError {
+                    scene: root.to_path_buf(),
+                    why: format!("{}: {e}", Self::FILE),
+                });
+            }
+        };
+        serde_json::from_slice(&bytes).map_err(|e| SceneError {
+            scene: root.to_path_buf(),
+            why: format!("{}: {e}", Self::FILE),
+        })
+    }
 }
 
 impl Scene {
@@ -89,6 +128,7 @@ impl Scene {
             masks: dir("masks"),
             features: dir("features"),
             gt: dir("gt"),
+            meta: SceneMeta::read(root)?,
         })
     }
 
@@ -159,7 +199,8 @@ pub struct ImportSpec {
     pub model: Option<PathBuf>,
     /// The iteration to take (default: the highest `point_cloud/iteration_N`).
     pub iteration: Option<u32>,
-    /// A PLY in the INRIA layout (nerfstudio `ns-export gaussian-splat`, gsplat's export);
+    /// A PLY in the INRIA layout (nerfstudio `ns-export gaussian-splat`, gsplat's export), or
+    /// a `.splat`, `.spz` or SuperSplat compressed PLY (converted to an INRIA PLY on import);
     /// overrides the training output's.
     pub ply: Option<PathBuf>,
     /// The COLMAP folder the scene was trained from (`sparse/0/`, `images/`); default: the
@@ -370,6 +411,15 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
         }
         // alignment.json is always copied: it is edited and refined in place.
         let copy = spec.copy || part == "citymodel/alignment.json";
+        if part == "point_cloud.ply" && !is_inria_ply(src) {
+            // .splat, .spz, compressed PLY: converted once into the INRIA layout, which every
+            // stage (and `gs4city tile`'s streaming cut) reads
+            let (g, _) = crate::splat::read_ply(src, &crate::splat::ReadOptions::KEEP)
+                .map_err(|e| bad(e.to_string()))?;
+            crate::splat::write_ply(&dst, &g, crate::splat::PlyEncoding::BinaryLittleEndian)
+                .map_err(|e| bad(e.to_string()))?;
+            continue;
+        }
         let r = if copy {
             copy_tree(src, &dst)
         } else {
@@ -382,6 +432,21 @@ pub fn import(spec: &ImportSpec, out: &Path) -> Result<ImportReport, SceneError>
         parts,
         missing,
     })
+}
+
+/// Whether `path` is an INRIA PLY (not a `.splat`, SPZ or compressed PLY, which [`import`]
+/// converts).
+fn is_inria_ply(path: &Path) -> bool {
+    use crate::splat::SplatFormat;
+    let mut head = [0u8; 4];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
+        .unwrap_or(0);
+    match crate::splat::formats::detect(path, &head[..n]) {
+        SplatFormat::Ply | SplatFormat::CompressedPly => crate::ply::read_header(path)
+            .map_or(true, |(h, _)| !crate::splat::compressed::is_compressed(&h)),
+        SplatFormat::Splat | SplatFormat::Spz => false,
+    }
 }
 
 #[cfg(unix)]

@@ -106,7 +106,7 @@ pub struct VoteOptions {
 /// − 1) never exceeds 0 and a Gaussian that any view labels keeps its strongest label; only a
 /// Gaussian no view labels stays background. A pixel no label covers is no evidence against a
 /// label (masks are missed far more often than they are wrong: person recall is bounded by the
-/// masks SAM misses). Measured in BENCHMARKS.md ("Loss budget", "γ sweep"): −1 beats −0.7 and
+/// masks SAM misses). Measured in BENCHMARKS.md's git history ("Loss budget", "γ sweep"): −1 beats −0.7 and
 /// −0.5 on `street`, on three harder simulated perceptions and on the oracle one, with the leak
 /// onto non-fine classes unchanged on `street` and the oracle and +0.1 / +0.5 points at the two
 /// hardest levels.
@@ -115,7 +115,7 @@ pub const GAMMA: f32 = -1.0;
 /// The default γ with the city model alone as supervision (`M_city`): there a pixel whose ray
 /// misses the model or hits no building *is* evidence of background (raycasting is exhaustive,
 /// unlike SAM), and γ −1 would label every Gaussian some ray reaches through the model (the
-/// demo's city-only coarse precision fell from 99.4 to 90.7 % with it; BENCHMARKS.md "γ sweep").
+/// demo's city-only coarse precision fell from 99.4 to 90.7 % with it; BENCHMARKS.md's git history, "γ sweep").
 pub const GAMMA_CITY: f32 = -0.5;
 
 /// The γ a vote over `maps` uses: `gamma` when given, else [`GAMMA_CITY`] for `M_city` and
@@ -132,7 +132,7 @@ pub fn gamma_for(gamma: Option<f32>, maps: &LabelMaps) -> f32 {
 pub const CITY_GATE_M: f32 = 0.5;
 
 /// The default weight of the city-model prior, a share of the median Gaussian's vote weight
-/// ([`ModelPrior`]; measured in BENCHMARKS.md, "The city-model prior in 3D").
+/// ([`ModelPrior`]; measured in BENCHMARKS.md's git history, "The city-model prior in 3D").
 pub const MODEL_PRIOR: f32 = 0.3;
 
 /// The default reach of the city-model prior, in metres.

@@ -81,14 +81,35 @@ fn rs_files(dir: &Path, out: &mut Vec<PathBuf>) {
 /// Source text without comments (line comments, doc comments and block comments) and without
 /// the contents of string literals.
 fn code_only(text: &str) -> String {
+    split_source(text).0
+}
+
+/// The comments of a source text (line, doc and block comments), everything else dropped but
+/// its line breaks, so that a line of the result is the same line of the source.
+fn comments_only(text: &str) -> String {
+    split_source(text).1
+}
+
+/// A source text split into its code (comments removed, string literals emptied) and its
+/// comments (see [`comments_only`]).
+fn split_source(text: &str) -> (String, String) {
     let b = text.as_bytes();
-    let (mut out, mut i) = (String::with_capacity(text.len()), 0);
+    let mut out = String::with_capacity(text.len());
+    let mut comments = String::new();
+    let mut i = 0;
+    // The line breaks of a skipped stretch, kept in the comments' text.
+    let breaks = |s: &[u8], comments: &mut String| {
+        comments.extend(s.iter().filter(|&&c| c == b'\n').map(|_| '\n'));
+    };
     while i < b.len() {
         if b[i..].starts_with(b"//") {
+            let start = i;
             while i < b.len() && b[i] != b'\n' {
                 i += 1;
             }
+            comments.push_str(&text[start..i]);
         } else if b[i..].starts_with(b"/*") {
+            let start = i;
             let mut depth = 0;
             while i < b.len() {
                 if b[i..].starts_with(b"/*") {
@@ -104,8 +125,10 @@ fn code_only(text: &str) -> String {
                     i += 1;
                 }
             }
+            comments.push_str(&text[start..i.min(b.len())]);
         } else if let Some(hashes) = raw_string_start(b, i) {
             // A raw string `r#…#"…"#…#`: skip to the quote followed by as many `#`.
+            let start = i;
             i += 2 + hashes;
             let close: Vec<u8> = std::iter::once(b'"')
                 .chain(std::iter::repeat_n(b'#', hashes))
@@ -115,8 +138,10 @@ fn code_only(text: &str) -> String {
             }
             out.push_str("\"\"");
             i += close.len();
+            breaks(&b[start..i.min(b.len())], &mut comments);
         } else if b[i] == b'"' && (i == 0 || b[i - 1] != b'\'') {
             // A string literal.
+            let start = i;
             out.push('"');
             i += 1;
             while i < b.len() && b[i] != b'"' {
@@ -127,13 +152,17 @@ fn code_only(text: &str) -> String {
             }
             out.push('"');
             i += 1;
+            breaks(&b[start..i.min(b.len())], &mut comments);
         } else {
             let c = text[i..].chars().next().unwrap();
             out.push(c);
+            if c == '\n' {
+                comments.push('\n');
+            }
             i += c.len_utf8();
         }
     }
-    out
+    (out, comments)
 }
 
 /// At `i`, the number of `#` of a raw string's opening `r#…#"` (none when there is none).
@@ -331,4 +360,216 @@ fn the_import_reader_sees_paths_groups_and_skips_comments() {
     );
     let got: Vec<String> = imports(&code).into_iter().collect();
     assert_eq!(got, ["a", "b", "c", "h", "l"]);
+}
+
+/// One word of history or of a machine in the product's text: its kind and the matched text.
+#[derive(Debug, PartialEq)]
+struct HistoryWord {
+    line: usize,
+    kind: &'static str,
+    text: String,
+}
+
+const MONTHS: &str = "(?:Jan(?:uary)?|Feb(?:ruary)?|Mar(?:ch)?|Apr(?:il)?|May|June?|July?|\
+                      Aug(?:ust)?|Sep(?:t(?:ember)?)?|Oct(?:ober)?|Nov(?:ember)?|Dec(?:ember)?)";
+
+/// The patterns of history and machine words, each with its kind. A match counts unless the
+/// character before it continues a word, a number or a path (`x2026-11-27`, `1.2026-11-27`,
+/// `a/work/`); `date` matches that are a value of the text (after `=`, `<`, `>` or a quote:
+/// `creationDate >= 2020-09-01`) are data, not history.
+fn history_patterns() -> Vec<(&'static str, regex::Regex)> {
+    let re = |s: &str| regex::Regex::new(s).unwrap();
+    vec![
+        // 2026-11-27, 2026/11/27, 27.11.2026, 11/27/2026, 27 Nov 2026, November 27, 2026, Nov 2026.
+        (
+            "date",
+            re(&[
+                r"\b(?:19|20)\d\d[-/](?:0[1-9]|1[0-2])[-/](?:0[1-9]|[12]\d|3[01])\b",
+                r"\b\d{1,2}[./]\d{1,2}[./](?:19|20)\d\d\b",
+                &format!(r"\b\d{{1,2}}\s+{MONTHS}\.?\s+(?:19|20)\d\d\b"),
+                &format!(r"\b{MONTHS}\.?\s+(?:\d{{1,2}},?\s+)?(?:19|20)\d\d\b"),
+            ]
+            .join("|")),
+        ),
+        ("session", re(r"(?i)\bsessions?\s+(?:no\.?\s*)?#?\d+")),
+        // "issue 23", "issues 13 and 14", "PR #4", "#23" (not `owner/repo#23`, `&#23;`, `#[…]`).
+        (
+            "issue",
+            re(r"(?i)\b(?:issues?|PRs?|pull\s+requests?|tickets?)\s+(?:no\.?\s*)?#?\d+|#\d+\b"),
+        ),
+        ("wave", re(r"(?i)\bwaves?\s+\d+")),
+        // Absolute paths of a machine's own folders (not system paths such as /usr/include).
+        (
+            "path",
+            re(r"/(?:work|home|root|Users|mnt|scratch|media)/|\b[A-Za-z]:\\(?:Users|work)\\"),
+        ),
+    ]
+}
+
+/// The history and machine words of a text, by line (1-based).
+fn history_words(text: &str) -> Vec<HistoryWord> {
+    let patterns = history_patterns();
+    let mut out = Vec::new();
+    for (n, line) in text.lines().enumerate() {
+        for (kind, re) in &patterns {
+            for m in re.find_iter(line) {
+                let before = line[..m.start()].chars().next_back();
+                let continues = |c: char| c.is_alphanumeric() || "_-.~/&".contains(c);
+                if *kind == "path" && m.as_str().starts_with('/') && before.is_some_and(continues) {
+                    continue;
+                }
+                if *kind == "issue"
+                    && m.as_str().starts_with('#')
+                    && before.is_some_and(|c| continues(c) || c == '#')
+                {
+                    continue;
+                }
+                if *kind == "date" {
+                    let value = line[..m.start()].trim_end().chars().next_back();
+                    if before.is_some_and(continues) || value.is_some_and(|c| "=<>\"'".contains(c))
+                    {
+                        continue;
+                    }
+                }
+                out.push(HistoryWord {
+                    line: n + 1,
+                    kind,
+                    text: m.as_str().to_string(),
+                });
+            }
+        }
+    }
+    out
+}
+
+/// The product's words: README.md, BENCHMARKS.md, ARCHITECTURE.md, docs/**/*.md and the
+/// comments of src/**/*.rs, each with its path. (CHANGELOG.md keeps the history.)
+fn product_texts() -> Vec<(PathBuf, String)> {
+    fn md_files(dir: &Path, out: &mut Vec<PathBuf>) {
+        for e in std::fs::read_dir(dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                md_files(&p, out);
+            } else if p.extension().is_some_and(|x| x == "md") {
+                out.push(p);
+            }
+        }
+    }
+    let mut files: Vec<PathBuf> = ["README.md", "BENCHMARKS.md", "ARCHITECTURE.md"]
+        .iter()
+        .map(|f| root().join(f))
+        .collect();
+    md_files(&root().join("docs"), &mut files);
+    let mut out: Vec<(PathBuf, String)> = files
+        .into_iter()
+        .map(|f| {
+            let text = std::fs::read_to_string(&f).unwrap();
+            (f, text)
+        })
+        .collect();
+    let mut rs = Vec::new();
+    rs_files(&root().join("src"), &mut rs);
+    for f in rs {
+        let text = comments_only(&std::fs::read_to_string(&f).unwrap());
+        out.push((f, text));
+    }
+    out
+}
+
+#[test]
+fn the_products_words_carry_no_history_and_no_machine() {
+    let mut found = Vec::new();
+    for (path, text) in product_texts() {
+        let rel = path.strip_prefix(root()).unwrap().display().to_string();
+        for w in history_words(&text) {
+            found.push(format!("{rel}:{}: {} `{}`", w.line, w.kind, w.text));
+        }
+    }
+    assert!(
+        found.is_empty(),
+        "the product's words describe the product as it is now: no dates, sessions, issue \
+         numbers, waves or machine paths (history belongs in git and CHANGELOG.md):\n{}",
+        found.join("\n")
+    );
+}
+
+/// README.md is a guide (≤ 200 lines) and BENCHMARKS.md holds current figures (≤ 400 lines):
+/// per-command detail belongs in `--help` and docs/, older measurements in git.
+#[test]
+fn the_readme_and_the_benchmarks_stay_short() {
+    for (file, max) in [("README.md", 200), ("BENCHMARKS.md", 400)] {
+        let n = std::fs::read_to_string(root().join(file))
+            .unwrap()
+            .lines()
+            .count();
+        assert!(n <= max, "{file} has {n} lines, at most {max}");
+    }
+}
+
+#[test]
+fn the_history_reader_finds_dates_sessions_issues_waves_and_paths_and_nothing_else() {
+    let kinds =
+        |t: &str| -> Vec<&'static str> { history_words(t).iter().map(|w| w.kind).collect() };
+    // Each of these is found, with its kind.
+    for (text, kind) in [
+        ("re-measured 2026-11-27 with the prior", "date"),
+        ("(measured 2026/11/27)", "date"),
+        ("on 27.11.2026 at load 3", "date"),
+        ("on 27 Nov 2026 at load 3", "date"),
+        ("since November 27, 2026", "date"),
+        ("as of March 2025", "date"),
+        ("in session 9 we", "date-less session"),
+        ("fixed in issue 23", "issue"),
+        ("Issues 13 and 14", "issue"),
+        ("see #23 for why", "issue"),
+        ("(PR #4)", "issue"),
+        ("the Wave 2 contract", "wave"),
+        ("`/work/runs/street_core`", "path"),
+        ("cd /home/dev/gs4city", "path"),
+        ("C:\\Users\\dev\\gs4city", "path"),
+    ] {
+        let kind = if kind == "date-less session" {
+            "session"
+        } else {
+            kind
+        };
+        assert_eq!(kinds(text), [kind], "{text}");
+    }
+    // None of these is history: codes, versions, data values, attributes, external references.
+    for text in [
+        "EPSG:25832 and EPSG:4979",
+        "gs4city 0.1.0, CesiumJS 1.145, PROJ 9.1.1, Embree 3.13.5",
+        "#[derive(Debug)] and #![deny(unsafe_code)]",
+        "creationDate >= 2020-09-01 and creationDate=\"2020-06-24\"",
+        "`creationDate<'2020-09-01'`",
+        "RenderKit/embree#207 (an external repository's issue)",
+        "github.com/facebookresearch/segment-anything/issues/56",
+        "&#8212; and `masks/Ansicht-ü#1.png`",
+        "../shared/data/citygml and /usr/include/embree3 and S/work/x",
+        "a wave of 3 views; 2 sessions of ONNX Runtime",
+        "1 200 000 Gaussians, 128 views of 660×494, 16.32 s",
+        "https://github.com/home/repo",
+    ] {
+        assert_eq!(kinds(text), Vec::<&str>::new(), "{text}");
+    }
+}
+
+#[test]
+fn the_comment_reader_keeps_lines_and_skips_code_and_strings() {
+    let text = "let a = \"// not a comment\";\n/// doc 2026-11-27\nlet b = 1; // tail\n\
+                let s = r#\"/* no */\"#;\n/* block\n over */ let c = '\"'; // after\n";
+    let c = comments_only(text);
+    let lines: Vec<&str> = c.lines().collect();
+    assert_eq!(
+        lines,
+        [
+            "",
+            "/// doc 2026-11-27",
+            "// tail",
+            "",
+            "/* block",
+            " over */// after"
+        ]
+    );
+    assert_eq!(history_words(&c)[0].line, 2);
 }

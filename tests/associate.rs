@@ -180,7 +180,7 @@ fn view_count_and_far_field_filters() {
 /// Features that carry nothing (an independent random direction per mask, so two masks of one
 /// object are no more alike than two of different objects) turn the feature test off — a
 /// geometry-only association that still finds every object — where the fixed τ_sim makes every
-/// mask its own group and none survives m_view: the silent collapse of issue 23, now a loud one.
+/// mask its own group and none survives m_view: a collapse that is reported, never silent.
 /// Separating features keep the configured τ_sim (the cap).
 #[test]
 fn useless_features_give_a_geometry_only_association() {

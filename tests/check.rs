@@ -1,4 +1,4 @@
-//! Issue 24, end to end on SIMULATED scenes (`synth --preset small`): `gs4city check` names each
+//! The scene check and import, end to end on SIMULATED scenes (`synth --preset small`): `gs4city check` names each
 //! defect of a scene in one line and `run` stops before any stage; a 3DGS training output
 //! becomes a scene folder by `scene import` and runs; `run` resumes however `--scene` is spelled
 //! and `query --run R` works from `/`; invalid Gaussians stay in `semantic.ply` labelled −1; a

@@ -1,4 +1,4 @@
-//! `gs4city export --format 3dtiles` (and `--spz`) (issue 27) on a SIMULATED scene run (`synth --preset
+//! `gs4city export --format 3dtiles` (and `--spz`) on a SIMULATED scene run (`synth --preset
 //! small`: two real Ingolstadt LoD3 buildings in EPSG:32632, `run --mode vote`), checked by
 //! tools that are not the code under test:
 //! - the Khronos glTF validator (npm `gltf-validator`, tools/js/validate_gltf.mjs) on every tile;

@@ -1,4 +1,4 @@
-//! Issue 11: every bad input gets one clear error (or a warning where the output stays
+//! Bad input: every bad input gets one clear error (or a warning where the output stays
 //! right). One test per class of bad input; each builds its inputs here (or reads them from
 //! `tests/data/bad/`) and checks the reader's answer against what the input is known to be.
 //! `replayed_fuzz_inputs_give_clean_answers` replays every committed fuzz finding through the
@@ -27,7 +27,7 @@ fn tmp(tag: &str) -> PathBuf {
 }
 
 /// An error message as `main` prints it (`{:#}` of the chain): the message, then each
-/// source. Checks the rules of issue 11: one line, names `file`, no Rust debug dump, and no
+/// source. Checks the rules of bad-input messages: one line, names `file`, no Rust debug dump, and no
 /// part of the chain repeated.
 fn check_message(e: &dyn std::error::Error, file: &str) -> String {
     let mut parts = vec![e.to_string()];
@@ -121,7 +121,7 @@ fn npy_shape_products_that_overflow_are_errors() {
     check_message(&e, "shape_overflow.npy");
 }
 
-/// A 64-byte `cameras.bin` declaring a 60000×60000 image (the class of issue 11): the COLMAP
+/// A 64-byte `cameras.bin` declaring a 60000×60000 image (an allocation bomb): the COLMAP
 /// reader refuses it with `Camera::validate`'s reason, so no stage ever allocates for it.
 #[test]
 fn a_camera_declaring_a_huge_image_is_refused_by_the_reader() {

@@ -1,4 +1,4 @@
-//! 8- and 16-wide packets (issue 29) against single rays (`rtcIntersect1`) on hard rays:
+//! 8- and 16-wide packets against single rays (`rtcIntersect1`) on hard rays:
 //! grazing a long floor, through the shared vertices and edges of a triangle grid laid on
 //! the pixel centres, and along façades whose window faces are coplanar with their walls.
 //!

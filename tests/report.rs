@@ -3,7 +3,10 @@
 //! confusion matrix, the per-building table whose counts are recounted here from the run's files
 //! (gaussians.npy → labels.json → semantics.json, read as plain JSON), the outlined legend, and
 //! per test view a render of the Gaussians painted in their class colours that agrees with the
-//! predicted class map.
+//! predicted class map. `check_simulated` (also called on the demo's run, tests/readme.rs): the
+//! SIMULATED line at the top exactly when the scene's own `scene.json` says so, and the order of
+//! the report — what the run produced (the Gaussians per class, recounted here), the scores, the
+//! method's diagnostics.
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -18,7 +21,67 @@ const PALETTE: [[u8; 3]; 4] = [
     [240, 160, 40],
 ];
 
+/// The class names by id, by hand (docs/design.md).
+const NAMES: [&str; 12] = [
+    "wall",
+    "roof",
+    "window",
+    "door",
+    "ground_surface",
+    "installation",
+    "tree",
+    "person",
+    "car",
+    "road",
+    "water",
+    "other",
+];
+
+/// `out/report.html` says SIMULATED before its title exactly when `simulated` (and nowhere when
+/// not); it leads with what the run produced — the Gaussians per class, recounted here from
+/// `lift/gaussians.npy` — then the test views, the scores, and last the method's diagnostics.
+pub fn check_simulated(out: &Path, simulated: bool) {
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    let h1 = html.find("<h1>").expect("a title");
+    assert_eq!(
+        html[..h1].contains("SIMULATED"),
+        simulated,
+        "SIMULATED at the top of the report: expected {simulated}"
+    );
+    if !simulated {
+        assert!(!html.contains("SIMULATED"), "no SIMULATED anywhere");
+    }
+    let at = |s: &str| {
+        html.find(s)
+            .unwrap_or_else(|| panic!("`{s}` in the report"))
+    };
+    let order = [
+        at("What the run produced"),
+        at("<h2>Buildings</h2>"),
+        at("<h2>Test views"),
+        at("<h2>Metrics"),
+        at("<h2>Method diagnostics"),
+        at("Time per stage"),
+    ];
+    assert!(order.is_sorted(), "report sections out of order: {order:?}");
+    let (_, table) = npy::read::<i32>(&out.join("lift/gaussians.npy")).unwrap();
+    let mut count: HashMap<i32, usize> = HashMap::new();
+    for row in table.chunks(2) {
+        *count.entry(row[1]).or_default() += 1;
+    }
+    assert!(html.contains(&format!(
+        "What the run produced: {} Gaussians",
+        table.len() / 2
+    )));
+    for (c, n) in count {
+        let name = usize::try_from(c).map_or("no class", |k| NAMES[k]);
+        let cell = format!("{name}</td><td>{n}</td>");
+        assert!(html.contains(&cell), "{cell} in the class table");
+    }
+}
+
 pub fn check_report(out: &Path, test_view: &str) {
+    check_simulated(out, false);
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     let first = std::env::args().next().unwrap();
     assert!(

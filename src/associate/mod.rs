@@ -19,7 +19,7 @@
 //! turns the maps, held in memory, into the kept groups' ids (−1 for dropped groups) and
 //! writes them.
 //!
-//! Outputs (`docs/design.md`, "Wave 2 contract"): per view `<stem>.ids.npy` (int32 H×W, group id ≥ 0,
+//! Outputs (`docs/design.md`, "Stage contract"): per view `<stem>.ids.npy` (int32 H×W, group id ≥ 0,
 //! −1 none), `groups.json` ([`GroupsFile`]), `features.npy` (float32 G×D, the unit mean feature
 //! of each group, when the masks have features) and `summary.json` (last).
 //!
@@ -102,7 +102,7 @@ pub struct AssociateOptions {
     /// Groups seen in fewer views are dropped (`m_view`). Default 2 (the paper's 3 is
     /// `--min-views 3`): measured on four simulated perceptions, 2 wins on each (person +3.5 to
     /// +14 IoU), 1 wins more on harder ones but admits false groups on `street` (car precision
-    /// 99.6 → 95.0); BENCHMARKS.md "m_view".
+    /// 99.6 → 95.0); BENCHMARKS.md's git history, "m_view".
     pub min_views: usize,
     /// Groups whose centroid is farther than this (metres, × alignment scale) from every
     /// camera are dropped.

@@ -210,8 +210,8 @@ pub struct SkippedSummary {
 /// CRS), gets a warning: val3dity's default distance-to-plane tolerance (`planarity_d2p`), the
 /// usual limit of CityGML validation. Such a polygon is still triangulated; its triangles follow
 /// its vertices. (The CityJSON reader refuses a folded surface outright, farther than
-/// `cityjson::PLANARITY_TOLERANCE` of its extent and `cityjson::PLANARITY_MIN`, as issue 28
-/// asked; a CityGML file keeps such a polygon with this warning.)
+/// `cityjson::PLANARITY_TOLERANCE` of its extent and `cityjson::PLANARITY_MIN`; a
+/// CityGML file keeps such a polygon with this warning.)
 pub const PLANARITY_WARNING: f64 = 0.01;
 
 /// The largest deviation of a polygon from its plane, and how many polygons exceed

@@ -1,5 +1,6 @@
-//! `gs4city align`: an alignment from geo ↔ scene point pairs (Umeyama), or with `--refine`
-//! the refinement of a city model's alignment against the 3DGS scene (robust 7-DoF ICP).
+//! `gs4city align`: an alignment from geo ↔ scene point pairs (Umeyama), from the photos' EXIF
+//! GPS (`--exif`, robust), or with `--refine` the refinement of a city model's alignment
+//! against the 3DGS scene (robust 7-DoF ICP).
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -17,8 +18,17 @@ use crate::{colmap, fsutil};
 #[derive(Debug, Args)]
 pub struct AlignArgs {
     /// CSV of point pairs: geo_x geo_y geo_z scene_x scene_y scene_z per line (≥ 3 pairs).
-    #[arg(long, required_unless_present = "refine", conflicts_with = "refine")]
+    #[arg(
+        long,
+        required_unless_present_any = ["refine", "exif"],
+        conflicts_with_all = ["refine", "exif"]
+    )]
     points: Option<PathBuf>,
+    /// Fit the alignment to the photos' EXIF GPS: the scene folder (images/ with GPS tags,
+    /// sparse/0); the CRS is its city model's (citymodel/), else the photos' UTM zone
+    /// (docs/align-exif.md).
+    #[arg(long, value_name = "S", conflicts_with = "refine")]
+    exif: Option<PathBuf>,
     /// Refine the city model's alignment against the 3DGS scene (robust 7-DoF point-to-plane
     /// ICP of Gaussian centres to the mesh); writes alignment.json and summary.json beside it.
     #[arg(long, requires_all = ["citymodel", "ply"])]
@@ -72,6 +82,9 @@ pub fn run(args: &AlignArgs) -> anyhow::Result<()> {
     if args.refine {
         return run_refine(args);
     }
+    if let Some(scene) = &args.exif {
+        return run_exif(scene, &args.out);
+    }
     let Some(points) = &args.points else {
         bail!("give --points CSV (point-pair estimation) or --refine");
     };
@@ -81,6 +94,105 @@ pub fn run(args: &AlignArgs) -> anyhow::Result<()> {
     }
     fsutil::write_json(&args.out, &est.alignment.to_json())?;
     println!("wrote {}", args.out.display());
+    Ok(())
+}
+
+/// The CRS named by the first city model file of `S/citymodel/` that names one.
+fn scene_crs(scene: &Path) -> anyhow::Result<Option<(String, String)>> {
+    let dir = scene.join("citymodel");
+    if !dir.is_dir() {
+        return Ok(None);
+    }
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .with_context(|| format!("cannot list {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| crate::cityjson::is_model_file(p))
+        .collect();
+    files.sort();
+    for f in files {
+        let m = crate::cityjson::read_any(&f)?;
+        if let Some(srs) = m.srs_name {
+            return Ok(Some((srs, format!("the city model {}", f.display()))));
+        }
+    }
+    Ok(None)
+}
+
+fn run_exif(scene: &Path, out: &Path) -> anyhow::Result<()> {
+    let sparse = [scene.join("sparse/0"), scene.join("sparse")]
+        .into_iter()
+        .find(|d| colmap::read_cameras(d).is_ok())
+        .ok_or_else(|| {
+            anyhow::anyhow!("{}: no COLMAP model in sparse/0 or sparse", scene.display())
+        })?;
+    let views = colmap::read_model(&sparse)?;
+    let crs = scene_crs(scene)?;
+    let f = crate::geotag::fit(
+        &scene.join("images"),
+        &views,
+        crs.as_ref().map(|(c, s)| (c.as_str(), s.as_str())),
+    )?;
+    let fit = &f.fit;
+    println!(
+        "alignment from the GPS of {} photos in {}: {}; {} registered photos without GPS",
+        f.cameras.len(),
+        f.crs,
+        f.crs_source,
+        f.without_gps.len()
+    );
+    match fit.vertical {
+        align::Vertical::Level(_) => println!(
+            "vertical: the cameras' up (level photos); GPS altitudes set the height offset only"
+        ),
+        align::Vertical::Free => println!(
+            "vertical: from the GPS altitudes (the cameras do not agree on an up): a phone's altitude error tilts the fit"
+        ),
+    }
+    println!("camera residuals (GPS − fitted camera position, metres):");
+    println!(
+        "  {:<24} {:>10} {:>10} {:>10}",
+        "image", "horizontal", "vertical", "3D"
+    );
+    for (c, (r, inlier)) in f.cameras.iter().zip(fit.residuals.iter().zip(&fit.inliers)) {
+        println!(
+            "  {:<24} {:>10.2} {:>+10.2} {:>10.2}{}",
+            c.name,
+            r.truncate().length(),
+            -r.z,
+            r.length(),
+            if *inlier { "" } else { "  outlier" }
+        );
+    }
+    let worst = fit
+        .residuals
+        .iter()
+        .zip(&fit.inliers)
+        .enumerate()
+        .filter(|(_, (_, i))| **i)
+        .max_by(|a, b| {
+            a.1.0
+                .truncate()
+                .length()
+                .total_cmp(&b.1.0.truncate().length())
+        })
+        .map(|(i, (r, _))| (f.cameras[i].name.clone(), r.truncate().length()));
+    println!(
+        "RMS over {} inliers: horizontal {:.2} m, vertical {:.2} m, 3D {:.2} m; inlier bound {:.2} m; scale {:.6} scene units per metre",
+        fit.inliers.iter().filter(|b| **b).count(),
+        fit.rms[0],
+        fit.rms[1],
+        fit.rms[2],
+        fit.threshold,
+        fit.alignment.scale
+    );
+    if let Some((name, r)) = worst {
+        println!("worst inlier: {name} ({r:.2} m horizontal)");
+    }
+    for w in &fit.warnings {
+        log::warn!("{w}");
+    }
+    fsutil::write_json(out, &fit.alignment.to_json())?;
+    println!("wrote {}", out.display());
     Ok(())
 }
 

@@ -1,4 +1,5 @@
-//! `gs4city segment`: SAM-family automatic masks of a scene's images on the CPU → `S/masks/`.
+//! `gs4city segment`: SAM-family automatic masks of a scene's images on the CPU → `S/masks/`,
+//! or with `--semantic` a semantic segmentation network's masks and class features.
 use std::path::PathBuf;
 
 use clap::Args;
@@ -11,8 +12,20 @@ pub struct SegmentArgs {
     #[arg(long)]
     scene: PathBuf,
     /// Model folder: encoder.onnx, decoder.onnx, model.json (docs/segment.md).
-    #[arg(long)]
-    model: PathBuf,
+    #[arg(
+        long,
+        required_unless_present = "semantic",
+        conflicts_with = "semantic"
+    )]
+    model: Option<PathBuf>,
+    /// A semantic segmentation network (MODEL.onnx with its card MODEL.json beside it):
+    /// masks are its classes' connected components, features their mean class probabilities
+    /// (docs/segment.md; e.g. models/espnet/espnet_p2_q8_cityscapes.onnx for street-level photos).
+    #[arg(long, value_name = "MODEL.onnx")]
+    semantic: Option<PathBuf>,
+    /// With --semantic: components smaller than this many pixels are dropped (0 = 1/2000 of the image).
+    #[arg(long, default_value_t = 0, requires = "semantic")]
+    min_area: usize,
     /// Points per side of the prompt grid.
     #[arg(long, default_value_t = SegmentOptions::default().points_per_side)]
     points_per_side: usize,
@@ -64,9 +77,29 @@ impl SegmentArgs {
 }
 
 pub fn run(args: &SegmentArgs) -> anyhow::Result<()> {
-    let o = args.options()?;
     let t = std::time::Instant::now();
-    let s = segment::run(&args.scene, &args.model, &o)?;
+    if let Some(net) = &args.semantic {
+        let o = segment::semantic::SemanticOptions {
+            min_area: args.min_area,
+            threads: args.threads,
+        };
+        let s = segment::semantic::run(&args.scene, net, &o)?;
+        crate::progress::done(
+            "segment",
+            &format!(
+                "{} images segmented ({} masks), {} skipped (masks and features exist); network {:.1} s, masks {:.1} s",
+                s.segmented, s.masks, s.skipped, s.network_s, s.post_s
+            ),
+            t.elapsed().as_secs_f64(),
+        );
+        return Ok(());
+    }
+    let o = args.options()?;
+    let model = args
+        .model
+        .as_ref()
+        .ok_or_else(|| anyhow::anyhow!("give --model DIR or --semantic MODEL.onnx"))?;
+    let s = segment::run(&args.scene, model, &o)?;
     crate::progress::done(
         "segment",
         &format!(

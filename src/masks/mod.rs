@@ -30,7 +30,7 @@
 //! The stage reads only the scene files `docs/design.md` allows ("Inputs the algorithms may read"):
 //! the SAM list `<stem>.json` of each view, its features and the prompts.
 //!
-//! Output files (`docs/design.md`, "Wave 2 contract"): per view `<stem>.json` = the kept masks in SAM
+//! Output files (`docs/design.md`, "Stage contract"): per view `<stem>.json` = the kept masks in SAM
 //! format, each with the extra keys `source_index`, `r_ov`, `rule`, `class` ([`KeptMask`]);
 //! `<stem>.decisions.json` = one [`Decision`] per input mask; `overlay_<stem>.png` for a few
 //! views; `summary.json` ([`MasksSummary`]) last.

@@ -424,4 +424,37 @@ mod tests {
         );
         assert!(e(p).contains("zero"));
     }
+
+    /// One-hot prompts of a semantic network's classes (`segment --semantic`) and mean class
+    /// probabilities as features: `S_city` and `S_fore` are the best building and foreground
+    /// class probabilities over the feature's norm, so a confident facade is decisively
+    /// building, a confident hedge foreground, and a half-and-half mask within `δ = 0.05`.
+    #[test]
+    fn one_hot_prompts_score_class_probabilities() {
+        let hot = |k: usize| {
+            let mut v = vec![0.0f32; 4];
+            v[k] = 1.0;
+            v
+        };
+        let p = prompts(
+            &[
+                ("building", hot(0)),
+                ("vegetation", hot(1)),
+                ("road", hot(2)),
+                ("sky", hot(3)),
+            ],
+            &[("building", 0), ("vegetation", 6), ("road", 9), ("sky", -1)],
+        );
+        let t = PromptTable::new(Path::new("p.json"), &p).unwrap();
+        let facade = t.score(&[0.9, 0.05, 0.03, 0.02]);
+        let n = (0.81f64 + 0.0025 + 0.0009 + 0.0004).sqrt();
+        assert_eq!(facade.class, 0);
+        assert!((facade.s_city - 0.9 / n).abs() < 1e-6 && (facade.s_fore - 0.05 / n).abs() < 1e-6);
+        assert!(facade.s_city > facade.s_fore + 0.05);
+        let hedge = t.score(&[0.1, 0.85, 0.03, 0.02]);
+        assert!(hedge.class == 6 && hedge.s_fore > hedge.s_city + 0.05);
+        let mixed = t.score(&[0.46, 0.44, 0.05, 0.05]);
+        assert!((mixed.s_city - mixed.s_fore).abs() < 0.05, "{mixed:?}");
+        assert_eq!(t.score(&[0.1, 0.1, 0.0, 0.8]).class, -1);
+    }
 }

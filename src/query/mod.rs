@@ -1,4 +1,4 @@
-//! The `query` stage (`docs/design.md`, "Wave 2 contract"; docs/query.md): selections over a finished
+//! The `query` stage (`docs/design.md`, "Stage contract"; docs/query.md): selections over a finished
 //! run's semantic Gaussian scene — by CityGML class with its descendants, hierarchy level,
 //! ancestry, attribute, gml:id, evaluation category, label, text (with a calibrated "no match")
 //! or a picked pixel — and their outputs: `selection.json`, per-view masks through the

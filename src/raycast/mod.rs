@@ -84,7 +84,8 @@ impl RaycastOptions {
 }
 
 /// The largest entity id a mesh label may hold (2²⁴ − 1: a dense per-surface table of this
-/// size takes 16 MB; all 30 real CityGML files of `../shared/data/citygml` hold 3,193 entities).
+/// size takes 16 MB; the 30 real CityGML files the tests
+/// read hold 3,193 entities together).
 pub const MAX_LABEL_ID: i32 = (1 << 24) - 1;
 
 /// The two committed Embree scenes of a mesh plus the face labels.

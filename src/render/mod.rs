@@ -1,5 +1,7 @@
 //! CPU rasterizer for 3D Gaussian Splatting: the INRIA `diff-gaussian-rasterization`
-//! forward pass (constants in `shared/docs/ANCHORS.md` §3), deterministic and rayon-parallel
+//! forward pass (its constants: near cull z ≤ 0.2, +0.3 on the 2D covariance's diagonal, radius
+//! ⌈3√λ_max⌉, α = min(0.99, o·e^power), α < 1/255 skipped, stop once T·(1 − α) < 1e-4; the
+//! `forward.cu` of the INRIA repository), deterministic and rayon-parallel
 //! over 16×16 tiles. This module owns the render stage: [`PreparedScene`] (view-independent
 //! activations), [`render_view`] (one camera → RGB, alpha, depths, features, contribution
 //! lists) and [`render_to_dir`] (per-view files). Submodules: [`project`] (per-Gaussian
@@ -350,7 +352,7 @@ fn render_view_with(
     // Gaussians get an empty tile rectangle and are never binned.
     // The array is reused from the previous view on this thread (taken, so that a nested
     // render gets a fresh one): a new n × 80-byte allocation per view costs a page fault per
-    // 4 KB (BENCHMARKS.md, "Render: allocation").
+    // 4 KB (BENCHMARKS.md's git history, "Render: allocation").
     let mut batches = PROJECTED.take();
     // Resized, not refilled: every batch is written below.
     batches.resize(

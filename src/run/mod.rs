@@ -1,5 +1,5 @@
 //! The `run` orchestrator: a scene folder through every stage into a run folder `R` (`docs/design.md`,
-//! "Wave 2 contract"): (`R/align`) → `R/citymodel` → `R/raycast` → `R/render` (the contributions
+//! "Stage contract"): (`R/align`) → `R/citymodel` → `R/raycast` → `R/render` (the contributions
 //! cache) → `R/masks` → `R/associate` → `R/fuse` → `R/lift` (the vote) → (`R/train`) → `R/eval`
 //! (when the scene has `gt/`), `R/report.html` and `R/run.json`. With `--supervision city` the
 //! mask stages are skipped and the vote reads `M_city` alone (paper §3.1).

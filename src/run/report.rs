@@ -1,9 +1,12 @@
-//! `report.html` of a run: the exact command line, a link to `semantic.ply`, the metrics tables
-//! and the confusion matrix, a per-building table (Gaussians per class, the building's CityGML
-//! attributes), the time per stage, and per test view the image, the semantic Gaussians in
-//! their class colours (composited from the run's contributions cache), the
-//! ground-truth class overlay and the predicted class overlay side by side, under a legend whose
-//! swatches are outlined (visible on white).
+//! `report.html` of a run. At the top, SIMULATED when the scene says so (its own `scene.json`,
+//! [`crate::scene::SceneMeta`]; never `gt/`), the exact command line, a link to `semantic.ply`
+//! and the stages' loud warnings. Then what the run produced: the Gaussians per class, a
+//! per-building table (Gaussians per class, the building's CityGML attributes) and per test view
+//! the image, the semantic Gaussians in their class colours (composited from the run's
+//! contributions cache), the ground-truth class overlay and the predicted class overlay side by
+//! side, under a legend whose swatches are outlined (visible on white); the completeness report.
+//! Then the scores (metrics tables, confusion matrix) and last the method's diagnostics
+//! (thresholds chosen from the scene, time per stage, the masks stage's rules).
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -250,20 +253,72 @@ fn class_colours(class_of: &[i32]) -> Vec<[f32; 3]> {
         .collect()
 }
 
+/// The line at the top of a SIMULATED scene's report.
+const SIMULATED_BANNER: &str = "<p style=\"background:#ffeaa0;border:3px solid #b80;padding:10px;\
+     font-size:1.4em\"><b>SIMULATED scene.</b> Its Gaussians, images, masks and features were \
+     made by <code>gs4city synth</code> from a real city model (the scene's own <code>scene.json\
+     </code> says so): the results below measure the method on simulated data, not a real \
+     capture.</p>";
+
+/// The Gaussians per class of the run's semantic scene, in class order; unlabelled last.
+fn class_table(class_of: &[i32]) -> String {
+    let mut count = vec![0usize; classes::NAMES.len()];
+    let mut none = 0usize;
+    for &c in class_of {
+        match usize::try_from(c).ok().filter(|&k| k < count.len()) {
+            Some(k) => count[k] += 1,
+            None => none += 1,
+        }
+    }
+    let mut s = format!(
+        "<h2>What the run produced: {} Gaussians by class</h2><table><tr><th>class</th><th>Gaussians</th><th>share</th></tr>",
+        class_of.len()
+    );
+    let share = |n: usize| 100.0 * n as f64 / class_of.len().max(1) as f64;
+    for (k, name) in classes::NAMES.iter().enumerate() {
+        if count[k] > 0 {
+            let [r, g, b] = classes::PALETTE[k];
+            let _ = write!(
+                s,
+                "<tr><td style=\"text-align:left\"><span class=\"sw\" style=\"background:rgb({r},{g},{b})\"></span>{name}</td><td>{}</td><td>{:.1} %</td></tr>",
+                count[k],
+                share(count[k])
+            );
+        }
+    }
+    if none > 0 {
+        let _ = write!(
+            s,
+            "<tr><td style=\"text-align:left\">no class</td><td>{none}</td><td>{:.1} %</td></tr>",
+            share(none)
+        );
+    }
+    s.push_str("</table>");
+    s
+}
+
 /// Writes `out/report.html` and `out/report/<stem>.png`; returns the report path.
 pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
     let (scene, out) = (r.scene, r.out);
     let dir = out.join("report");
     crate::fsutil::create_dir(&dir)?;
 
+    let simulated = scene.meta.simulated;
     let mut html = String::new();
     let _ = write!(
         html,
-        "<!doctype html><html><head><meta charset=\"utf-8\"><title>gs4city report</title><style>\
+        "<!doctype html><html><head><meta charset=\"utf-8\"><title>gs4city report{}</title><style>\
          body{{font-family:sans-serif;margin:2em;max-width:1400px}} table{{border-collapse:collapse;margin:1em 0}}\
          td,th{{border:1px solid #bbb;padding:3px 8px;text-align:right}} th{{background:#eee}} img{{max-width:100%}}\
-         .sw{{display:inline-block;width:1em;height:1em;vertical-align:middle;margin:0 4px 0 12px;border:1px solid #333}}</style></head><body>\
-         <h1>gs4city report</h1><p>Scene <code>{}</code>, run output <code>{}</code>.</p>",
+         .sw{{display:inline-block;width:1em;height:1em;vertical-align:middle;margin:0 4px 0 12px;border:1px solid #333}}</style></head><body>",
+        if simulated { " (SIMULATED scene)" } else { "" }
+    );
+    if simulated {
+        html.push_str(SIMULATED_BANNER);
+    }
+    let _ = write!(
+        html,
+        "<h1>gs4city report</h1><p>Scene <code>{}</code>, run output <code>{}</code>.</p>",
         esc(&scene.root.display().to_string()),
         esc(&out.display().to_string())
     );
@@ -284,13 +339,35 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             esc(w)
         );
     }
-    if !r.choices.is_empty() {
-        html.push_str("<h2>Thresholds chosen from the scene</h2><ul>");
-        for c in r.choices {
-            let _ = write!(html, "<li>{}</li>", esc(c));
-        }
-        html.push_str("</ul>");
+    // What the run produced first: its classes and buildings, then the test views in class
+    // colours; the scores and the method's diagnostics after them.
+    if let Some(sr) = r.semantics {
+        html.push_str(&class_table(&sr.class_of));
+        html.push_str(&building_table(sr));
     }
+    html.push_str(if r.semantics.is_some() {
+        "<h2>Test views: image | semantic Gaussians in class colours (from the contributions cache) | ground truth | prediction</h2><p>"
+    } else {
+        "<h2>Test views: image | ground truth | prediction</h2><p>"
+    });
+    for (k, name) in classes::NAMES.iter().enumerate() {
+        let [r, g, b] = classes::PALETTE[k];
+        let _ = write!(
+            html,
+            "<span class=\"sw\" style=\"background:rgb({r},{g},{b})\"></span>{name}"
+        );
+    }
+    html.push_str("</p>");
+    for v in r.views {
+        let stem = &v.stem();
+        let _ = write!(
+            html,
+            "<h3>{}</h3><img src=\"report/{}.png\">",
+            esc(stem),
+            url(stem)
+        );
+    }
+    completeness_table(&mut html, r.out);
     if let Some(e) = r.eval {
         let _ = write!(
             html,
@@ -312,11 +389,19 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
             html.push_str(&confusion_table(c));
         }
     }
-    if let Some(sr) = r.semantics {
-        html.push_str(&building_table(sr));
+    html.push_str(
+        "<h2>Method diagnostics</h2><p>How the stages ran: thresholds chosen from the scene, \
+         time per stage, the masks stage's rules.</p>",
+    );
+    if !r.choices.is_empty() {
+        html.push_str("<h3>Thresholds chosen from the scene</h3><ul>");
+        for c in r.choices {
+            let _ = write!(html, "<li>{}</li>", esc(c));
+        }
+        html.push_str("</ul>");
     }
     html.push_str(
-        "<h2>Time per stage</h2><table><tr><th>stage</th><th>seconds now</th><th>resumed</th><th>seconds when computed</th></tr>",
+        "<h3>Time per stage</h3><table><tr><th>stage</th><th>seconds now</th><th>resumed</th><th>seconds when computed</th></tr>",
     );
     for st in r.stages {
         let _ = write!(
@@ -329,7 +414,7 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
     if let Some(m) = r.masks {
         let _ = write!(
             html,
-            "<h2>Masks (paper §3.2): {} of {} kept ({:?} source, {:?} test)</h2><table><tr><th>rule</th><th>masks</th></tr>",
+            "<h3>Masks (paper §3.2): {} of {} kept ({:?} source, {:?} test)</h3><table><tr><th>rule</th><th>masks</th></tr>",
             m.kept, m.input, m.source, m.test
         );
         for (rule, n) in &m.rules {
@@ -340,23 +425,9 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
              magenta occluder and features, green mask-free component.</p>",
         );
         for o in &m.overlays {
-            let _ = write!(html, "<h3>{}</h3><img src=\"masks/{}\">", esc(o), url(o));
+            let _ = write!(html, "<h4>{}</h4><img src=\"masks/{}\">", esc(o), url(o));
         }
     }
-    completeness_table(&mut html, r.out);
-    html.push_str(if r.semantics.is_some() {
-        "<h2>Test views: image | semantic Gaussians in class colours (from the contributions cache) | ground truth | prediction</h2><p>"
-    } else {
-        "<h2>Test views: image | ground truth | prediction</h2><p>"
-    });
-    for (k, name) in classes::NAMES.iter().enumerate() {
-        let [r, g, b] = classes::PALETTE[k];
-        let _ = write!(
-            html,
-            "<span class=\"sw\" style=\"background:rgb({r},{g},{b})\"></span>{name}"
-        );
-    }
-    html.push_str("</p>");
     let cache = r.cache;
     // Each Gaussian's class colour, when the run has per-Gaussian semantics.
     let colours = match r.semantics {
@@ -430,15 +501,6 @@ pub fn write(r: &ReportInputs<'_>) -> Result<PathBuf, ReportError> {
     for pair in r.views.chunks(2) {
         let done: Vec<Result<(), ReportError>> = pair.par_iter().map(panel).collect();
         done.into_iter().collect::<Result<Vec<()>, _>>()?;
-    }
-    for v in r.views {
-        let stem = &v.stem();
-        let _ = write!(
-            html,
-            "<h3>{}</h3><img src=\"report/{}.png\">",
-            esc(stem),
-            url(stem)
-        );
     }
     html.push_str("</body></html>\n");
     let path = out.join("report.html");

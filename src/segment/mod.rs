@@ -13,6 +13,7 @@ pub mod clip;
 pub mod features;
 pub mod model;
 pub mod native;
+pub mod semantic;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;

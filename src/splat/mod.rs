@@ -4,10 +4,15 @@
 //! activations (`exp` scale, `sigmoid` opacity, normalised quaternion) available on demand.
 //!
 //! This is a reader module: it depends on no pipeline stage. The 3DGS layout lives in [`ply`],
-//! on top of the shared PLY format layer [`crate::ply`].
+//! on top of the shared PLY format layer [`crate::ply`]; the other splat formats users have
+//! (`.splat`, `.spz`, SuperSplat's compressed PLY) are read into the same Gaussians by
+//! [`formats`] and [`compressed`], and [`read_ply`] takes any of them.
+pub mod compressed;
+pub mod formats;
 pub mod ply;
 pub mod transform;
 
+pub use formats::SplatFormat;
 pub use ply::{
     InvalidPolicy, LOG_SCALE_RANGE, MAX_ABS_SH, PlyEncoding, PlyError, PlyReport, ReadOptions,
     ScalarKind, read_count, read_ply, read_ply_bytes, write_ply,

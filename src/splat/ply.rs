@@ -84,6 +84,9 @@ pub enum PlyError {
     },
     #[error("cannot write {path}: {why}")]
     Invalid { path: PathBuf, why: String },
+    /// A splat file of another format ([`super::formats`]) that cannot be read.
+    #[error("{path}: {why}")]
+    Decode { path: PathBuf, why: String },
     #[error(transparent)]
     Fs(#[from] FsError),
 }
@@ -144,6 +147,9 @@ pub struct PlyReport {
     pub invalid_examples: Vec<String>,
     /// Whether the binary little-endian all-`float` fast path decoded the payload.
     pub fast_path: bool,
+    /// The file's format (an INRIA PLY, or one of the formats converted to its Gaussians).
+    #[serde(default)]
+    pub format: super::formats::SplatFormat,
 }
 
 /// Where a vertex property goes.
@@ -348,7 +354,18 @@ impl<'a> Assembler<'a> {
     /// Takes one row (all properties in header order), checks it, then keeps or drops it.
     #[inline]
     fn row(&mut self, row: &Row) -> Result<(), PlyError> {
-        for (&slot, &v) in self.layout.slots.iter().zip(row.values()) {
+        self.values(row.index, row.line, row.values())
+    }
+
+    /// [`Assembler::row`] on the values of vertex `index` (at `line` of an ASCII file).
+    #[inline]
+    fn values(
+        &mut self,
+        index: usize,
+        line: Option<usize>,
+        values: &[f64],
+    ) -> Result<(), PlyError> {
+        for (&slot, &v) in self.layout.slots.iter().zip(values) {
             let f = v as f32;
             match slot {
                 Slot::Pos(i) => self.pos[i] = f,
@@ -362,7 +379,7 @@ impl<'a> Assembler<'a> {
             }
         }
         if let Some(defect) = self.defect() {
-            let (path, vertex, line) = (self.path.into(), row.index, row.line);
+            let (path, vertex) = (self.path.into(), index);
             let name = |p: usize| self.layout.names[p].clone();
             let err = match defect {
                 Defect::NonFinite(p, value) => PlyError::NonFinite {
@@ -542,28 +559,64 @@ pub fn is_valid(g: &Gaussians, i: usize) -> bool {
     )
 }
 
-/// The number of Gaussians (`vertex` rows) a 3DGS PLY file declares, from its checked header
-/// alone (the payload is not read); 0 without a `vertex` element.
+/// The number of Gaussians a splat file declares (a PLY's `vertex` rows from its checked
+/// header alone, 0 without a `vertex` element; a `.splat` file's size / 32; an SPZ header's
+/// count): the payload is not read.
 pub fn read_count(path: &Path) -> Result<usize, PlyError> {
-    let (header, _) = ply::read_header(path)?;
-    Ok(header
-        .element("vertex")
-        .map_or(0, |e| header.elements[e].count))
+    use super::formats::{self, SplatFormat};
+    let io = |err| FsError::Read {
+        path: path.into(),
+        err,
+    };
+    let mut head = [0u8; 4];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
+        .map_err(io)?;
+    match formats::detect(path, &head[..n]) {
+        SplatFormat::Splat => {
+            let len = std::fs::metadata(path).map_err(io)?.len();
+            formats::splat_count(path, len)
+        }
+        SplatFormat::Spz => {
+            let bytes = ply::read_file(path)?;
+            crate::spz::read_count(&bytes).map_err(|e| PlyError::Decode {
+                path: path.into(),
+                why: e.to_string(),
+            })
+        }
+        SplatFormat::Ply | SplatFormat::CompressedPly => {
+            let (header, _) = ply::read_header(path)?;
+            Ok(header
+                .element("vertex")
+                .map_or(0, |e| header.elements[e].count))
+        }
+    }
 }
 
-/// Reads a 3DGS PLY file.
+/// Reads a splat file: an INRIA 3DGS PLY, or a compressed PLY, `.splat` or `.spz` file into
+/// the same Gaussians ([`super::formats`]; the report's `format` says which).
 pub fn read_ply(path: &Path, options: &ReadOptions) -> Result<(Gaussians, PlyReport), PlyError> {
     let bytes = ply::read_file(path)?;
     read_ply_bytes(path, &bytes, options)
 }
 
-/// Reads a 3DGS PLY from memory; `path` only names it in errors.
+/// [`read_ply`] from memory; `path` names the file in errors (and its extension tells a
+/// `.splat` file, which has no magic).
 pub fn read_ply_bytes(
     path: &Path,
     bytes: &[u8],
     options: &ReadOptions,
 ) -> Result<(Gaussians, PlyReport), PlyError> {
+    use super::formats::{self, SplatFormat};
+    match formats::detect(path, bytes) {
+        SplatFormat::Splat => return formats::read_splat(path, bytes, options),
+        SplatFormat::Spz => return formats::read_spz(path, bytes, options),
+        SplatFormat::Ply | SplatFormat::CompressedPly => {}
+    }
     let mut reader = Reader::new(path, bytes)?;
+    if super::compressed::is_compressed(reader.header()) {
+        return super::compressed::read(path, reader, options);
+    }
     reader.set_generic(options.force_general_path);
     let header = reader.header();
     let vertex = header
@@ -577,28 +630,92 @@ pub fn read_ply_bytes(
     let mut asm = Assembler::new(path, &layout, options.invalid, def.count);
     reader.read_element("vertex", |row| asm.row(row))?;
     reader.finish()?;
-    let (
-        g,
-        [
+    let (g, counts, examples) = asm.finish();
+    let report = PlyReport::new(encoding, def.count, g.sh_degree, counts, examples, fast);
+    Ok((g, report))
+}
+
+impl PlyReport {
+    /// The report of `vertices` read (the assembler's counts: dropped non-finite, out of
+    /// range, zero quaternion, kept invalid, kept with a non-finite position), of an INRIA PLY.
+    fn new(
+        encoding: PlyEncoding,
+        vertices: usize,
+        sh_degree: u8,
+        counts: [usize; 5],
+        invalid_examples: Vec<String>,
+        fast_path: bool,
+    ) -> PlyReport {
+        let [
             dropped_non_finite,
             dropped_out_of_range,
             dropped_zero_quaternion,
             kept_invalid,
             kept_non_finite_position,
-        ],
-        invalid_examples,
-    ) = asm.finish();
+        ] = counts;
+        PlyReport {
+            encoding,
+            vertices,
+            sh_degree,
+            dropped_non_finite,
+            dropped_out_of_range,
+            dropped_zero_quaternion,
+            kept_invalid,
+            kept_non_finite_position,
+            invalid_examples,
+            fast_path,
+            format: super::formats::SplatFormat::Ply,
+        }
+    }
+}
+
+/// Gaussians of another splat format, checked as a PLY's are: `values(i, row)` fills the
+/// INRIA values of record `i` (`x y z f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3`), and
+/// each record passes the per-Gaussian checks of the module docs under `options.invalid`;
+/// errors name the file and the record (as its vertex).
+pub(super) fn assemble(
+    path: &Path,
+    format: super::formats::SplatFormat,
+    sh_degree: u8,
+    count: usize,
+    options: &ReadOptions,
+    mut values: impl FnMut(usize, &mut Vec<f64>),
+) -> Result<(Gaussians, PlyReport), PlyError> {
+    let rest = super::REST_COUNTS[usize::from(sh_degree.min(3))];
+    let mut names: Vec<String> = ["x", "y", "z"].map(String::from).to_vec();
+    names.extend((0..3).map(|i| format!("f_dc_{i}")));
+    names.extend((0..rest).map(|i| format!("f_rest_{i}")));
+    names.push("opacity".into());
+    names.extend((0..3).map(|i| format!("scale_{i}")));
+    names.extend((0..4).map(|i| format!("rot_{i}")));
+    let def = ElementDef {
+        name: "vertex".into(),
+        count,
+        properties: names
+            .into_iter()
+            .map(|n| PropertyDef::scalar(n, ScalarKind::F32))
+            .collect(),
+    };
+    let layout = layout(path, &def)?;
+    let mut asm = Assembler::new(path, &layout, options.invalid, count);
+    let mut row = Vec::with_capacity(def.properties.len());
+    for i in 0..count {
+        row.clear();
+        values(i, &mut row);
+        debug_assert_eq!(row.len(), def.properties.len());
+        asm.values(i, None, &row)?;
+    }
+    let (g, counts, examples) = asm.finish();
     let report = PlyReport {
-        encoding,
-        vertices: def.count,
-        sh_degree: g.sh_degree,
-        dropped_non_finite,
-        dropped_out_of_range,
-        dropped_zero_quaternion,
-        kept_invalid,
-        kept_non_finite_position,
-        invalid_examples,
-        fast_path: fast,
+        format,
+        ..PlyReport::new(
+            PlyEncoding::BinaryLittleEndian,
+            count,
+            sh_degree,
+            counts,
+            examples,
+            false,
+        )
     };
     Ok((g, report))
 }

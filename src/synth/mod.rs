@@ -543,6 +543,10 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
         timing: sim.timings.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
         config: serde_json::to_value(cfg).unwrap_or_default(),
     };
+    crate::fsutil::write_json(
+        &out.join(crate::scene::SceneMeta::FILE),
+        &crate::scene::SceneMeta { simulated: true },
+    )?;
     crate::fsutil::write_json(&out.join("summary.json"), &summary)?;
     crate::progress::done(
         "synth",

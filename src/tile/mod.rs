@@ -313,7 +313,7 @@ impl Plan {
     }
 }
 
-/// The resources of a tile job, from the street's 60 m tiles (BENCHMARKS.md, "City scale": peak
+/// The resources of a tile job, from the street's 60 m tiles (BENCHMARKS.md, "Tiles": peak
 /// 334 MB at 107 k Gaussians / 48 views to 505 MB at 535 k / 83 views, 13–52 CPU s): memory
 /// 512 MB + 0.6 kB per Gaussian + 2 MB per view, doubled for safety and rounded up to 512 MB;
 /// time 10 min + 2 min per 10⁵ Gaussians × 100 views.
@@ -805,6 +805,10 @@ fn write_tile_scene(
     }
     if let Some(p) = scene.prompts_file() {
         gml::link(&p, &sdir.join("features/prompts.json"))?;
+    }
+    // A tile of a SIMULATED scene is simulated too (its report says so).
+    if scene.meta != crate::scene::SceneMeta::default() {
+        crate::fsutil::write_json(&sdir.join(crate::scene::SceneMeta::FILE), &scene.meta)?;
     }
     Ok(())
 }

@@ -92,7 +92,7 @@ pub enum Init {
     Random,
 }
 
-/// Options of the stage (defaults: `docs/design.md`, "Wave 2 contract", and the measurements in
+/// Options of the stage (defaults: `docs/design.md`, "Stage contract", and the measurements in
 /// docs/train.md).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TrainOptions {
