@@ -314,6 +314,27 @@ mod tests {
     use super::*;
 
     #[test]
+    fn an_image_at_a_multiple_of_the_view_is_averaged_over_its_blocks() {
+        let dir = crate::fsutil::test_temp_dir()
+            .join(format!("gs4city-imageio-box-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        // 3×5 → 2×3 at 1/2: blocks clipped at the right and bottom edges.
+        let img = Array3::from_shape_fn((3, 5, 3), |(y, x, c)| (10 * y + x + 100 * c) as u8);
+        let p = dir.join("b.png");
+        write_png(&p, &img).unwrap();
+        let got = read_rgb_sized(&p, 3, 2).unwrap();
+        // Channel 0 by hand: [[0 1; 10 11] → 5.5 → 6, [2 3; 12 13] → 7.5 → 8, [4; 14] → 9],
+        // [[20 21] → 20.5 → 21, [22 23] → 22.5 → 23, [24] → 24].
+        let c0: Vec<u8> = got.slice(ndarray::s![.., .., 0]).iter().copied().collect();
+        assert_eq!(c0, vec![6, 8, 9, 21, 23, 24]);
+        assert_eq!(got[[1, 2, 2]], 224);
+        assert_eq!(read_rgb_sized(&p, 5, 3).unwrap(), img);
+        let e = read_rgb_sized(&p, 4, 2).unwrap_err().to_string();
+        assert!(e.contains("b.png") && e.contains("5×3") && e.contains("4×2"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
     fn png_round_trip_is_lossless() {
         let dir =
             crate::fsutil::test_temp_dir().join(format!("gs4city-imageio-{}", std::process::id()));

@@ -46,3 +46,4 @@ mod textembed;
 mod tile;
 mod train;
 mod view;
+mod work;

@@ -5,7 +5,67 @@ use clap::Args;
 
 use crate::lift::LiftOptions;
 use crate::masks::{Source, Test};
-use crate::run::{self, Mode, RunOptions, RunSummary, Supervision};
+use crate::run::{self, Mode, Quality, RunOptions, RunSummary, Supervision, ViewSelection};
+
+/// The work knobs of a run (docs/quality.md): a preset and its single knobs.
+#[derive(Debug, Args)]
+#[command(next_help_heading = "Work (docs/quality.md)")]
+pub struct WorkArgs {
+    /// How much work for the answer (docs/quality.md): full (every training view at full
+    /// resolution), default (the cheapest setting within 0.5 fine-mIoU points of full on
+    /// every scene measured: full's, for now) or fast (a first look; costs points). The
+    /// options below override single knobs of the preset.
+    #[arg(long, default_value = "default")]
+    pub quality: Quality,
+    /// Training views at 1/N of their resolution from the render to the vote (test views
+    /// always at full resolution); default: the --quality preset's.
+    #[arg(long, value_name = "N")]
+    pub train_scale: Option<u32>,
+    /// Training views: all, K (the fewest, greedily, that keep every Gaussian seen by K of
+    /// them at a good angle, or by all that see it) or K:SHARE (the greedy views that meet
+    /// SHARE of that demand); default: the --quality preset's.
+    #[arg(long, value_name = "all|K[:SHARE]")]
+    pub train_views: Option<ViewSelection>,
+    /// Longest contribution list per pixel in the cache (0 = no bound); with `--epsilon 0`
+    /// the top-k by α·T; default: the --quality preset's.
+    #[arg(long)]
+    pub top_k: Option<usize>,
+    /// Mass rule of the cache: a pixel keeps its largest α·T until they reach 1 − ε of its
+    /// mass (at most --top-k); 0 = plain top-k lists; default: the --quality preset's.
+    #[arg(long)]
+    pub epsilon: Option<f32>,
+    /// Early stop of the cache's blend: a pixel stops once its transmittance falls below T
+    /// (what lies behind, at most T of its mass, is not listed); 0 = the rasterizer's own
+    /// stop only (exact lists); default: the --quality preset's.
+    #[arg(long, value_name = "T")]
+    pub t_stop: Option<f32>,
+}
+
+impl WorkArgs {
+    /// The preset with the knobs given on the command line, checked.
+    pub fn work(&self) -> anyhow::Result<run::Work> {
+        let preset = self.quality.work();
+        let work = run::Work {
+            train_scale: self.train_scale.unwrap_or(preset.train_scale),
+            views: self.train_views.unwrap_or(preset.views),
+            top_k: self.top_k.unwrap_or(preset.top_k),
+            epsilon: self.epsilon.unwrap_or(preset.epsilon),
+            t_stop: self.t_stop.unwrap_or(preset.t_stop),
+        };
+        let max = crate::camera::MAX_DOWNSCALE as u32;
+        if !(1..=max).contains(&work.train_scale) {
+            anyhow::bail!("--train-scale must be 1 to {max}, got {}", work.train_scale);
+        }
+        crate::cache::CacheOptions {
+            top_k: work.top_k,
+            epsilon: work.epsilon,
+            t_stop: work.t_stop,
+        }
+        .validate()
+        .map_err(|e| anyhow::anyhow!("cache options: {e}"))?;
+        Ok(work)
+    }
+}
 
 #[derive(Debug, Args)]
 pub struct RunArgs {
@@ -51,19 +111,8 @@ pub struct RunArgs {
     /// Reach of the city-model prior in metres.
     #[arg(long, default_value_t = crate::vote::MODEL_PRIOR_M)]
     pub model_prior_m: f32,
-    /// Longest contribution list per pixel in the cache (0 = no bound); with `--epsilon 0`
-    /// the top-k by α·T.
-    #[arg(long, default_value_t = crate::cache::TOP_K)]
-    pub top_k: usize,
-    /// Mass rule of the cache: a pixel keeps its largest α·T until they reach 1 − ε of its
-    /// mass (at most --top-k); 0 = plain top-k lists.
-    #[arg(long, default_value_t = crate::cache::EPSILON)]
-    pub epsilon: f32,
-    /// Early stop of the cache's blend: a pixel stops once its transmittance falls below T
-    /// (what lies behind, at most T of its mass, is not listed); 0 = the rasterizer's own
-    /// stop only (exact lists).
-    #[arg(long, value_name = "T", default_value_t = crate::cache::T_STOP)]
-    pub t_stop: f32,
+    #[command(flatten)]
+    pub work: WorkArgs,
     /// Every N-th view (by name) is held back as a test view, not voted on and predicted as a
     /// novel view (default 8, 3DGS --eval); 0 = every view trains (a capture without ground
     /// truth loses nothing to evaluation then). The split never depends on gt/.
@@ -156,13 +205,7 @@ impl RunArgs {
             model_prior_m: self.model_prior_m,
         };
         lift.validate()?;
-        crate::cache::CacheOptions {
-            top_k: self.top_k,
-            epsilon: self.epsilon,
-            t_stop: self.t_stop,
-        }
-        .validate()
-        .map_err(|e| anyhow::anyhow!("cache options: {e}"))?;
+        let work = self.work.work()?;
         let d = RunOptions::default();
         let masks = crate::masks::MasksOptions {
             source: self.masks_source,
@@ -203,12 +246,14 @@ impl RunArgs {
             ..Default::default()
         };
         openings.validate()?;
-        Ok(RunOptions {
+        let opts = RunOptions {
             tau_m: self.tau,
             single_pass: self.single_pass,
-            top_k: self.top_k,
-            epsilon: self.epsilon,
-            t_stop: self.t_stop,
+            top_k: work.top_k,
+            epsilon: work.epsilon,
+            t_stop: work.t_stop,
+            train_scale: work.train_scale,
+            views: work.views,
             lift,
             supervision: self.supervision,
             masks,
@@ -223,7 +268,8 @@ impl RunArgs {
             refine: Default::default(),
             check,
             force: self.force,
-        })
+        };
+        Ok(opts)
     }
 }
 
