@@ -53,10 +53,12 @@ for root, _, files in os.walk(run):
 m = json.load(open(os.path.join(run, 'eval', 'metrics.json')))['paper']
 iou = m['iou']
 cls = ['door', 'roof', 'wall', 'window', 'car', 'person', 'tree']
-cells = ' | '.join(f"{100 * iou[c]['mean']:.2f}" if c in iou else '–' for c in cls)
+def pct(v):
+    return '–' if v is None else f"{100 * v:.2f}"
+cells = ' | '.join(pct(iou[c]['mean']) if c in iou else '–' for c in cls)
 print(f"| {label} | `{flags}` | {wall:.1f} | {cpu:.1f} ({t['User time (seconds)']} + "
       f"{t['System time (seconds)']}) | {rss:.0f} | {disk / 1e6:.0f} | "
-      f"{100 * m['miou']['mean']:.2f} | {cells} |")
+      f"{pct(m['miou']['mean'])} | {cells} |")
 EOF
     if [ "${KEEP:-0}" != 1 ]; then
         rm -rf "$run"
