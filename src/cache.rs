@@ -903,7 +903,9 @@ impl std::str::FromStr for ViewSelection {
             return Ok(ViewSelection::All);
         }
         let (k, share) = s.split_once(':').unwrap_or((s, "1"));
-        let bad = || format!("{s:?} is not all, K or K:SHARE (K ≥ 1 views per Gaussian, SHARE in (0, 1])");
+        let bad = || {
+            format!("{s:?} is not all, K or K:SHARE (K ≥ 1 views per Gaussian, SHARE in (0, 1])")
+        };
         let k: u32 = k.parse().map_err(|_| bad())?;
         let share: f32 = share.parse().map_err(|_| bad())?;
         let v = ViewSelection::Cover { k, share };
@@ -922,7 +924,9 @@ impl ViewSelection {
                     return Err("the view cover needs k ≥ 1 views per Gaussian".into());
                 }
                 if !(share > 0.0 && share <= 1.0) {
-                    return Err(format!("the view cover's share must be in (0, 1], got {share}"));
+                    return Err(format!(
+                        "the view cover's share must be in (0, 1], got {share}"
+                    ));
                 }
                 Ok(())
             }
@@ -1332,7 +1336,11 @@ mod tests {
                 skipped_gaussians: 0,
                 options: CacheOptions::default(),
                 median_depth: true,
-                views: vec![cached("a", 50, 40), cached("b", 100, 80), cached("d", 34, 27)],
+                views: vec![
+                    cached("a", 50, 40),
+                    cached("b", 100, 80),
+                    cached("d", 34, 27),
+                ],
                 selection: None,
                 bytes: 0,
                 render_s: 0.0,
@@ -1350,14 +1358,20 @@ mod tests {
             let k = v.camera.intrinsics;
             (k.width, k.height, k.fx, k.fy, k.cx, k.cy)
         };
-        assert_eq!(k(&got[0]), (34, 27, 30.0, 91.0 / 3.0, 50.5 / 3.0, 40.0 / 3.0));
+        assert_eq!(
+            k(&got[0]),
+            (34, 27, 30.0, 91.0 / 3.0, 50.5 / 3.0, 40.0 / 3.0)
+        );
         assert_eq!(got[1], views[2]);
         assert_eq!(k(&got[2]), (50, 40, 45.0, 45.5, 25.25, 20.0));
         assert_eq!(got[2].camera.pose, views[3].camera.pose);
         // A cached size that no divisor makes: one line naming the file and both sizes.
         cache.summary.views.push(cached("c", 60, 40));
         let e = cache.views_as_cached(&views).unwrap_err().to_string();
-        assert!(e.contains("c.contrib") && e.contains("60×40") && e.contains("100×80"), "{e}");
+        assert!(
+            e.contains("c.contrib") && e.contains("60×40") && e.contains("100×80"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -535,17 +535,26 @@ mod tests {
             fy: 439.0,
             cx: 331.2,
             cy: 246.7,
-            distortion: Distortion::Radial { k1: -0.08, k2: 0.01 },
+            distortion: Distortion::Radial {
+                k1: -0.08,
+                k2: 0.01,
+            },
         };
         let pose = Pose::look_at(DVec3::ZERO, DVec3::Z, -DVec3::Y).unwrap();
-        let full = Camera { intrinsics: k, pose };
+        let full = Camera {
+            intrinsics: k,
+            pose,
+        };
         for s in [1u32, 2, 3, 4] {
             let small = Camera {
                 intrinsics: k.downscaled(s),
                 pose,
             };
             let (w, h) = (661usize.div_ceil(s as usize), 495usize.div_ceil(s as usize));
-            assert_eq!((small.intrinsics.width, small.intrinsics.height), (w as u32, h as u32));
+            assert_eq!(
+                (small.intrinsics.width, small.intrinsics.height),
+                (w as u32, h as u32)
+            );
             let mut checked = 0;
             for a in -40..=40 {
                 for b in -30..=30 {
@@ -553,7 +562,10 @@ mod tests {
                     let (Some(uv), Some(uv_s)) = (full.project(q), small.project(q)) else {
                         continue;
                     };
-                    assert!((uv / s as f64 - uv_s).abs().max_element() < 1e-9, "{uv} {uv_s}");
+                    assert!(
+                        (uv / s as f64 - uv_s).abs().max_element() < 1e-9,
+                        "{uv} {uv_s}"
+                    );
                     let Some(p) = full.pixel_containing(q, 661, 495) else {
                         continue;
                     };

@@ -330,7 +330,10 @@ mod tests {
         assert_eq!(got[[1, 2, 2]], 224);
         assert_eq!(read_rgb_sized(&p, 5, 3).unwrap(), img);
         let e = read_rgb_sized(&p, 4, 2).unwrap_err().to_string();
-        assert!(e.contains("b.png") && e.contains("5×3") && e.contains("4×2"), "{e}");
+        assert!(
+            e.contains("b.png") && e.contains("5×3") && e.contains("4×2"),
+            "{e}"
+        );
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

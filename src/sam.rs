@@ -709,7 +709,10 @@ pub fn downscale(m: &SamMask, s: usize) -> Result<SamMask, RleError> {
         Rle::from_counts([sh, sw], &out.finish()),
         m.predicted_iou,
         m.stability_score,
-        m.point_coords.iter().map(|&[x, y]| [x / f, y / f]).collect(),
+        m.point_coords
+            .iter()
+            .map(|&[x, y]| [x / f, y / f])
+            .collect(),
     )?;
     let si = s as i64;
     small.crop_box = m
@@ -961,8 +964,13 @@ mod tests {
         let third = parse_sam_json(p, &bytes, Some([7, 10])).unwrap();
         assert_eq!(third[3], downscale(&masks[3], 3).unwrap());
         // No divisor makes 21×30 into 10×15: one line naming the file, the mask and both sizes.
-        let e = parse_sam_json(p, &bytes, Some([10, 15])).unwrap_err().to_string();
-        assert!(e.contains("v.json") && e.contains("[21, 30]") && e.contains("[10, 15]"), "{e}");
+        let e = parse_sam_json(p, &bytes, Some([10, 15]))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("v.json") && e.contains("[21, 30]") && e.contains("[10, 15]"),
+            "{e}"
+        );
     }
 
     fn check_round_trip(m: &Array2<bool>) {

@@ -313,12 +313,21 @@ fn bad_inputs_are_errors() {
         camera: axis_camera(w, 10, 5.0),
     };
     for tau in [f64::NAN, -1.0, f64::INFINITY] {
-        assert!(gs4city::raycast::run(&m, &[view(10)], &opts(tau, false), Overlays::Off, &out).is_err());
+        assert!(
+            gs4city::raycast::run(&m, &[view(10)], &opts(tau, false), Overlays::Off, &out).is_err()
+        );
     }
-    let e = gs4city::raycast::run(&m, &[view(0)], &opts(0.5, false), Overlays::Off, &out).unwrap_err();
+    let e =
+        gs4city::raycast::run(&m, &[view(0)], &opts(0.5, false), Overlays::Off, &out).unwrap_err();
     assert!(e.to_string().contains("a.png"), "{e}");
-    let e = gs4city::raycast::run(&m, &[view(10), view(10)], &opts(0.5, false), Overlays::Off, &out)
-        .unwrap_err();
+    let e = gs4city::raycast::run(
+        &m,
+        &[view(10), view(10)],
+        &opts(0.5, false),
+        Overlays::Off,
+        &out,
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("stem"), "{e}");
 }
 
@@ -361,7 +370,10 @@ fn run_writes_ids_depth_overlay_and_summary() {
     let _ = std::fs::remove_dir_all(&off);
     gs4city::raycast::run(&m, &views, &opts(0.5, false), Overlays::Off, &off).unwrap();
     for f in ["DJI_0001.ids.npy", "DJI_0001.depth.npy"] {
-        assert_eq!(std::fs::read(off.join(f)).unwrap(), std::fs::read(out.join(f)).unwrap());
+        assert_eq!(
+            std::fs::read(off.join(f)).unwrap(),
+            std::fs::read(out.join(f)).unwrap()
+        );
     }
     assert!(!off.join("DJI_0001.overlay.png").exists());
 }

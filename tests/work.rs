@@ -13,9 +13,7 @@ use gs4city::run::{Quality, RunOptions, Work, run};
 fn outputs(dir: &Path) -> Vec<(String, Vec<u8>)> {
     common::files(dir)
         .into_iter()
-        .filter(|(n, _)| {
-            !(n.ends_with("summary.json") || n == "run.json" || n == "report.html")
-        })
+        .filter(|(n, _)| !(n.ends_with("summary.json") || n == "run.json" || n == "report.html"))
         .collect()
 }
 
@@ -113,12 +111,15 @@ fn a_run_is_the_same_at_one_and_two_threads_with_and_without_the_work_knobs() {
         assert_eq!(size, want, "{name}");
         // The raycast traced the cache's views at the cache's size.
         assert_eq!(t["name"].as_str().unwrap(), name);
-        assert_eq!((t["width"].as_u64().unwrap(), t["height"].as_u64().unwrap()), want);
+        assert_eq!(
+            (t["width"].as_u64().unwrap(), t["height"].as_u64().unwrap()),
+            want
+        );
         let stem = name.trim_end_matches(".png");
         if !test.contains(&&name) {
             // Kept masks, group maps and fused maps of a training view: the same size.
-            let kept = gs4city::maskfile::read_kept(&out.join(format!("masks/{stem}.json")))
-                .unwrap();
+            let kept =
+                gs4city::maskfile::read_kept(&out.join(format!("masks/{stem}.json"))).unwrap();
             for k in &kept {
                 assert_eq!(k.sam.segmentation.size, [want.1 as usize, want.0 as usize]);
             }

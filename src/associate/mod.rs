@@ -431,8 +431,7 @@ pub fn run(
 
     // Transfer back, pass A, with the view support; the m_view and far-field filters; pass B.
     let t = Instant::now();
-    let (support, maps) =
-        transfer::pass_a(&st, &fin, &per_view, &targets, &members, &mut tally)?;
+    let (support, maps) = transfer::pass_a(&st, &fin, &per_view, &targets, &members, &mut tally)?;
     let kept = filters::keep_groups(&st, &fin, &support, &far, &mut tally);
     transfer::pass_b(&st, maps, &kept.id, &mut tally)?;
     let groups = write_groups(out, tally.dim, kept)?;

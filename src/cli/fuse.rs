@@ -64,17 +64,18 @@ pub fn run(args: &FuseArgs) -> anyhow::Result<()> {
         .iter()
         .map(|v| (v.name.as_str(), (v.width as usize, v.height as usize)))
         .collect();
-    let train = crate::camera::views_at_sizes(&split.train, |v| sizes.get(v.name.as_str()).copied())
-        .map_err(|(stem, found, camera)| {
-            anyhow::anyhow!(
-                "{}: view {stem} was traced at {}×{}, its camera is {}×{}",
-                args.raycast.display(),
-                found.0,
-                found.1,
-                camera.0,
-                camera.1
-            )
-        })?;
+    let train =
+        crate::camera::views_at_sizes(&split.train, |v| sizes.get(v.name.as_str()).copied())
+            .map_err(|(stem, found, camera)| {
+                anyhow::anyhow!(
+                    "{}: view {stem} was traced at {}×{}, its camera is {}×{}",
+                    args.raycast.display(),
+                    found.0,
+                    found.1,
+                    camera.0,
+                    camera.1
+                )
+            })?;
     let entities = semantics::read(&args.citymodel.join("semantics.json"))?;
     let s = fuse::run(
         &fuse::FuseInputs {

@@ -104,7 +104,11 @@ impl LabelSourceArgs {
         // The views the cache holds, at its resolution (a run's lower work resolution and
         // its choice of training views).
         let test = cache.views_as_cached(&split.test)?;
-        if let Some(v) = split.test.iter().find(|v| !test.iter().any(|t| t.name == v.name)) {
+        if let Some(v) = split
+            .test
+            .iter()
+            .find(|v| !test.iter().any(|t| t.name == v.name))
+        {
             bail!(
                 "{}: the cache has no test view {} (render it with the training views)",
                 self.cache.display(),

@@ -111,8 +111,6 @@ pub struct RunArgs {
     /// Reach of the city-model prior in metres.
     #[arg(long, default_value_t = crate::vote::MODEL_PRIOR_M)]
     pub model_prior_m: f32,
-    #[command(flatten)]
-    pub work: WorkArgs,
     /// Every N-th view (by name) is held back as a test view, not voted on and predicted as a
     /// novel view (default 8, 3DGS --eval); 0 = every view trains (a capture without ground
     /// truth loses nothing to evaluation then). The split never depends on gt/.
@@ -186,6 +184,9 @@ pub struct RunArgs {
     /// Output folder (one sub-folder per stage, run.json, report.html); not inside the scene.
     #[arg(long)]
     pub out: PathBuf,
+    // The work knobs, last: their help heading applies to every option after them.
+    #[command(flatten)]
+    pub work: WorkArgs,
 }
 
 impl RunArgs {

@@ -22,8 +22,8 @@
 //! so a stale gain is an upper bound and only the top of the heap is recomputed. Views are in
 //! the order given and each view's visibility is its own, so the choice does not depend on
 //! the number of threads.
-use std::collections::BinaryHeap;
 use std::cmp::Reverse;
+use std::collections::BinaryHeap;
 
 use glam::DVec3;
 use rayon::prelude::*;
@@ -198,10 +198,21 @@ pub fn choose(sets: &[Vec<u64>], n: usize, k: u32, share: f32) -> ViewCover {
     chosen.sort_unstable();
     let chosen_views: u64 = chosen
         .iter()
-        .map(|&i| sets[i].iter().map(|b| u64::from(b.count_ones())).sum::<u64>())
+        .map(|&i| {
+            sets[i]
+                .iter()
+                .map(|b| u64::from(b.count_ones()))
+                .sum::<u64>()
+        })
         .sum();
     let all_views: u64 = count.iter().map(|&c| u64::from(c)).sum();
-    let per = |x: u64| if seen > 0 { x as f64 / seen as f64 } else { 0.0 };
+    let per = |x: u64| {
+        if seen > 0 {
+            x as f64 / seen as f64
+        } else {
+            0.0
+        }
+    };
     ViewCover {
         k,
         share,
@@ -258,7 +269,7 @@ mod tests {
     fn the_lazy_cover_is_the_plain_greedy_and_meets_the_demand_asked_for() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         for round in 0..40 {
-            let (m, n) = (rng.random_range(1..25), rng.random_range(1..300));
+            let (m, n): (usize, usize) = (rng.random_range(1..25), rng.random_range(1..300));
             let sets: Vec<Vec<bool>> = (0..m)
                 .map(|_| {
                     let p: f64 = rng.random_range(0.0..0.6);
@@ -289,7 +300,9 @@ mod tests {
                     assert_eq!(c.demand, demand as u64);
                     // The shortest prefix of the order whose gains reach share · demand.
                     let mut take = 0;
-                    while (gains[..take].iter().sum::<usize>() as f64) < f64::from(share) * demand as f64 {
+                    while (gains[..take].iter().sum::<usize>() as f64)
+                        < f64::from(share) * demand as f64
+                    {
                         take += 1;
                     }
                     let mut want = order[..take].to_vec();

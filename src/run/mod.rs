@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::alignment::Alignment;
 use crate::associate::{self, AssociateOptions, AssociateSummary};
+pub use crate::cache::ViewSelection;
 use crate::cache::{self, Cache, CacheOptions, CacheSummary};
 use crate::camera::View;
 use crate::citymodel::{self, CitymodelSummary};
@@ -31,7 +32,6 @@ use crate::masks::{self, MasksOptions, MasksSummary};
 use crate::openings::{self, OpeningsOptions, OpeningsSummary};
 use crate::raycast::{self, RaycastSummary};
 use crate::render;
-pub use crate::cache::ViewSelection;
 use crate::scene::{Scene, SceneError, Split};
 use crate::semantics;
 use crate::train::{self, TrainOptions, TrainSummary};
@@ -564,18 +564,18 @@ fn raycast_step(r: &mut Running, scale: f64, opts: &RunOptions) -> Result<(), Ru
     // Which views are traced at which size: part of the options when the render chose fewer
     // or smaller training views than the cameras', so that another choice reruns the raycast
     // and a new PLY with the same choice does not.
-    let traced: Vec<(String, u32, u32)> = if opts.train_scale > 1 || opts.views != ViewSelection::All
-    {
-        views
-            .iter()
-            .map(|v| {
-                let k = &v.camera.intrinsics;
-                (v.name.clone(), k.width, k.height)
-            })
-            .collect()
-    } else {
-        Vec::new()
-    };
+    let traced: Vec<(String, u32, u32)> =
+        if opts.train_scale > 1 || opts.views != ViewSelection::All {
+            views
+                .iter()
+                .map(|v| {
+                    let k = &v.camera.intrinsics;
+                    (v.name.clone(), k.width, k.height)
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
     let key = TracedViews {
         options: &ro,
         views: traced,
@@ -586,7 +586,13 @@ fn raycast_step(r: &mut Running, scale: f64, opts: &RunOptions) -> Result<(), Ru
             let mesh = crate::mesh::TriMesh::read_ply(&mesh_path)?;
             let entities = semantics::read(&cm_dir.join("semantics.json"))?;
             semantics::check_mesh_labels(&mesh_path, &mesh, &entities)?;
-            Ok::<_, RunError>(raycast::run(&mesh, views, &ro, raycast::Overlays::Off, dir)?)
+            Ok::<_, RunError>(raycast::run(
+                &mesh,
+                views,
+                &ro,
+                raycast::Overlays::Off,
+                dir,
+            )?)
         })?;
     Ok(())
 }
@@ -845,7 +851,8 @@ fn fused_supervision(
                 let rdir = dir.join("raycast");
                 fsutil::create_dir(&rdir)?;
                 semantics::check_mesh_labels(&dir.join("mesh.ply"), m, e)?;
-                let _rc: RaycastSummary = raycast::run(m, all_views, &ro, raycast::Overlays::Off, &rdir)?;
+                let _rc: RaycastSummary =
+                    raycast::run(m, all_views, &ro, raycast::Overlays::Off, &rdir)?;
             }
             Ok::<_, RunError>(out.summary)
         },
