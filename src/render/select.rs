@@ -235,8 +235,8 @@ mod tests {
     use crate::splat::Gaussians;
     use rand::{Rng, SeedableRng};
 
-    /// The plain greedy multicover, every gain recomputed every round (no heap): the order
-    /// the sets are taken in and their gains.
+    /// The plain greedy multicover, every gain recomputed every round (no heap), each set
+    /// taken at most once: the order the sets are taken in and their gains.
     fn plain_greedy(sets: &[Vec<bool>], k: u32) -> (Vec<usize>, Vec<usize>) {
         let n = sets[0].len();
         let mut rem: Vec<u32> = (0..n)
@@ -246,7 +246,14 @@ mod tests {
         loop {
             let gains: Vec<usize> = sets
                 .iter()
-                .map(|s| (0..n).filter(|&g| s[g] && rem[g] > 0).count())
+                .enumerate()
+                .map(|(i, s)| {
+                    if order.contains(&i) {
+                        0
+                    } else {
+                        (0..n).filter(|&g| s[g] && rem[g] > 0).count()
+                    }
+                })
                 .collect();
             let best = (0..sets.len()).max_by_key(|&i| (gains[i], std::cmp::Reverse(i)));
             match best {
