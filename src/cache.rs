@@ -46,6 +46,7 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::camera::View;
 use crate::fsutil;
 
 const MAGIC: &[u8; 8] = b"GS4CCONT";
@@ -878,6 +879,96 @@ pub struct CachedView {
     pub render_s: f64,
 }
 
+/// The training views a run uses.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase", tag = "rule")]
+pub enum ViewSelection {
+    /// Every training view.
+    #[default]
+    All,
+    /// The greedy views that meet `share` of the demand of keeping every Gaussian seen by
+    /// `min(k, n)` of them (`render::select`); `k` ≥ 1, `share` in (0, 1] (1: all of it).
+    Cover { k: u32, share: f32 },
+}
+
+impl std::str::FromStr for ViewSelection {
+    type Err = String;
+    /// `all`, `K` (every Gaussian seen by K views, all of the demand) or `K:SHARE` (the
+    /// greedy views that meet SHARE of it).
+    fn from_str(s: &str) -> Result<ViewSelection, String> {
+        if s == "all" || s == "0" {
+            return Ok(ViewSelection::All);
+        }
+        let (k, share) = s.split_once(':').unwrap_or((s, "1"));
+        let bad = || {
+            format!("{s:?} is not all, K or K:SHARE (K ≥ 1 views per Gaussian, SHARE in (0, 1])")
+        };
+        let k: u32 = k.parse().map_err(|_| bad())?;
+        let share: f32 = share.parse().map_err(|_| bad())?;
+        let v = ViewSelection::Cover { k, share };
+        v.validate()?;
+        Ok(v)
+    }
+}
+
+impl ViewSelection {
+    /// Checks `k ≥ 1` and `share` in (0, 1].
+    pub fn validate(&self) -> Result<(), String> {
+        match *self {
+            ViewSelection::All => Ok(()),
+            ViewSelection::Cover { k, share } => {
+                if k == 0 {
+                    return Err("the view cover needs k ≥ 1 views per Gaussian".into());
+                }
+                if !(share > 0.0 && share <= 1.0) {
+                    return Err(format!(
+                        "the view cover's share must be in (0, 1], got {share}"
+                    ));
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// One line for logs and reports.
+    pub fn describe(&self) -> String {
+        match self {
+            ViewSelection::All => "every training view".into(),
+            ViewSelection::Cover { k, share } => format!(
+                "the greedy training views that meet {:.1} % of the demand of each Gaussian seen by {k} (or all that see it)",
+                100.0 * share
+            ),
+        }
+    }
+}
+
+/// What a cover chose, and why (`render::select`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ViewCover {
+    /// Views per Gaussian asked for …
+    pub k: u32,
+    /// … and the share of the demand the chosen views meet.
+    pub share: f32,
+    /// Positions of the chosen views in the list given, ascending.
+    pub chosen: Vec<usize>,
+    /// Views offered.
+    pub offered: usize,
+    /// Gaussians seen (at a good angle) by at least one offered view.
+    pub seen: usize,
+    /// Their total demand `Σ min(k, n)`.
+    pub demand: u64,
+    /// The demand met by each view in the order the greedy took them (every view with any
+    /// gain: the whole curve, past the share).
+    pub gains: Vec<u64>,
+    /// The positions of those views, in that order.
+    pub order: Vec<usize>,
+    /// Mean over the seen Gaussians of the number of offered views that see them.
+    pub mean_views_offered: f64,
+    /// … and of the chosen views that see them.
+    pub mean_views_chosen: f64,
+    pub seconds: f64,
+}
+
 /// The cache stage's `summary.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CacheSummary {
@@ -889,6 +980,10 @@ pub struct CacheSummary {
     #[serde(default)]
     pub median_depth: bool,
     pub views: Vec<CachedView>,
+    /// How the training views were chosen, when not every view given was cached
+    /// (`render::select`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub selection: Option<ViewCover>,
     pub bytes: u64,
     pub render_s: f64,
     pub write_s: f64,
@@ -929,6 +1024,27 @@ impl Cache {
             found,
             expected,
         })
+    }
+
+    /// `views` as this cache holds them, in their order: every view it lists (by stem), with
+    /// its camera at the cached resolution (a view rendered at `1/s` of its camera's,
+    /// [`crate::camera::Intrinsics::downscaled`]); views it does not list are left out. A
+    /// cached size that is no such downscale of the camera is an error naming the file and
+    /// both sizes.
+    pub fn views_as_cached(&self, views: &[View]) -> Result<Vec<View>, CacheError> {
+        let sizes: std::collections::HashMap<&str, (usize, usize)> = self
+            .summary
+            .views
+            .iter()
+            .map(|v| (v.stem.as_str(), (v.width, v.height)))
+            .collect();
+        crate::camera::views_at_sizes(views, |v| sizes.get(v.stem().as_str()).copied()).map_err(
+            |(stem, found, expected)| CacheError::Size {
+                path: cache_file(&self.dir, &stem),
+                found,
+                expected,
+            },
+        )
     }
 
     /// Opens a cache folder (reads its summary).
@@ -1173,6 +1289,87 @@ pub fn median_gaussian(c: &ViewContrib, p: usize) -> Option<u32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn views_as_cached_take_the_cached_resolution_and_skip_the_rest() {
+        let view = |name: &str| View {
+            image_id: 1,
+            camera_id: 1,
+            name: format!("{name}.png"),
+            camera: crate::camera::Camera {
+                intrinsics: crate::camera::Intrinsics {
+                    width: 100,
+                    height: 80,
+                    fx: 90.0,
+                    fy: 91.0,
+                    cx: 50.5,
+                    cy: 40.0,
+                    distortion: crate::camera::Distortion::None,
+                },
+                pose: crate::camera::Pose::look_at(
+                    glam::DVec3::ZERO,
+                    glam::DVec3::X,
+                    glam::DVec3::Z,
+                )
+                .unwrap(),
+            },
+        };
+        let cached = |stem: &str, width: usize, height: usize| CachedView {
+            name: format!("{stem}.png"),
+            stem: stem.into(),
+            width,
+            height,
+            entries: 0,
+            mean_list: 0.0,
+            mean_dropped_share: 0.0,
+            coverage: 0.0,
+            bytes: 0,
+            render_s: 0.0,
+        };
+        let mut cache = Cache {
+            dir: PathBuf::from("R/render"),
+            summary: CacheSummary {
+                gaussians: 1,
+                skipped_gaussians: 0,
+                options: CacheOptions::default(),
+                median_depth: true,
+                views: vec![
+                    cached("a", 50, 40),
+                    cached("b", 100, 80),
+                    cached("d", 34, 27),
+                ],
+                selection: None,
+                bytes: 0,
+                render_s: 0.0,
+                write_s: 0.0,
+                total_s: 0.0,
+            },
+            reads: Default::default(),
+        };
+        let views: Vec<View> = ["d", "c", "b", "a"].iter().map(|n| view(n)).collect();
+        let got = cache.views_as_cached(&views).unwrap();
+        // In the order given, "c" (not cached) left out; "d" at 1/3, "b" full, "a" at 1/2.
+        let names: Vec<&str> = got.iter().map(|v| v.name.as_str()).collect();
+        assert_eq!(names, ["d.png", "b.png", "a.png"]);
+        let k = |v: &View| {
+            let k = v.camera.intrinsics;
+            (k.width, k.height, k.fx, k.fy, k.cx, k.cy)
+        };
+        assert_eq!(
+            k(&got[0]),
+            (34, 27, 30.0, 91.0 / 3.0, 50.5 / 3.0, 40.0 / 3.0)
+        );
+        assert_eq!(got[1], views[2]);
+        assert_eq!(k(&got[2]), (50, 40, 45.0, 45.5, 25.25, 20.0));
+        assert_eq!(got[2].camera.pose, views[3].camera.pose);
+        // A cached size that no divisor makes: one line naming the file and both sizes.
+        cache.summary.views.push(cached("c", 60, 40));
+        let e = cache.views_as_cached(&views).unwrap_err().to_string();
+        assert!(
+            e.contains("c.contrib") && e.contains("60×40") && e.contains("100×80"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn centre_z_is_the_camera_z_of_world_to_camera_and_the_median_reads_it() {

@@ -196,6 +196,25 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
+    /// The intrinsics of the same camera at `1/s` of its resolution (`s ≥ 1`): pixel `(i, j)`
+    /// of the result covers pixels `[s·i, s·i + s) × [s·j, s·j + s)` of the original (clipped
+    /// to the image), so the image is `⌈W/s⌉ × ⌈H/s⌉` and every focal length and principal
+    /// point coordinate is divided by `s` (COLMAP's pixel frame: pixel `i` spans `[i, i + 1)`);
+    /// the lens model, in normalised coordinates, is unchanged. `s = 1` is the identity.
+    pub fn downscaled(&self, s: u32) -> Intrinsics {
+        let s = s.max(1);
+        let f = f64::from(s);
+        Intrinsics {
+            width: self.width.div_ceil(s),
+            height: self.height.div_ceil(s),
+            fx: self.fx / f,
+            fy: self.fy / f,
+            cx: self.cx / f,
+            cy: self.cy / f,
+            distortion: self.distortion,
+        }
+    }
+
     /// Checks the image size, focal lengths, principal point and distortion (module docs).
     pub fn validate(&self) -> Result<(), CameraError> {
         let (w, h) = (self.width, self.height);
@@ -420,6 +439,13 @@ pub struct View {
 }
 
 impl View {
+    /// The view with its camera at `1/s` of the resolution ([`Intrinsics::downscaled`]).
+    pub fn downscaled(&self, s: u32) -> View {
+        let mut v = self.clone();
+        v.camera.intrinsics = v.camera.intrinsics.downscaled(s);
+        v
+    }
+
     /// The image name without directories and extension: the `<stem>` of every per-view file.
     pub fn stem(&self) -> String {
         let file = self.name.rsplit('/').next().unwrap_or(&self.name);
@@ -428,6 +454,44 @@ impl View {
             _ => file.to_string(),
         }
     }
+}
+
+/// Largest resolution divisor [`downscale_factor`] recognises.
+pub const MAX_DOWNSCALE: usize = 16;
+
+/// The divisor `s` (1 ≤ s ≤ [`MAX_DOWNSCALE`], the smallest that fits) for which an image of
+/// `full = (width, height)` pixels at `1/s` of its resolution ([`Intrinsics::downscaled`]) is
+/// `small = (width, height)`; `None` when no such `s` exists. A per-view file made at a
+/// view's full resolution (a SAM list, an image) is box-averaged to a view that works at a
+/// lower one ([`crate::sam::downscale`], `imageio::read_rgb_sized`).
+pub fn downscale_factor(full: (usize, usize), small: (usize, usize)) -> Option<usize> {
+    if small.0 == 0 || small.1 == 0 {
+        return None;
+    }
+    (1..=MAX_DOWNSCALE).find(|&s| full.0.div_ceil(s) == small.0 && full.1.div_ceil(s) == small.1)
+}
+
+/// `views` as a stage made them: each view `size_of` knows, with its camera at that size (a
+/// view worked at `1/s` of its camera's resolution, [`Intrinsics::downscaled`]); views it does
+/// not know are left out. A size that is no such downscale of the camera's is returned as
+/// `Err((stem, size, camera's size))`.
+pub fn views_at_sizes(
+    views: &[View],
+    size_of: impl Fn(&View) -> Option<(usize, usize)>,
+) -> Result<Vec<View>, (String, (usize, usize), (usize, usize))> {
+    let mut out = Vec::with_capacity(views.len());
+    for v in views {
+        let Some(size) = size_of(v) else {
+            continue;
+        };
+        let k = &v.camera.intrinsics;
+        let full = (k.width as usize, k.height as usize);
+        match downscale_factor(full, size) {
+            Some(s) => out.push(v.downscaled(s as u32)),
+            None => return Err((v.stem(), size, full)),
+        }
+    }
+    Ok(out)
 }
 
 /// The views whose per-view files cannot be named: `(image name, why)` for each view whose
@@ -458,6 +522,75 @@ pub fn stem_problems(views: &[View]) -> Vec<(String, String)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_downscaled_camera_puts_a_point_in_the_block_of_its_full_resolution_pixel() {
+        // 661×495 (odd: the last block is clipped), a radial lens; every camera-frame point
+        // on a grid over the image: its pixel at 1/s is its full-resolution pixel's block,
+        // ⌊i/s⌋, ⌊j/s⌋, and the projection is the full one divided by s.
+        let k = Intrinsics {
+            width: 661,
+            height: 495,
+            fx: 440.3,
+            fy: 439.0,
+            cx: 331.2,
+            cy: 246.7,
+            distortion: Distortion::Radial {
+                k1: -0.08,
+                k2: 0.01,
+            },
+        };
+        let pose = Pose::look_at(DVec3::ZERO, DVec3::Z, -DVec3::Y).unwrap();
+        let full = Camera {
+            intrinsics: k,
+            pose,
+        };
+        for s in [1u32, 2, 3, 4] {
+            let small = Camera {
+                intrinsics: k.downscaled(s),
+                pose,
+            };
+            let (w, h) = (661usize.div_ceil(s as usize), 495usize.div_ceil(s as usize));
+            assert_eq!(
+                (small.intrinsics.width, small.intrinsics.height),
+                (w as u32, h as u32)
+            );
+            let mut checked = 0;
+            for a in -40..=40 {
+                for b in -30..=30 {
+                    let q = DVec3::new(a as f64 * 0.0213, b as f64 * 0.0177, 1.0);
+                    let (Some(uv), Some(uv_s)) = (full.project(q), small.project(q)) else {
+                        continue;
+                    };
+                    assert!(
+                        (uv / s as f64 - uv_s).abs().max_element() < 1e-9,
+                        "{uv} {uv_s}"
+                    );
+                    let Some(p) = full.pixel_containing(q, 661, 495) else {
+                        continue;
+                    };
+                    let (i, j) = (p % 661, p / 661);
+                    let ps = small.pixel_containing(q, w, h).unwrap();
+                    assert_eq!((ps % w, ps / w), (i / s as usize, j / s as usize));
+                    checked += 1;
+                }
+            }
+            assert!(checked > 3000, "{checked}");
+        }
+    }
+
+    #[test]
+    fn the_downscale_factor_is_the_divisor_of_both_sides() {
+        assert_eq!(downscale_factor((660, 494), (660, 494)), Some(1));
+        assert_eq!(downscale_factor((660, 494), (330, 247)), Some(2));
+        assert_eq!(downscale_factor((660, 494), (165, 124)), Some(4));
+        assert_eq!(downscale_factor((661, 495), (331, 248)), Some(2));
+        assert_eq!(downscale_factor((660, 494), (330, 248)), None);
+        assert_eq!(downscale_factor((660, 494), (0, 0)), None);
+        assert_eq!(downscale_factor((660, 494), (1320, 988)), None);
+        // 1/17 would fit, but the divisor is bounded.
+        assert_eq!(downscale_factor((170, 170), (10, 10)), None);
+    }
 
     #[test]
     fn look_at_points_z_at_target_and_y_down() {

@@ -94,6 +94,41 @@ pub fn read_rgb(path: &Path) -> Result<Array3<u8>, ImageError> {
     Array3::from_shape_vec((h, w, 3), bytes.to_vec()).map_err(|e| err(e.to_string()))
 }
 
+/// [`read_rgb`] for a view of `width × height` pixels: an image of that size as it is, one
+/// of an integer multiple of it (a view worked at `1/s` of its resolution,
+/// [`crate::camera::downscale_factor`]) averaged over each `s × s` block (clipped to the
+/// image; rounded half up); any other size is an error naming the file and both sizes.
+pub fn read_rgb_sized(path: &Path, width: usize, height: usize) -> Result<Array3<u8>, ImageError> {
+    let img = read_rgb(path)?;
+    let (h, w, _) = img.dim();
+    match crate::camera::downscale_factor((w, h), (width, height)) {
+        Some(1) => Ok(img),
+        Some(s) => Ok(box_downscale(&img, s, width, height)),
+        None => Err(ImageError::Read {
+            path: path.to_path_buf(),
+            why: format!("{w}×{h} pixels, the view's camera is {width}×{height}"),
+        }),
+    }
+}
+
+/// The mean of each `s × s` block of `img` (clipped at the image's edges), rounded half up:
+/// an `height × width` image.
+fn box_downscale(img: &Array3<u8>, s: usize, width: usize, height: usize) -> Array3<u8> {
+    let (h, w, _) = img.dim();
+    Array3::from_shape_fn((height, width, 3), |(y, x, c)| {
+        let (y0, x0) = (y * s, x * s);
+        let (y1, x1) = ((y0 + s).min(h), (x0 + s).min(w));
+        let mut sum = 0u32;
+        for yy in y0..y1 {
+            for xx in x0..x1 {
+                sum += u32::from(img[[yy, xx, c]]);
+            }
+        }
+        let n = ((y1 - y0) * (x1 - x0)) as u32;
+        ((sum + n / 2) / n) as u8
+    })
+}
+
 /// Writes an 8-bit RGB `H×W×3` array as PNG, atomically (temporary file, then rename). The
 /// encoder is the `png` crate's fast setting (adaptive row filters, `fdeflate`): about 4×
 /// faster than OpenCV's encoder, with files no larger (BENCHMARKS.md's git history, "PNG writing").
@@ -277,6 +312,30 @@ pub fn dilate(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_image_at_a_multiple_of_the_view_is_averaged_over_its_blocks() {
+        let dir = crate::fsutil::test_temp_dir()
+            .join(format!("gs4city-imageio-box-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        // 3×5 → 2×3 at 1/2: blocks clipped at the right and bottom edges.
+        let img = Array3::from_shape_fn((3, 5, 3), |(y, x, c)| (10 * y + x + 100 * c) as u8);
+        let p = dir.join("b.png");
+        write_png(&p, &img).unwrap();
+        let got = read_rgb_sized(&p, 3, 2).unwrap();
+        // Channel 0 by hand: [[0 1; 10 11] → 5.5 → 6, [2 3; 12 13] → 7.5 → 8, [4; 14] → 9],
+        // [[20 21] → 20.5 → 21, [22 23] → 22.5 → 23, [24] → 24].
+        let c0: Vec<u8> = got.slice(ndarray::s![.., .., 0]).iter().copied().collect();
+        assert_eq!(c0, vec![6, 8, 9, 21, 23, 24]);
+        assert_eq!(got[[1, 2, 2]], 224);
+        assert_eq!(read_rgb_sized(&p, 5, 3).unwrap(), img);
+        let e = read_rgb_sized(&p, 4, 2).unwrap_err().to_string();
+        assert!(
+            e.contains("b.png") && e.contains("5×3") && e.contains("4×2"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn png_round_trip_is_lossless() {

@@ -172,8 +172,8 @@ impl Stage {
     pub const ALL: [Stage; 11] = [
         Stage::Align,
         Stage::Citymodel,
-        Stage::Raycast,
         Stage::Render,
+        Stage::Raycast,
         Stage::Masks,
         Stage::Openings,
         Stage::Associate,

@@ -534,7 +534,10 @@ pub fn read_sam_json(path: &Path) -> Result<Vec<SamMask>, SamError> {
     read_sam_json_sized(path, None)
 }
 
-/// [`read_sam_json`], additionally requiring every mask to be `[h, w]` = `image_size`.
+/// [`read_sam_json`], additionally requiring every mask to be `[h, w]` = `image_size`, or an
+/// integer multiple of it (a view worked at `1/s` of its resolution,
+/// [`crate::camera::downscale_factor`]): such masks are validated at their own size and
+/// then box-downscaled to `image_size` ([`downscale`]).
 pub fn read_sam_json_sized(
     path: &Path,
     image_size: Option<[usize; 2]>,
@@ -557,6 +560,8 @@ pub fn parse_sam_json(
         .map_err(|err| SamError::Json { path: p(), err })?;
     let mut out = Vec::with_capacity(items.len());
     let mut expected = image_size.map(|s| (s, "the image size"));
+    // The divisor to the expected image size of a file made at a multiple of it (1: as is).
+    let mut factor = 1;
     for (index, item) in items.into_iter().enumerate() {
         if item.get("segmentation").is_some_and(|s| s.is_array()) {
             return Err(SamError::Mask {
@@ -581,6 +586,13 @@ pub fn parse_sam_json(
                 h,
                 w,
             });
+        }
+        if let (0, Some([eh, ew])) = (index, image_size)
+            && [eh, ew] != size
+            && let Some(f) = crate::camera::downscale_factor((w, h), (ew, eh))
+        {
+            factor = f;
+            expected = Some((size, "the size of mask 0"));
         }
         match expected {
             Some((e, what)) if e != size => {
@@ -625,9 +637,88 @@ pub fn parse_sam_json(
                 });
             }
         }
-        out.push(m);
+        out.push(if factor > 1 {
+            downscale(&m, factor).map_err(|err| SamError::Rle {
+                path: p(),
+                index,
+                err,
+            })?
+        } else {
+            m
+        });
     }
     Ok(out)
+}
+
+/// The mask at `1/s` of its resolution (`s ≥ 1`): pixel `(i, j)` of the `⌈h/s⌉ × ⌈w/s⌉` result
+/// is set when at least half of the pixels of its `s × s` block (clipped to the image) are; the
+/// area and the box are recomputed, the prompt points and the crop box divided by `s`, the
+/// scores kept. Works on the runs: `O(runs + area/s + the result's runs)`, never the whole
+/// image.
+pub fn downscale(m: &SamMask, s: usize) -> Result<SamMask, RleError> {
+    let s = s.max(1);
+    let [h, w] = m.segmentation.size;
+    let (sh, sw) = (h.div_ceil(s), w.div_ceil(s));
+    let block = |i: usize, n: usize| ((i + 1) * s).min(n) - i * s;
+    // Set pixels per block of the low-resolution column being gathered (`touched`: its rows
+    // with any), then written out as runs in column-major order.
+    let mut col = vec![0u32; sh];
+    let mut touched: Option<(usize, usize)> = None;
+    let mut out = Runs::new();
+    let mut written = 0usize;
+    let mut flush = |xs: usize, col: &mut [u32], touched: &mut Option<(usize, usize)>| {
+        let Some((lo, hi)) = touched.take() else {
+            return;
+        };
+        out.push(false, xs * sh + lo - written);
+        let bw = block(xs, w);
+        for (r, c) in col.iter_mut().enumerate().take(hi + 1).skip(lo) {
+            out.push(2 * *c as usize >= block(r, h) * bw, 1);
+            *c = 0;
+        }
+        written = xs * sh + hi + 1;
+    };
+    let mut current = 0usize;
+    let mut j = 0usize;
+    for (i, c) in m.segmentation.counts()?.into_iter().enumerate() {
+        let end = j + c as usize;
+        if i % 2 == 1 {
+            // A run of set pixels, column piece by column piece.
+            while j < end {
+                let (x, y0) = (j / h, j % h);
+                let y1 = h.min(y0 + (end - j));
+                if x / s != current {
+                    flush(current, &mut col, &mut touched);
+                    current = x / s;
+                }
+                for r in y0 / s..=(y1 - 1) / s {
+                    col[r] += (y1.min((r + 1) * s) - y0.max(r * s)) as u32;
+                }
+                touched = Some(touched.map_or((y0 / s, (y1 - 1) / s), |(lo, hi)| {
+                    (lo.min(y0 / s), hi.max((y1 - 1) / s))
+                }));
+                j += y1 - y0;
+            }
+        }
+        j = end;
+    }
+    flush(current, &mut col, &mut touched);
+    out.push(false, sh * sw - written);
+    let f = s as f64;
+    let mut small = SamMask::from_rle(
+        Rle::from_counts([sh, sw], &out.finish()),
+        m.predicted_iou,
+        m.stability_score,
+        m.point_coords
+            .iter()
+            .map(|&[x, y]| [x / f, y / f])
+            .collect(),
+    )?;
+    let si = s as i64;
+    small.crop_box = m
+        .crop_box
+        .map(|[x, y, bw, bh]| [x / si, y / si, (bw + si - 1) / si, (bh + si - 1) / si]);
+    Ok(small)
 }
 
 /// Writes masks as a SAM JSON list (compact, one trailing newline), atomically.
@@ -829,6 +920,68 @@ mod tests {
                 rng.random::<f64>() < p
             }
         })
+    }
+
+    #[test]
+    fn downscaled_masks_keep_the_blocks_at_least_half_set() {
+        // A hand case: 3×5 at 1/2 → 2×3; blocks (clipped at the edges) with at least half of
+        // their pixels set.
+        let m = ndarray::array![
+            [true, false, true, true, false],
+            [false, false, true, false, true],
+            [true, true, false, false, true],
+        ];
+        let small = downscale(&SamMask::from_mask(&m, 0.9, 0.8, vec![[4.0, 2.0]]), 2).unwrap();
+        let want = ndarray::array![[false, true, true], [true, false, true]];
+        assert_eq!(small.segmentation.decode().unwrap(), want);
+        assert_eq!((small.area, small.bbox), (4, [0, 0, 2, 1]));
+        assert_eq!(small.point_coords, vec![[2.0, 1.0]]);
+        assert_eq!(small.crop_box, Some([0, 0, 3, 2]));
+        assert_eq!((small.predicted_iou, small.stability_score), (0.9, 0.8));
+        // Random masks against a count over the decoded pixels, block by block.
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for _ in 0..60 {
+            let (h, w) = (rng.random_range(1..40), rng.random_range(1..40));
+            let m = random_mask(&mut rng, h, w);
+            for f in [1usize, 2, 3, 4] {
+                let got = downscale(&SamMask::from_mask(&m, 0.5, 0.5, vec![]), f).unwrap();
+                let want = Array2::from_shape_fn((h.div_ceil(f), w.div_ceil(f)), |(y, x)| {
+                    let b = m.slice(ndarray::s![
+                        y * f..((y + 1) * f).min(h),
+                        x * f..((x + 1) * f).min(w)
+                    ]);
+                    2 * b.iter().filter(|&&v| v).count() >= b.len()
+                });
+                assert_eq!(got.segmentation.decode().unwrap(), want, "{h}×{w} / {f}");
+                assert_eq!(got.area, want.iter().filter(|&&v| v).count() as u64);
+            }
+        }
+    }
+
+    #[test]
+    fn a_list_at_a_multiple_of_the_image_size_is_read_downscaled() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let masks: Vec<SamMask> = (0..4)
+            .map(|_| SamMask::from_mask(&random_mask(&mut rng, 21, 30), 0.8, 0.9, vec![]))
+            .collect();
+        let bytes = serde_json::to_vec(&masks).unwrap();
+        let p = Path::new("v.json");
+        let same = parse_sam_json(p, &bytes, Some([21, 30])).unwrap();
+        assert_eq!(same, masks);
+        let half = parse_sam_json(p, &bytes, Some([11, 15])).unwrap();
+        for (a, b) in half.iter().zip(&masks) {
+            assert_eq!(*a, downscale(b, 2).unwrap());
+        }
+        let third = parse_sam_json(p, &bytes, Some([7, 10])).unwrap();
+        assert_eq!(third[3], downscale(&masks[3], 3).unwrap());
+        // No divisor makes 21×30 into 10×15: one line naming the file, the mask and both sizes.
+        let e = parse_sam_json(p, &bytes, Some([10, 15]))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("v.json") && e.contains("[21, 30]") && e.contains("[10, 15]"),
+            "{e}"
+        );
     }
 
     fn check_round_trip(m: &Array2<bool>) {

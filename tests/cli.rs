@@ -122,6 +122,7 @@ fn citymodel_raycast_render_lift_through_the_binary() {
         &d("cm"),
         "--colmap",
         &d("sparse"),
+        "--overlays",
         "--out",
         &d("rc"),
     ]);

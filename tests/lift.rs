@@ -47,7 +47,7 @@ fn lift_wall_with(
             tau: 0.5,
             single_pass: false,
         },
-        None,
+        raycast::Overlays::Off,
         &dir.join("raycast"),
     )
     .unwrap();

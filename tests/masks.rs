@@ -299,6 +299,7 @@ fn fixture(name: &str, with_features: bool) -> Fixture {
             bytes: vc.file_bytes() as u64,
             render_s: 0.0,
         }],
+        selection: None,
         bytes: vc.file_bytes() as u64,
         render_s: 0.0,
         write_s: 0.0,

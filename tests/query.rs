@@ -346,6 +346,7 @@ fn fixture(name: &str, fused: bool, ply: PlyEncoding) -> Fixture {
             },
             median_depth: false,
             views: cached,
+            selection: None,
             bytes: 0,
             render_s: 0.0,
             write_s: 0.0,

@@ -6,7 +6,7 @@
 
 use crate::common::*;
 use gs4city::mesh::TriMesh;
-use gs4city::raycast::{RaycastOptions, TwoPassScene, ViewIds, raycast_view};
+use gs4city::raycast::{Overlays, RaycastOptions, TwoPassScene, ViewIds, raycast_view};
 
 const WALL: (i32, i32, i32) = (0, 1, -1);
 
@@ -323,12 +323,21 @@ fn bad_inputs_are_errors() {
         camera: axis_camera(w, 10, 5.0),
     };
     for tau in [f64::NAN, -1.0, f64::INFINITY] {
-        assert!(gs4city::raycast::run(&m, &[view(10)], &opts(tau, false), None, &out).is_err());
+        assert!(
+            gs4city::raycast::run(&m, &[view(10)], &opts(tau, false), Overlays::Off, &out).is_err()
+        );
     }
-    let e = gs4city::raycast::run(&m, &[view(0)], &opts(0.5, false), None, &out).unwrap_err();
+    let e =
+        gs4city::raycast::run(&m, &[view(0)], &opts(0.5, false), Overlays::Off, &out).unwrap_err();
     assert!(e.to_string().contains("a.png"), "{e}");
-    let e = gs4city::raycast::run(&m, &[view(10), view(10)], &opts(0.5, false), None, &out)
-        .unwrap_err();
+    let e = gs4city::raycast::run(
+        &m,
+        &[view(10), view(10)],
+        &opts(0.5, false),
+        Overlays::Off,
+        &out,
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("stem"), "{e}");
 }
 
@@ -345,7 +354,7 @@ fn run_writes_ids_depth_overlay_and_summary() {
         name: "sub/DJI_0001.JPG".into(),
         camera: axis_camera(100, 100, 50.0),
     }];
-    let s = gs4city::raycast::run(&m, &views, &opts(0.5, false), None, &out).unwrap();
+    let s = gs4city::raycast::run(&m, &views, &opts(0.5, false), Overlays::On(None), &out).unwrap();
     assert_eq!((s.views, s.rays, s.faces, s.part_faces), (1, 10_000, 4, 2));
     assert_eq!(s.per_view[0].recovered_pixels, 100);
     assert_eq!(s.per_view[0].recovered_parts, 1);
@@ -366,4 +375,15 @@ fn run_writes_ids_depth_overlay_and_summary() {
     assert_eq!(png.dim(), (100, 100, 3));
     assert_eq!(png[[0, 0, 0]], 0);
     assert!(png.slice(ndarray::s![50, 50, ..]).iter().any(|&c| c > 0));
+    // Without overlays (what `gs4city run` asks for): the same maps, no picture.
+    let off = out.with_extension("off");
+    let _ = std::fs::remove_dir_all(&off);
+    gs4city::raycast::run(&m, &views, &opts(0.5, false), Overlays::Off, &off).unwrap();
+    for f in ["DJI_0001.ids.npy", "DJI_0001.depth.npy"] {
+        assert_eq!(
+            std::fs::read(off.join(f)).unwrap(),
+            std::fs::read(out.join(f)).unwrap()
+        );
+    }
+    assert!(!off.join("DJI_0001.overlay.png").exists());
 }

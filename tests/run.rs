@@ -32,8 +32,8 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
         names,
         [
             "citymodel",
-            "raycast",
             "render",
+            "raycast",
             "masks",
             "openings",
             "associate",
@@ -264,7 +264,7 @@ fn city_supervision_and_learned_mode() {
     let names: Vec<&str> = s.stages.iter().map(|r| r.stage.dir()).collect();
     assert_eq!(
         names,
-        ["citymodel", "raycast", "render", "lift", "train", "eval"]
+        ["citymodel", "render", "raycast", "lift", "train", "eval"]
     );
     let e = s.eval.as_ref().unwrap();
     assert_eq!(e.mode.as_deref(), Some("learned"));

@@ -49,3 +49,4 @@ mod tile;
 mod totals;
 mod train;
 mod view;
+mod work;

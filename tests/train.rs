@@ -58,7 +58,7 @@ impl Fixture {
                 tau: 0.5,
                 single_pass: false,
             },
-            None,
+            raycast::Overlays::Off,
             &dir.join("raycast"),
         )
         .unwrap();

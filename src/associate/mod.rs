@@ -14,9 +14,10 @@
 //! of their masks there) matches it by the paper's rule (`R_geo > τ_geo` of the mask's own α·T
 //! candidates, feature cosine `> τ_sim`). Such masks never start a group.
 //!
-//! Transfer back runs in two passes over the views: pass A writes each map over the unfiltered
+//! Transfer back runs in two passes over the views: pass A makes each map over the unfiltered
 //! groups (masks composited, the fill) and finds the view support; after the filters, pass B
-//! rewrites the maps with the kept groups' ids (−1 for dropped groups).
+//! turns the maps, held in memory, into the kept groups' ids (−1 for dropped groups) and
+//! writes them.
 //!
 //! Outputs (`docs/design.md`, "Stage contract"): per view `<stem>.ids.npy` (int32 H×W, group id ≥ 0,
 //! −1 none), `groups.json` ([`GroupsFile`]), `features.npy` (float32 G×D, the unit mean feature
@@ -431,9 +432,9 @@ pub fn run(
 
     // Transfer back, pass A, with the view support; the m_view and far-field filters; pass B.
     let t = Instant::now();
-    let support = transfer::pass_a(&st, &fin, &per_view, &targets, &members, &mut tally)?;
+    let (support, maps) = transfer::pass_a(&st, &fin, &per_view, &targets, &members, &mut tally)?;
     let kept = filters::keep_groups(&st, &fin, &support, &far, &mut tally);
-    transfer::pass_b(&st, &kept.id, &mut tally)?;
+    transfer::pass_b(&st, maps, &kept.id, &mut tally)?;
     let groups = write_groups(out, tally.dim, kept)?;
     tally.timing.write_s = t.elapsed().as_secs_f64();
 

@@ -1,8 +1,8 @@
 //! Transfer back (paper §3.2; step 8 of docs/associate.md): the group ids go back to every
-//! view in two passes. Pass A writes each view's map over the pre-filter groups — the kept
+//! view in two passes. Pass A makes each view's map over the pre-filter groups — the kept
 //! masks composited, the pixels of matching dropped masks where asked, then the fill — and
-//! collects the view support; after the filters, pass B rewrites the maps with the kept groups'
-//! ids. Owns the fill members (which Gaussians of a group may label pixels) and the fill.
+//! collects the view support; after the filters, pass B turns the maps (held in memory) into
+//! the kept groups' ids and writes them. Owns the fill members (which Gaussians of a group may label pixels) and the fill.
 use std::collections::BTreeSet;
 
 use rayon::prelude::*;
@@ -129,9 +129,18 @@ pub(super) fn masks_per_view(fin: &bank::Finished, views: usize) -> Vec<Vec<(u32
     per_view
 }
 
+/// One view's map over pre-filter group indices (a filled pixel is −2 − index), kept in
+/// memory from pass A to pass B (the map of a 660×494 view takes 1.3 MB).
+pub(super) struct PassAMap {
+    w: usize,
+    h: usize,
+    map: Vec<i32>,
+}
+
 /// Transfer back, pass A: per view, the map over pre-filter group indices (a filled pixel is
-/// written as −2 − index) and the view support's matches. Returns per pre-filter group the
-/// views the view support adds; the counts of matching masks go to `tally`.
+/// −2 − index) and the view support's matches. Returns per pre-filter group the views the
+/// view support adds, and the maps (in view order) for [`pass_b`]; the counts of matching
+/// masks go to `tally`.
 pub(super) fn pass_a(
     st: &Stage<'_>,
     fin: &bank::Finished,
@@ -139,10 +148,10 @@ pub(super) fn pass_a(
     targets: &Targets,
     members: &[i32],
     tally: &mut Tally,
-) -> Result<Vec<BTreeSet<u32>>, AssociateError> {
-    let (inp, opts, views, out) = (st.inp, st.opts, st.views, st.out);
+) -> Result<(Vec<BTreeSet<u32>>, Vec<PassAMap>), AssociateError> {
+    let (inp, opts, views) = (st.inp, st.opts, st.views);
     let support_on = targets.support_on(inp, opts);
-    let pass_a: Vec<Result<Vec<Hit>, AssociateError>> = views
+    let pass_a: Vec<Result<(Vec<Hit>, PassAMap), AssociateError>> = views
         .par_iter()
         .zip(per_view)
         .enumerate()
@@ -184,15 +193,17 @@ pub(super) fn pass_a(
                     fill(&mut map, &c, members, share, over);
                 }
             }
-            idmap::write_ids(out, &stem, w, h, &map)?;
-            Ok(hits)
+            Ok((hits, PassAMap { w, h, map }))
         })
         .collect();
     let mut support: Vec<std::collections::BTreeSet<u32>> =
         vec![Default::default(); fin.groups.len()];
     let (mut support_masks, mut joined_masks) = (0, 0);
+    let mut maps = Vec::with_capacity(views.len());
     for (vi, r) in pass_a.into_iter().enumerate() {
-        for hit in r? {
+        let (hits, map) = r?;
+        maps.push(map);
+        for hit in hits {
             if hit.view {
                 support[hit.group].insert(vi as u32);
                 support_masks += 1;
@@ -202,26 +213,24 @@ pub(super) fn pass_a(
     }
     tally.support_masks = support_masks;
     tally.joined_masks = joined_masks;
-    Ok(support)
+    Ok((support, maps))
 }
 
-/// Transfer back, pass B: pre-filter indices → kept group ids (`keep_id`, −1 for dropped
-/// groups). The labelled and filled pixels go to `tally`.
+/// Transfer back, pass B: pre-filter indices of pass A's maps (in view order) → kept group
+/// ids (`keep_id`, −1 for dropped groups), written as each view's `<stem>.ids.npy`. The
+/// labelled and filled pixels go to `tally`.
 pub(super) fn pass_b(
     st: &Stage<'_>,
+    maps: Vec<PassAMap>,
     keep_id: &[i32],
     tally: &mut Tally,
 ) -> Result<(), AssociateError> {
     let (views, out) = (st.views, st.out);
     let labelled: Vec<Result<(u64, u64), AssociateError>> = views
         .par_iter()
-        .map(|v| {
+        .zip(maps)
+        .map(|(v, PassAMap { w, h, mut map })| {
             let stem = v.stem();
-            let (w, h) = (
-                v.camera.intrinsics.width as usize,
-                v.camera.intrinsics.height as usize,
-            );
-            let mut map = idmap::read_ids(out, &stem, w, h)?;
             let (mut lab, mut filled) = (0u64, 0u64);
             for m in map.iter_mut() {
                 let (gi, by_fill) = match *m {

@@ -55,9 +55,11 @@ pub fn run(args: &AssociateArgs) -> anyhow::Result<()> {
     let alignment = Alignment::read(&args.citymodel.join("alignment.json"))?;
     let cache = Cache::open(&args.cache)
         .with_context(|| format!("opening the contributions cache {}", args.cache.display()))?;
+    // The training views the cache holds, at its resolution (a run's lower work resolution).
+    let train = cache.views_as_cached(&split.train)?;
     let s = associate::run(
         &associate::AssociateInputs {
-            views: &split.train,
+            views: &train,
             masks: &args.masks,
             features: args.features.as_deref(),
             sam: args.sam.as_deref(),

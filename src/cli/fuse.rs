@@ -52,10 +52,30 @@ pub fn run(args: &FuseArgs) -> anyhow::Result<()> {
         );
     }
     let split = args.split.split(colmap::read_model(&args.colmap)?)?;
+    // The training views the raycast traced, at its resolution (a run's lower work
+    // resolution and its choice of training views).
+    let rc: crate::raycast::RaycastSummary = crate::layout::Summary::read(&args.raycast)?;
+    let sizes: std::collections::HashMap<&str, (usize, usize)> = rc
+        .per_view
+        .iter()
+        .map(|v| (v.name.as_str(), (v.width as usize, v.height as usize)))
+        .collect();
+    let train =
+        crate::camera::views_at_sizes(&split.train, |v| sizes.get(v.name.as_str()).copied())
+            .map_err(|(stem, found, camera)| {
+                anyhow::anyhow!(
+                    "{}: view {stem} was traced at {}×{}, its camera is {}×{}",
+                    args.raycast.display(),
+                    found.0,
+                    found.1,
+                    camera.0,
+                    camera.1
+                )
+            })?;
     let entities = semantics::read(&args.citymodel.join("semantics.json"))?;
     let s = fuse::run(
         &fuse::FuseInputs {
-            views: &split.train,
+            views: &train,
             associate: &args.associate,
             raycast: &args.raycast,
             entities: &entities,

@@ -79,6 +79,24 @@ impl LabelSourceArgs {
         let split = split.split(colmap::read_model(&self.colmap)?)?;
         let cache = Cache::open(&self.cache)
             .with_context(|| format!("opening the contributions cache {}", self.cache.display()))?;
+        // The views the cache holds, at its resolution (a run's lower work resolution and
+        // its choice of training views).
+        let test = cache.views_as_cached(&split.test)?;
+        if let Some(v) = split
+            .test
+            .iter()
+            .find(|v| !test.iter().any(|t| t.name == v.name))
+        {
+            bail!(
+                "{}: the cache has no test view {} (render it with the training views)",
+                self.cache.display(),
+                v.name
+            );
+        }
+        let split = Split {
+            train: cache.views_as_cached(&split.train)?,
+            test,
+        };
         let entities = semantics::read(&self.citymodel.join("semantics.json"))?;
         let (maps, labels) = label_source(self.raycast.as_ref(), self.fuse.as_ref(), &entities)?;
         // Scene units per metre (the depth gate's tolerance and the prior's reach); a model

@@ -59,6 +59,10 @@ pub fn run(args: &MasksArgs) -> anyhow::Result<()> {
         ),
         None => None,
     };
+    // The views the cache holds, at its resolution (a run's lower work resolution).
+    if let Some(c) = &cache {
+        views = c.views_as_cached(&views)?;
+    }
     let align = args
         .citymodel
         .as_ref()

@@ -21,8 +21,12 @@ pub struct RaycastArgs {
     pub config: super::groups::ConfigArg,
     #[command(flatten, next_help_heading = "Raycasting (config [raycast])")]
     pub tuning: super::groups::RaycastTuning,
+    /// Also write `<stem>.overlay.png` per view: the city ids in colour over the image (for a
+    /// person to look at; no stage reads them).
+    #[arg(long)]
+    pub overlays: bool,
     /// Images for the overlays (default: <colmap dir>/../../images if it exists).
-    #[arg(long, value_name = "DIR")]
+    #[arg(long, value_name = "DIR", requires = "overlays")]
     pub images: Option<PathBuf>,
     /// Output folder.
     #[arg(long, value_name = "DIR")]
@@ -58,8 +62,11 @@ pub fn run(args: &RaycastArgs) -> anyhow::Result<()> {
         tau: t.tau * scale,
         single_pass: t.single_pass,
     };
-    let summary =
-        raycast::run(&mesh, &views, &opts, images.as_deref(), &args.out).context("raycasting")?;
+    let overlays = match args.overlays {
+        true => raycast::Overlays::On(images.as_deref()),
+        false => raycast::Overlays::Off,
+    };
+    let summary = raycast::run(&mesh, &views, &opts, overlays, &args.out).context("raycasting")?;
     println!(
         "{} views, {} rays, {:.1} Mrays/s, scene build {:.3} s ({} faces, {} part faces), τ = {} m = {} scene units{}",
         summary.views,

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use clap::Args;
 
 use super::groups::{Config, ConfigArg};
-use crate::run::{self, Mode, RunOptions, RunSummary, Supervision};
+use crate::run::{self, Mode, Quality, RunOptions, RunSummary, Supervision, ViewSelection};
 
 /// `gs4city run`: the user's options only, under four headings; every tuning and ablation
 /// switch of the stages is in `--config` (docs/config.md, [`super::groups`]).
@@ -48,6 +48,20 @@ pub struct RunArgs {
     /// declares (scene.json; `gs4city synth` writes them), else every view trains.
     #[arg(long, value_name = "N", help_heading = "Supervision")]
     pub test_every: Option<usize>,
+    /// How much work for the answer (docs/quality.md): full (every training view at full
+    /// resolution), default (the cheapest setting within 0.5 fine-mIoU points of full on every
+    /// scene measured: full's, for now) or fast (a first look; costs points).
+    #[arg(long, default_value = "default", help_heading = "Performance")]
+    pub quality: Quality,
+    /// Training views at 1/N of their resolution from the render to the vote (test views
+    /// always at full resolution); default: the --quality preset's.
+    #[arg(long, value_name = "N", help_heading = "Performance")]
+    pub train_scale: Option<u32>,
+    /// Training views: all, K (the fewest, greedily, that keep every Gaussian seen by K of
+    /// them at a good angle, or by all that see it) or K:SHARE (the greedy views that meet
+    /// SHARE of that demand); default: the --quality preset's.
+    #[arg(long, value_name = "all|K[:SHARE]", help_heading = "Performance")]
+    pub train_views: Option<ViewSelection>,
     /// Worker threads (default: every core).
     #[arg(long, value_name = "N", help_heading = "Performance")]
     pub threads: Option<usize>,
@@ -67,6 +81,12 @@ fn run_options(cfg: &Config, a: &RunArgs) -> anyhow::Result<RunOptions> {
     let lift = super::groups::vote_options(&cfg.vote, &cfg.prior)?;
     let cache = cfg.cache.options();
     cache.validate()?;
+    let preset = a.quality.work();
+    let train_scale = a.train_scale.unwrap_or(preset.train_scale);
+    let max = crate::camera::MAX_DOWNSCALE as u32;
+    if !(1..=max).contains(&train_scale) {
+        anyhow::bail!("--train-scale must be 1 to {max}, got {train_scale}");
+    }
     let train = cfg.train.options(&cfg.vote)?;
     let check = crate::inspect::CheckOptions {
         max_offset_m: cfg.check.max_offset,
@@ -81,6 +101,8 @@ fn run_options(cfg: &Config, a: &RunArgs) -> anyhow::Result<RunOptions> {
         top_k: cache.top_k,
         epsilon: cache.epsilon,
         t_stop: cache.t_stop,
+        train_scale,
+        views: a.train_views.unwrap_or(preset.views),
         lift,
         supervision: a.supervision,
         masks: cfg.masks.options()?,

@@ -681,7 +681,7 @@ fn view(plan: &Plan<'_>, v: &View) -> Result<ViewOut, MasksError> {
             .as_ref()
             .map(|d| d.join(&v.name))
             .and_then(|p| {
-                imageio::read_rgb(&p)
+                imageio::read_rgb_sized(&p, w, h)
                     .map_err(|e| log::warn!("masks: {e}: its overlay is drawn on grey"))
                     .ok()
             });

@@ -656,20 +656,11 @@ pub fn run(
                 }
             }
             let image = sr.scene.images.as_ref().map(|d| d.join(&v.name));
-            let image = match image.map(|p| (crate::imageio::read_rgb(&p), p)) {
-                Some((Ok(im), _)) if im.dim() == (c.height, c.width, 3) => Some(im),
-                Some((Ok(im), p)) => {
-                    warnings.push(format!(
-                        "{}: {}×{} pixels, the cache view is {}×{}: overlay without the image",
-                        p.display(),
-                        im.dim().1,
-                        im.dim().0,
-                        c.width,
-                        c.height
-                    ));
-                    None
-                }
-                Some((Err(e), _)) => {
+            // A training view cached at a lower resolution than its image: the image averaged
+            // down to it.
+            let image = match image.map(|p| crate::imageio::read_rgb_sized(&p, c.width, c.height)) {
+                Some(Ok(im)) => Some(im),
+                Some(Err(e)) => {
                     warnings.push(format!("{e}: overlay without the image"));
                     None
                 }

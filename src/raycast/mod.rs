@@ -35,7 +35,7 @@ use crate::embree::{
 };
 use crate::mesh::{FaceLabel, TriMesh};
 
-pub use output::{RaycastSummary, ViewSummary, run};
+pub use output::{Overlays, RaycastSummary, ViewSummary, run};
 
 /// The default depth tolerance τ of the part pass, in metres (× the alignment scale).
 pub const TAU_M: f64 = 0.5;

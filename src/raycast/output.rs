@@ -1,6 +1,6 @@
 //! The raycasting stage's files: per view `<stem>.ids.npy` (int32 4×H×W: feature,
-//! surface, part, city), `<stem>.depth.npy` (float32 H×W, NaN = no hit) and
-//! `<stem>.overlay.png`, and the run summary.
+//! surface, part, city), `<stem>.depth.npy` (float32 H×W, NaN = no hit), on request
+//! `<stem>.overlay.png` ([`Overlays`]), and the run summary.
 use std::path::Path;
 use std::time::Instant;
 
@@ -30,7 +30,7 @@ pub struct ViewSummary {
     pub undistort_failures: usize,
     /// Seconds spent raycasting this view (without file output).
     pub seconds: f64,
-    /// Whether the overlay was blended over the input image.
+    /// Whether the overlay was blended over the input image (false without an overlay).
     pub overlay_blended: bool,
 }
 
@@ -48,6 +48,18 @@ pub struct RaycastSummary {
     pub tau_scene_units: f64,
     pub single_pass: bool,
     pub per_view: Vec<ViewSummary>,
+}
+
+/// The overlay PNGs `<stem>.overlay.png` of a raycasting run: pictures for a person to look
+/// at, which no stage reads, so `gs4city run` writes none and `gs4city raycast` only with
+/// `--overlays`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Overlays<'a> {
+    /// No overlay.
+    Off,
+    /// The city-id colours, blended over `<dir>/<name>` where the folder is given and holds
+    /// the view's image (of its size, or an integer multiple of it: box-averaged down).
+    On(Option<&'a Path>),
 }
 
 /// A stable, distinct-looking colour per id (black for −1).
@@ -78,13 +90,12 @@ fn overlay(ids: &ViewIds, image: Option<&Array3<u8>>) -> Array3<u8> {
 }
 
 /// Runs the stage: builds the scenes once, raycasts every view and writes its files and
-/// `summary.json` (last) into `out_dir`. `images_dir/<name>` is used for the overlay when it exists and has the
-/// view's size.
+/// `summary.json` (last) into `out_dir`, with the overlays `overlays` asks for.
 pub fn run(
     mesh: &TriMesh,
     views: &[View],
     opts: &RaycastOptions,
-    images_dir: Option<&Path>,
+    overlays: Overlays<'_>,
     out_dir: &Path,
 ) -> Result<RaycastSummary, RaycastError> {
     opts.validate()?;
@@ -120,20 +131,15 @@ pub fn run(
             [&ids.feature, &ids.surface, &ids.part, &ids.city],
         )?;
         idmap::write_depth(out_dir, &stem, w, h, &ids.depth)?;
+        let Overlays::On(images_dir) = overlays else {
+            bar.inc(1);
+            return Ok(false);
+        };
         let image = images_dir
             .map(|d| d.join(&v.name))
             .filter(|p| p.is_file())
-            .and_then(|p| match imageio::read_rgb(&p) {
-                Ok(img) if img.dim() == (h, w, 3) => Some(img),
-                Ok(img) => {
-                    log::warn!(
-                        "raycast: {}: {}×{} pixels, the camera's are {w}×{h}: its overlay is drawn on grey",
-                        p.display(),
-                        img.dim().1,
-                        img.dim().0
-                    );
-                    None
-                }
+            .and_then(|p| match imageio::read_rgb_sized(&p, w, h) {
+                Ok(img) => Some(img),
                 Err(e) => {
                     log::warn!("raycast: {e}: its overlay is drawn on grey");
                     None

@@ -104,6 +104,7 @@ pub fn build(
         options: *opts,
         median_depth: true,
         views: Vec::with_capacity(views.len()),
+        selection: None,
         bytes: 0,
         render_s: 0.0,
         write_s: 0.0,

@@ -22,6 +22,7 @@ pub mod blend;
 pub mod cache;
 pub mod cull;
 pub mod project;
+pub mod select;
 pub mod tile;
 
 use std::path::{Path, PathBuf};
@@ -206,6 +207,11 @@ impl PreparedScene {
         Ok(self)
     }
 
+    /// The cells of the per-view cull ([`cull::CellIndex`]), built on first use.
+    pub fn cells(&self) -> &cull::CellIndex {
+        self.cells.get_or_init(|| cull::CellIndex::new(self))
+    }
+
     pub fn len(&self) -> usize {
         self.positions.len()
     }
@@ -335,7 +341,7 @@ fn render_view_with(
     let mut candidates = CANDIDATES.take();
     candidates.clear();
     if cull_cells {
-        let cells = scene.cells.get_or_init(|| cull::CellIndex::new(scene));
+        let cells = scene.cells();
         let mut keep = vec![0u64; n.div_ceil(64)];
         candidates.reserve(cells.mark_visible(&v, &mut keep));
         for (w, &bits) in keep.iter().enumerate() {

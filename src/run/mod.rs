@@ -1,6 +1,7 @@
 //! The `run` orchestrator: a scene folder through every stage into a run folder `R` (`docs/design.md`,
-//! "Stage contract"): (`R/align`) → `R/citymodel` → `R/raycast` → `R/render` (the contributions
-//! cache) → `R/masks` → `R/associate` → `R/fuse` → `R/lift` (the vote) → (`R/train`) → `R/eval`
+//! "Stage contract"): (`R/align`) → `R/citymodel` → `R/render` (the training views the run needs
+//! and the contributions cache) → `R/raycast` → `R/masks` → `R/associate` → `R/fuse` → `R/lift`
+//! (the vote) → (`R/train`) → `R/eval`
 //! (when the scene has `gt/`), `R/report.html` and `R/run.json`. With `--supervision city` the
 //! mask stages are skipped and the vote reads `M_city` alone (paper §3.1).
 //!
@@ -16,6 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::alignment::Alignment;
 use crate::associate::{self, AssociateOptions, AssociateSummary};
+pub use crate::cache::ViewSelection;
 use crate::cache::{self, Cache, CacheOptions, CacheSummary};
 use crate::camera::View;
 use crate::citymodel::{self, CitymodelSummary};
@@ -134,6 +136,15 @@ pub struct RunOptions {
     /// before it existed) = the rasterizer's own stop only.
     #[serde(default)]
     pub t_stop: f32,
+    /// Training views are worked at `1/train_scale` of their resolution, from the render and
+    /// the raycast to the vote (masks, openings, association, fusion, vote); test views always
+    /// at their full resolution. 1 (and in run.json files before it existed) = full.
+    #[serde(default = "full_scale")]
+    pub train_scale: u32,
+    /// Which training views the run works on (`render::select`); every one in run.json files
+    /// before it existed.
+    #[serde(default)]
+    pub views: ViewSelection,
     pub lift: LiftOptions,
     /// Where the labels come from (city model alone, or fused with the masks).
     pub supervision: Supervision,
@@ -165,14 +176,94 @@ pub struct RunOptions {
     pub force: bool,
 }
 
-impl Default for RunOptions {
-    fn default() -> Self {
-        RunOptions {
-            tau_m: raycast::TAU_M,
-            single_pass: false,
+fn full_scale() -> u32 {
+    1
+}
+
+/// How much work a run does for its answer: the presets of `gs4city run --quality`, points of
+/// the speed–error curve in BENCHMARKS.md ("Work knobs") and docs/quality.md.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Quality {
+    /// Every training view at full resolution, the longest contribution lists.
+    Full,
+    /// The default: the cheapest setting within 0.5 points of fine mIoU of `full` on every
+    /// scene measured; no lighter setting has met that yet, so it is `full`'s work.
+    #[default]
+    Default,
+    /// Less work, for a first look: training views at half resolution and the 3-cover of
+    /// the views (it costs fine mIoU points: docs/quality.md).
+    Fast,
+}
+
+impl std::str::FromStr for Quality {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Quality, String> {
+        match s {
+            "full" => Ok(Quality::Full),
+            "default" => Ok(Quality::Default),
+            "fast" => Ok(Quality::Fast),
+            _ => Err(format!("{s:?} is not one of full, default, fast")),
+        }
+    }
+}
+
+/// The work knobs a [`Quality`] sets.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Work {
+    pub train_scale: u32,
+    pub views: ViewSelection,
+    pub top_k: usize,
+    pub epsilon: f32,
+    pub t_stop: f32,
+}
+
+impl Quality {
+    /// The preset's knobs.
+    pub fn work(self) -> Work {
+        let full = Work {
+            train_scale: 1,
+            views: ViewSelection::All,
             top_k: cache::TOP_K,
             epsilon: cache::EPSILON,
             t_stop: cache::T_STOP,
+        };
+        match self {
+            Quality::Full | Quality::Default => full,
+            Quality::Fast => Work {
+                train_scale: 2,
+                views: ViewSelection::Cover { k: 3, share: 1.0 },
+                ..full
+            },
+        }
+    }
+}
+
+impl RunOptions {
+    /// These options with the work knobs of `w`.
+    pub fn with_work(self, w: Work) -> RunOptions {
+        RunOptions {
+            train_scale: w.train_scale,
+            views: w.views,
+            top_k: w.top_k,
+            epsilon: w.epsilon,
+            t_stop: w.t_stop,
+            ..self
+        }
+    }
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        let work = Quality::Default.work();
+        RunOptions {
+            tau_m: raycast::TAU_M,
+            single_pass: false,
+            top_k: work.top_k,
+            epsilon: work.epsilon,
+            t_stop: work.t_stop,
+            train_scale: work.train_scale,
+            views: work.views,
             lift: LiftOptions::default(),
             supervision: Supervision::Fused,
             masks: MasksOptions::default(),
@@ -220,7 +311,7 @@ fn files_in(dir: &Path) -> Vec<PathBuf> {
 }
 
 /// Runs (or resumes) every stage of the scene folder `scene_dir` into `out`, in this order
-/// (the only place that knows it): align (optional) → citymodel → raycast → render → masks →
+/// (the only place that knows it): align (optional) → citymodel → render → raycast → masks →
 /// openings (windows/doors the model lacks; the completed model is raycast again) →
 /// associate → fuse (fused supervision) → lift → train (mode learned) → eval (with `gt/`) →
 /// report.
@@ -234,8 +325,8 @@ pub fn run(scene_dir: &Path, out: &Path, opts: &RunOptions) -> Result<RunSummary
     let mut r = open(scene_dir, out, opts)?;
     let alignment_file = align_step(&mut r, opts)?;
     let cm = citymodel_step(&mut r, alignment_file.as_deref(), opts)?;
-    raycast_step(&mut r, cm.alignment.scale, opts)?;
     let cache = render_step(&mut r, opts)?;
+    raycast_step(&mut r, cm.alignment.scale, opts)?;
     let entities = semantics::read(&r.st.dir(Stage::Citymodel).join("semantics.json"))?;
     let srs = cm.files.iter().find_map(|f| f.srs_name.clone());
     let sup = match opts.supervision {
@@ -270,7 +361,11 @@ fn canonical(scene_dir: &Path) -> Result<PathBuf, RunError> {
 /// What every step of a run shares.
 struct Running {
     scene: Scene,
+    /// Every view the run works on, by name: the training views of the selection at the work
+    /// resolution and the test views (set by [`render_step`]; before it, every view at its
+    /// full resolution).
     views: Vec<View>,
+    /// The training and test views, as `views`.
     split: Split,
     st: Store,
     /// The scene check's warnings (CityGML warnings stay in `R/citymodel/summary.json`).
@@ -466,46 +561,136 @@ fn citymodel_step(
     )
 }
 
-/// Step 2: raycast (every view): `M_city` and the city-model depth.
+/// Step 3: raycast (the views of the render): `M_city` and the city-model depth.
 fn raycast_step(r: &mut Running, scale: f64, opts: &RunOptions) -> Result<(), RunError> {
     let ro = raycast::RaycastOptions {
         tau: opts.tau_m * scale,
         single_pass: opts.single_pass,
     };
-    let mut inputs = r.sparse_files.clone();
-    if let Some(d) = &r.scene.images {
-        inputs.extend(files_in(d));
-    }
+    // No overlays (pictures no stage reads; `gs4city raycast --overlays`), so the images are
+    // not read either.
+    let inputs = r.sparse_files.clone();
     let cm_dir = r.st.dir(Stage::Citymodel);
-    let (views, images) = (&r.views, r.scene.images.as_deref());
+    let views = &r.views;
+    // Which views are traced at which size: part of the options when the render chose fewer
+    // or smaller training views than the cameras', so that another choice reruns the raycast
+    // and a new PLY with the same choice does not.
+    let traced: Vec<(String, u32, u32)> =
+        if opts.train_scale > 1 || opts.views != ViewSelection::All {
+            views
+                .iter()
+                .map(|v| {
+                    let k = &v.camera.intrinsics;
+                    (v.name.clone(), k.width, k.height)
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+    let key = TracedViews {
+        options: &ro,
+        views: traced,
+    };
     let _rc: RaycastSummary =
-        r.st.stage(Stage::Raycast, &ro, &inputs, &[Stage::Citymodel], |dir| {
+        r.st.stage(Stage::Raycast, &key, &inputs, &[Stage::Citymodel], |dir| {
             let mesh_path = cm_dir.join("mesh.ply");
             let mesh = crate::mesh::TriMesh::read_ply(&mesh_path)?;
             let entities = semantics::read(&cm_dir.join("semantics.json"))?;
             semantics::check_mesh_labels(&mesh_path, &mesh, &entities)?;
-            Ok::<_, RunError>(raycast::run(&mesh, views, &ro, images, dir)?)
+            Ok::<_, RunError>(raycast::run(
+                &mesh,
+                views,
+                &ro,
+                raycast::Overlays::Off,
+                dir,
+            )?)
         })?;
     Ok(())
 }
 
-/// Step 3: render: the contributions cache of every view.
+/// The raycast step's options as the run store records them (`views`: empty for every view
+/// at its camera's size).
+#[derive(Serialize)]
+struct TracedViews<'a> {
+    #[serde(flatten)]
+    options: &'a raycast::RaycastOptions,
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    views: Vec<(String, u32, u32)>,
+}
+
+/// Step 2: render: the training views the run works on ([`RunOptions::views`]) and their
+/// contributions cache at the work resolution ([`RunOptions::train_scale`]), and the test
+/// views' at their full resolution. From here on the run works on the views the cache holds.
 fn render_step(r: &mut Running, opts: &RunOptions) -> Result<Cache, RunError> {
     let co = CacheOptions {
         top_k: opts.top_k,
         epsilon: opts.epsilon,
         t_stop: opts.t_stop,
     };
+    opts.views.validate().map_err(RunError::Refused)?;
+    if !(1..=crate::camera::MAX_DOWNSCALE as u32).contains(&opts.train_scale) {
+        return Err(RunError::Refused(format!(
+            "the training views' resolution divisor must be 1 to {}, got {}",
+            crate::camera::MAX_DOWNSCALE,
+            opts.train_scale
+        )));
+    }
     let mut inputs = vec![r.scene.ply.clone()];
     inputs.extend(r.sparse_files.iter().cloned());
-    let (ply, views) = (&r.scene.ply, &r.views);
-    let _cs: CacheSummary = r.st.stage(Stage::Render, &co, &inputs, &[], |dir| {
+    let (ply, split) = (&r.scene.ply, &r.split);
+    let work = (co, opts.train_scale, opts.views);
+    let _cs: CacheSummary = r.st.stage(Stage::Render, &work, &inputs, &[], |dir| {
         let (mut g, _) = crate::splat::read_ply(ply, &crate::splat::ReadOptions::KEEP)?;
         crate::splat::ply::hide_invalid(&mut g);
         let prepared = crate::render::PreparedScene::new(&g)?;
-        Ok::<_, RunError>(render::cache::build(&prepared, views, &co, dir)?)
+        let cover = match opts.views {
+            ViewSelection::All => None,
+            ViewSelection::Cover { k, share } => {
+                let c = render::select::cover(&prepared, &split.train, k, share);
+                log::info!(
+                    "views: {} of {} training views meet {:.1} % of the demand of each Gaussian seen by {k} ({:.1} of {:.1} views per Gaussian) in {:.2} s",
+                    c.chosen.len(),
+                    c.offered,
+                    100.0 * share,
+                    c.mean_views_chosen,
+                    c.mean_views_offered,
+                    c.seconds
+                );
+                Some(c)
+            }
+        };
+        let train: Vec<&View> = match &cover {
+            None => split.train.iter().collect(),
+            Some(c) => c.chosen.iter().map(|&i| &split.train[i]).collect(),
+        };
+        let mut views: Vec<View> = train
+            .into_iter()
+            .map(|v| v.downscaled(opts.train_scale))
+            .chain(split.test.iter().cloned())
+            .collect();
+        views.sort_by(|a, b| a.name.cmp(&b.name));
+        let mut s = render::cache::build(&prepared, &views, &co, dir)?;
+        if cover.is_some() {
+            s.selection = cover;
+            crate::layout::Summary::write(&s, dir)?;
+        }
+        Ok::<_, RunError>(s)
     })?;
-    Ok(Cache::open(&r.st.dir(Stage::Render))?)
+    let cache = Cache::open(&r.st.dir(Stage::Render))?;
+    let test = cache.views_as_cached(&r.split.test)?;
+    if test.len() != r.split.test.len() {
+        return Err(RunError::Refused(format!(
+            "{}: the cache lacks test views; rerun with --force",
+            cache.dir.display()
+        )));
+    }
+    r.split = Split {
+        train: cache.views_as_cached(&r.split.train)?,
+        test,
+    };
+    r.views = r.split.all().cloned().collect();
+    r.views.sort_by(|a, b| a.name.cmp(&b.name));
+    Ok(cache)
 }
 
 /// The per-view label maps the vote reads, their label table, the stages they come from, and
@@ -547,6 +732,28 @@ fn city_supervision(
     })
 }
 
+/// The options of the masks, openings and associate stages with their pixel units at the
+/// training views' resolution (`1/s`, [`RunOptions::train_scale`]), so that a threshold means
+/// the same piece of the scene at any work resolution: areas in pixels divide by `s²` (masks'
+/// `bias_min_px`, openings' `min_px`, the association's `min_mass` in pixels' worth of α·T),
+/// lengths by `s` (masks' `surface_radius_px` and `open_px`, openings' `guard_px`), rounded up
+/// and never below 1 where the full-resolution value is ≥ 1; at `s = 1` they are unchanged.
+fn in_work_pixels(opts: &RunOptions) -> (MasksOptions, OpeningsOptions, AssociateOptions) {
+    let s = opts.train_scale.max(1) as usize;
+    let length = |v: usize| if v == 0 { 0 } else { v.div_ceil(s) };
+    let area = |v: usize| if v == 0 { 0 } else { v.div_ceil(s * s) };
+    let mut masks = opts.masks.clone();
+    masks.surface_radius_px = length(masks.surface_radius_px);
+    masks.bias_min_px = area(masks.bias_min_px);
+    masks.open_px = length(masks.open_px);
+    let mut openings = opts.openings;
+    openings.guard_px = length(openings.guard_px);
+    openings.min_px = area(openings.min_px);
+    let mut associate = opts.associate;
+    associate.weighted.min_mass /= (s * s) as f32;
+    (masks, openings, associate)
+}
+
 /// Steps 4–6: masks → associate → fuse: the fused supervision (paper §3.2), training views only.
 fn fused_supervision(
     r: &mut Running,
@@ -558,6 +765,7 @@ fn fused_supervision(
 ) -> Result<Supervised, RunError> {
     let (scene, train) = (&r.scene, &r.split.train);
     let rc_dir = r.st.dir(Stage::Raycast);
+    let (masks_opts, openings_opts, associate_opts) = in_work_pixels(opts);
     // The scene's SAM lists and features of the training views (their digests decide
     // whether the mask stages rerun).
     let mut inputs: Vec<PathBuf> = Vec::new();
@@ -570,7 +778,7 @@ fn fused_supervision(
     let features = scene.features.clone();
     let ms: MasksSummary = r.st.stage(
         Stage::Masks,
-        &opts.masks,
+        &masks_opts,
         &inputs,
         &[Stage::Citymodel, Stage::Raycast, Stage::Render],
         |dir| {
@@ -582,7 +790,7 @@ fn fused_supervision(
                     cache: Some(cache),
                     alignment_scale: scale,
                 },
-                &opts.masks,
+                &masks_opts,
                 dir,
             )?)
         },
@@ -604,7 +812,7 @@ fn fused_supervision(
     let all_views = &r.views;
     let os: OpeningsSummary = r.st.stage(
         Stage::Openings,
-        &(opts.openings, ro),
+        &(openings_opts, ro),
         &inputs,
         &[
             Stage::Citymodel,
@@ -617,7 +825,7 @@ fn fused_supervision(
             let alignment = Alignment::read(&cm_dir.join("alignment.json"))?;
             // The geometric cue's Gaussian centres (the cache was built for this PLY), read
             // only for a cache without the median-depth plane.
-            let positions = if opts.openings.cues.geometry() && !cache.summary.median_depth {
+            let positions = if openings_opts.cues.geometry() && !cache.summary.median_depth {
                 let (g, _) = crate::splat::read_ply(&scene.ply, &crate::splat::ReadOptions::KEEP)?;
                 if g.len() != cache.summary.gaussians {
                     return Err(RunError::Refused(format!(
@@ -642,19 +850,20 @@ fn fused_supervision(
                     mesh: &mesh,
                     alignment: &alignment,
                     srs_name,
-                    geometry: opts.openings.cues.geometry().then_some(openings::Geometry {
+                    geometry: openings_opts.cues.geometry().then_some(openings::Geometry {
                         cache,
                         positions: positions.as_deref(),
                     }),
                 },
-                &opts.openings,
+                &openings_opts,
             )?;
             openings::write(&out, dir)?;
             if let Some((e, m)) = &out.completed {
                 let rdir = dir.join("raycast");
                 fsutil::create_dir(&rdir)?;
                 semantics::check_mesh_labels(&dir.join("mesh.ply"), m, e)?;
-                let _rc: RaycastSummary = raycast::run(m, all_views, &ro, None, &rdir)?;
+                let _rc: RaycastSummary =
+                    raycast::run(m, all_views, &ro, raycast::Overlays::Off, &rdir)?;
             }
             Ok::<_, RunError>(out.summary)
         },
@@ -675,7 +884,7 @@ fn fused_supervision(
     };
     let asum: AssociateSummary = r.st.stage(
         Stage::Associate,
-        &opts.associate,
+        &associate_opts,
         &inputs,
         &[Stage::Masks, Stage::Render],
         |dir| {
@@ -689,7 +898,7 @@ fn fused_supervision(
                     ply: &scene.ply,
                     scale,
                 },
-                &opts.associate,
+                &associate_opts,
                 dir,
             )?)
         },
@@ -902,4 +1111,39 @@ fn finish(
     };
     fsutil::write_json(&out.join("summary.json"), &summary)?;
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pixel_thresholds_follow_the_work_resolution() {
+        let mut opts = RunOptions::default();
+        opts.masks.surface_radius_px = 5;
+        opts.masks.bias_min_px = 64;
+        opts.masks.open_px = 0;
+        opts.openings.guard_px = 2;
+        opts.openings.min_px = 12;
+        opts.associate.weighted.min_mass = 0.9;
+        let at = |s: u32| {
+            let (m, o, a) = in_work_pixels(&RunOptions {
+                train_scale: s,
+                ..opts.clone()
+            });
+            (
+                m.surface_radius_px,
+                m.bias_min_px,
+                m.open_px,
+                o.guard_px,
+                o.min_px,
+                a.weighted.min_mass,
+            )
+        };
+        // By hand: lengths ⌈v/s⌉, areas ⌈v/s²⌉, a zero stays zero, the mass divided by s².
+        assert_eq!(at(1), (5, 64, 0, 2, 12, 0.9));
+        assert_eq!(at(2), (3, 16, 0, 1, 3, 0.225));
+        assert_eq!(at(3), (2, 8, 0, 1, 2, 0.9 / 9.0));
+        assert_eq!(at(8), (1, 1, 0, 1, 1, 0.9 / 64.0));
+    }
 }
