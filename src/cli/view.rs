@@ -37,12 +37,12 @@ pub struct ViewArgs {
 
 pub fn run(a: &ViewArgs) -> anyhow::Result<()> {
     let t0 = std::time::Instant::now();
-    let lock;
+    let mut lock = None;
     let (viewer, what) = match &a.run {
         Some(run) => {
             super::query::check_finished(run, a.scene.as_deref(), a.mode, false)?;
             // Held while the server runs: a run into R is refused until the viewer stops.
-            lock = Some(super::query::lock_run(run)?);
+            lock = super::query::lock_run(run)?;
             let scene = super::query::scene_of(run, a.scene.as_deref())?;
             let v = crate::view::Viewer::open(
                 run,
