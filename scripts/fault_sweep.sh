@@ -101,7 +101,7 @@ pair() { # name_a name_b folder_to_compare cmd_a... -- cmd_b...
   echo "| \`$na\` | \`$nb\` | $rb | $says | $ra | $eq |"
 }
 rm -rf R1; pair "run S → R1" "run S → R1" R1 run --scene S --out R1 -- run --scene S --out R1
-rm -rf R1; pair "run S → R1" "run S → R1 --tau 0.3" R1 run --scene S --out R1 -- run --scene S --out R1 --tau 0.3
+rm -rf R1; pair "run S → R1" "run S → R1 --supervision city" R1 run --scene S --out R1 -- run --scene S --out R1 --supervision city
 rm -rf R1; pair "run S → R1" "query --run R1" R1 run --scene S --out R1 -- query --run R1 --class Window --out Q1
 pair "view R0" "run S → R0" "" view R0 --port 0 -- run --scene S --out R0
 pair "query --run R0" "query --run R0" "" query --run R0 --class Window --out Q2 -- query --run R0 --class WallSurface --out Q3

@@ -52,7 +52,7 @@ pub enum InspectError {
         lines.join("\n  ")
     )]
     Problems { scene: PathBuf, lines: Vec<String> },
-    #[error("invalid check option: {0}")]
+    #[error(transparent)]
     Options(#[from] crate::check::OutOfRange),
 }
 

@@ -29,7 +29,7 @@ pub enum VoteError {
     Cache(#[from] CacheError),
     #[error(transparent)]
     IdMap(#[from] IdMapError),
-    #[error("invalid option: {0}")]
+    #[error(transparent)]
     Options(#[from] crate::check::OutOfRange),
     #[error(transparent)]
     Ply(#[from] crate::splat::PlyError),

@@ -191,7 +191,7 @@ fn a_second_run_on_a_locked_folder_is_refused_naming_the_first_which_finishes_as
         "the first run never took its lock"
     );
     // Same options, and other options: both refused, naming the first by pid and command.
-    for extra in [&[][..], &["--tau", "0.3"][..]] {
+    for extra in [&[][..], &["--supervision", "city"][..]] {
         let mut args = vec!["-q", "run", "--scene", s(sc), "--out", s(&r)];
         args.extend_from_slice(extra);
         let (code, text) = gs(&args);
@@ -221,7 +221,7 @@ fn a_second_run_on_a_locked_folder_is_refused_naming_the_first_which_finishes_as
     assert_same_files(&solo, &r);
     // Readers side by side, and a run refused while one reads (naming the reader).
     let view = bin()
-        .args(["view", s(&r), "--port", "0"])
+        .args(["view", "--run", s(&r), "--port", "0"])
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
@@ -629,7 +629,13 @@ fn an_error_line_gives_the_os_reason_once() {
             s(&d.join("C")).into(),
         ],
         vec!["check".into(), "--scene".into(), s(&file).into()],
-        vec!["view".into(), s(&file).into(), "--port".into(), "0".into()],
+        vec![
+            "view".into(),
+            "--run".into(),
+            s(&file).into(),
+            "--port".into(),
+            "0".into(),
+        ],
     ];
     let mut os_lines = 0;
     for args in &cases {

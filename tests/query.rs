@@ -1010,8 +1010,12 @@ fn command_line() {
         "--out",
         o,
     ]);
-    assert!(ok, "{stderr}");
-    assert!(stdout.contains("match false"), "{stdout}");
+    // No match is its own exit status (3), said in one line that names the outputs.
+    assert!(!ok, "{stdout}");
+    assert!(
+        stderr.contains("no match") && stderr.contains("exit status 3"),
+        "{stderr}"
+    );
     // Errors: one line on stderr, failure status, nothing that looks done.
     let bad = f.root.join("bad");
     for (args, want) in [

@@ -13,6 +13,15 @@ fn reruns(s: &RunSummary) -> Vec<&str> {
         .collect()
 }
 
+/// The default options with 3DGS's split (every 8th view a test view): the hand-built scenes
+/// declare no test views (no scene.json), so by default every view would train.
+fn eighth() -> RunOptions {
+    RunOptions {
+        test_every: Some(8),
+        ..Default::default()
+    }
+}
+
 fn miou(s: &RunSummary) -> (Option<f64>, Option<f64>) {
     let e = s.eval.as_ref().expect("gt/ exists: metrics");
     (e.paper["miou"], e.dataset["coarse_iou"])
@@ -101,7 +110,7 @@ fn resume_and_exact_reruns_after_deleting_or_truncating_any_output() {
     let dir = wall::tmp("run-resume");
     let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
     let out = dir.join("out");
-    let o = RunOptions::default();
+    let o = eighth();
     let clean = run(&scene, &out, &o).unwrap();
     let clean_metrics = miou(&clean);
     let again = run(&scene, &out, &o).unwrap();
@@ -318,7 +327,7 @@ fn another_test_split_leaves_no_stale_prediction() {
     let dir = wall::tmp("run-split");
     let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
     let out = dir.join("out");
-    let a = run(&scene, &out, &RunOptions::default()).unwrap();
+    let a = run(&scene, &out, &eighth()).unwrap();
     assert_eq!(a.test_views, ["v00"]);
     let b = run(
         &scene,
@@ -331,7 +340,7 @@ fn another_test_split_leaves_no_stale_prediction() {
     .unwrap();
     assert_eq!(b.test_views, ["v00", "v03", "v06"]);
     assert_eq!(b.eval.as_ref().unwrap().images, 3);
-    let c = run(&scene, &out, &RunOptions::default()).unwrap();
+    let c = run(&scene, &out, &eighth()).unwrap();
     assert_eq!(c.eval.as_ref().unwrap().images, 1);
     let preds: Vec<String> = std::fs::read_dir(out.join("lift"))
         .unwrap()
@@ -364,7 +373,7 @@ fn an_image_that_cannot_be_decoded_is_a_grey_report_panel_not_a_failed_run() {
     )
     .unwrap();
     let out = dir.join("out");
-    let s = run(&scene, &out, &RunOptions::default()).unwrap();
+    let s = run(&scene, &out, &eighth()).unwrap();
     assert_eq!(s.test_views, ["v00"]);
     assert!(out.join("report.html").is_file());
     // The first of the panel's four images (image | classes | truth | prediction, 4-pixel
@@ -385,9 +394,7 @@ fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
     let (scene, _) = wall::write_scene(&dir.join("scene"), 5);
     let before = crate::common::files(&scene);
     for out in [scene.clone(), scene.join("run"), scene.join("gt/../x")] {
-        let e = run(&scene, &out, &RunOptions::default())
-            .unwrap_err()
-            .to_string();
+        let e = run(&scene, &out, &eighth()).unwrap_err().to_string();
         assert!(e.contains("scene folder"), "{e}");
         assert_eq!(
             crate::common::files(&scene),
@@ -396,7 +403,7 @@ fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
         );
     }
     std::fs::remove_file(scene.join("citymodel/alignment.json")).unwrap();
-    let e = run(&scene, &dir.join("out"), &RunOptions::default())
+    let e = run(&scene, &dir.join("out"), &eighth())
         .unwrap_err()
         .to_string();
     assert!(
@@ -413,14 +420,14 @@ fn refuses_a_run_folder_in_the_scene_and_a_scene_without_alignment() {
         &dir.join("out"),
         &RunOptions {
             local_origin: true,
-            ..Default::default()
+            ..eighth()
         },
     )
     .unwrap();
     assert!(s.eval.unwrap().dataset["coarse_iou"].unwrap() > 0.85);
     // A scene without point_cloud.ply is one clear error.
     std::fs::remove_file(scene.join("point_cloud.ply")).unwrap();
-    let e = run(&scene, &dir.join("out2"), &RunOptions::default())
+    let e = run(&scene, &dir.join("out2"), &eighth())
         .unwrap_err()
         .to_string();
     assert!(e.contains("point_cloud.ply"), "{e}");

@@ -722,6 +722,9 @@ fn a_view_joins_the_tiles_that_take_a_share_of_its_screen_and_each_tile_keeps_it
             share,
             "--min-views",
             min_views,
+            // The replica declares no test views: 3DGS's split, as the expectations assume.
+            "--test-every",
+            "8",
             "--out",
             p.to_str().unwrap(),
         ]);

@@ -13,7 +13,13 @@ use gs4city::run::{Quality, RunOptions, Work, run};
 fn outputs(dir: &Path) -> Vec<(String, Vec<u8>)> {
     common::files(dir)
         .into_iter()
-        .filter(|(n, _)| !(n.ends_with("summary.json") || n == "run.json" || n == "report.html"))
+        // Summaries hold times; `.lock` names the process that held the folder.
+        .filter(|(n, _)| {
+            !(n.ends_with("summary.json")
+                || n == "run.json"
+                || n == "report.html"
+                || n.ends_with(".lock"))
+        })
         .collect()
 }
 

@@ -59,7 +59,7 @@ use crate::npy::{self, NpyError};
 /// Errors of the associate stage. Each names the file at fault.
 #[derive(Debug, thiserror::Error)]
 pub enum AssociateError {
-    #[error("invalid option: {0}")]
+    #[error(transparent)]
     Options(#[from] crate::check::OutOfRange),
     #[error("two views share the stem `{0}`")]
     SharedStem(String),

@@ -73,16 +73,19 @@ pub fn merged_with<T: Serialize + DeserializeOwned>(
     flags: &T,
     given: impl Fn(&str) -> bool,
 ) -> T {
-    let mut base = serde_json::to_value(file).expect("a group serialises");
-    let over = serde_json::to_value(flags).expect("a group serialises");
-    if let (Some(b), Some(o)) = (base.as_object_mut(), over.as_object()) {
+    // TOML values, not JSON: a non-finite number given on the command line (`--t-stop NaN`)
+    // survives the merge and is refused by the stage's own check, naming the option.
+    let mut base = toml::Value::try_from(file).expect("a group serialises");
+    let over = toml::Value::try_from(flags).expect("a group serialises");
+    if let (Some(b), Some(o)) = (base.as_table_mut(), over.as_table()) {
         for (k, v) in o {
             if given(k) {
                 b.insert(k.clone(), v.clone());
             }
         }
     }
-    serde_json::from_value(base).expect("a group deserialises from its own values")
+    base.try_into()
+        .expect("a group deserialises from its own values")
 }
 
 /// [`merged_with`] the arguments of this process's command line.

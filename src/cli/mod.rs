@@ -127,7 +127,7 @@ enum Command {
     /// depth.
     #[command(
         hide = true,
-        after_help = "Example:\n  gs4city raycast --citymodel R/citymodel --colmap S/sparse/0 --images S/images --out R/raycast"
+        after_help = "Example:\n  gs4city raycast --citymodel R/citymodel --colmap S/sparse/0 --overlays --images S/images --out R/raycast"
     )]
     Raycast(raycast::RaycastArgs),
     /// Render a 3DGS PLY (CPU, INRIA forward pass) into COLMAP views → PNG, depth .npy,

@@ -51,7 +51,7 @@ pub fn run(a: &ViewArgs) -> anyhow::Result<()> {
                 a.max_splats,
                 super::query::run_crs(run),
             )
-                .with_context(|| format!("opening run {} for viewing", run.display()))?;
+            .with_context(|| format!("opening run {} for viewing", run.display()))?;
             (v, format!("run {}", run.display()))
         }
         None => {

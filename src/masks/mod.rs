@@ -68,7 +68,7 @@ use rules::decide_sam;
 pub enum MasksError {
     #[error("{path}: {why}")]
     Invalid { path: PathBuf, why: String },
-    #[error("masks options: {0}")]
+    #[error(transparent)]
     Options(#[from] crate::check::OutOfRange),
     #[error("{0}")]
     Unavailable(String),

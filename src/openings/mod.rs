@@ -62,7 +62,7 @@ use plane::{Rect, WallFrame, wall_frames};
 pub enum OpeningsError {
     #[error("{path}: {why}")]
     Invalid { path: PathBuf, why: String },
-    #[error("openings options: {0}")]
+    #[error(transparent)]
     Options(#[from] crate::check::OutOfRange),
     #[error(transparent)]
     IdMap(#[from] idmap::IdMapError),

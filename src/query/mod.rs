@@ -315,8 +315,10 @@ fn pick_point(
     ids: &[u32],
     ws: &[f32],
 ) -> Result<(Option<[f64; 3]>, Option<[f64; 3]>), QueryError> {
-    let views = crate::colmap::read_model(&sr.scene.sparse)
-        .map_err(|e| QueryError::Inputs(e.to_string()))?;
+    // A run read without its scene's cameras (a cache alone): the label, no point.
+    let Ok(views) = crate::colmap::read_model(&sr.scene.sparse) else {
+        return Ok((None, None));
+    };
     let Some(v) = views.iter().find(|v| v.stem() == stem) else {
         return Err(QueryError::Inputs(format!(
             "view `{stem}` is in the cache but not in {}",

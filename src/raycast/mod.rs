@@ -47,7 +47,7 @@ pub enum RaycastError {
     Embree(#[from] EmbreeError),
     #[error("invalid mesh: {0}")]
     Mesh(String),
-    #[error("invalid option: {0}")]
+    #[error(transparent)]
     Option(#[from] crate::check::OutOfRange),
     #[error("view {name}: {why}")]
     View { name: String, why: String },

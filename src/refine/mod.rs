@@ -29,7 +29,7 @@ use solve::{Normal7, Solution};
 /// Errors (and refusals) of the refinement.
 #[derive(Debug, thiserror::Error)]
 pub enum RefineError {
-    #[error("invalid refine option: {0}")]
+    #[error(transparent)]
     Options(#[from] crate::check::OutOfRange),
     #[error("city model: {0}")]
     Mesh(String),

@@ -48,7 +48,7 @@ use crate::splat::Gaussians;
 pub enum RenderError {
     #[error("invalid scene: {0}")]
     Scene(String),
-    #[error("cache options: {0}")]
+    #[error(transparent)]
     Options(#[from] crate::check::OutOfRange),
     #[error("features: {found} values for {gaussians} Gaussians × {channels} channels")]
     Features {

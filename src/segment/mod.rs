@@ -50,7 +50,7 @@ pub enum SegmentError {
     Image { path: PathBuf, why: String },
     #[error("{dir}: no images (png, jpg, jpeg)")]
     NoImages { dir: PathBuf },
-    #[error("invalid option: {0}")]
+    #[error(transparent)]
     Options(#[from] crate::check::OutOfRange),
     #[error("empty prompt {0:?}")]
     EmptyPrompt(String),

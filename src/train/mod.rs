@@ -67,7 +67,7 @@ pub enum TrainError {
     Fs(#[from] crate::fsutil::FsError),
     #[error("{path}: {why}")]
     Labels { path: PathBuf, why: String },
-    #[error("invalid option: {0}")]
+    #[error(transparent)]
     Options(#[from] crate::check::OutOfRange),
     #[error("no training views (every view is a test view)")]
     NoTrainingViews,
