@@ -471,6 +471,10 @@ pub fn downscale_factor(full: (usize, usize), small: (usize, usize)) -> Option<u
     (1..=MAX_DOWNSCALE).find(|&s| full.0.div_ceil(s) == small.0 && full.1.div_ceil(s) == small.1)
 }
 
+/// A view traced at a size that is no downscale of its camera's: its stem, that size, the
+/// camera's size.
+pub type SizeMismatch = (String, (usize, usize), (usize, usize));
+
 /// `views` as a stage made them: each view `size_of` knows, with its camera at that size (a
 /// view worked at `1/s` of its camera's resolution, [`Intrinsics::downscaled`]); views it does
 /// not know are left out. A size that is no such downscale of the camera's is returned as
@@ -478,7 +482,7 @@ pub fn downscale_factor(full: (usize, usize), small: (usize, usize)) -> Option<u
 pub fn views_at_sizes(
     views: &[View],
     size_of: impl Fn(&View) -> Option<(usize, usize)>,
-) -> Result<Vec<View>, (String, (usize, usize), (usize, usize))> {
+) -> Result<Vec<View>, SizeMismatch> {
     let mut out = Vec::with_capacity(views.len());
     for v in views {
         let Some(size) = size_of(v) else {

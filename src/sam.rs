@@ -691,8 +691,13 @@ pub fn downscale(m: &SamMask, s: usize) -> Result<SamMask, RleError> {
                     flush(current, &mut col, &mut touched);
                     current = x / s;
                 }
-                for r in y0 / s..=(y1 - 1) / s {
-                    col[r] += (y1.min((r + 1) * s) - y0.max(r * s)) as u32;
+                for (r, c) in col
+                    .iter_mut()
+                    .enumerate()
+                    .take((y1 - 1) / s + 1)
+                    .skip(y0 / s)
+                {
+                    *c += (y1.min((r + 1) * s) - y0.max(r * s)) as u32;
                 }
                 touched = Some(touched.map_or((y0 / s, (y1 - 1) / s), |(lo, hi)| {
                     (lo.min(y0 / s), hi.max((y1 - 1) / s))

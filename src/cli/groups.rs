@@ -96,7 +96,7 @@ pub fn merged<T: Serialize + DeserializeOwned>(file: &T, flags: &T) -> T {
 /// `--config FILE.toml`: the tuning and ablation settings of every stage (docs/config.md).
 #[derive(Debug, Clone, Args)]
 pub struct ConfigArg {
-    /// Tuning and ablation settings, one [section] per stage (docs/config.md; the ablations of
+    /// Tuning and ablation settings, one `[section]` per stage (docs/config.md; the ablations of
     /// BENCHMARKS.md are configs/ablation/*.toml).
     #[arg(long, value_name = "FILE.toml")]
     pub config: Option<PathBuf>,

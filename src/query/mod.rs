@@ -308,13 +308,16 @@ pub fn chain(sr: &SemanticRun, chains: &[crate::mesh::FaceLabel], label: i32) ->
 /// The point of the splat surface under pixel (x, y) of view `stem` (its ray through the
 /// pixel's centre, the cached list `ids`/`ws` of the pixel), and that point in the city model's
 /// CRS through the run's alignment.
+/// The point under a picked pixel in the scene frame and in the city model's CRS.
+type PickPoint = (Option<[f64; 3]>, Option<[f64; 3]>);
+
 fn pick_point(
     sr: &SemanticRun,
     stem: &str,
     (x, y): (usize, usize),
     ids: &[u32],
     ws: &[f32],
-) -> Result<(Option<[f64; 3]>, Option<[f64; 3]>), QueryError> {
+) -> Result<PickPoint, QueryError> {
     // A run read without its scene's cameras (a cache alone): the label, no point.
     let Ok(views) = crate::colmap::read_model(&sr.scene.sparse) else {
         return Ok((None, None));

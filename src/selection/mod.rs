@@ -54,7 +54,7 @@ pub enum SelectionError {
     Select {
         what: String,
         text: String,
-        error: SelectError,
+        error: Box<SelectError>,
     },
     #[error("{0}")]
     Inputs(String),
@@ -265,7 +265,7 @@ impl SemanticRun {
             SelectionError::Select {
                 what: what.to_string(),
                 text: text.to_string(),
-                error,
+                error: Box::new(error),
             }
         })
     }
