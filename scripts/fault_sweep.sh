@@ -103,7 +103,7 @@ pair() { # name_a name_b folder_to_compare cmd_a... -- cmd_b...
 rm -rf R1; pair "run S → R1" "run S → R1" R1 run --scene S --out R1 -- run --scene S --out R1
 rm -rf R1; pair "run S → R1" "run S → R1 --supervision city" R1 run --scene S --out R1 -- run --scene S --out R1 --supervision city
 rm -rf R1; pair "run S → R1" "query --run R1" R1 run --scene S --out R1 -- query --run R1 --class Window --out Q1
-pair "view R0" "run S → R0" "" view R0 --port 0 -- run --scene S --out R0
+pair "view --run R0" "run S → R0" "" view --run R0 --port 0 -- run --scene S --out R0
 pair "query --run R0" "query --run R0" "" query --run R0 --class Window --out Q2 -- query --run R0 --class WallSurface --out Q3
 pair "run-plan P --tile 0" "run-plan P --tile 0" "" run-plan P --tile 0 -- run-plan P --tile 0
 pair "run-plan P --jobs 2" "run-plan P --jobs 2" "" run-plan P --jobs 2 --no-test-views -- run-plan P --jobs 2 --no-test-views

@@ -666,24 +666,33 @@ fn window_shot(t: &Truth) -> (i32, usize, DVec3, DVec3) {
     panic!("no window of the run is clear to click on");
 }
 
-#[test]
-fn click_on_a_window_and_type_queries_in_headless_chromium() {
-    let test = "view::click_on_a_window_and_type_queries_in_headless_chromium";
+/// `tools/js` when the browser tests can run (playwright-core installed, Debian's Chromium
+/// present); else the test is skipped with the reason.
+fn browser_tools(test: &str) -> Option<std::path::PathBuf> {
     let tools = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/js");
     if !tools.join("node_modules/playwright-core").is_dir() {
         crate::common::skip(
             test,
             "tools/js/node_modules/playwright-core is missing (scripts/setup.sh runs npm ci in tools/js)",
         );
-        return;
+        return None;
     }
     if !Path::new("/usr/bin/chromium").is_file() {
         crate::common::skip(
             test,
             "/usr/bin/chromium is missing (scripts/setup.sh installs Debian's chromium)",
         );
-        return;
+        return None;
     }
+    Some(tools)
+}
+
+#[test]
+fn click_on_a_window_and_type_queries_in_headless_chromium() {
+    let test = "view::click_on_a_window_and_type_queries_in_headless_chromium";
+    let Some(tools) = browser_tools(test) else {
+        return;
+    };
     let run = run_dir();
     let t = truth(run);
     let (part, g, eye, target) = window_shot(&t);
@@ -814,21 +823,9 @@ fn click_on_a_window_and_type_queries_in_headless_chromium() {
 #[test]
 fn a_click_in_view_scene_shows_the_point_in_headless_chromium() {
     let test = "view::a_click_in_view_scene_shows_the_point_in_headless_chromium";
-    let tools = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/js");
-    if !tools.join("node_modules/playwright-core").is_dir() {
-        crate::common::skip(
-            test,
-            "tools/js/node_modules/playwright-core is missing (scripts/setup.sh runs npm ci in tools/js)",
-        );
+    let Some(tools) = browser_tools(test) else {
         return;
-    }
-    if !Path::new("/usr/bin/chromium").is_file() {
-        crate::common::skip(
-            test,
-            "/usr/bin/chromium is missing (scripts/setup.sh installs Debian's chromium)",
-        );
-        return;
-    }
+    };
     let run = run_dir();
     let t = truth(run);
     let (_, g, eye, target) = window_shot(&t);
