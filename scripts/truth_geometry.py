@@ -50,6 +50,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import cgal_reference as cr  # noqa: E402  (CGAL triangulation of one patch)
+from gt_reference import read_ply  # noqa: E402  (the binary PLY reader of the references)
 
 FEATURE = {"Building", "BuildingPart", "BuildingInstallation", "BuildingConstructiveElement"}
 SURFACE = {"WallSurface", "RoofSurface", "GroundSurface", "ClosureSurface",
@@ -64,28 +65,6 @@ FIRST_INSTANCE = 1_000_000
 ROAD, PAVEMENT, GRASS, WATER, FLOATERS = range(FIRST_INSTANCE, FIRST_INSTANCE + 5)
 FIRST_OBJECT = FIRST_INSTANCE + 10
 LOD = re.compile(r"^lod([0-4])")
-
-
-def read_positions(path):
-    """Centres (float64 N x 3) of a binary little-endian PLY, from its header."""
-    with open(path, "rb") as f:
-        data = f.read()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:end].decode("ascii").splitlines()
-    if "format binary_little_endian 1.0" not in header:
-        sys.exit(f"{path}: only binary little-endian PLY is read here")
-    types = {"float": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
-    n, props, in_vertex = 0, [], False
-    for line in header:
-        w = line.split()
-        if w[:2] == ["element", "vertex"]:
-            n, in_vertex = int(w[2]), True
-        elif w[:1] == ["element"]:
-            in_vertex = False
-        elif w[:1] == ["property"] and in_vertex:
-            props.append((w[2], types[w[1]]))
-    v = np.frombuffer(data, dtype=np.dtype(props), count=n, offset=end)
-    return np.stack([v[k].astype(np.float64) for k in ("x", "y", "z")], axis=1)
 
 
 def read_citygml(path, ents, fi):
@@ -291,7 +270,7 @@ def main():
     tol = a.tol * s
 
     truth = np.load(a.truth or os.path.join(a.scene, "gt", "gaussians.npy"))
-    xyz = read_positions(os.path.join(a.scene, "point_cloud.ply"))
+    xyz = read_ply(os.path.join(a.scene, "point_cloud.ply"))["xyz"]
     if truth.shape != (len(xyz), 5):
         sys.exit(f"truth has shape {truth.shape}, the PLY {len(xyz)} Gaussians")
 
