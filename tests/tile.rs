@@ -5,6 +5,7 @@
 //! byte for byte, the merged labels re-derived from the tiles' outputs by object id and offset;
 //! the padded PLY headers are read back by plyfile; the Slurm job array runs on a real
 //! single-node Slurm (`scripts/slurm_test.sh`).
+use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
@@ -340,13 +341,38 @@ fn a_file_holding_buildings_of_two_tiles_is_cut_and_each_keeps_its_ids_and_attri
     assert_eq!(seen, want);
 }
 
+/// The instance id of each joined group, from the summary's `joins`: the smallest id of its
+/// connected component (a union–find written here).
+fn join_roots(summary: &Value) -> HashMap<i64, i64> {
+    let mut parent: HashMap<i64, i64> = HashMap::new();
+    fn find(p: &HashMap<i64, i64>, mut x: i64) -> i64 {
+        while let Some(&y) = p.get(&x) {
+            x = y;
+        }
+        x
+    }
+    for j in summary["joins"].as_array().unwrap() {
+        let (a, b) = (
+            find(&parent, j["groups"][0].as_i64().unwrap()),
+            find(&parent, j["groups"][1].as_i64().unwrap()),
+        );
+        if a != b {
+            parent.insert(a.max(b), a.min(b));
+        }
+    }
+    let keys: Vec<i64> = parent.keys().copied().collect();
+    keys.into_iter().map(|k| (k, find(&parent, k))).collect()
+}
+
 /// Labels of a merged run re-derived from the tiles: for a Gaussian in tile t's core, a city
 /// label is the merged entity with the tile entity's object id, an image label is
-/// `Δ + offset_t + (tile label − tile Δ)`, and the class is the tile's.
+/// `Δ + offset_t + (tile label − tile Δ)` — or, where the summary lists that group as joined,
+/// the smallest id joined with it — and the class is the tile's.
 fn check_merged_against_tiles(p: &Path, m: &Path, holes: &[&str]) {
     let plan = plan_of(p);
     let summary: Value =
         serde_json::from_str(&std::fs::read_to_string(m.join("summary.json")).unwrap()).unwrap();
+    let roots = join_roots(&summary);
     let merged = gs4city::npy::read::<i32>(&m.join("lift/gaussians.npy"))
         .unwrap()
         .1;
@@ -401,9 +427,10 @@ fn check_merged_against_tiles(p: &Path, m: &Path, holes: &[&str]) {
                     None => assert_eq!(ml, -1),
                 }
             } else {
+                let id = delta + offset + (l - tdelta);
                 assert_eq!(
                     i64::from(ml),
-                    delta + offset + (l - tdelta),
+                    roots.get(&id).copied().unwrap_or(id),
                     "{name}: Gaussian {i}"
                 );
             }
@@ -866,4 +893,337 @@ fn a_footprint_far_from_the_others_is_named_instead_of_planning_millions_of_tile
     );
     assert_eq!(text.trim().lines().count(), 1, "{text}");
     assert!(!p.exists() && !d.join("plan.partial").exists());
+}
+
+/// A tile's outputs as the join test reads them: per row of `source.npy` the Gaussian, whether
+/// it is in the tile's core, and its image label as a merged id before any join
+/// (`Δ + offset + tile label − tile Δ`, −1 for a city label or none); the classes of its image
+/// labels by that id.
+struct TileRows {
+    tile: i64,
+    rows: Vec<(usize, bool, i64)>,
+    class: HashMap<i64, i64>,
+}
+
+fn tile_rows(p: &Path, summary: &Value) -> Vec<TileRows> {
+    let plan = plan_of(p);
+    let delta = summary["delta"].as_i64().unwrap();
+    let mut out = Vec::new();
+    for (t, (tp, row)) in plan["tiles"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(summary["tiles"].as_array().unwrap())
+        .enumerate()
+    {
+        assert_eq!(row["state"], "merged");
+        let dir = p.join("tiles").join(tp["name"].as_str().unwrap());
+        let offset = row["image_offset"].as_i64().unwrap();
+        let src = npy_i64(&dir.join("source.npy"));
+        let tl = gs4city::npy::read::<i32>(&dir.join("run/lift/gaussians.npy"))
+            .unwrap()
+            .1;
+        let table: Value = serde_json::from_str(
+            &std::fs::read_to_string(dir.join("run/fuse/labels.json")).unwrap(),
+        )
+        .unwrap();
+        let tdelta = table["delta"].as_i64().unwrap();
+        let merged = |l: i64| delta + offset + l - tdelta;
+        let class = table["labels"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|l| l["source"] == "image")
+            .map(|l| {
+                (
+                    merged(l["id"].as_i64().unwrap()),
+                    l["class"].as_i64().unwrap(),
+                )
+            })
+            .collect();
+        let rows = src
+            .chunks(2)
+            .zip(tl.chunks(2))
+            .map(|(r, g)| {
+                let l = i64::from(g[0]);
+                (
+                    r[0] as usize,
+                    r[1] == 1,
+                    if l >= tdelta { merged(l) } else { -1 },
+                )
+            })
+            .collect();
+        out.push(TileRows {
+            tile: t as i64,
+            rows,
+            class,
+        });
+    }
+    out
+}
+
+/// The join rule of docs/tile.md re-derived by brute force: for every pair of image groups of
+/// two tiles, the Gaussians both tiles hold that one labels with the first and the other with
+/// the second, against each group's Gaussians that the other tile holds; joined when the classes
+/// agree and the common Gaussians are at least `f` of both. Sorted (groups, tiles, class,
+/// common, each group's Gaussians in the shared region).
+fn joins_by_rule(tiles: &[TileRows], f: f64) -> Vec<Value> {
+    let mut held: HashMap<usize, Vec<(i64, i64)>> = HashMap::new();
+    for t in tiles {
+        for &(i, _, l) in &t.rows {
+            held.entry(i).or_default().push((t.tile, l));
+        }
+    }
+    let mut common: HashMap<(i64, i64), ([i64; 2], u64)> = HashMap::new();
+    let mut in_shared: HashMap<(i64, i64), u64> = HashMap::new();
+    for v in held.values() {
+        for a in v {
+            for b in v {
+                if a.0 >= b.0 {
+                    continue;
+                }
+                if a.1 >= 0 {
+                    *in_shared.entry((a.1, b.0)).or_default() += 1;
+                }
+                if b.1 >= 0 {
+                    *in_shared.entry((b.1, a.0)).or_default() += 1;
+                }
+                if a.1 >= 0 && b.1 >= 0 {
+                    common.entry((a.1, b.1)).or_insert(([a.0, b.0], 0)).1 += 1;
+                }
+            }
+        }
+    }
+    let class: HashMap<i64, i64> = tiles.iter().flat_map(|t| t.class.clone()).collect();
+    let mut out: Vec<Value> = common
+        .iter()
+        .filter_map(|(&(a, b), &(tt, n))| {
+            let (sa, sb) = (in_shared[&(a, tt[1])], in_shared[&(b, tt[0])]);
+            (class[&a] == class[&b] && n as f64 >= f * sa as f64 && n as f64 >= f * sb as f64).then(
+                || {
+                    serde_json::json!({"tiles": tt, "groups": [a, b], "class": class[&a],
+                        "shared": n, "in_shared": [sa, sb]})
+                },
+            )
+        })
+        .collect();
+    out.sort_by_key(|j| (j["groups"][0].as_i64(), j["groups"][1].as_i64()));
+    out
+}
+
+/// Per class (tree 6, person 7, car 8): the labels of that class that hold at least a fifth of
+/// the Gaussians of a SIMULATED object of that class (truth, `gt/gaussians.npy`: class,
+/// instance), so a stray fragment is not counted as an instance; and the labels of that class
+/// any Gaussian carries.
+fn instances(labels: &[i64], class: &HashMap<i64, i64>, truth: &[i32]) -> [(usize, usize); 3] {
+    let mut objects: HashMap<i32, (i32, Vec<usize>)> = HashMap::new();
+    for (i, t) in truth.chunks(5).enumerate() {
+        if t[1] >= 1_000_010 {
+            objects.entry(t[1]).or_insert((t[0], Vec::new())).1.push(i);
+        }
+    }
+    let mut out = [(0, 0); 3];
+    for (k, c) in [6i64, 7, 8].into_iter().enumerate() {
+        let mut held: HashSet<i64> = HashSet::new();
+        for (oc, members) in objects.values() {
+            if i64::from(*oc) != c {
+                continue;
+            }
+            let mut per: HashMap<i64, usize> = HashMap::new();
+            for &i in members {
+                *per.entry(labels[i]).or_default() += 1;
+            }
+            held.extend(
+                per.into_iter()
+                    .filter(|&(l, n)| class.get(&l) == Some(&c) && 5 * n >= members.len())
+                    .map(|(l, _)| l),
+            );
+        }
+        let any: HashSet<i64> = labels
+            .iter()
+            .filter(|l| class.get(l) == Some(&c))
+            .copied()
+            .collect();
+        out[k] = (held.len(), any.len());
+    }
+    out
+}
+
+/// A run's per-Gaussian labels and the classes of its image labels.
+fn run_labels(r: &Path) -> (Vec<i64>, HashMap<i64, i64>) {
+    let g = gs4city::npy::read::<i32>(&r.join("lift/gaussians.npy"))
+        .unwrap()
+        .1;
+    let table: Value =
+        serde_json::from_str(&std::fs::read_to_string(r.join("fuse/labels.json")).unwrap())
+            .unwrap();
+    let class = table["labels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|l| l["source"] == "image")
+        .map(|l| (l["id"].as_i64().unwrap(), l["class"].as_i64().unwrap()))
+        .collect();
+    (g.chunks(2).map(|x| i64::from(x[0])).collect(), class)
+}
+
+/// A SIMULATED `small` scene with 8 trees, 10 cars and 16 persons (seed 3): 9 m tiles make three
+/// tiles whose two core borders cut trees, cars and a person. Untiled and tiled (`tile`,
+/// `run-plan`, merge), the merged run has the untiled run's instances of each class — counted
+/// against the simulation's objects, by the labels that hold a fifth of one — and fewer labels
+/// of each class than the tiles' groups before the join; the summary's joins are those of the
+/// rule re-derived here by brute force, and every merged label follows from them.
+#[test]
+fn objects_cut_by_tile_borders_are_one_instance_as_in_the_untiled_run() {
+    let d = tmp("join");
+    let s = d.join("scene");
+    let cfg = d.join("objects.toml");
+    std::fs::write(&cfg, "[objects]\ntrees = 8\ncars = 10\npersons = 16\n").unwrap();
+    let (ok, text) = gs(&[
+        "synth",
+        "--preset",
+        "small",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--seed",
+        "3",
+        "--out",
+        s.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let r = d.join("R");
+    let (ok, text) = gs(&[
+        "run",
+        "--scene",
+        s.to_str().unwrap(),
+        "--out",
+        r.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let p = d.join("P");
+    tile(&s, &p, "9", "4");
+    let (ok, text) = gs(&["run-plan", p.to_str().unwrap(), "--jobs", "2"]);
+    assert!(ok, "{text}");
+    let m = p.join("merged");
+    let summary: Value =
+        serde_json::from_str(&std::fs::read_to_string(m.join("summary.json")).unwrap()).unwrap();
+    let truth = gs4city::npy::read::<i32>(&s.join("gt/gaussians.npy"))
+        .unwrap()
+        .1;
+    let tiles = tile_rows(&p, &summary);
+    assert_eq!(tiles.len(), 3);
+
+    // The borders cut objects of each class: their Gaussians lie in two tiles' cores.
+    let mut cores: HashMap<i32, HashSet<i64>> = HashMap::new();
+    for t in &tiles {
+        for &(i, core, _) in &t.rows {
+            if core && truth[5 * i + 1] >= 1_000_010 {
+                cores.entry(truth[5 * i + 1]).or_default().insert(t.tile);
+            }
+        }
+    }
+    for c in [6, 7, 8] {
+        let cut = cores
+            .iter()
+            .filter(|(o, ts)| ts.len() > 1 && truth.chunks(5).any(|t| t[1] == **o && t[0] == c))
+            .count();
+        assert!(cut >= 1, "class {c}: no object cut by a border");
+    }
+
+    // The joins are the rule's, and every merged label follows from them.
+    let f = summary["join_fraction"].as_f64().unwrap();
+    assert!(f > 0.0 && f <= 1.0, "{f}");
+    let want = joins_by_rule(&tiles, f);
+    assert_eq!(summary["joins"].as_array().unwrap(), &want);
+    check_merged_against_tiles(&p, &m, &[]);
+    let roots = join_roots(&summary);
+    assert!(!roots.is_empty());
+    assert_eq!(
+        summary["joined_groups"].as_u64().unwrap() as usize,
+        roots.len()
+    );
+
+    // Instances: merged = untiled; before the join, the tiles' groups as they were.
+    let n = summary["gaussians"].as_u64().unwrap() as usize;
+    let mut before = vec![-1i64; n];
+    let mut before_class = HashMap::new();
+    for t in &tiles {
+        before_class.extend(t.class.clone());
+        for &(i, core, l) in &t.rows {
+            if core {
+                before[i] = l;
+            }
+        }
+    }
+    let (ml, mc) = run_labels(&m);
+    let (rl, rc) = run_labels(&r);
+    let merged = instances(&ml, &mc, &truth);
+    let untiled = instances(&rl, &rc, &truth);
+    let unjoined = instances(&before, &before_class, &truth);
+    for (k, name) in ["tree", "person", "car"].iter().enumerate() {
+        assert_eq!(
+            merged[k].0, untiled[k].0,
+            "{name}: instances merged {:?}, untiled {:?}, before the join {:?}",
+            merged, untiled, unjoined
+        );
+        assert!(
+            merged[k].1 < unjoined[k].1,
+            "{name}: labels merged {:?}, before the join {:?}",
+            merged,
+            unjoined
+        );
+    }
+    assert!(
+        (0..3).any(|k| unjoined[k].0 > untiled[k].0),
+        "without the join an object cut by a border counts twice: {unjoined:?} vs {untiled:?}"
+    );
+
+    // A query sees the joined instances: category=car selects the merged table's car labels,
+    // fewer than the tiles' car groups.
+    let q = d.join("Q");
+    let (ok, text) = gs(&[
+        "query",
+        "--run",
+        m.to_str().unwrap(),
+        "--where",
+        "category=car",
+        "--views",
+        "none",
+        "--no-sqlite",
+        "--out",
+        q.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let sel: Value =
+        serde_json::from_str(&std::fs::read_to_string(q.join("selection.json")).unwrap()).unwrap();
+    let got: HashSet<i64> = sel["labels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_i64().unwrap())
+        .collect();
+    let cars: HashSet<i64> = before_class
+        .iter()
+        .filter(|&(_, &c)| c == 8)
+        .map(|(&l, _)| roots.get(&l).copied().unwrap_or(l))
+        .collect();
+    assert_eq!(got, cars);
+    assert!(cars.len() < before_class.values().filter(|&&c| c == 8).count());
+
+    // The same merge on one thread: the same ids.
+    let m1 = d.join("M1");
+    let o = bin()
+        .args(["-q", "merge", p.to_str().unwrap(), "--out"])
+        .arg(&m1)
+        .arg("--no-test-views")
+        .env("RAYON_NUM_THREADS", "1")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in ["lift/gaussians.npy", "fuse/labels.json"] {
+        assert!(
+            std::fs::read(m.join(f)).unwrap() == std::fs::read(m1.join(f)).unwrap(),
+            "{f} differs on one thread"
+        );
+    }
 }

@@ -6,8 +6,10 @@
 //!   same object id (a neighbour in its margin maps to its owner's entity).
 //! * Labels: city labels are the merged entity ids; the image labels (associated mask groups) of
 //!   tile `t` become `Δ + offset_t + group`, `offset_t` the groups of the tiles before it
-//!   (recorded in `M/summary.json`); `M/fuse/labels.json`, and `label_features.npy` when every
-//!   tile has features.
+//!   (recorded in `M/summary.json`); groups of neighbouring tiles that are one object cut by a
+//!   border are then joined into one instance, the smallest of their ids ([`super::join`]: the
+//!   rule, `joins` in the summary); `M/fuse/labels.json`, and `label_features.npy` when every
+//!   tile has features (a joined instance's are its first group's).
 //! * Gaussians: each is labelled by the tile whose core holds it (`source.npy`), so
 //!   `M/lift/gaussians.npy` and `semantic.ply` have one row per input Gaussian in input order.
 //! * Test views (default): the plan's test views are rendered from the full scene into
@@ -84,6 +86,15 @@ pub struct MergeSummary {
     pub test_views: Vec<String>,
     pub fine_miou: Option<f64>,
     pub paper_fine_miou: Option<f64>,
+    /// The fraction of the join rule ([`super::join::JOIN_FRACTION`]).
+    #[serde(default)]
+    pub join_fraction: f64,
+    /// Image groups joined into a group of another tile (groups − instances they became).
+    #[serde(default)]
+    pub joined_groups: usize,
+    /// The pairs of groups that met the join rule.
+    #[serde(default)]
+    pub joins: Vec<super::join::Join>,
 }
 
 impl crate::layout::Summary for MergeSummary {}
@@ -296,6 +307,47 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
         offset += groups as i64;
         maps.push(m);
     }
+    // Objects cut by a border: groups of neighbouring tiles joined into one instance.
+    let joined = {
+        // Only image labels take part: a tile's city labels map to merged entities.
+        let image: Vec<HashMap<i32, i32>> = runs
+            .iter()
+            .zip(&maps)
+            .map(|(r, m)| {
+                m.iter()
+                    .filter(|&(&l, _)| l >= r.labels.delta)
+                    .map(|(&l, &g)| (l, g))
+                    .collect()
+            })
+            .collect();
+        let tiles: Vec<super::join::TileLabels> = runs
+            .iter()
+            .zip(&image)
+            .map(|(r, m)| {
+                let tdir = Plan::tile_dir(plan_dir, &plan.tiles[r.t]);
+                let rd = run_dir(&tdir);
+                let mode = crate::layout::Mode::default_for(&rd);
+                super::join::TileLabels {
+                    tile: r.t as u32,
+                    source: tdir.join("source.npy"),
+                    gaussians: rd.join(mode.dir()).join("gaussians.npy"),
+                    image_ids: m,
+                }
+            })
+            .collect();
+        let class: HashMap<i32, i32> = table
+            .iter()
+            .filter(|l| l.source == Source::Image)
+            .map(|l| (l.id, l.class))
+            .collect();
+        let sightings = super::join::sightings(plan.gaussians, &tiles)?;
+        super::join::join(
+            sightings,
+            |id| class.get(&id).copied().unwrap_or(-1),
+            super::join::JOIN_FRACTION,
+        )
+    };
+    table.retain(|l| !joined.root.contains_key(&l.id));
     let labels = LabelTable::new(delta, table).map_err(|why| {
         TileError::Invalid(format!("the merged label table is inconsistent: {why}"))
     })?;
@@ -344,7 +396,7 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
             label[i] = if g[0] < 0 {
                 -1
             } else {
-                maps[ri].get(&g[0]).copied().unwrap_or(-1)
+                maps[ri].get(&g[0]).map_or(-1, |&m| joined.id(m))
             };
             class[i] = g[1];
         }
@@ -393,7 +445,8 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
             for (ri, r) in runs.iter().enumerate() {
                 let (_, data) = r.features.as_ref().expect("all tiles have features");
                 for (trow, l) in r.labels.labels.iter().enumerate() {
-                    if l.source == Source::Image {
+                    // A joined instance keeps the features of its first group.
+                    if l.source == Source::Image && !joined.root.contains_key(&maps[ri][&l.id]) {
                         let g = labels.row(maps[ri][&l.id]).expect("merged image label");
                         feats[g * d..(g + 1) * d].copy_from_slice(&data[trow * d..(trow + 1) * d]);
                     }
@@ -490,6 +543,9 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
         test_views,
         fine_miou: fine,
         paper_fine_miou: paper,
+        join_fraction: super::join::JOIN_FRACTION,
+        joined_groups: joined.root.len(),
+        joins: joined.joins,
     };
     summary.seconds = t0.elapsed().as_secs_f64();
     summary.peak_rss_mb = crate::progress::peak_rss_mb();

@@ -18,11 +18,13 @@
 //!
 //! Each tile is a scene folder `P/tiles/<name>/scene`, run with `gs4city run --test-every 0`
 //! (the plan's test views are held back from every tile). [`exec`] runs one tile and records
-//! its cost; [`merge`] joins the tiles' labels into one run folder; [`slurm`] writes the batch
+//! its cost; [`merge`] joins the tiles' labels into one run folder (and, by [`join`], the groups
+//! of neighbouring tiles that are one object cut by a border); [`slurm`] writes the batch
 //! scripts.
 pub mod cut;
 pub mod exec;
 pub mod gml;
+pub mod join;
 pub mod merge;
 pub mod slurm;
 
