@@ -23,9 +23,10 @@ use serde::{Deserialize, Serialize};
 
 use super::TileError;
 
-/// The fraction `f` of the join rule. Measured on three SIMULATED `small` scenes with 8 trees,
-/// 10 cars and 16 persons cut by 9 m tiles (docs/tile.md): below 0.4 some pairs of different
-/// objects joined, above it more pairs of one object stayed apart.
+/// The fraction `f` of the join rule. Scored on eight SIMULATED `small` scenes with 8 trees, 10
+/// cars and 16 persons cut by 8 and 9 m tiles (docs/tile.md, `scripts/score_tile_joins.py`):
+/// the smallest fraction at which every class has the untiled run's instance count; below it
+/// more groups of different objects join, above it more groups of one object stay apart.
 pub const JOIN_FRACTION: f64 = 0.4;
 
 /// One tile's label of a Gaussian that another tile holds too.
