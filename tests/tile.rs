@@ -1179,6 +1179,13 @@ fn objects_cut_by_tile_borders_are_one_instance_as_in_the_untiled_run() {
         summary["joined_groups"].as_u64().unwrap() as usize,
         roots.len()
     );
+    assert!(
+        text.contains(&format!(
+            "objects cut by tile borders: {} groups joined",
+            roots.len()
+        )),
+        "{text}"
+    );
 
     // A query sees the joined instances: category=car selects the merged table's car labels,
     // fewer than the tiles' car groups.

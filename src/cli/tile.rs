@@ -336,6 +336,12 @@ fn print_merge(s: &merge::MergeSummary, out: &std::path::Path) {
         println!("{} Gaussians lie in holes (label −1)", s.in_holes);
     }
     println!(
+        "objects cut by tile borders: {} groups joined into a neighbouring tile's ({} pairs with common Gaussians ≥ {} of both groups' in the shared margin)",
+        s.joined_groups,
+        s.joins.len(),
+        s.join_fraction
+    );
+    println!(
         "tiles: {:.1} CPU s in all, peak memory of one tile ≤ {:.0} MB, disk of one tile ≤ {:.1} MB; merge: {:.1} s, peak {:.0} MB",
         s.tiles_cpu_seconds,
         s.tile_peak_rss_mb_max.unwrap_or(f64::NAN),
