@@ -895,6 +895,22 @@ fn a_footprint_far_from_the_others_is_named_instead_of_planning_millions_of_tile
     assert!(!p.exists() && !d.join("plan.partial").exists());
 }
 
+/// A JSON file.
+fn json(path: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// The classes of the image labels of a `labels.json`, by `id(label id)`.
+fn image_classes(table: &Value, id: impl Fn(i64) -> i64) -> HashMap<i64, i64> {
+    table["labels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|l| l["source"] == "image")
+        .map(|l| (id(l["id"].as_i64().unwrap()), l["class"].as_i64().unwrap()))
+        .collect()
+}
+
 /// A tile's outputs as the join test reads them: per row of `source.npy` the Gaussian, whether
 /// it is in the tile's core, and its image label as a merged id before any join
 /// (`Δ + offset + tile label − tile Δ`, −1 for a city label or none); the classes of its image
@@ -923,24 +939,10 @@ fn tile_rows(p: &Path, summary: &Value) -> Vec<TileRows> {
         let tl = gs4city::npy::read::<i32>(&dir.join("run/lift/gaussians.npy"))
             .unwrap()
             .1;
-        let table: Value = serde_json::from_str(
-            &std::fs::read_to_string(dir.join("run/fuse/labels.json")).unwrap(),
-        )
-        .unwrap();
+        let table: Value = json(&dir.join("run/fuse/labels.json"));
         let tdelta = table["delta"].as_i64().unwrap();
         let merged = |l: i64| delta + offset + l - tdelta;
-        let class = table["labels"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .filter(|l| l["source"] == "image")
-            .map(|l| {
-                (
-                    merged(l["id"].as_i64().unwrap()),
-                    l["class"].as_i64().unwrap(),
-                )
-            })
-            .collect();
+        let class = image_classes(&table, merged);
         let rows = src
             .chunks(2)
             .zip(tl.chunks(2))
@@ -1054,16 +1056,8 @@ fn run_labels(r: &Path) -> (Vec<i64>, HashMap<i64, i64>) {
     let g = gs4city::npy::read::<i32>(&r.join("lift/gaussians.npy"))
         .unwrap()
         .1;
-    let table: Value =
-        serde_json::from_str(&std::fs::read_to_string(r.join("fuse/labels.json")).unwrap())
-            .unwrap();
-    let class = table["labels"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|l| l["source"] == "image")
-        .map(|l| (l["id"].as_i64().unwrap(), l["class"].as_i64().unwrap()))
-        .collect();
+    let table: Value = json(&r.join("fuse/labels.json"));
+    let class = image_classes(&table, |l| l);
     (g.chunks(2).map(|x| i64::from(x[0])).collect(), class)
 }
 
@@ -1105,8 +1099,7 @@ fn objects_cut_by_tile_borders_are_one_instance_as_in_the_untiled_run() {
     let (ok, text) = gs(&["run-plan", p.to_str().unwrap(), "--jobs", "2"]);
     assert!(ok, "{text}");
     let m = p.join("merged");
-    let summary: Value =
-        serde_json::from_str(&std::fs::read_to_string(m.join("summary.json")).unwrap()).unwrap();
+    let summary: Value = json(&m.join("summary.json"));
     let truth = gs4city::npy::read::<i32>(&s.join("gt/gaussians.npy"))
         .unwrap()
         .1;
@@ -1203,8 +1196,7 @@ fn objects_cut_by_tile_borders_are_one_instance_as_in_the_untiled_run() {
         q.to_str().unwrap(),
     ]);
     assert!(ok, "{text}");
-    let sel: Value =
-        serde_json::from_str(&std::fs::read_to_string(q.join("selection.json")).unwrap()).unwrap();
+    let sel: Value = json(&q.join("selection.json"));
     let got: HashSet<i64> = sel["labels"]
         .as_array()
         .unwrap()
