@@ -13,6 +13,8 @@ use serde_json::Value;
 
 use crate::common;
 
+mod ids;
+
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_gs4city"))
 }
