@@ -58,6 +58,12 @@ pub fn footprints(files: &[PathBuf], al: &Alignment) -> Result<Footprints, TileE
     let mut roots = Vec::new();
     let mut models = Vec::with_capacity(files.len());
     for (fi, path) in files.iter().enumerate() {
+        if crate::cityjson::is_cityjson_name(path) {
+            return Err(TileError::Invalid(format!(
+                "{}: CityJSON; `gs4city tile` cuts CityGML files only (`gs4city run` reads CityJSON untiled): convert the model to CityGML to tile it",
+                path.display()
+            )));
+        }
         let mut model = crate::citygml::read(path)?;
         let root = |mut o: usize| {
             while let Some(p) = model.objects[o].parent {

@@ -268,3 +268,43 @@ fn two_buildings_of_two_files_with_one_gml_id_tile_merge_and_answer_a_query_each
     assert_eq!(query(&m0, &d.join("Q0A"), &id_a), q_a);
     assert_eq!(query(&m0, &d.join("Q0B"), &id_b), q_b);
 }
+
+/// `tile` cuts CityGML only: a scene whose model is CityJSON is refused in one line naming the
+/// file (`gs4city run` reads it untiled).
+#[test]
+fn a_cityjson_model_is_refused_by_tile_naming_the_file() {
+    let s = scene();
+    let d = tmp("cityjson");
+    let s2 = d.join("scene");
+    std::fs::create_dir_all(s2.join("citymodel")).unwrap();
+    for part in ["images", "sparse", "point_cloud.ply", "scene.json"] {
+        std::os::unix::fs::symlink(s.join(part), s2.join(part)).unwrap();
+    }
+    std::fs::copy(
+        s.join("citymodel/alignment.json"),
+        s2.join("citymodel/alignment.json"),
+    )
+    .unwrap();
+    std::fs::write(
+        s2.join("citymodel/m.city.jsonl"),
+        "{\"type\":\"CityJSON\",\"version\":\"2.0\",\"transform\":{\"scale\":[1,1,1],\"translate\":[0,0,0]},\"CityObjects\":{},\"vertices\":[]}\n",
+    )
+    .unwrap();
+    let (ok, text) = gs(&[
+        "tile",
+        "--scene",
+        s2.to_str().unwrap(),
+        "--out",
+        d.join("P").to_str().unwrap(),
+    ]);
+    assert!(!ok, "{text}");
+    let line = text
+        .lines()
+        .find(|l| l.contains("m.city.jsonl"))
+        .unwrap_or_default();
+    assert!(
+        line.contains("CityJSON") && line.contains("CityGML"),
+        "{text}"
+    );
+    assert!(!d.join("P").exists());
+}
