@@ -117,11 +117,14 @@ pub struct Scene {
     pub meta: SceneMeta,
 }
 
+/// A file left out of a listing, and the file listed before it that it reaches.
+pub type Twin = (PathBuf, PathBuf);
+
 /// The city-model files of a scene's `citymodel/` folder (`*.gml`, `*.xml`, CityJSON:
 /// `crate::cityjson::is_model_file`), sorted by name, each file once: a name that reaches a
 /// file listed before it (a link) is left out and returned with that file, so its objects are
 /// not read twice.
-pub fn citymodel_files(cm: &Path) -> std::io::Result<(Vec<PathBuf>, Vec<(PathBuf, PathBuf)>)> {
+pub fn citymodel_files(cm: &Path) -> std::io::Result<(Vec<PathBuf>, Vec<Twin>)> {
     let mut all: Vec<PathBuf> = std::fs::read_dir(cm)?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.is_file() && crate::cityjson::is_model_file(p))
