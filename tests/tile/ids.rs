@@ -3,11 +3,11 @@
 //! Expectations come from the input files and the scene's PLY alone (each building's ground box
 //! from its `gml:posList` numbers, each Gaussian's ground position by the alignment written out
 //! here) and from the plan of the same scene with unique ids, which never meets a repeated id.
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde_json::Value;
 
-use super::{f32_at, gs, plan_of, ply_rows, scene, tile, tmp, to_ground};
+use super::{f32_at, gs, plan_of, ply_rows, scene, scene_beside, tile, tmp, to_ground};
 
 /// The first `gml:id` written on a start tag `<tag `.
 fn first_id(text: &str, tag: &str) -> String {
@@ -80,29 +80,18 @@ fn query(m: &Path, out: &Path, id: &str) -> Vec<usize> {
 fn two_buildings_of_two_files_with_one_gml_id_tile_merge_and_answer_a_query_each() {
     let s = scene();
     let d = tmp("dupid");
-    let s2 = d.join("scene");
-    std::fs::create_dir_all(s2.join("citymodel")).unwrap();
-    for part in [
-        "images",
-        "sparse",
-        "point_cloud.ply",
-        "masks",
-        "features",
-        "scene.json",
-    ] {
-        std::os::unix::fs::symlink(s.join(part), s2.join(part)).unwrap();
-    }
-    std::fs::copy(
-        s.join("citymodel/alignment.json"),
-        s2.join("citymodel/alignment.json"),
-    )
-    .unwrap();
-    let mut gml: Vec<PathBuf> = std::fs::read_dir(s.join("citymodel"))
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|x| x == "gml"))
-        .collect();
-    gml.sort();
+    let (s2, gml) = scene_beside(
+        s,
+        &d,
+        &[
+            "images",
+            "sparse",
+            "point_cloud.ply",
+            "masks",
+            "features",
+            "scene.json",
+        ],
+    );
     let a = std::fs::read_to_string(&gml[0]).unwrap();
     let b = std::fs::read_to_string(&gml[1]).unwrap();
     let (id_a, id_b) = (first_id(&a, "bldg:Building"), first_id(&b, "bldg:Building"));
@@ -273,18 +262,12 @@ fn two_buildings_of_two_files_with_one_gml_id_tile_merge_and_answer_a_query_each
 /// file (`gs4city run` reads it untiled).
 #[test]
 fn a_cityjson_model_is_refused_by_tile_naming_the_file() {
-    let s = scene();
     let d = tmp("cityjson");
-    let s2 = d.join("scene");
-    std::fs::create_dir_all(s2.join("citymodel")).unwrap();
-    for part in ["images", "sparse", "point_cloud.ply", "scene.json"] {
-        std::os::unix::fs::symlink(s.join(part), s2.join(part)).unwrap();
-    }
-    std::fs::copy(
-        s.join("citymodel/alignment.json"),
-        s2.join("citymodel/alignment.json"),
-    )
-    .unwrap();
+    let (s2, _) = scene_beside(
+        scene(),
+        &d,
+        &["images", "sparse", "point_cloud.ply", "scene.json"],
+    );
     std::fs::write(
         s2.join("citymodel/m.city.jsonl"),
         "{\"type\":\"CityJSON\",\"version\":\"2.0\",\"transform\":{\"scale\":[1,1,1],\"translate\":[0,0,0]},\"CityObjects\":{},\"vertices\":[]}\n",
