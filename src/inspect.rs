@@ -30,7 +30,7 @@
 //! good enough for a plausibility check at metre scale, and it keeps this module on the ground
 //! floor (the citymodel stage's triangulation is not needed). Simulation truth is never read:
 //! `gt/` is only noted as present or absent (it decides the default test-view split).
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
@@ -303,21 +303,23 @@ pub fn check(root: &Path, opts: &CheckOptions) -> CheckReport {
     report
 }
 
-/// `citymodel/*.gml` (and `*.xml`), sorted by name (as `Scene::open` finds them).
+/// `citymodel/*.gml` (and `*.xml`, CityJSON), sorted by name, each file once
+/// (`scene::citymodel_files`, as `Scene::open` finds them).
 fn gml_files(root: &Path, f: &mut Findings) -> Vec<PathBuf> {
     let cm = root.join("citymodel");
-    let Ok(dir) = std::fs::read_dir(&cm) else {
+    let Ok((gml, twins)) = crate::scene::citymodel_files(&cm) else {
         f.error(
             &cm,
             "missing: the LoD3 CityGML model goes here (citymodel/*.gml)",
         );
         return Vec::new();
     };
-    let mut gml: Vec<PathBuf> = dir
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.is_file() && crate::cityjson::is_model_file(p))
-        .collect();
-    gml.sort();
+    for (p, first) in twins {
+        f.warn(
+            &p,
+            format!("the same file as {}: it is read once", first.display()),
+        );
+    }
     if gml.is_empty() {
         f.error(
             &cm,
@@ -727,27 +729,16 @@ fn read_citygml(gml: &[PathBuf], f: &mut Findings) -> Option<Vec<CityModel>> {
             }
         }
     }
-    let mut first: BTreeMap<&str, &Path> = BTreeMap::new();
-    for m in &models {
-        for o in m.objects.iter().filter(|o| o.has_gml_id) {
-            match first.get(o.object_id.as_str()) {
-                Some(p) if *p != m.path.as_path() => f.warn(
-                    &m.path,
-                    format!(
-                        "line {}: gml:id {}: this {} is also defined in {}: the same object \
-                         appears twice in the hierarchy table",
-                        o.line,
-                        o.object_id,
-                        o.class.name(),
-                        p.display()
-                    ),
-                ),
-                Some(_) => {}
-                None => {
-                    first.insert(&o.object_id, &m.path);
-                }
-            }
-        }
+    for w in crate::citygml::disambiguate(&mut models) {
+        f.warn(
+            Path::new(&w.file),
+            format!(
+                "line {}: gml:id {}: {}",
+                w.line,
+                w.id.as_deref().unwrap_or(""),
+                w.message
+            ),
+        );
     }
     ok.then_some(models)
 }

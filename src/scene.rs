@@ -117,6 +117,35 @@ pub struct Scene {
     pub meta: SceneMeta,
 }
 
+/// A file left out of a listing, and the file listed before it that it reaches.
+pub type Twin = (PathBuf, PathBuf);
+
+/// The city-model files of a scene's `citymodel/` folder (`*.gml`, `*.xml`, CityJSON:
+/// `crate::cityjson::is_model_file`), sorted by name, each file once: a name that reaches a
+/// file listed before it (a link) is left out and returned with that file, so its objects are
+/// not read twice.
+pub fn citymodel_files(cm: &Path) -> std::io::Result<(Vec<PathBuf>, Vec<Twin>)> {
+    let mut all: Vec<PathBuf> = std::fs::read_dir(cm)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_file() && crate::cityjson::is_model_file(p))
+        .collect();
+    all.sort();
+    let mut seen: std::collections::HashMap<PathBuf, usize> = Default::default();
+    let mut files: Vec<PathBuf> = Vec::with_capacity(all.len());
+    let mut twins = Vec::new();
+    for p in all {
+        let canon = std::fs::canonicalize(&p).unwrap_or_else(|_| p.clone());
+        match seen.get(&canon) {
+            Some(&i) => twins.push((p, files[i].clone())),
+            None => {
+                seen.insert(canon, files.len());
+                files.push(p);
+            }
+        }
+    }
+    Ok((files, twins))
+}
+
 impl Scene {
     /// Finds and checks the parts of a scene folder.
     pub fn open(root: &Path) -> Result<Scene, SceneError> {
@@ -128,12 +157,7 @@ impl Scene {
             return Err(bad("not a directory".into()));
         }
         let cm = root.join("citymodel");
-        let mut gml: Vec<PathBuf> = std::fs::read_dir(&cm)
-            .map_err(|e| bad(format!("citymodel/: {e}")))?
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| p.is_file() && crate::cityjson::is_model_file(p))
-            .collect();
-        gml.sort();
+        let (gml, _) = citymodel_files(&cm).map_err(|e| bad(format!("citymodel/: {e}")))?;
         if gml.is_empty() {
             return Err(bad(
                 "citymodel/ holds no city model (.gml, .xml, .city.json, .city.jsonl)".into(),

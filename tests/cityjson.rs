@@ -826,3 +826,65 @@ fn an_unknown_type_is_skipped_with_its_subtree_and_named() {
         named[0]
     );
 }
+
+/// Two CityJSON files whose buildings share their ids (the hand-made cube, and the cube moved
+/// 100 m east) are two buildings: the second file's objects are called `id~2`, the ids derived
+/// below its building follow it, the warning names both files; the same file named twice is
+/// read once and stays one building.
+#[test]
+fn an_id_used_in_two_files_names_two_objects() {
+    let dir = scratch("twice");
+    let a = write(&dir, "a.city.json", &cube());
+    let mut moved = cube();
+    moved["transform"]["translate"][0] = serde_json::json!(1100.0);
+    let b = write(&dir, "b.city.json", &moved);
+    let opts = gs4city::citymodel::Options::default();
+    let ids = |o: &gs4city::citymodel::Output, file: &Path| -> Vec<String> {
+        let name = file.display().to_string();
+        o.entities
+            .iter()
+            .filter(|e| e.source == name)
+            .map(|e| e.object_id.clone())
+            .collect()
+    };
+    let one = gs4city::citymodel::run(std::slice::from_ref(&a), &opts).unwrap();
+    let ids_a = ids(&one, &a);
+    assert!(
+        ids_a.contains(&"B1/WallSurface[1]".to_string()),
+        "{ids_a:?}"
+    );
+    let two = gs4city::citymodel::run(&[a.clone(), b.clone()], &opts).unwrap();
+    assert_eq!(ids(&two, &a), ids_a);
+    let want_b: Vec<String> = ids_a
+        .iter()
+        .map(|id| match id.strip_prefix("B1/") {
+            Some(rest) => format!("B1~2/{rest}"),
+            None => format!("{id}~2"),
+        })
+        .collect();
+    assert_eq!(ids(&two, &b), want_b);
+    let roots: Vec<&str> = two
+        .entities
+        .iter()
+        .filter(|e| e.parent.is_none() && e.class == Class::Building)
+        .map(|e| e.object_id.as_str())
+        .collect();
+    assert_eq!(roots, ["B1", "B1~2"]);
+    let w: Vec<&String> = two
+        .summary
+        .warnings
+        .items
+        .iter()
+        .filter(|w| w.contains("B1~2"))
+        .collect();
+    assert_eq!(w.len(), 1, "{:?}", two.summary.warnings.items);
+    assert!(
+        w[0].starts_with(&b.display().to_string()) && w[0].contains(&a.display().to_string()),
+        "{}",
+        w[0]
+    );
+    let found = gs4city::citymodel::collect_files(&[a.clone(), a.clone()]).unwrap();
+    let same = gs4city::citymodel::run(&found.files, &opts).unwrap();
+    assert_eq!(same.entities.len(), one.entities.len());
+    std::fs::remove_dir_all(&dir).ok();
+}

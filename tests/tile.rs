@@ -14,6 +14,8 @@ use serde_json::Value;
 
 use crate::common;
 
+mod ids;
+
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_gs4city"))
 }
@@ -65,6 +67,28 @@ fn tile(scene: &Path, out: &Path, size: &str, margin: &str) {
         out.to_str().unwrap(),
     ]);
     assert!(ok, "{text}");
+}
+
+/// A scene folder `d/scene` made of links to the `parts` of scene `s` and a copy of its
+/// alignment, its `citymodel/` otherwise empty; with `s`'s CityGML files, sorted.
+fn scene_beside(s: &Path, d: &Path, parts: &[&str]) -> (PathBuf, Vec<PathBuf>) {
+    let s2 = d.join("scene");
+    std::fs::create_dir_all(s2.join("citymodel")).unwrap();
+    for part in parts {
+        std::os::unix::fs::symlink(s.join(part), s2.join(part)).unwrap();
+    }
+    std::fs::copy(
+        s.join("citymodel/alignment.json"),
+        s2.join("citymodel/alignment.json"),
+    )
+    .unwrap();
+    let mut gml: Vec<PathBuf> = std::fs::read_dir(s.join("citymodel"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "gml"))
+        .collect();
+    gml.sort();
+    (s2, gml)
 }
 
 /// A binary little-endian all-float PLY: (header length, rows, stride, property names).
@@ -251,24 +275,12 @@ fn the_cut_puts_every_gaussian_byte_for_byte_into_the_tiles_within_the_margin_of
 
 #[test]
 fn a_file_holding_buildings_of_two_tiles_is_cut_and_each_keeps_its_ids_and_attributes() {
-    let s = scene();
     let d = tmp("gml");
-    let s2 = d.join("scene");
-    std::fs::create_dir_all(s2.join("citymodel")).unwrap();
-    for part in ["images", "sparse", "point_cloud.ply", "masks", "features"] {
-        std::os::unix::fs::symlink(s.join(part), s2.join(part)).unwrap();
-    }
-    std::fs::copy(
-        s.join("citymodel/alignment.json"),
-        s2.join("citymodel/alignment.json"),
-    )
-    .unwrap();
-    let mut gml: Vec<PathBuf> = std::fs::read_dir(s.join("citymodel"))
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|x| x == "gml"))
-        .collect();
-    gml.sort();
+    let (s2, gml) = scene_beside(
+        scene(),
+        &d,
+        &["images", "sparse", "point_cloud.ply", "masks", "features"],
+    );
     let a = std::fs::read_to_string(&gml[0]).unwrap();
     let b = std::fs::read_to_string(&gml[1]).unwrap();
     let (open, close) = ("<core:cityObjectMember>", "</core:cityObjectMember>");

@@ -60,12 +60,7 @@ impl Parser {
             return;
         }
         let o = self.objects.len() - 1;
-        let mut n = 2;
-        let mut unique = format!("{id}~{n}");
-        while self.ids.contains_key(&unique) {
-            n += 1;
-            unique = format!("{id}~{n}");
-        }
+        let unique = super::unique_id(id, |c| self.ids.contains_key(c));
         self.ids.insert(unique.clone(), line);
         let class = self.objects[o].class.name();
         self.objects[o].object_id = unique.clone();
@@ -91,6 +86,7 @@ impl Parser {
             parent,
             attributes: BTreeMap::new(),
             line,
+            offset: self.tag_offset,
             lod_used: None,
         });
         self.object_stack.push(idx);
@@ -257,10 +253,8 @@ impl Parser {
                 None => stem.clone(),
             };
             let mut id = format!("{base}/{}[{}]", class.name(), *k);
-            let mut n = 1;
-            while taken.contains(&id) {
-                n += 1;
-                id = format!("{base}/{}[{}]~{n}", class.name(), *k);
+            if taken.contains(&id) {
+                id = super::unique_id(&id, |c| taken.contains(c));
             }
             taken.insert(id.clone());
             self.objects[i].object_id = id;

@@ -8,11 +8,13 @@ mod appearance;
 mod encoding;
 mod geometry;
 mod hierarchy;
+mod ids;
 mod model;
 mod reader;
 
 use std::path::PathBuf;
 
+pub use ids::{disambiguate, unique_id};
 pub use model::*;
 pub use reader::{read, read_bytes};
 

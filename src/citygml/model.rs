@@ -223,6 +223,9 @@ pub struct CityObject {
     pub attributes: BTreeMap<String, serde_json::Value>,
     /// Line of the object's start tag.
     pub line: u64,
+    /// Byte offset of the object's start tag in the file's text as read (UTF-8, after a
+    /// byte-order mark; transcoded files: in the transcoded text); 0 in CityJSON.
+    pub offset: u64,
     /// The LoD whose geometry is used (chosen per building: 3, else 2, else 1).
     pub lod_used: Option<u8>,
 }

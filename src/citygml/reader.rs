@@ -178,6 +178,8 @@ pub(super) struct Parser {
     pub(super) ids: HashMap<String, u64>,
     /// Entity names declared in the document type (reported, never expanded).
     pub(super) dtd_entities: Vec<String>,
+    /// Byte offset of the start tag being read.
+    pub(super) tag_offset: u64,
 }
 
 /// Reads one CityGML file (1.0, 2.0 or 3.0). The file is read whole and decoded to UTF-8
@@ -243,6 +245,7 @@ fn parse(path: &Path, text: &[u8]) -> Result<CityModel, CityGmlError> {
         warnings: Vec::new(),
         ids: HashMap::new(),
         dtd_entities: Vec::new(),
+        tag_offset: 0,
     };
     let mut buf = Vec::with_capacity(1 << 16);
     loop {
@@ -267,6 +270,7 @@ fn parse(path: &Path, text: &[u8]) -> Result<CityModel, CityGmlError> {
         match event {
             Event::Start(e) => {
                 let line = lines.line_of(offset);
+                p.tag_offset = offset;
                 let attrs = Attrs::read(&reader, &e);
                 p.start(ns, &e, attrs, line)?;
             }

@@ -600,12 +600,7 @@ impl<'a> Builder<'a> {
         if self.taken.insert(id.clone()) {
             return id;
         }
-        let mut n = 2;
-        let mut u = format!("{id}~{n}");
-        while self.taken.contains(&u) {
-            n += 1;
-            u = format!("{id}~{n}");
-        }
+        let u = crate::citygml::unique_id(&id, |c| self.taken.contains(c));
         self.taken.insert(u.clone());
         self.warn(
             at.line,
@@ -632,6 +627,7 @@ impl<'a> Builder<'a> {
             parent,
             attributes: attrs,
             line: at.line.unwrap_or(0),
+            offset: 0,
             lod_used: lod,
         });
         self.objects.len() - 1
@@ -861,6 +857,7 @@ impl<'a> Builder<'a> {
                     parent: Some(parent),
                     attributes: attrs,
                     line: at.line.unwrap_or(0),
+                    offset: 0,
                     lod_used: lod,
                 });
                 out[i] = Some(self.objects.len() - 1);

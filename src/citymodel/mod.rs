@@ -349,34 +349,19 @@ pub fn run(files: &[PathBuf], opts: &Options) -> Result<Output, CityModelError> 
         return Err(CityModelError::NoInput);
     }
     let t0 = Instant::now();
-    let models: Vec<CityModel> = files
+    let mut models: Vec<CityModel> = files
         .par_iter()
         .map(|f| cityjson::read_any(f))
         .collect::<Result<_, _>>()?;
     let t_parse = t0.elapsed().as_secs_f64();
 
-    // Hierarchy table: entity ids are global, in file order then document order.
+    // Hierarchy table: entity ids are global, in file order then document order; an id that
+    // two files use names two objects, the later one renamed `id~n`.
+    let cross_file_duplicates: Vec<String> = citygml::disambiguate(&mut models)
+        .iter()
+        .map(ToString::to_string)
+        .collect();
     let mut entities: Vec<Entity> = Vec::new();
-    let mut first_source: std::collections::HashMap<&str, &Path> = Default::default();
-    let mut cross_file_duplicates: Vec<String> = Vec::new();
-    for m in &models {
-        for o in m.objects.iter().filter(|o| o.has_gml_id) {
-            match first_source.get(o.object_id.as_str()) {
-                Some(first) if *first != m.path.as_path() => cross_file_duplicates.push(format!(
-                    "{}:{}: {} \"{}\" is also defined in {}: the same object appears twice in the hierarchy table",
-                    m.path.display(),
-                    o.line,
-                    o.class.name(),
-                    o.object_id,
-                    first.display()
-                )),
-                Some(_) => {}
-                None => {
-                    first_source.insert(&o.object_id, &m.path);
-                }
-            }
-        }
-    }
     let mut base = Vec::with_capacity(models.len());
     for m in &models {
         base.push(entities.len() as i32);

@@ -153,6 +153,9 @@ fn tile_cmd(a: &TileArgs) -> anyhow::Result<()> {
     tile_run_options(&opts.run_args, &a.scene, &a.out)?;
     let exe = std::env::current_exe().ok();
     let plan = tile::plan(&a.scene, &a.out, &opts, exe.as_deref())?;
+    for w in &plan.warnings {
+        eprintln!("warning: {w}");
+    }
     println!(
         "{} tiles ({}×{} of {} m, margin {} m), {} runnable, {} Gaussians, {} test views held back",
         plan.tiles.len(),

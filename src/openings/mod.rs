@@ -1079,6 +1079,7 @@ pub fn completeness_cityjson(c: &Completeness, srs_name: Option<String>) -> serd
         parent,
         attributes,
         line: 0,
+        offset: 0,
         lod_used: Some(3),
     };
     let poly = |pts: Vec<DVec3>, owner: usize, ordinal: usize| Polygon {

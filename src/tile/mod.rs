@@ -294,6 +294,10 @@ pub struct Plan {
     /// Seconds and peak memory (MB) of the planning and the cut.
     pub seconds: f64,
     pub peak_rss_mb: Option<f64>,
+    /// Objects renamed because another file of the city model uses their id (`id~n`, as
+    /// `gs4city run` names them), one line each naming both files.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 impl Plan {
@@ -568,7 +572,11 @@ pub fn plan(
         )));
     };
     let al = Alignment::read(al_path)?;
-    let feet = gml::footprints(&scene.gml, &al)?;
+    let gml::Footprints {
+        feet,
+        names: renamed,
+        warnings,
+    } = gml::footprints(&scene.gml, &al)?;
     if feet.is_empty() {
         return Err(TileError::Invalid(format!(
             "{}: the city model holds no object with geometry to tile",
@@ -645,11 +653,11 @@ pub fn plan(
         })?
         .len();
 
-    let all_ids: Vec<BTreeSet<&str>> = (0..scene.gml.len())
+    let all_ids: Vec<BTreeSet<u64>> = (0..scene.gml.len())
         .map(|fi| {
             feet.iter()
                 .filter(|f| f.file == fi)
-                .map(|f| f.id.as_str())
+                .map(|f| f.offset)
                 .collect()
         })
         .collect();
@@ -710,7 +718,15 @@ pub fn plan(
             None
         };
         if why_not.is_none() {
-            write_tile_scene(&scene, &sdir, &tile_views, owned, neighbours, &all_ids)?;
+            write_tile_scene(
+                &scene,
+                &sdir,
+                &tile_views,
+                owned,
+                neighbours,
+                &all_ids,
+                &renamed,
+            )?;
         }
         let c = grid.core(t);
         let fin = |v: f64| v.is_finite().then_some(v);
@@ -746,6 +762,7 @@ pub fn plan(
         tiles,
         seconds: 0.0,
         peak_rss_mb: None,
+        warnings,
     };
     slurm::write(&partial, out, &plan)?;
     plan.seconds = t0.elapsed().as_secs_f64();
@@ -776,19 +793,20 @@ fn write_tile_scene(
     views: &[View],
     owned: &[&gml::Footprint],
     neighbours: &[&gml::Footprint],
-    all_ids: &[BTreeSet<&str>],
+    all_ids: &[BTreeSet<u64>],
+    renamed: &[Vec<(u64, String)>],
 ) -> Result<(), TileError> {
     let cm = sdir.join("citymodel");
     crate::fsutil::create_dir(&cm)?;
     for (fi, src) in scene.gml.iter().enumerate() {
-        let keep: BTreeSet<&str> = owned
+        let keep: BTreeSet<u64> = owned
             .iter()
             .chain(neighbours)
             .filter(|f| f.file == fi)
-            .map(|f| f.id.as_str())
+            .map(|f| f.offset)
             .collect();
         let name = src.file_name().unwrap_or_default();
-        gml::write_subset(src, &all_ids[fi], &keep, &cm.join(name))?;
+        gml::write_subset(src, &all_ids[fi], &keep, &renamed[fi], &cm.join(name))?;
     }
     if let Some(a) = &scene.alignment {
         let to = cm.join("alignment.json");
