@@ -186,18 +186,26 @@ fn the_cut_puts_every_gaussian_byte_for_byte_into_the_tiles_within_the_margin_of
             );
             cores[*i as usize] += *core as usize;
         }
-        // Images, SAM lists and the city model are links, never copies.
+        // Images and SAM lists are links, never copies, but for the views cropped to the
+        // window where the tile shows (written cut: as many as the plan says).
         for sub in ["images", "masks"] {
-            for e in std::fs::read_dir(dir.join("scene").join(sub)).unwrap() {
-                let e = e.unwrap();
-                assert!(
-                    e.path()
+            let written = std::fs::read_dir(dir.join("scene").join(sub))
+                .unwrap()
+                .filter(|e| {
+                    !e.as_ref()
+                        .unwrap()
+                        .path()
                         .symlink_metadata()
                         .unwrap()
                         .file_type()
                         .is_symlink()
-                );
-            }
+                })
+                .count();
+            assert_eq!(
+                written as u64,
+                t["views_cropped"].as_u64().unwrap(),
+                "{name}: {sub}"
+            );
         }
         assert!(!dir.join("scene/gt").exists() && !dir.join("scene/masks/README.json").exists());
     }

@@ -54,7 +54,7 @@ pub struct TileArgs {
     #[arg(long, default_value_t = TileOptions::default().min_views)]
     pub min_views: usize,
     /// A view joins a tile cropped to the window of its image where the tile shows when that
-    /// window is smaller than this share of the image; 0 = every view whole.
+    /// window is smaller than this share of the image (e.g. 0.3); 0 = every view whole.
     #[arg(long, default_value_t = TileOptions::default().crop_below)]
     pub crop_below: f64,
     /// Options of each tile's `gs4city run`, as one string (e.g. "--supervision city" or
