@@ -211,18 +211,26 @@ fn the_cut_puts_every_gaussian_byte_for_byte_into_the_tiles_within_the_margin_of
             );
             cores[*i as usize] += *core as usize;
         }
-        // Images, SAM lists and the city model are links, never copies.
+        // Images and SAM lists are links, never copies, but for the views cropped to the
+        // window where the tile shows (written cut: as many as the plan says).
         for sub in ["images", "masks"] {
-            for e in std::fs::read_dir(dir.join("scene").join(sub)).unwrap() {
-                let e = e.unwrap();
-                assert!(
-                    e.path()
+            let written = std::fs::read_dir(dir.join("scene").join(sub))
+                .unwrap()
+                .filter(|e| {
+                    !e.as_ref()
+                        .unwrap()
+                        .path()
                         .symlink_metadata()
                         .unwrap()
                         .file_type()
                         .is_symlink()
-                );
-            }
+                })
+                .count();
+            assert_eq!(
+                written as u64,
+                t["views_cropped"].as_u64().unwrap(),
+                "{name}: {sub}"
+            );
         }
         assert!(!dir.join("scene/gt").exists() && !dir.join("scene/masks/README.json").exists());
     }
@@ -866,6 +874,72 @@ fn a_view_joins_the_tiles_that_take_a_share_of_its_screen_and_each_tile_keeps_it
             "{prefix}: the best views are the copy's own: {kept:?}"
         );
     }
+    // `--crop-below 0.75`: the same views join the same tiles, and a cropped view's image is
+    // the scene image's window at the corner its camera's principal point moved by (read by
+    // OpenCV here, written by the `png` crate in the plan).
+    let pc = d.join("pcrop");
+    let (ok, text) = gs(&[
+        "tile",
+        "--scene",
+        x4.to_str().unwrap(),
+        "--size",
+        "72",
+        "--margin",
+        "10",
+        "--crop-below",
+        "0.75",
+        "--test-every",
+        "8",
+        "--out",
+        pc.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let vc = plan_of(&pc);
+    let cropped = views_of(&pc, &vc);
+    assert_eq!(
+        cropped.iter().map(|(_, v)| v.clone()).collect::<Vec<_>>(),
+        every.iter().map(|(_, v)| v.clone()).collect::<Vec<_>>()
+    );
+    let src = gs4city::colmap::read_model(&x4.join("sparse/0")).unwrap();
+    let mut seen = 0;
+    for t in vc["tiles"].as_array().unwrap() {
+        let tdir = pc
+            .join("tiles")
+            .join(t["name"].as_str().unwrap())
+            .join("scene");
+        for v in gs4city::colmap::read_model(&tdir.join("sparse/0")).unwrap() {
+            let img = tdir.join("images").join(&v.name);
+            if img.symlink_metadata().unwrap().file_type().is_symlink() {
+                continue;
+            }
+            seen += 1;
+            let s = src.iter().find(|s| s.name == v.name).unwrap();
+            let (k, ks) = (&v.camera.intrinsics, &s.camera.intrinsics);
+            let (x0, y0) = (ks.cx - k.cx, ks.cy - k.cy);
+            assert!(x0 >= 0.0 && y0 >= 0.0 && x0.fract() == 0.0 && y0.fract() == 0.0);
+            assert_eq!((k.fx, k.fy), (ks.fx, ks.fy));
+            let (x0, y0) = (x0 as usize, y0 as usize);
+            let a = gs4city::imageio::read_rgb(&img).unwrap();
+            let b = gs4city::imageio::read_rgb(&x4.join("images").join(&s.name)).unwrap();
+            assert_eq!(a.dim(), (k.height as usize, k.width as usize, 3));
+            let want = b.slice(ndarray::s![
+                y0..y0 + k.height as usize,
+                x0..x0 + k.width as usize,
+                ..
+            ]);
+            assert_eq!(a.view(), want, "{}", v.name);
+        }
+    }
+    let n_cropped: u64 = vc["tiles"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t["views_cropped"].as_u64().unwrap())
+        .sum();
+    assert!(
+        seen > 0 && seen as u64 == n_cropped,
+        "{seen} vs {n_cropped}"
+    );
     let _ = std::fs::remove_dir_all(&d);
 }
 

@@ -53,6 +53,10 @@ pub struct TileArgs {
     /// Views each tile keeps whatever their share (its best), when that many see it.
     #[arg(long, default_value_t = TileOptions::default().min_views)]
     pub min_views: usize,
+    /// A view joins a tile cropped to the window of its image where the tile shows when that
+    /// window is smaller than this share of the image (e.g. 0.3); 0 = every view whole.
+    #[arg(long, default_value_t = TileOptions::default().crop_below)]
+    pub crop_below: f64,
     /// Options of each tile's `gs4city run`, as one string (e.g. "--supervision city" or
     /// "--config ablation.toml").
     #[arg(long, default_value = "", allow_hyphen_values = true)]
@@ -146,6 +150,7 @@ fn tile_cmd(a: &TileArgs) -> anyhow::Result<()> {
         test_every: a.test_every,
         min_share: a.min_share,
         min_views: a.min_views,
+        crop_below: a.crop_below,
         run_args,
         ..TileOptions::default()
     };

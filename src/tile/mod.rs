@@ -21,6 +21,7 @@
 //! its cost; [`merge`] joins the tiles' labels into one run folder (and, by [`join`], the groups
 //! of neighbouring tiles that are one object cut by a border); [`slurm`] writes the batch
 //! scripts.
+pub mod crop;
 pub mod cut;
 pub mod exec;
 pub mod gml;
@@ -78,6 +79,10 @@ pub enum TileError {
     Eval(#[from] crate::eval::EvalError),
     #[error(transparent)]
     Lock(#[from] crate::lock::LockError),
+    #[error(transparent)]
+    Sam(#[from] crate::sam::SamError),
+    #[error(transparent)]
+    Image(#[from] crate::imageio::ImageError),
 }
 
 /// The file that describes a plan.
@@ -109,6 +114,13 @@ pub struct TileOptions {
     /// see it.
     #[serde(default)]
     pub min_views: usize,
+    /// A view joins a tile cropped to the window of its image where the tile shows (the
+    /// screen cells the tile wins, [`CROP_PAD_CELLS`] cells around them) when that window is
+    /// smaller than this share of the image ([`crop`]); 0 = every view whole (the default:
+    /// 0.3 keeps the street's accuracy and cuts the CPU time, but the time still grows faster
+    /// than the city, BENCHMARKS.md "Tiles").
+    #[serde(default)]
+    pub crop_below: f64,
     /// Options of each tile's `gs4city run` (its command-line words; `--test-every 0` is added).
     #[serde(default)]
     pub run_args: Vec<String>,
@@ -124,6 +136,7 @@ impl Default for TileOptions {
             min_visible: 3,
             min_share: 0.0,
             min_views: 8,
+            crop_below: 0.0,
             run_args: Vec::new(),
         }
     }
@@ -144,6 +157,12 @@ impl TileOptions {
         range(
             "min-share",
             self.min_share,
+            End::Closed(0.0),
+            End::Closed(1.0),
+        )?;
+        range(
+            "crop-below",
+            self.crop_below,
             End::Closed(0.0),
             End::Closed(1.0),
         )?;
@@ -265,6 +284,9 @@ pub struct TilePlan {
     /// Views that see the tile but take less than `min_share` of their screen there (left out).
     #[serde(default)]
     pub views_glimpsing: usize,
+    /// Views that join it cropped to the window where it shows ([`TileOptions::crop_below`]).
+    #[serde(default)]
+    pub views_cropped: usize,
     /// Whether the tile has a scene to run (buildings and views); the core Gaussians of a tile
     /// that has none are labelled −1 by the merge.
     pub runnable: bool,
@@ -387,24 +409,46 @@ fn sees(v: &View, points: &[DVec3], occluders: &[(DVec3, DVec3)], need: usize) -
 /// Cells per image row of the coarse screen grid of the share test.
 const SHARE_CELLS_X: usize = 32;
 
+/// Cells of the screen grid added on each side of the cells a tile wins to make the window a
+/// view is cropped to ([`TileOptions::crop_below`]): room for an object of the tile that
+/// reaches past its sample points.
+pub const CROP_PAD_CELLS: usize = 1;
+
 /// What a tile needs for the view test: its sample points and the boxes that may hide them.
 struct TileSight {
     points: Vec<DVec3>,
     occluders: Vec<(DVec3, DVec3)>,
 }
 
+/// What one view shows of one candidate tile on the coarse screen grid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Shown {
+    /// Cells the tile wins (its share of the view).
+    won: usize,
+    /// The box `[cx0, cy0, cx1, cy1]` (inclusive) of the cells it wins, or, when it wins
+    /// none, of the cells its visible sample points fall in.
+    cells: [usize; 4],
+}
+
 /// Per tile of `cands` (indices into `sights`), the cells of a coarse screen grid of view `v`
-/// (32 across, square) whose nearest visible sample point belongs to that tile: the tile's
-/// share of what the view shows. Ties go to the first tile of `cands`.
-fn screen_cells(v: &View, cands: &[usize], sights: &[TileSight]) -> Vec<usize> {
+/// (32 across, square) whose nearest visible sample point belongs to that tile — the tile's
+/// share of what the view shows — and the box of those cells. Ties go to the first tile of
+/// `cands`.
+fn screen_cells(v: &View, cands: &[usize], sights: &[TileSight]) -> Vec<Shown> {
     let k = &v.camera.intrinsics;
     let cell = f64::from(k.width) / SHARE_CELLS_X as f64;
     let rows = ((f64::from(k.height) / cell).ceil() as usize).max(1);
     let mut nearest = vec![(f64::INFINITY, usize::MAX); SHARE_CELLS_X * rows];
+    let empty = [usize::MAX, usize::MAX, 0, 0];
+    let grow = |b: &mut [usize; 4], cx: usize, cy: usize| {
+        *b = [b[0].min(cx), b[1].min(cy), b[2].max(cx), b[3].max(cy)];
+    };
+    let mut seen = vec![empty; cands.len()];
     for (ci, &t) in cands.iter().enumerate() {
         visible(v, &sights[t].points, &sights[t].occluders, |px, depth| {
             let cx = ((px[0] / cell) as usize).min(SHARE_CELLS_X - 1);
             let cy = ((px[1] / cell) as usize).min(rows - 1);
+            grow(&mut seen[ci], cx, cy);
             let c = &mut nearest[cy * SHARE_CELLS_X + cx];
             if depth < c.0 {
                 *c = (depth, ci);
@@ -412,29 +456,63 @@ fn screen_cells(v: &View, cands: &[usize], sights: &[TileSight]) -> Vec<usize> {
             true
         });
     }
-    let mut won = vec![0; cands.len()];
-    for &(_, ci) in &nearest {
+    let mut out: Vec<Shown> = vec![
+        Shown {
+            won: 0,
+            cells: empty
+        };
+        cands.len()
+    ];
+    for (i, &(_, ci)) in nearest.iter().enumerate() {
         if ci != usize::MAX {
-            won[ci] += 1;
+            out[ci].won += 1;
+            grow(&mut out[ci].cells, i % SHARE_CELLS_X, i / SHARE_CELLS_X);
         }
     }
-    won
+    for (o, s) in out.iter_mut().zip(seen) {
+        if o.won == 0 {
+            o.cells = s;
+        }
+    }
+    out
 }
 
-/// The training views of each tile, as indices into `views` (ascending), and per tile the
-/// number of views left out as glimpsing. A view joins each tile of which it sees
-/// `min_visible` sample points and that takes at least `min_share` of its screen cells
-/// ([`screen_cells`]); a tile that gets fewer than `min_views` so takes its best remaining views
-/// (most cells won).
+/// The window a view is cropped to for a tile it shows in `cells` ([`Shown::cells`]): those
+/// cells and [`CROP_PAD_CELLS`] around them, in pixels, clipped to the image; `None` (the whole
+/// view) when the window is not smaller than `crop_below` of the image.
+fn crop_window(v: &View, cells: [usize; 4], crop_below: f64) -> Option<crop::Window> {
+    let k = &v.camera.intrinsics;
+    if cells[0] > cells[2] || cells[1] > cells[3] {
+        return None;
+    }
+    let cell = f64::from(k.width) / SHARE_CELLS_X as f64;
+    let px = |c: usize, lim: u32| ((c as f64 * cell).floor() as u32).min(lim);
+    let p = CROP_PAD_CELLS;
+    let w = crop::Window {
+        x0: px(cells[0].saturating_sub(p), k.width),
+        y0: px(cells[1].saturating_sub(p), k.height),
+        x1: px(cells[2] + 1 + p, k.width),
+        y1: px(cells[3] + 1 + p, k.height),
+    };
+    let full = u64::from(k.width) * u64::from(k.height);
+    (w.x1 > w.x0 && w.y1 > w.y0 && (w.area() as f64) < crop_below * full as f64).then_some(w)
+}
+
+/// The training views of each tile, as indices into `views` (ascending) with the window each
+/// joins through (`None`: the whole view; [`crop_window`]), and per tile the number of views
+/// left out as glimpsing. A view joins each tile of which it sees `min_visible` sample points
+/// and that takes at least `min_share` of its screen cells ([`screen_cells`]); a tile that gets
+/// fewer than `min_views` so takes its best remaining views (most cells won).
+#[allow(clippy::type_complexity)]
 fn assign_views(
     views: &[View],
     sights: &[TileSight],
     opts: &TileOptions,
-) -> (Vec<Vec<usize>>, Vec<usize>) {
+) -> (Vec<Vec<(usize, Option<crop::Window>)>>, Vec<usize>) {
     use rayon::prelude::*;
     let n_tiles = sights.len();
     let bar = crate::progress::Bar::new("tile: views", views.len() as u64, "views");
-    let per_view: Vec<Vec<(usize, usize)>> = views
+    let per_view: Vec<Vec<(usize, Shown)>> = views
         .par_iter()
         .map(|v| {
             let cands: Vec<usize> = (0..n_tiles)
@@ -443,39 +521,48 @@ fn assign_views(
                         && sees(v, &sights[t].points, &sights[t].occluders, opts.min_visible)
                 })
                 .collect();
-            let won = screen_cells(v, &cands, sights);
+            let shown = screen_cells(v, &cands, sights);
             bar.inc(1);
-            cands.into_iter().zip(won).collect()
+            cands.into_iter().zip(shown).collect()
         })
         .collect();
     bar.finish();
     let mut chosen = vec![Vec::new(); n_tiles];
     let mut glimpsing = vec![0; n_tiles];
-    let mut rest: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n_tiles];
+    let mut rest: Vec<Vec<(usize, usize, [usize; 4])>> = vec![Vec::new(); n_tiles];
     for (vi, seen) in per_view.iter().enumerate() {
-        let total: usize = seen.iter().map(|&(_, w)| w).sum();
-        for &(t, w) in seen {
+        let total: usize = seen.iter().map(|&(_, s)| s.won).sum();
+        for &(t, s) in seen {
             let share = if total == 0 {
                 0.0
             } else {
-                w as f64 / total as f64
+                s.won as f64 / total as f64
             };
             if share >= opts.min_share {
-                chosen[t].push(vi);
+                chosen[t].push((vi, s.cells));
             } else {
-                rest[t].push((w, vi));
+                rest[t].push((s.won, vi, s.cells));
             }
         }
     }
+    let mut out = vec![Vec::new(); n_tiles];
     for t in 0..n_tiles {
         rest[t].sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
         let need = opts.min_views.saturating_sub(chosen[t].len());
-        let extra: Vec<usize> = rest[t].iter().take(need).map(|&(_, vi)| vi).collect();
+        let extra: Vec<(usize, [usize; 4])> = rest[t]
+            .iter()
+            .take(need)
+            .map(|&(_, vi, c)| (vi, c))
+            .collect();
         glimpsing[t] = rest[t].len() - extra.len();
         chosen[t].extend(extra);
-        chosen[t].sort_unstable();
+        chosen[t].sort_unstable_by_key(|&(vi, _)| vi);
+        out[t] = chosen[t]
+            .iter()
+            .map(|&(vi, c)| (vi, crop_window(&views[vi], c, opts.crop_below)))
+            .collect();
     }
-    (chosen, glimpsing)
+    (out, glimpsing)
 }
 
 /// Slab test of segment `a → b` against box `[lo, hi]`.
@@ -706,9 +793,9 @@ pub fn plan(
         let sdir = dir.join("scene");
         let owned = &owners[t];
         let neighbours = &near[t];
-        let tile_views: Vec<View> = view_sets[t]
+        let tile_views: Vec<(&View, Option<crop::Window>)> = view_sets[t]
             .iter()
-            .map(|&vi| split.train[vi].clone())
+            .map(|&(vi, w)| (&split.train[vi], w))
             .collect();
         let why_not = if owned.is_empty() && neighbours.is_empty() {
             Some("no building in its core or margin".to_string())
@@ -742,6 +829,7 @@ pub fn plan(
             core_gaussians: cuts[t].core,
             views: tile_views.len(),
             views_glimpsing: glimpsing[t],
+            views_cropped: tile_views.iter().filter(|(_, w)| w.is_some()).count(),
             runnable: why_not.is_none(),
             why_not,
             resources: resources(cuts[t].gaussians, tile_views.len()),
@@ -786,11 +874,12 @@ pub fn plan(
 }
 
 /// The scene folder of one tile: the CityGML subset and alignment, the COLMAP subset, links to
-/// the images, SAM lists and features of its views (the PLY is already cut).
+/// the images, SAM lists and features of its whole views and the cropped ones of the views
+/// that join it through a window ([`crop`]; the PLY is already cut).
 fn write_tile_scene(
     scene: &Scene,
     sdir: &Path,
-    views: &[View],
+    views: &[(&View, Option<crop::Window>)],
     owned: &[&gml::Footprint],
     neighbours: &[&gml::Footprint],
     all_ids: &[BTreeSet<u64>],
@@ -812,8 +901,28 @@ fn write_tile_scene(
         let to = cm.join("alignment.json");
         std::fs::copy(a, &to).map_err(|err| TileError::Io { path: to, err })?;
     }
-    crate::colmap::write_model(&sdir.join("sparse/0"), views, true)?;
-    for v in views {
+    // A cropped view has a camera of its own, numbered after the scene's.
+    let mut next_camera = views.iter().map(|(v, _)| v.camera_id).max().unwrap_or(0);
+    let mut model = Vec::with_capacity(views.len());
+    for &(v, w) in views {
+        match w {
+            Some(w) => {
+                next_camera = next_camera.checked_add(1).ok_or_else(|| {
+                    TileError::Invalid(format!(
+                        "{}: camera ids reach {}; no id is left for a cropped view",
+                        scene.sparse.display(),
+                        u32::MAX
+                    ))
+                })?;
+                let c = crop::cropped_view(v, w, next_camera);
+                crop::write_cropped(scene, sdir, v, &c, w)?;
+                model.push(c);
+            }
+            None => model.push(v.clone()),
+        }
+    }
+    crate::colmap::write_model(&sdir.join("sparse/0"), &model, true)?;
+    for v in views.iter().filter(|(_, w)| w.is_none()).map(|(v, _)| v) {
         if let Some(images) = &scene.images {
             let src = images.join(&v.name);
             if src.is_file() {
@@ -885,5 +994,142 @@ mod tests {
             DVec3::new(4.0, -1.0, -1.0),
             DVec3::new(5.0, 1.0, 1.0)
         ));
+    }
+
+    /// A SIMULATED pinhole view (320 × 240, f = 160, at the origin looking down +z): the
+    /// screen grid has cells of 10 px, 32 × 24.
+    fn view_320() -> View {
+        use crate::camera::{Camera, Distortion, Intrinsics, Pose};
+        View {
+            image_id: 1,
+            camera_id: 1,
+            name: "v.png".into(),
+            camera: Camera {
+                intrinsics: Intrinsics {
+                    width: 320,
+                    height: 240,
+                    fx: 160.0,
+                    fy: 160.0,
+                    cx: 160.0,
+                    cy: 120.0,
+                    distortion: Distortion::None,
+                },
+                pose: Pose {
+                    rotation: glam::DMat3::IDENTITY,
+                    translation: DVec3::ZERO,
+                },
+            },
+        }
+    }
+
+    /// The point at depth `z` that projects to pixel `(u, v)` of [`view_320`].
+    fn at(u: f64, v: f64, z: f64) -> DVec3 {
+        DVec3::new((u - 160.0) * z / 160.0, (v - 120.0) * z / 160.0, z)
+    }
+
+    #[test]
+    fn a_view_joins_each_tile_through_the_window_of_the_cells_it_wins() {
+        // Tile 0 at 10 m in cells (1, 1), (2, 1), (1, 2); tile 1 at 20 m in cell (1, 1)
+        // (behind tile 0's point there: tile 0 wins it) and cells (20, 10), (21, 11); tile 2
+        // at 30 m only in cells tile 0 wins (it wins none: its window is the cells it is seen
+        // in); tile 3 has two points in view (fewer than 3: not a candidate).
+        let sights = vec![
+            TileSight {
+                points: vec![
+                    at(15.0, 15.0, 10.0),
+                    at(25.0, 15.0, 10.0),
+                    at(15.0, 25.0, 10.0),
+                ],
+                occluders: Vec::new(),
+            },
+            TileSight {
+                points: vec![
+                    at(12.0, 18.0, 20.0),
+                    at(205.0, 105.0, 20.0),
+                    at(215.0, 115.0, 20.0),
+                ],
+                occluders: Vec::new(),
+            },
+            TileSight {
+                points: vec![
+                    at(11.0, 11.0, 30.0),
+                    at(29.0, 11.0, 30.0),
+                    at(19.0, 19.0, 30.0),
+                ],
+                occluders: Vec::new(),
+            },
+            TileSight {
+                points: vec![
+                    at(300.0, 200.0, 5.0),
+                    at(310.0, 210.0, 5.0),
+                    at(0.0, 0.0, -5.0),
+                ],
+                occluders: Vec::new(),
+            },
+        ];
+        let v = view_320();
+        let shown = screen_cells(&v, &[0, 1, 2], &sights);
+        // Hand count: tile 0 wins its 3 cells, tile 1 its 2 cells off tile 0's, tile 2 none.
+        assert_eq!(
+            shown,
+            vec![
+                Shown {
+                    won: 3,
+                    cells: [1, 1, 2, 2]
+                },
+                Shown {
+                    won: 2,
+                    cells: [20, 10, 21, 11]
+                },
+                Shown {
+                    won: 0,
+                    cells: [1, 1, 2, 1]
+                },
+            ]
+        );
+        // One cell (10 px) around the cells, clipped at the image's edge.
+        let w = |x0, y0, x1, y1| Some(crop::Window { x0, y0, x1, y1 });
+        assert_eq!(crop_window(&v, [1, 1, 2, 2], 0.75), w(0, 0, 40, 40));
+        assert_eq!(
+            crop_window(&v, [20, 10, 21, 11], 0.75),
+            w(190, 90, 230, 130)
+        );
+        assert_eq!(
+            crop_window(&v, [31, 23, 31, 23], 0.75),
+            w(300, 220, 320, 240)
+        );
+        // A window not smaller than `crop_below` of the image (1600 of 76 800 px ≥ 1 %): whole.
+        assert_eq!(crop_window(&v, [1, 1, 2, 2], 0.01), None);
+        assert_eq!(crop_window(&v, [1, 1, 2, 2], 0.0), None);
+
+        // The plan's assignment: every candidate joins (min-share 0), cropped; tile 3 not.
+        let opts = TileOptions {
+            min_share: 0.0,
+            min_views: 0,
+            crop_below: 0.3,
+            ..TileOptions::default()
+        };
+        let (sets, glimpsing) = assign_views(std::slice::from_ref(&v), &sights, &opts);
+        assert_eq!(
+            sets,
+            vec![
+                vec![(0, w(0, 0, 40, 40))],
+                vec![(0, w(190, 90, 230, 130))],
+                vec![(0, w(0, 0, 40, 30))],
+                vec![],
+            ]
+        );
+        assert_eq!(glimpsing, vec![0, 0, 0, 0]);
+        // Shares 3/5 and 2/5 (tile 2: 0): at min-share 0.5 only tile 0 keeps the view.
+        let opts = TileOptions {
+            min_share: 0.5,
+            ..opts
+        };
+        let (sets, glimpsing) = assign_views(std::slice::from_ref(&v), &sights, &opts);
+        assert_eq!(
+            sets,
+            vec![vec![(0, w(0, 0, 40, 40))], vec![], vec![], vec![]]
+        );
+        assert_eq!(glimpsing, vec![0, 1, 1, 0]);
     }
 }
