@@ -556,6 +556,81 @@ fn run_plan_merges_into_one_queryable_run_that_agrees_with_the_untiled_run() {
     assert!(q.join("semantic.sqlite").is_file());
 }
 
+/// `tile --crop-below`: views that glimpse a tile run cropped to the window where it shows, and
+/// the merged city still agrees with the untiled run of the same scene (its classes and its
+/// test views' fine mIoU), as the whole-view plan does above.
+#[test]
+fn a_plan_with_cropped_views_runs_merges_and_agrees_with_the_untiled_run() {
+    let s = scene();
+    let d = tmp("crop-run");
+    let p = d.join("P");
+    let (ok, text) = gs(&[
+        "tile",
+        "--scene",
+        s.to_str().unwrap(),
+        "--size",
+        "10",
+        "--margin",
+        "4",
+        "--crop-below",
+        "0.75",
+        "--out",
+        p.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let cropped: u64 = plan_of(&p)["tiles"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t["views_cropped"].as_u64().unwrap())
+        .sum();
+    assert!(
+        cropped > 0,
+        "no view was cropped: the test would not test the crop"
+    );
+    let (ok, text) = gs(&["run-plan", p.to_str().unwrap(), "--jobs", "2"]);
+    assert!(ok, "{text}");
+    let m = p.join("merged");
+    check_merged_against_tiles(&p, &m, &[]);
+    let r = d.join("R");
+    let (ok, text) = gs(&[
+        "run",
+        "--scene",
+        s.to_str().unwrap(),
+        "--out",
+        r.to_str().unwrap(),
+    ]);
+    assert!(ok, "{text}");
+    let a = gs4city::npy::read::<i32>(&r.join("lift/gaussians.npy"))
+        .unwrap()
+        .1;
+    let b = gs4city::npy::read::<i32>(&m.join("lift/gaussians.npy"))
+        .unwrap()
+        .1;
+    assert_eq!(a.len(), b.len());
+    let same = a
+        .chunks(2)
+        .zip(b.chunks(2))
+        .filter(|(x, y)| x[1] == y[1])
+        .count();
+    let share = same as f64 / (a.len() / 2) as f64;
+    assert!(
+        share >= 0.95,
+        "{share:.4} of the Gaussians keep their class"
+    );
+    let u = json(&r.join("eval/metrics.json"))["paper"]["miou"]["mean"]
+        .as_f64()
+        .unwrap();
+    let t = json(&m.join("summary.json"))["paper_fine_miou"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        (u - t).abs() < 0.02,
+        "fine mIoU untiled {u:.4}, tiled with cropped views {t:.4}"
+    );
+    let _ = std::fs::remove_dir_all(&d);
+}
+
 #[test]
 fn a_missing_or_failed_tile_is_named_and_a_partial_city_needs_allow_missing() {
     let s = scene();
