@@ -50,6 +50,58 @@ fn scene() -> &'static Path {
     })
 }
 
+/// The untiled run of `scene()`, made once for every test here.
+fn untiled_run() -> &'static Path {
+    static R: OnceLock<PathBuf> = OnceLock::new();
+    R.get_or_init(|| {
+        let r = tmp("untiled").join("R");
+        let (ok, text) = gs(&[
+            "run",
+            "--scene",
+            scene().to_str().unwrap(),
+            "--out",
+            r.to_str().unwrap(),
+        ]);
+        assert!(ok, "{text}");
+        r
+    })
+}
+
+/// The merged run `m` of a plan of `scene()` agrees with its untiled run: at least 95 % of the
+/// Gaussians keep their class and the test views' fine mIoU is within 0.02. Returns the merged
+/// (label, class) pairs per Gaussian.
+fn assert_agrees_with_untiled(m: &Path) -> Vec<i32> {
+    let r = untiled_run();
+    let a = gs4city::npy::read::<i32>(&r.join("lift/gaussians.npy"))
+        .unwrap()
+        .1;
+    let b = gs4city::npy::read::<i32>(&m.join("lift/gaussians.npy"))
+        .unwrap()
+        .1;
+    assert_eq!(a.len(), b.len());
+    let same = a
+        .chunks(2)
+        .zip(b.chunks(2))
+        .filter(|(x, y)| x[1] == y[1])
+        .count();
+    let share = same as f64 / (a.len() / 2) as f64;
+    assert!(
+        share >= 0.95,
+        "{share:.4} of the Gaussians keep their class"
+    );
+    let u = json(&r.join("eval/metrics.json"))["paper"]["miou"]["mean"]
+        .as_f64()
+        .unwrap();
+    let t = json(&m.join("summary.json"))["paper_fine_miou"]
+        .as_f64()
+        .unwrap();
+    assert!(
+        (u - t).abs() < 0.02,
+        "fine mIoU untiled {u:.4}, tiled {t:.4}"
+    );
+    b
+}
+
 fn plan_of(dir: &Path) -> Value {
     serde_json::from_str(&std::fs::read_to_string(dir.join("plan.json")).unwrap()).unwrap()
 }
@@ -493,40 +545,7 @@ fn run_plan_merges_into_one_queryable_run_that_agrees_with_the_untiled_run() {
         );
     }
     // The untiled run of the same scene: same test views, nearly the same classes.
-    let r = d.join("R");
-    let (ok, text) = gs(&[
-        "run",
-        "--scene",
-        s.to_str().unwrap(),
-        "--out",
-        r.to_str().unwrap(),
-    ]);
-    assert!(ok, "{text}");
-    let a = gs4city::npy::read::<i32>(&r.join("lift/gaussians.npy"))
-        .unwrap()
-        .1;
-    let b = gs4city::npy::read::<i32>(&m.join("lift/gaussians.npy"))
-        .unwrap()
-        .1;
-    let same = a
-        .chunks(2)
-        .zip(b.chunks(2))
-        .filter(|(x, y)| x[1] == y[1])
-        .count();
-    let share = same as f64 / (a.len() / 2) as f64;
-    assert!(
-        share >= 0.95,
-        "{share:.4} of the Gaussians keep their class"
-    );
-    let untiled: Value =
-        serde_json::from_str(&std::fs::read_to_string(r.join("eval/metrics.json")).unwrap())
-            .unwrap();
-    let u = untiled["paper"]["miou"]["mean"].as_f64().unwrap();
-    let t = summary["paper_fine_miou"].as_f64().unwrap();
-    assert!(
-        (u - t).abs() < 0.02,
-        "fine mIoU untiled {u:.4}, tiled {t:.4}"
-    );
+    let b = assert_agrees_with_untiled(&m);
     // query --run M: the selection's Gaussians are those whose merged label it lists.
     let q = d.join("Q");
     let (ok, text) = gs(&[
@@ -592,42 +611,7 @@ fn a_plan_with_cropped_views_runs_merges_and_agrees_with_the_untiled_run() {
     assert!(ok, "{text}");
     let m = p.join("merged");
     check_merged_against_tiles(&p, &m, &[]);
-    let r = d.join("R");
-    let (ok, text) = gs(&[
-        "run",
-        "--scene",
-        s.to_str().unwrap(),
-        "--out",
-        r.to_str().unwrap(),
-    ]);
-    assert!(ok, "{text}");
-    let a = gs4city::npy::read::<i32>(&r.join("lift/gaussians.npy"))
-        .unwrap()
-        .1;
-    let b = gs4city::npy::read::<i32>(&m.join("lift/gaussians.npy"))
-        .unwrap()
-        .1;
-    assert_eq!(a.len(), b.len());
-    let same = a
-        .chunks(2)
-        .zip(b.chunks(2))
-        .filter(|(x, y)| x[1] == y[1])
-        .count();
-    let share = same as f64 / (a.len() / 2) as f64;
-    assert!(
-        share >= 0.95,
-        "{share:.4} of the Gaussians keep their class"
-    );
-    let u = json(&r.join("eval/metrics.json"))["paper"]["miou"]["mean"]
-        .as_f64()
-        .unwrap();
-    let t = json(&m.join("summary.json"))["paper_fine_miou"]
-        .as_f64()
-        .unwrap();
-    assert!(
-        (u - t).abs() < 0.02,
-        "fine mIoU untiled {u:.4}, tiled with cropped views {t:.4}"
-    );
+    assert_agrees_with_untiled(&m);
     let _ = std::fs::remove_dir_all(&d);
 }
 
