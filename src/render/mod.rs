@@ -684,17 +684,7 @@ pub(crate) mod tests {
     pub(crate) fn random_scene(n: usize, extent: f32, seed: u64) -> PreparedScene {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         let mut r = |lo: f32, hi: f32| lo + (hi - lo) * rng.random::<f32>();
-        let mut g = Gaussians {
-            positions: Vec::new(),
-            normals: None,
-            sh_degree: 0,
-            f_dc: Vec::new(),
-            f_rest: Vec::new(),
-            opacity: Vec::new(),
-            scale: Vec::new(),
-            rotation: Vec::new(),
-            extras: Vec::new(),
-        };
+        let mut g = Gaussians::default();
         for i in 0..n {
             let mut p = [r(-extent, extent), r(-extent, extent), r(-extent, extent)];
             if i % 997 == 5 {

@@ -351,17 +351,7 @@ mod tests {
                 translation: glam::DVec3::ZERO,
             },
         };
-        let mut g = Gaussians {
-            positions: Vec::new(),
-            normals: None,
-            sh_degree: 0,
-            f_dc: Vec::new(),
-            f_rest: Vec::new(),
-            opacity: Vec::new(),
-            scale: Vec::new(),
-            rotation: Vec::new(),
-            extras: Vec::new(),
-        };
+        let mut g = Gaussians::default();
         let mut add = |p: [f32; 3], opacity: f32, scale: [f32; 3]| {
             g.positions.push(p);
             g.f_dc.push([0.0; 3]);
