@@ -1,6 +1,6 @@
 //! The work knobs of `gs4city run` (docs/quality.md) on a SIMULATED scene (the small preset:
-//! 2 real buildings): training views at a lower resolution and the view cover give the same
-//! outputs at 1 and 2 threads (as does the full work), and every per-view stage works at the resolution the cache
+//! 2 real buildings): the full work, the default preset, training views at a lower resolution
+//! and the view cover give the same outputs at 1 and 2 threads, and every per-view stage works at the resolution the cache
 //! holds its view (sizes worked out by hand from the cameras).
 use std::path::Path;
 
@@ -66,6 +66,7 @@ fn a_run_is_the_same_at_one_and_two_threads_with_and_without_the_work_knobs() {
     let mut per_setting = Vec::new();
     for (label, opts) in [
         ("full", base.clone().with_work(Quality::Full.work())),
+        ("default", base.clone().with_work(Quality::Default.work())),
         ("knobs", base.clone().with_work(knobs)),
     ] {
         let one = dir.join(format!("{label}-1"));
@@ -86,10 +87,26 @@ fn a_run_is_the_same_at_one_and_two_threads_with_and_without_the_work_knobs() {
     let full = json(&per_setting[0].join("render/summary.json"));
     assert!(full["selection"].is_null(), "{}", full["selection"]);
     assert_eq!(full["views"].as_array().unwrap().len(), 18);
+    // The default preset stops each pixel's blend at transmittance 0.1 (full: 0.02), so its
+    // lists hold fewer entries, view by view, and never more.
+    let default = json(&per_setting[1].join("render/summary.json"));
+    let t_stop = |s: &serde_json::Value| s["options"]["t_stop"].as_f64().unwrap();
+    assert!((t_stop(&default) - 0.1).abs() < 1e-6 && (t_stop(&full) - 0.02).abs() < 1e-6);
+    let entries = |s: &serde_json::Value| -> Vec<u64> {
+        s["views"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v["entries"].as_u64().unwrap())
+            .collect()
+    };
+    let (e_full, e_default) = (entries(&full), entries(&default));
+    assert!(e_full.iter().zip(&e_default).all(|(f, d)| d <= f));
+    assert!(e_default.iter().sum::<u64>() < e_full.iter().sum::<u64>());
 
     // The render stage's choice: a subset of the 15 training views (18 views, every 6th by
     // name a test view); test views at the cameras' W × H, training views at ⌈W/3⌉ × ⌈H/3⌉.
-    let out = &per_setting[1];
+    let out = &per_setting[2];
     let r = json(&out.join("render/summary.json"));
     let cams = gs4city::colmap::read_model(&scene.join("sparse/0")).unwrap();
     let (w, h) = (

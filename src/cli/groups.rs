@@ -141,6 +141,9 @@ pub struct Config {
     pub refine: RefineOptions,
     #[serde(default)]
     pub check: CheckTuning,
+    /// The keys the file gives in `[cache]` (a run's `--quality` preset sets the others).
+    #[serde(skip)]
+    pub cache_keys: Vec<String>,
 }
 
 impl Config {
@@ -154,6 +157,17 @@ impl Config {
     /// [`Config::read`] on text (`path` names it in errors).
     pub fn parse(path: &Path, text: &str) -> anyhow::Result<Config> {
         let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+        let mut config: Config = Self::parse_sections(path, text)?;
+        // The text parsed as a Config, so it is a TOML table whose `cache` (if any) is one.
+        if let Ok(table) = text.parse::<toml::Table>()
+            && let Some(cache) = table.get("cache").and_then(|c| c.as_table())
+        {
+            config.cache_keys = cache.keys().cloned().collect();
+        }
+        Ok(config)
+    }
+
+    fn parse_sections(path: &Path, text: &str) -> anyhow::Result<Config> {
         toml::from_str(text).map_err(|e| {
             // An unknown key is reported at its table: the line of the key itself is more use.
             let key_line = e

@@ -49,8 +49,9 @@ pub struct RunArgs {
     #[arg(long, value_name = "N", help_heading = "Supervision")]
     pub test_every: Option<usize>,
     /// How much work for the answer (docs/quality.md): full (every training view at full
-    /// resolution), default (the cheapest setting within 0.5 fine-mIoU points of full on every
-    /// scene measured: full's, for now) or fast (a first look; costs points).
+    /// resolution, the longest lists), default (the cheapest setting within 0.5 fine-mIoU points
+    /// of full on every scene measured: full's views, lists stopped at 90 % of a pixel's mass) or
+    /// fast (a first look; costs points).
     #[arg(long, default_value = "default", help_heading = "Performance")]
     pub quality: Quality,
     /// Training views at 1/N of their resolution from the render to the vote (test views
@@ -79,9 +80,28 @@ impl RunArgs {
 fn run_options(cfg: &Config, a: &RunArgs) -> anyhow::Result<RunOptions> {
     crate::check::non_negative("tau", cfg.raycast.tau)?;
     let lift = super::groups::vote_options(&cfg.vote, &cfg.prior)?;
-    let cache = cfg.cache.options();
-    cache.validate()?;
     let preset = a.quality.work();
+    // The `[cache]` keys the config gives override the preset's lists.
+    let given = |key: &str| cfg.cache_keys.iter().any(|k| k == key);
+    let file = cfg.cache.options();
+    let cache = crate::cache::CacheOptions {
+        top_k: if given("top_k") {
+            file.top_k
+        } else {
+            preset.top_k
+        },
+        epsilon: if given("epsilon") {
+            file.epsilon
+        } else {
+            preset.epsilon
+        },
+        t_stop: if given("t_stop") {
+            file.t_stop
+        } else {
+            preset.t_stop
+        },
+    };
+    cache.validate()?;
     let train_scale = a.train_scale.unwrap_or(preset.train_scale);
     let max = crate::camera::MAX_DOWNSCALE as u32;
     if !(1..=max).contains(&train_scale) {
@@ -195,4 +215,50 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     })?;
     print_run(&s);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+    use std::path::Path;
+
+    #[derive(Debug, Parser)]
+    struct Cmd {
+        #[command(flatten)]
+        run: RunArgs,
+    }
+
+    /// The run options of `--quality Q` (none: the default) with a config file of `toml`.
+    fn options(quality: Option<&str>, toml: &str) -> RunOptions {
+        let mut argv = vec!["x", "--scene", "S", "--out", "R"];
+        if let Some(q) = quality {
+            argv.extend(["--quality", q]);
+        }
+        let a = Cmd::try_parse_from(argv).unwrap().run;
+        let cfg = Config::parse(Path::new("c.toml"), toml).unwrap();
+        run_options(&cfg, &a).unwrap()
+    }
+
+    /// The presets' lists, and a `[cache]` key of the config file overriding only itself.
+    #[test]
+    fn the_quality_presets_set_the_lists_and_a_config_key_overrides_only_itself() {
+        let d = options(None, "");
+        assert_eq!((d.top_k, d.epsilon, d.t_stop), (32, 0.05, 0.1));
+        assert_eq!((d.train_scale, d.views), (1, ViewSelection::All));
+        let f = options(Some("full"), "");
+        assert_eq!((f.top_k, f.epsilon, f.t_stop), (32, 0.05, 0.02));
+        let fast = options(Some("fast"), "");
+        assert_eq!((fast.t_stop, fast.train_scale), (0.1, 2));
+        // One key given: the others stay the preset's.
+        let k = options(None, "[cache]\ntop_k = 16\n");
+        assert_eq!((k.top_k, k.epsilon, k.t_stop), (16, 0.05, 0.1));
+        let t = options(Some("full"), "[cache]\nt_stop = 0.05\n");
+        assert_eq!((t.top_k, t.epsilon, t.t_stop), (32, 0.05, 0.05));
+        // A key given with the value another preset has is still the user's.
+        let same = options(None, "[cache]\nt_stop = 0.02\n");
+        assert_eq!(same.t_stop, 0.02);
+        // The default run's options are the library's default.
+        assert_eq!(d, RunOptions::default());
+    }
 }

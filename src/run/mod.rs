@@ -188,13 +188,18 @@ pub enum Quality {
     /// Every training view at full resolution, the longest contribution lists.
     Full,
     /// The default: the cheapest setting within 0.5 points of fine mIoU of `full` on every
-    /// scene measured; no lighter setting has met that yet, so it is `full`'s work.
+    /// scene measured: `full`'s views and resolution, the cache's blend stopped once a pixel's
+    /// transmittance falls below [`DEFAULT_T_STOP`].
     #[default]
     Default,
-    /// Less work, for a first look: training views at half resolution and the 3-cover of
-    /// the views (it costs fine mIoU points: docs/quality.md).
+    /// Less work, for a first look: the default's early stop, training views at half
+    /// resolution and the 3-cover of the views (it costs fine mIoU points: docs/quality.md).
     Fast,
 }
+
+/// The early stop of the default preset's cache (`cache::CacheOptions::t_stop`): the Gaussians
+/// behind the last 10 % of a pixel's transmittance are not listed (BENCHMARKS.md, "Work knobs").
+pub const DEFAULT_T_STOP: f32 = 0.1;
 
 impl std::str::FromStr for Quality {
     type Err = String;
@@ -228,12 +233,17 @@ impl Quality {
             epsilon: cache::EPSILON,
             t_stop: cache::T_STOP,
         };
+        let default = Work {
+            t_stop: DEFAULT_T_STOP,
+            ..full
+        };
         match self {
-            Quality::Full | Quality::Default => full,
+            Quality::Full => full,
+            Quality::Default => default,
             Quality::Fast => Work {
                 train_scale: 2,
                 views: ViewSelection::Cover { k: 3, share: 1.0 },
-                ..full
+                ..default
             },
         }
     }
