@@ -249,7 +249,7 @@ mod tests {
         let f = options(Some("full"), "");
         assert_eq!((f.top_k, f.epsilon, f.t_stop), (32, 0.05, 0.02));
         let fast = options(Some("fast"), "");
-        assert_eq!((fast.t_stop, fast.train_scale), (0.1, 2));
+        assert_eq!((fast.t_stop, fast.train_scale), (0.02, 2));
         // One key given: the others stay the preset's.
         let k = options(None, "[cache]\ntop_k = 16\n");
         assert_eq!((k.top_k, k.epsilon, k.t_stop), (16, 0.05, 0.1));
