@@ -396,7 +396,7 @@ fn city_blocks_copies_have_unique_ids_and_appear_in_each_others_views() {
     let mut all_ids = std::collections::HashSet::new();
     let mut copies: Vec<Vec<[f64; 3]>> = vec![Vec::new(); 4];
     let mut shifts = Vec::new();
-    for k in 0..4 {
+    for (k, copy) in copies.iter_mut().enumerate() {
         for (i, input) in inputs.iter().enumerate() {
             let name = format!(
                 "{:02}_r{k}_ingolstadt_{}.gml",
@@ -422,7 +422,7 @@ fn city_blocks_copies_have_unique_ids_and_appear_in_each_others_views() {
             }
             assert_eq!(d, [d[0].round(), d[1].round()], "shift by whole metres");
             shifts.push(d);
-            copies[k].extend(b);
+            copy.extend(b);
         }
     }
     // Copy 1 is one step along x, copy 2 one along y, copy 3 both; the step clears the block.
