@@ -8,7 +8,8 @@ SCENE:       the synth scene (reads gt/gaussians.npy: class, instance per Gaussi
 PLAN:        a plan whose tiles ran (`gs4city run-plan`; reads plan.json, merged/summary.json for
              Δ and the tiles' offsets, and per tile source.npy, run/lift/gaussians.npy,
              run/fuse/labels.json)
-UNTILED_RUN: `gs4city run` of SCENE (reads lift/gaussians.npy, fuse/labels.json)
+UNTILED_RUN: `gs4city run` of SCENE (reads lift/gaussians.npy, fuse/labels.json); `-` where the
+             untiled run does not fit (its instance counts are then not printed)
 
 The rule (docs/tile.md, "The merge"), re-implemented here with NumPy and dictionaries: groups a
 of tile A and b of tile B with the same class join when the Gaussians both tiles hold that A
@@ -18,7 +19,8 @@ A join is *false* when the truth instance most of a's shared Gaussians belong to
 b's; a pair of same-class groups with common Gaussians and the same majority instance that is
 not joined is *missed*. Instances per class (tree, person, car): labels of the class holding at
 least a fifth of a simulated object of the class; printed for the tiles before the join, after
-it, and for the untiled run. Independent of gs4city's code: NumPy only.
+it, and for the untiled run; and the objects *split*: simulated trees, persons and cars that two or
+more such labels hold a fifth of each. Independent of gs4city's code: NumPy only.
 """
 import argparse
 import collections
@@ -111,11 +113,28 @@ def main():
             out[name] = len(keep)
         return out
 
-    rl = np.load(os.path.join(a.untiled, "lift/gaussians.npy"))[:, 0].astype(np.int64)
-    rt = load(os.path.join(a.untiled, "fuse/labels.json"))
-    rc = {l["id"]: l["class"] for l in rt["labels"] if l["source"] == "image"}
+    def split(labels, classes):
+        out = {}
+        for c, name in CLASSES:
+            out[name] = 0
+            for o in objects:
+                if obj_class[o] != c:
+                    continue
+                m = members[o]
+                held_by = [l for l, k in collections.Counter(labels[m].tolist()).items()
+                           if classes.get(l) == c and 5 * k >= len(m)]
+                out[name] += len(held_by) >= 2
+        return out
+
+    truth_count = {name: sum(obj_class[o] == c for o in objects) for c, name in CLASSES}
     print(f"pairs of groups with common Gaussians: {len(common)}")
-    print(f"instances untiled {instances(rl, rc)}; tiles before the join {instances(before, klass)}")
+    print(f"simulated objects {truth_count}")
+    if a.untiled != "-":
+        rl = np.load(os.path.join(a.untiled, "lift/gaussians.npy"))[:, 0].astype(np.int64)
+        rt = load(os.path.join(a.untiled, "fuse/labels.json"))
+        rc = {l["id"]: l["class"] for l in rt["labels"] if l["source"] == "image"}
+        print(f"instances untiled {instances(rl, rc)}; split untiled {split(rl, rc)}")
+    print(f"instances tiles before the join {instances(before, klass)}; split before {split(before, klass)}")
     for f in (float(x) for x in a.fractions.split(",")):
         parent = {}
 
@@ -147,7 +166,8 @@ def main():
         after = np.array([find(l) if l >= 0 else l for l in before.tolist()])
         print(
             f"f {f}: joins {joined}, false {false}, missed {missed} of {should}; "
-            f"instances after {instances(after, klass)}; missed by class {dict(sorted(missed_by_class.items()))}"
+            f"instances after {instances(after, klass)}; split after {split(after, klass)}; "
+            f"missed by class {dict(sorted(missed_by_class.items()))}"
         )
 
 

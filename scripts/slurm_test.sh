@@ -8,6 +8,11 @@
 #
 #   bash scripts/slurm_test.sh [path/to/gs4city]     (default: target/release/gs4city)
 #
+# With SLURM_PLAN=P (a plan made by `gs4city tile`), the same daemons run that plan's job arrays
+# and merge job instead (P/slurm.sh; no comparison, no time limit) and stop when the merge is
+# done: the Slurm run of a benchmark (scripts/city_scaling.sh, SLURM=1). The node offers
+# SLURM_MEMORY_MB (8000) of memory to the jobs.
+#
 # Exit 0: passed; 1: failed; 77: cannot run here (not root, or Slurm/munge missing).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -68,7 +73,7 @@ SelectType=select/cons_tres
 SelectTypeParameters=CR_Core
 ReturnToService=2
 MpiDefault=none
-NodeName=$HOST CPUs=$(nproc) RealMemory=8000 State=UNKNOWN
+NodeName=$HOST CPUs=$(nproc) RealMemory=${SLURM_MEMORY_MB:-8000} State=UNKNOWN
 PartitionName=test Nodes=$HOST Default=YES MaxTime=INFINITE State=UP
 EOF
 export SLURM_CONF="$T/slurm.conf"
@@ -86,6 +91,24 @@ if [ "$up" != 1 ]; then
 fi
 echo "slurm_test: single-node Slurm up on $HOST ($(sinfo -h -o '%D node(s), %c CPUs, %t'))"
 
+wait_jobs() { # job ids (comma-separated), seconds at most
+  for _ in $(seq 1 "$2"); do
+    [ -z "$(squeue -h -j "$1" 2>/dev/null)" ] && return 0
+    sleep 1
+  done
+  return 1
+}
+
+if [ -n "${SLURM_PLAN:-}" ]; then
+  P="$(realpath "$SLURM_PLAN")"
+  GS4CITY="$BIN" bash "$P/slurm.sh" | tee "$T/submit.txt"
+  jobs=$(grep -oE 'job [0-9]+' "$T/submit.txt" | awk '{print $2}' | paste -sd, -)
+  wait_jobs "$jobs" 86400 || { echo "slurm_test: jobs $jobs still queued after a day"; exit 1; }
+  [ -f "$P/merged/summary.json" ] || { echo "slurm_test: the merge job left no $P/merged/summary.json"; tail -5 "$P/slurm/logs/"*; exit 1; }
+  echo "slurm_test: plan $P ran through Slurm and merged"
+  exit 0
+fi
+
 # A small SIMULATED scene and two identical plans of two tiles each.
 "$BIN" -q synth --preset small --seed 3 --out "$T/scene"
 "$BIN" -q tile --scene "$T/scene" --size 10 --margin 4 --out "$T/plan_slurm" > /dev/null
@@ -95,11 +118,7 @@ ntiles=$(python3 -c "import json,sys; print(sum(t['runnable'] for t in json.load
 
 GS4CITY="$BIN" bash "$T/plan_slurm/slurm.sh" | tee "$T/submit.txt"
 jobs=$(grep -oE 'job [0-9]+' "$T/submit.txt" | awk '{print $2}' | paste -sd, -)
-for _ in $(seq 1 1200); do
-  [ -z "$(squeue -h -j "$jobs" 2>/dev/null)" ] && break
-  sleep 1
-done
-if [ -n "$(squeue -h -j "$jobs" 2>/dev/null)" ]; then echo "slurm_test: jobs $jobs still queued after 20 min"; squeue; exit 1; fi
+if ! wait_jobs "$jobs" 1200; then echo "slurm_test: jobs $jobs still queued after 20 min"; squeue; exit 1; fi
 for f in "$T/plan_slurm/slurm/logs/"*.out; do echo "--- $f"; tail -3 "$f"; done
 [ -f "$T/plan_slurm/merged/summary.json" ] || { echo "slurm_test: the merge job left no merged/summary.json"; exit 1; }
 for t in "$T/plan_slurm/tiles/"*/; do

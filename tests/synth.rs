@@ -344,3 +344,200 @@ fn bad_config_names_key_and_file() {
     assert_eq!(c.citygml, vec![d.join("x.gml")]);
     let _ = std::fs::remove_dir_all(d);
 }
+
+/// The numbers of every `<gml:posList>` / `<gml:pos>` of a CityGML text, as x y z triples
+/// (a plain text scan, no gs4city code).
+fn gml_vertices(text: &str) -> Vec<[f64; 3]> {
+    let mut v = Vec::new();
+    for tag in ["<gml:posList", "<gml:pos "] {
+        for part in text.split(tag).skip(1) {
+            let body = &part[part.find('>').unwrap() + 1..part.find('<').unwrap()];
+            let n: Vec<f64> = body
+                .split_whitespace()
+                .map(|x| x.parse().unwrap())
+                .collect();
+            v.extend(n.chunks_exact(3).map(|c| [c[0], c[1], c[2]]));
+        }
+    }
+    v
+}
+
+fn gml_ids(text: &str) -> Vec<String> {
+    text.split("gml:id=\"")
+        .skip(1)
+        .map(|p| p[..p.find('"').unwrap()].to_string())
+        .collect()
+}
+
+/// `[city] blocks = [2, 2]` of the `small` preset: four copies of its two buildings with unique
+/// ids, shifted by whole metres, and rendered as one world — a view taken at one copy shows the
+/// buildings of another. Checked independently: the CityGML text of the copies (ids, vertex
+/// shifts), the neighbours' vertices projected by hand through the COLMAP text cameras, and the
+/// views' ground truth holding instances of the neighbours' buildings.
+#[test]
+fn city_blocks_copies_have_unique_ids_and_appear_in_each_others_views() {
+    let mut cfg = SynthConfig::preset(synth::Preset::Small);
+    cfg.city.blocks = [2, 2];
+    cfg.splats.density = 15.0;
+    cfg.ground.density = 1.0;
+    cfg.cameras.width = 160;
+    cfg.cameras.height = 120;
+    cfg.objects.tree_gaussians = 300;
+    let out = tmp("city22");
+    let s = synth::run(&cfg, &out).unwrap();
+    assert_eq!(s.buildings, 8);
+    assert_eq!(s.views, 4 * 14);
+
+    // The copies: file k·2 + i is copy k of input i; ids unique, each the input's id + `_r<k>`.
+    let inputs: Vec<String> = ["ingolstadt_4018106.gml", "ingolstadt_4018133.gml"]
+        .iter()
+        .map(|f| std::fs::read_to_string(data(&format!("data/citygml/{f}"))).unwrap())
+        .collect();
+    let mut all_ids = std::collections::HashSet::new();
+    let mut copies: Vec<Vec<[f64; 3]>> = vec![Vec::new(); 4];
+    let mut shifts = Vec::new();
+    for (k, copy) in copies.iter_mut().enumerate() {
+        for (i, input) in inputs.iter().enumerate() {
+            let name = format!(
+                "{:02}_r{k}_ingolstadt_{}.gml",
+                k * 2 + i,
+                ["4018106", "4018133"][i]
+            );
+            let text = std::fs::read_to_string(out.join("citymodel").join(&name)).unwrap();
+            let ids = gml_ids(&text);
+            let want: Vec<String> = gml_ids(input)
+                .iter()
+                .map(|id| format!("{id}_r{k}"))
+                .collect();
+            assert_eq!(ids, want, "{name}");
+            for id in ids {
+                assert!(all_ids.insert(id.clone()), "{id} twice in the city");
+            }
+            let (a, b) = (gml_vertices(input), gml_vertices(&text));
+            assert_eq!(a.len(), b.len());
+            let d = [b[0][0] - a[0][0], b[0][1] - a[0][1]];
+            for (p, q) in a.iter().zip(&b) {
+                assert!((q[0] - p[0] - d[0]).abs() < 1e-6 && (q[1] - p[1] - d[1]).abs() < 1e-6);
+                assert_eq!(q[2], p[2]);
+            }
+            assert_eq!(d, [d[0].round(), d[1].round()], "shift by whole metres");
+            shifts.push(d);
+            copy.extend(b);
+        }
+    }
+    // Copy 1 is one step along x, copy 2 one along y, copy 3 both; the step clears the block.
+    let (w, h) = (shifts[2][0], shifts[4][1]);
+    assert!(w > 20.0 && h > 20.0 && shifts[2][1] == 0.0 && shifts[4][0] == 0.0);
+    assert_eq!(shifts[6], [w, h]);
+
+    // The cameras, read from the COLMAP text files by hand; the scene frame from alignment.json.
+    let al: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("citymodel/alignment.json")).unwrap())
+            .unwrap();
+    let origin: Vec<f64> = serde_json::from_value(al["origin"].clone()).unwrap();
+    assert_eq!(al["scale"], 1.0);
+    assert_eq!(al["translation"], serde_json::json!([0.0, 0.0, 0.0]));
+    let cams = std::fs::read_to_string(out.join("sparse/0/cameras.txt")).unwrap();
+    let c: Vec<f64> = cams
+        .lines()
+        .find(|l| !l.starts_with('#'))
+        .unwrap()
+        .split_whitespace()
+        .skip(2)
+        .map(|x| x.parse().unwrap())
+        .collect();
+    let (wd, ht, fx, fy, cx, cy) = (c[0], c[1], c[2], c[3], c[4], c[5]);
+    let images = std::fs::read_to_string(out.join("sparse/0/images.txt")).unwrap();
+    let centre = |k: usize| {
+        let (lo, hi) = copies[k]
+            .iter()
+            .fold(([f64::MAX; 2], [f64::MIN; 2]), |(lo, hi), p| {
+                (
+                    [lo[0].min(p[0]), lo[1].min(p[1])],
+                    [hi[0].max(p[0]), hi[1].max(p[1])],
+                )
+            });
+        [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0]
+    };
+    let centres: Vec<[f64; 2]> = (0..4).map(centre).collect();
+    let instances: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("gt/instances.json")).unwrap()).unwrap();
+    // seen[j][k]: a view taken at copy j shows copy k's buildings (projection, and the GT).
+    let mut seen = [[false; 4]; 4];
+    let mut seen_gt = [[false; 4]; 4];
+    for l in images.lines().filter(|l| !l.starts_with('#')) {
+        let f: Vec<&str> = l.split_whitespace().collect();
+        if f.len() != 10 {
+            continue;
+        }
+        let n: Vec<f64> = f[1..8].iter().map(|x| x.parse().unwrap()).collect();
+        let (qw, qx, qy, qz) = (n[0], n[1], n[2], n[3]);
+        let r = [
+            [
+                1.0 - 2.0 * (qy * qy + qz * qz),
+                2.0 * (qx * qy - qw * qz),
+                2.0 * (qx * qz + qw * qy),
+            ],
+            [
+                2.0 * (qx * qy + qw * qz),
+                1.0 - 2.0 * (qx * qx + qz * qz),
+                2.0 * (qy * qz - qw * qx),
+            ],
+            [
+                2.0 * (qx * qz - qw * qy),
+                2.0 * (qy * qz + qw * qx),
+                1.0 - 2.0 * (qx * qx + qy * qy),
+            ],
+        ];
+        let t = [n[4], n[5], n[6]];
+        // Camera centre −Rᵀt, back in the CityGML frame; its copy is the nearest block centre.
+        let cc: Vec<f64> = (0..3)
+            .map(|i| -(r[0][i] * t[0] + r[1][i] * t[1] + r[2][i] * t[2]) + origin[i])
+            .collect();
+        let own = (0..4)
+            .min_by(|&a, &b| {
+                let d =
+                    |k: usize| (centres[k][0] - cc[0]).powi(2) + (centres[k][1] - cc[1]).powi(2);
+                d(a).total_cmp(&d(b))
+            })
+            .unwrap();
+        for k in (0..4).filter(|&k| k != own) {
+            // The neighbour's vertices in front of the camera and inside the image; seen when
+            // they span 8 px or more (a far block projects inside the image too, but tiny).
+            let (mut lo, mut hi, mut n_in) = (f64::MAX, f64::MIN, 0);
+            for p in &copies[k] {
+                let q = [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]];
+                let x: Vec<f64> = (0..3)
+                    .map(|i| r[i][0] * q[0] + r[i][1] * q[1] + r[i][2] * q[2] + t[i])
+                    .collect();
+                let (u, v) = (fx * x[0] / x[2] + cx, fy * x[1] / x[2] + cy);
+                if x[2] > 0.1 && (0.0..wd).contains(&u) && (0.0..ht).contains(&v) {
+                    (lo, hi, n_in) = (lo.min(u), hi.max(u), n_in + 1);
+                }
+            }
+            if n_in >= 10 && hi - lo >= 8.0 {
+                seen[own][k] = true;
+            }
+        }
+        // The view's truth: which copies' buildings are drawn in it.
+        let stem = f[9].trim_end_matches(".png");
+        let (_, inst) =
+            gs4city::npy::read::<i32>(&out.join(format!("gt/{stem}.instance.npy"))).unwrap();
+        for i in inst.iter().filter(|&&i| (0..1_000_000).contains(&i)) {
+            // Derived ids (`<id>_r<k>/WallSurface[3]`) carry the copy before the first `/`.
+            let id = instances[i.to_string()]["object_id"].as_str().unwrap();
+            let head = id.split('/').next().unwrap();
+            let k: usize = head.rsplit("_r").next().unwrap().parse().unwrap();
+            if k != own {
+                seen_gt[own][k] = true;
+            }
+        }
+    }
+    for k in 0..4 {
+        assert!(
+            (0..4).any(|j| j != k && seen[j][k] && seen_gt[j][k]),
+            "no view of another copy shows copy {k}'s buildings: projected {seen:?}, truth {seen_gt:?}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}

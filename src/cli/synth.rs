@@ -43,9 +43,24 @@ pub struct SynthArgs {
     /// `model.drop_openings`; the dropped ids go to the SIMULATED `gt/model_edit.json`).
     #[arg(long)]
     drop_openings: Option<f64>,
+    /// A SIMULATED city: NXxNY copies of the input blocks side by side (e.g. `2x2`; config key
+    /// `city.blocks`, gap `city.spacing`), ids suffixed `_r<copy>`, objects and views per copy,
+    /// every image rendered from the whole city.
+    #[arg(long, value_parser = parse_blocks)]
+    blocks: Option<[usize; 2]>,
     /// Output scene folder.
     #[arg(long)]
     out: PathBuf,
+}
+
+/// `NXxNY` (e.g. `4x4`) → `[NX, NY]`.
+fn parse_blocks(s: &str) -> Result<[usize; 2], String> {
+    let bad = || format!("`{s}`: give copies along x and y as NXxNY, e.g. 2x2");
+    let (a, b) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    Ok([
+        a.trim().parse().map_err(|_| bad())?,
+        b.trim().parse().map_err(|_| bad())?,
+    ])
 }
 
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
@@ -65,6 +80,9 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     }
     if !args.citygml.is_empty() {
         cfg.citygml = args.citygml.clone();
+    }
+    if let Some(b) = args.blocks {
+        cfg.city.blocks = b;
     }
     if cfg.citygml.is_empty() {
         if args.preset == Some(PresetArg::Street) {

@@ -5,7 +5,7 @@
 //! recessed behind their wall plane. Also collects what the cameras and the objects need:
 //! buildings (bbox, base), walls and openings with their outward normals.
 use std::collections::{BTreeMap, HashMap};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use glam::DVec3;
 use ndarray::Array3;
@@ -86,10 +86,11 @@ struct PolyJob {
     material: Option<[f64; 3]>,
 }
 
-/// Samples the buildings. `origin` is the georeferenced origin subtracted first (f64).
+/// Samples the buildings. `origin` is the georeferenced origin subtracted first (f64);
+/// `texture_dirs[i]` is the folder the texture URIs of `models[i]` are relative to.
 #[allow(clippy::too_many_arguments)]
 pub fn build(
-    files: &[PathBuf],
+    texture_dirs: &[PathBuf],
     models: &[CityModel],
     entities: &[Entity],
     origin: DVec3,
@@ -105,7 +106,7 @@ pub fn build(
     let mut base = 0usize;
     let chain = crate::semantics::chains(entities);
     for (fi, m) in models.iter().enumerate() {
-        let dir = files[fi].parent().unwrap_or(Path::new(".")).to_path_buf();
+        let dir = texture_dirs[fi].clone();
         // ring id → (texture image index, uvs)
         let mut ring_uv: HashMap<&str, (usize, &Vec<[f64; 2]>)> = HashMap::new();
         if cfg.textures {

@@ -216,6 +216,36 @@ pub struct SynthConfig {
     pub features: super::masks::FeatureNoise,
     /// The city model handed to the pipeline (docs/synth.md `[model]`).
     pub model: ModelEdit,
+    /// A city of copies of the input blocks side by side (docs/synth.md `[city]`).
+    pub city: CityBlocks,
+}
+
+/// A grid of copies of the input CityGML blocks (`[city]`): copy `k` at column `k % nx`, row
+/// `k / nx`, shifted in the ground plane by the block's extent plus `spacing` per step, its ids
+/// suffixed `_r<k>`; object and view counts are per copy.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CityBlocks {
+    /// Copies along x and along y (`[1, 1]`: the block alone, nothing replicated).
+    pub blocks: [usize; 2],
+    /// Gap between neighbouring copies' footprint boxes, metres.
+    pub spacing: f64,
+}
+
+impl Default for CityBlocks {
+    fn default() -> Self {
+        CityBlocks {
+            blocks: [1, 1],
+            spacing: 20.0,
+        }
+    }
+}
+
+impl CityBlocks {
+    /// Number of copies.
+    pub fn copies(&self) -> usize {
+        self.blocks[0] * self.blocks[1]
+    }
 }
 
 /// What the pipeline's city model lacks that the truth has.
@@ -331,6 +361,23 @@ impl SynthConfig {
         };
         if !(0.0..=1.0).contains(&self.model.drop_openings) {
             return bad("model.drop_openings", "must be in [0, 1]");
+        }
+        let [nx, ny] = self.city.blocks;
+        if !(1..=64).contains(&nx) || !(1..=64).contains(&ny) {
+            return bad("city.blocks", "need 1..64 copies along x and along y");
+        }
+        if !(0.0..=10_000.0).contains(&self.city.spacing) {
+            return bad("city.spacing", "must be in [0, 10000] m");
+        }
+        let copies = self.city.copies();
+        let o = &self.objects;
+        if copies * (self.cameras.orbit_views + self.cameras.street_views) > 100_000
+            || copies * (o.trees + o.cars + o.persons) > 100_000
+        {
+            return bad(
+                "city.blocks",
+                "the copies × the views (or objects) per copy exceed 100000",
+            );
         }
         let s = &self.splats;
         if !(s.density > 0.0 && s.density <= 10_000.0) {

@@ -6,8 +6,10 @@
 //! CityGML handed to the pipeline with a perturbed alignment; `summary.json`; a contact sheet.
 //!
 //! Submodules: [`config`] (TOML, presets), [`gaussians`] (builder, truth), [`city`] (building
-//! Gaussians), [`world`] (ground, objects, floaters), [`cameras`], [`gt`] (labels, contact sheet).
+//! Gaussians), [`world`] (ground, objects, floaters), [`cameras`], [`gt`] (labels, contact sheet),
+//! [`blocks`] (`[city]`: copies of the input blocks side by side).
 //! Deterministic: every random draw comes from one seeded ChaCha8 stream per part.
+pub mod blocks;
 pub mod cameras;
 pub mod city;
 pub mod config;
@@ -119,9 +121,23 @@ fn true_alignment(models: &[CityModel], cfg: &SynthConfig) -> Alignment {
 
 /// Builds the simulated scene (Gaussians, truth, cameras) without writing anything.
 pub fn build_scene(cfg: &SynthConfig) -> Result<SimScene, SynthError> {
+    let files = config::collect_files(&cfg.citygml)?;
+    let texture_dirs = files
+        .iter()
+        .map(|f| f.parent().unwrap_or(Path::new(".")).to_path_buf())
+        .collect::<Vec<_>>();
+    build_scene_from(cfg, files, &texture_dirs)
+}
+
+/// [`build_scene`] on the given CityGML files, each with the folder its texture URIs are
+/// relative to.
+fn build_scene_from(
+    cfg: &SynthConfig,
+    files: Vec<PathBuf>,
+    texture_dirs: &[PathBuf],
+) -> Result<SimScene, SynthError> {
     let mut timings = BTreeMap::new();
     let t0 = Instant::now();
-    let files = config::collect_files(&cfg.citygml)?;
     let models: Vec<CityModel> = files
         .par_iter()
         .map(|f| crate::cityjson::read_any(f))
@@ -145,7 +161,7 @@ pub fn build_scene(cfg: &SynthConfig) -> Result<SimScene, SynthError> {
     let t1 = Instant::now();
     let mut b = Builder::new();
     let city = city::build(
-        &files,
+        texture_dirs,
         &models,
         &cm.entities,
         truth_alignment.origin,
@@ -285,13 +301,37 @@ pub struct SynthSummary {
     pub simulated_masks: serde_json::Value,
     pub timing: BTreeMap<String, f64>,
     pub config: serde_json::Value,
+    /// `[city]`: the grid of copies and the file of each (null for one block).
+    #[serde(default)]
+    pub city_blocks: serde_json::Value,
 }
 
 /// Builds the scene and writes the whole folder; returns `summary.json`.
 pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
     let t_all = Instant::now();
     let _ = std::fs::remove_file(out.join("summary.json"));
-    let mut sim = build_scene(cfg)?;
+    // `[city]`: the copies are written into a staging folder, read as the inputs, copied into
+    // `citymodel/` like any input and removed at the end.
+    let staging = out.join(".city_blocks");
+    let _ = std::fs::remove_dir_all(&staging);
+    let originals = config::collect_files(&cfg.citygml)?;
+    let (whole, mut sim, city_blocks) = if cfg.city.copies() > 1 {
+        crate::fsutil::create_dir(&staging)?;
+        let reps = blocks::replicate(&originals, &cfg.city, &staging)?;
+        let whole = blocks::whole_city(cfg);
+        let dirs: Vec<PathBuf> = reps.iter().map(|r| r.texture_dir.clone()).collect();
+        let sim = build_scene_from(&whole, reps.iter().map(|r| r.path.clone()).collect(), &dirs)?;
+        let info = json!({
+            "blocks": cfg.city.blocks, "spacing_m": cfg.city.spacing,
+            "copies": reps.iter().map(|r| json!({"copy": r.copy, "source": r.source.display().to_string(),
+                "file": r.path.file_name().map(|n| n.to_string_lossy().into_owned())})).collect::<Vec<_>>(),
+            "note": "SIMULATED city: copies of the input CityGML blocks side by side, ids suffixed _r<copy>; object and view counts per copy",
+        });
+        (whole, sim, info)
+    } else {
+        (cfg.clone(), build_scene(cfg)?, serde_json::Value::Null)
+    };
+    let cfg = &whole;
     let t_w = Instant::now();
     for d in ["", "images", "gt", "citymodel", "sparse"] {
         crate::fsutil::create_dir(&out.join(d))?;
@@ -405,6 +445,8 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
     let t_c = Instant::now();
     let mut copied = Vec::new();
     let mut dropped = Vec::new();
+    // Index-prefixed names as wide as the largest index, so that name order is input order.
+    let width = 2.max(sim.files.len().saturating_sub(1).to_string().len());
     for (i, f) in sim.files.iter().enumerate() {
         if cfg.model.drop_openings > 0.0 {
             // The edited model, as CityJSON (the truth was built from the full one).
@@ -418,7 +460,7 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
                 .unwrap_or_else(|| format!("{i}"));
             let dst = out
                 .join("citymodel")
-                .join(format!("{i:02}_{stem}.city.json"));
+                .join(format!("{i:0width$}_{stem}.city.json"));
             crate::cityjson::write(&dst, &edited)?;
             copied.push(dst.file_name().map(|n| n.to_string_lossy().into_owned()));
             continue;
@@ -427,7 +469,7 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| format!("{i}.gml"));
-        let dst = out.join("citymodel").join(format!("{i:02}_{name}"));
+        let dst = out.join("citymodel").join(format!("{i:0width$}_{name}"));
         std::fs::copy(f, &dst).map_err(|err| SynthError::Copy {
             from: f.clone(),
             to: dst.clone(),
@@ -467,6 +509,7 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
             }),
         )?;
     }
+    let _ = std::fs::remove_dir_all(&staging);
     sim.timings
         .insert("citymodel_copy_s", t_c.elapsed().as_secs_f64());
 
@@ -526,7 +569,7 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
         simulated: true,
         note: "SIMULATED scene: Gaussians, images and ground truth are synthetic (gs4city synth); only the CityGML files are real.".into(),
         seed: cfg.seed,
-        citygml: sim.files.iter().map(|f| f.display().to_string()).collect(),
+        citygml: originals.iter().map(|f| f.display().to_string()).collect(),
         citymodel_copies: copied.into_iter().flatten().collect(),
         gaussians: sim.builder.len(),
         gaussians_per_class: count_by_class(&sim.builder.truth),
@@ -551,6 +594,7 @@ pub fn run(cfg: &SynthConfig, out: &Path) -> Result<SynthSummary, SynthError> {
             "note": "SIMULATED Segment-Anything masks and CLIP-like features (docs/sam.md); no SAM or CLIP model was run" }),
         timing: sim.timings.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
         config: serde_json::to_value(cfg).unwrap_or_default(),
+        city_blocks,
     };
     crate::fsutil::write_json(&out.join("summary.json"), &summary)?;
     crate::progress::done(
