@@ -16,11 +16,8 @@
 # merge's joined groups; and writes WORK/<variant>.joins.txt (scripts/score_tile_joins.py: objects
 # split by borders before and after the join).
 #
-# Disk: a tile keeps its per-view stage outputs after its run (the cache is removed): on the
-# street 2×2 at 60 m 2.3 GB a tile on average, 36 tiles (the merge reads 0.29 GB of each). With PRUNE=1 a background loop removes, once a
-# tile's status.json is written, the outputs the merge does not read (run/raycast, masks,
-# openings, associate, report) and appends their sizes to WORK/<variant>.pruned.tsv; the disk per
-# tile in the row is the tile job's own peak (status.json), before any pruning.
+# Disk: once a tile's run is done, run-plan removes its cache and the per-view maps the merge does
+# not read (docs/tile.md); the disk per tile in the row is the tile job's own peak (status.json).
 set -euo pipefail
 scene=$1 work=$2 untiled=$3
 shift 3
@@ -35,20 +32,6 @@ for variant in "$@"; do
   rm -rf "$p"
   # shellcheck disable=SC2086
   "$bin" -q tile --scene "$scene" --size "$size" --margin "$margin" $variant --out "$p" >"$work/$tag.tile.log" 2>&1
-  pruner=
-  if [ "${PRUNE:-0}" = 1 ]; then
-    (
-      while [ -d "$p" ]; do
-        for t in "$p"/tiles/*/; do
-          [ -f "$t/status.json" ] && [ -d "$t/run/raycast" ] || continue
-          (cd "$t" && du -sb run/* scene source.npy 2>/dev/null | sed "s|^|$(basename "$t")\t|") >>"$work/$tag.pruned.tsv"
-          rm -rf "$t/run/raycast" "$t/run/masks" "$t/run/openings" "$t/run/associate" "$t/run/report"
-        done
-        sleep 10
-      done
-    ) &
-    pruner=$!
-  fi
   t0=$(date +%s.%N)
   if [ "${SLURM:-0}" = 1 ]; then
     GS4CITY="$bin" SLURM_PLAN="$p" bash "$here/slurm_test.sh" "$bin" >"$work/$tag.run.log" 2>&1
@@ -83,5 +66,4 @@ print("\t".join(str(x) for x in [
 EOF
   python3 "$here/score_tile_joins.py" "$scene" "$p" "$untiled" --fractions 0.4 >"$work/$tag.joins.txt" 2>&1 || true
   rm -rf "$p"
-  if [ -n "$pruner" ]; then kill "$pruner" 2>/dev/null || true; wait "$pruner" 2>/dev/null || true; fi
 done

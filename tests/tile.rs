@@ -537,11 +537,42 @@ fn run_plan_merges_into_one_queryable_run_that_agrees_with_the_untiled_run() {
         )
         .unwrap();
         assert_eq!(st["cache_removed"], true);
+        let tdir = p.join("tiles").join(t["tile"].as_str().unwrap());
+        assert!(!tdir.join("run/render").exists());
+        // The per-view maps the merge does not read are gone, what it reads is kept, and the
+        // status's sizes are the folder's (summed here by walking it).
+        for gone in ["raycast", "masks", "associate", "openings/raycast"] {
+            assert!(!tdir.join("run").join(gone).exists(), "{gone}");
+        }
+        for kept in [
+            "fuse/labels.json",
+            "lift/gaussians.npy",
+            "citymodel/semantics.json",
+        ] {
+            assert!(tdir.join("run").join(kept).is_file(), "{kept}");
+        }
+        fn walk(d: &Path) -> u64 {
+            std::fs::read_dir(d)
+                .unwrap()
+                .flatten()
+                .map(|e| {
+                    let m = e.path().symlink_metadata().unwrap();
+                    if m.is_dir() { walk(&e.path()) } else { m.len() }
+                })
+                .sum()
+        }
+        // status.json is written after the measure and the job's log.txt may grow by its last
+        // lines after it.
+        let kept = walk(&tdir) - tdir.join("status.json").metadata().unwrap().len();
+        let measured = st["kept_bytes"].as_u64().unwrap();
         assert!(
-            !p.join("tiles")
-                .join(t["tile"].as_str().unwrap())
-                .join("run/render")
-                .exists()
+            measured <= kept && kept - measured < 65_536,
+            "{measured} vs {kept}"
+        );
+        assert!(st["pruned_bytes"].as_u64().unwrap() > 1_000_000, "{st}");
+        assert!(
+            st["kept_bytes"].as_u64().unwrap() + st["pruned_bytes"].as_u64().unwrap()
+                <= st["disk_bytes"].as_u64().unwrap()
         );
     }
     // The untiled run of the same scene: same test views, nearly the same classes.

@@ -76,7 +76,8 @@ pub struct RunPlanArgs {
     /// Run this tile alone (its index in plan.json; the Slurm array index) and do not merge.
     #[arg(long, conflicts_with = "jobs")]
     pub tile: Option<usize>,
-    /// Keep each tile's contributions cache (removed by default once its run is done).
+    /// Keep each tile's contributions cache and per-view maps (raycast, masks, groups; removed by
+    /// default once its run is done: the merge does not read them).
     #[arg(long)]
     pub keep_cache: bool,
     /// Rerun tiles that already finished.

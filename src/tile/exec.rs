@@ -33,7 +33,20 @@ pub struct TileStatus {
     pub cache_bytes: u64,
     /// Whether the cache was removed after the run (its last consumer); `--keep-cache` keeps it.
     pub cache_removed: bool,
+    /// Bytes of the per-view outputs the merge does not read ([`PRUNED`]), removed with the
+    /// cache.
+    #[serde(default)]
+    pub pruned_bytes: u64,
+    /// Bytes of the tile folder once its run is done (what the plan keeps of it).
+    #[serde(default)]
+    pub kept_bytes: u64,
 }
+
+/// The folders of a tile's run that only the run's own later stages read: the raycast's and the
+/// openings' id and depth maps, the kept masks and the group maps. The merge reads the city
+/// model's (or the openings') semantic table, the fused label table and the per-Gaussian labels;
+/// a tile's completeness check reads the citymodel, fuse, lift and train stages only.
+pub const PRUNED: [&str; 4] = ["raycast", "masks", "associate", "openings/raycast"];
 
 impl TileStatus {
     /// Reads a tile's status; `None` when it has none.
@@ -122,7 +135,8 @@ pub fn run_dir(tile_dir: &Path) -> PathBuf {
 }
 
 /// Records the end of a tile's run: measures the tile folder, removes the contributions cache
-/// unless `keep_cache`, and writes `status.json` (last). `error` is the run's error, if any.
+/// and the [`PRUNED`] folders unless `keep_cache`, and writes `status.json` (last). `error` is
+/// the run's error, if any.
 pub fn finish(
     tile_dir: &Path,
     tile: &TilePlan,
@@ -134,11 +148,23 @@ pub fn finish(
     let cache_bytes = disk_bytes(&cache);
     let disk = disk_bytes(tile_dir);
     let remove = error.is_none() && !keep_cache && cache.is_dir();
-    if remove {
-        std::fs::remove_dir_all(&cache).map_err(|err| TileError::Io {
-            path: cache.clone(),
+    let gone = |dir: &Path| -> Result<u64, TileError> {
+        let bytes = disk_bytes(dir);
+        std::fs::remove_dir_all(dir).map_err(|err| TileError::Io {
+            path: dir.to_path_buf(),
             err,
         })?;
+        Ok(bytes)
+    };
+    let mut pruned_bytes = 0;
+    if remove {
+        gone(&cache)?;
+        for p in PRUNED {
+            let dir = run_dir(tile_dir).join(p);
+            if dir.is_dir() {
+                pruned_bytes += gone(&dir)?;
+            }
+        }
     }
     let st = TileStatus {
         tile: tile.name.clone(),
@@ -150,6 +176,8 @@ pub fn finish(
         disk_bytes: disk,
         cache_bytes,
         cache_removed: remove,
+        pruned_bytes,
+        kept_bytes: disk_bytes(tile_dir),
     };
     crate::fsutil::write_json(&tile_dir.join(STATUS), &st)?;
     Ok(st)
