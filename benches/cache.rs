@@ -65,6 +65,7 @@ fn main() {
         top_k,
         epsilon,
         t_stop: 0.0,
+        alpha_min: gs4city::cache::INRIA_ALPHA_MIN,
     };
     let stop = |t_stop| CacheOptions {
         t_stop,

@@ -8,7 +8,8 @@
 # (user + system), peak memory, the run folder's size on disk, paper-protocol fine mIoU and the
 # IoU of every fine class (from R/eval/metrics.json; the scene must have gt/). Each run folder
 # is deleted after its row unless KEEP=1. GS4CITY (default: the release build beside this
-# script) names the binary. Example:
+# script) names the binary. DROP_CACHES=1 (root) empties the page cache before each point, so
+# that every point writes its files into the same free memory. Example:
 #
 #   scripts/work_curve.sh S /tmp/curve 'full|--quality full' 'default|' 'half|--train-scale 2'
 set -euo pipefail
@@ -25,6 +26,10 @@ for point in "$@"; do
     flags="${point#*|}"
     run="$out/$label"
     rm -rf "$run"
+    if [ "${DROP_CACHES:-0}" = 1 ]; then
+        sync
+        echo 1 > /proc/sys/vm/drop_caches
+    fi
     # shellcheck disable=SC2086
     /usr/bin/time -v -o "$out/$label.time" "$bin" -q run --scene "$scene" --out "$run" $flags \
         > "$out/$label.log" 2>&1 || {
@@ -62,5 +67,9 @@ print(f"| {label} | `{flags}` | {wall:.1f} | {cpu:.1f} ({t['User time (seconds)'
 EOF
     if [ "${KEEP:-0}" != 1 ]; then
         rm -rf "$run"
+    if [ "${DROP_CACHES:-0}" = 1 ]; then
+        sync
+        echo 1 > /proc/sys/vm/drop_caches
+    fi
     fi
 done

@@ -811,6 +811,19 @@ pub struct CacheOptions {
     /// caches before it existed) = the rasterizer's own stop only (T < 10⁻⁴, before adding).
     #[serde(default)]
     pub t_stop: f32,
+    /// The smallest α a Gaussian contributes with at a pixel: the rasterizer's own
+    /// [`INRIA_ALPHA_MIN`] (and in caches before it existed), or higher, so that the faint
+    /// tails of Gaussians are neither listed nor blended (nor counted in `residual`, `alpha`,
+    /// `depth`).
+    #[serde(default = "inria_alpha_min")]
+    pub alpha_min: f32,
+}
+
+/// The smallest α INRIA's rasterizer blends (1/255).
+pub const INRIA_ALPHA_MIN: f32 = 1.0 / 255.0;
+
+fn inria_alpha_min() -> f32 {
+    INRIA_ALPHA_MIN
 }
 
 /// The cache's default mass share ε (BENCHMARKS.md's git history, "Adaptive contribution lists").
@@ -826,13 +839,15 @@ impl Default for CacheOptions {
             top_k: TOP_K,
             epsilon: EPSILON,
             t_stop: T_STOP,
+            alpha_min: INRIA_ALPHA_MIN,
         }
     }
 }
 
 impl CacheOptions {
     /// Checks the options (the wording of [`crate::check::range`]): `top_k` at most
-    /// [`MAX_LIST`], `epsilon` and `t_stop` in `[0, 1)`.
+    /// [`MAX_LIST`], `epsilon` and `t_stop` in `[0, 1)`, `alpha_min` in
+    /// `[`[`INRIA_ALPHA_MIN`]`, 0.99)`.
     pub fn validate(&self) -> Result<(), crate::check::OutOfRange> {
         use crate::check::{End, range};
         range(
@@ -842,7 +857,13 @@ impl CacheOptions {
             End::Closed(MAX_LIST as f64),
         )?;
         range("epsilon", self.epsilon, End::Closed(0.0), End::Open(1.0))?;
-        range("t_stop", self.t_stop, End::Closed(0.0), End::Open(1.0))
+        range("t_stop", self.t_stop, End::Closed(0.0), End::Open(1.0))?;
+        range(
+            "alpha_min",
+            self.alpha_min,
+            End::Closed(f64::from(INRIA_ALPHA_MIN)),
+            End::Open(0.99),
+        )
     }
 
     /// Today's lists in words, e.g. "top-16 lists" or "lists to 1 − 0.05 of the mass (≤ 32)".
@@ -853,8 +874,13 @@ impl CacheOptions {
             (true, 0) => format!("lists to 1 − {} of the mass", self.epsilon),
             (true, k) => format!("lists to 1 − {} of the mass (≤ {k})", self.epsilon),
         };
-        if self.t_stop > 0.0 {
+        let lists = if self.t_stop > 0.0 {
             format!("{lists}, blending stopped at T < {}", self.t_stop)
+        } else {
+            lists
+        };
+        if self.alpha_min > INRIA_ALPHA_MIN {
+            format!("{lists}, α ≥ {}", self.alpha_min)
         } else {
             lists
         }

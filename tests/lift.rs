@@ -59,6 +59,7 @@ fn lift_wall_with(
             top_k,
             epsilon: 0.0,
             t_stop: 0.0,
+            alpha_min: gs4city::cache::INRIA_ALPHA_MIN,
         },
         &dir.join("cache"),
     )
@@ -266,6 +267,7 @@ fn a_cache_file_of_another_size_than_its_camera_is_named() {
             top_k: 16,
             epsilon: 0.0,
             t_stop: 0.0,
+            alpha_min: gs4city::cache::INRIA_ALPHA_MIN,
         };
         let c = gs4city::render::cache::contrib(g, &v, &opts).unwrap();
         c.write(&gs4city::cache::cache_file(dir, &v.stem()))

@@ -285,6 +285,7 @@ fn fixture(name: &str, with_features: bool) -> Fixture {
             top_k: 16,
             epsilon: 0.0,
             t_stop: 0.0,
+            alpha_min: gs4city::cache::INRIA_ALPHA_MIN,
         },
         median_depth: false,
         views: vec![CachedView {

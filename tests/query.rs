@@ -343,6 +343,7 @@ fn fixture(name: &str, fused: bool, ply: PlyEncoding) -> Fixture {
                 top_k: 16,
                 epsilon: 0.0,
                 t_stop: 0.0,
+                alpha_min: gs4city::cache::INRIA_ALPHA_MIN,
             },
             median_depth: false,
             views: cached,

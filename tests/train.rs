@@ -70,6 +70,7 @@ impl Fixture {
                 top_k: 16,
                 epsilon: 0.0,
                 t_stop: 0.0,
+                alpha_min: gs4city::cache::INRIA_ALPHA_MIN,
             },
             &dir.join("cache"),
         )

@@ -87,11 +87,15 @@ fn a_run_is_the_same_at_one_and_two_threads_with_and_without_the_work_knobs() {
     let full = json(&per_setting[0].join("render/summary.json"));
     assert!(full["selection"].is_null(), "{}", full["selection"]);
     assert_eq!(full["views"].as_array().unwrap().len(), 18);
-    // The default preset stops each pixel's blend at transmittance 0.1 (full: 0.02), so its
-    // lists hold fewer entries, view by view, and never more.
+    // The default preset stops each pixel's blend at transmittance 0.2 (full: 0.02) and
+    // leaves out contributions with α < 1/32 (full: 1/255), so its lists hold fewer entries,
+    // view by view, and never more.
     let default = json(&per_setting[1].join("render/summary.json"));
-    let t_stop = |s: &serde_json::Value| s["options"]["t_stop"].as_f64().unwrap();
-    assert!((t_stop(&default) - 0.1).abs() < 1e-6 && (t_stop(&full) - 0.02).abs() < 1e-6);
+    let opt = |s: &serde_json::Value, k: &str| s["options"][k].as_f64().unwrap();
+    assert!((opt(&default, "t_stop") - 0.2).abs() < 1e-6);
+    assert!((opt(&full, "t_stop") - 0.02).abs() < 1e-6);
+    assert!((opt(&default, "alpha_min") - 1.0 / 32.0).abs() < 1e-9);
+    assert!((opt(&full, "alpha_min") - 1.0 / 255.0).abs() < 1e-6);
     let entries = |s: &serde_json::Value| -> Vec<u64> {
         s["views"]
             .as_array()

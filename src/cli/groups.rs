@@ -235,6 +235,10 @@ pub struct CacheTuning {
     /// lists).
     #[arg(long, value_name = "T", default_value_t = crate::cache::T_STOP)]
     pub t_stop: f32,
+    /// The smallest α a Gaussian contributes with: the rasterizer's 1/255, or higher, which
+    /// leaves the faint tails of Gaussians out of the lists and the blend.
+    #[arg(long, value_name = "A", default_value_t = crate::cache::INRIA_ALPHA_MIN)]
+    pub alpha_min: f32,
 }
 
 impl Default for CacheTuning {
@@ -244,6 +248,7 @@ impl Default for CacheTuning {
             top_k: d.top_k,
             epsilon: d.epsilon,
             t_stop: d.t_stop,
+            alpha_min: d.alpha_min,
         }
     }
 }
@@ -255,6 +260,7 @@ impl CacheTuning {
             top_k: self.top_k,
             epsilon: self.epsilon,
             t_stop: self.t_stop,
+            alpha_min: self.alpha_min,
         }
     }
 }

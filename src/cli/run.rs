@@ -50,8 +50,9 @@ pub struct RunArgs {
     pub test_every: Option<usize>,
     /// How much work for the answer (docs/quality.md): full (every training view at full
     /// resolution, the longest lists), default (the cheapest setting within 0.5 fine-mIoU points
-    /// of full on every scene measured: full's views, lists stopped at 90 % of a pixel's mass) or
-    /// fast (a first look; costs points).
+    /// of full on every scene measured: full's views, blending stopped at 80 % of a pixel's
+    /// mass, contributions from α ≥ 1/32, lists to 90 % of the mass) or fast (a first look;
+    /// costs points).
     #[arg(long, default_value = "default", help_heading = "Performance")]
     pub quality: Quality,
     /// Training views at 1/N of their resolution from the render to the vote (test views
@@ -100,6 +101,11 @@ fn run_options(cfg: &Config, a: &RunArgs) -> anyhow::Result<RunOptions> {
         } else {
             preset.t_stop
         },
+        alpha_min: if given("alpha_min") {
+            file.alpha_min
+        } else {
+            preset.alpha_min
+        },
     };
     cache.validate()?;
     let train_scale = a.train_scale.unwrap_or(preset.train_scale);
@@ -121,6 +127,7 @@ fn run_options(cfg: &Config, a: &RunArgs) -> anyhow::Result<RunOptions> {
         top_k: cache.top_k,
         epsilon: cache.epsilon,
         t_stop: cache.t_stop,
+        alpha_min: cache.alpha_min,
         train_scale,
         views: a.train_views.unwrap_or(preset.views),
         lift,
@@ -244,15 +251,34 @@ mod tests {
     #[test]
     fn the_quality_presets_set_the_lists_and_a_config_key_overrides_only_itself() {
         let d = options(None, "");
-        assert_eq!((d.top_k, d.epsilon, d.t_stop), (32, 0.05, 0.1));
+        let inria = 1.0f32 / 255.0;
+        assert_eq!(
+            (d.top_k, d.epsilon, d.t_stop, d.alpha_min),
+            (32, 0.1, 0.2, 0.03125)
+        );
         assert_eq!((d.train_scale, d.views), (1, ViewSelection::All));
         let f = options(Some("full"), "");
-        assert_eq!((f.top_k, f.epsilon, f.t_stop), (32, 0.05, 0.02));
+        assert_eq!(
+            (f.top_k, f.epsilon, f.t_stop, f.alpha_min),
+            (32, 0.05, 0.02, inria)
+        );
         let fast = options(Some("fast"), "");
-        assert_eq!((fast.t_stop, fast.train_scale), (0.02, 2));
+        assert_eq!(
+            (fast.t_stop, fast.alpha_min, fast.train_scale),
+            (0.02, inria, 2)
+        );
         // One key given: the others stay the preset's.
         let k = options(None, "[cache]\ntop_k = 16\n");
-        assert_eq!((k.top_k, k.epsilon, k.t_stop), (16, 0.05, 0.1));
+        assert_eq!(
+            (k.top_k, k.epsilon, k.t_stop, k.alpha_min),
+            (16, 0.1, 0.2, 0.03125)
+        );
+        let a = options(Some("full"), "[cache]\nalpha_min = 0.0625\n");
+        assert_eq!((a.t_stop, a.alpha_min), (0.02, 0.0625));
+        let low = Config::parse(Path::new("c.toml"), "[cache]\nalpha_min = 0.001\n").unwrap();
+        let argv = ["x", "--scene", "S", "--out", "R"];
+        let err = run_options(&low, &Cmd::try_parse_from(argv).unwrap().run).unwrap_err();
+        assert!(err.to_string().contains("alpha_min"), "{err}");
         let t = options(Some("full"), "[cache]\nt_stop = 0.05\n");
         assert_eq!((t.top_k, t.epsilon, t.t_stop), (32, 0.05, 0.05));
         // A key given with the value another preset has is still the user's.

@@ -1,6 +1,6 @@
 //! Front-to-back alpha blending of one 16×16 tile, INRIA's `renderCUDA` per pixel:
 //! `power = −½(a·dx² + c·dy²) − b·dx·dy` (skip if > 0), `α = min(0.99, o·e^power)` (skip if
-//! < 1/255), stop before adding when `T·(1−α) < 1e-4`. The loop runs Gaussian-outer,
+//! < 1/255, or a higher `alpha_min` of the contributions cache), stop before adding when `T·(1−α) < 1e-4`. The loop runs Gaussian-outer,
 //! pixel-inner, restricted to the box where `α ≥ 1/255` is possible; each pixel still sees
 //! its Gaussians in the same order, so the result is the per-pixel loop's, up to the last bit
 //! of `e^power` ([`exp_neg`], inlined, within 2 ulp of `expf`). [`blend_tile`] runs under the
@@ -9,7 +9,7 @@
 //! and the per-pixel contribution lists (all, the top-k by weight, or the largest weights
 //! up to a share `1 − ε` of the pixel's mass; plus the residual). An optional early stop
 //! (`t_stop`) ends a pixel after the contribution that takes its T below it.
-use super::project::{ALPHA_MIN, Projected, TILE};
+use super::project::{Projected, TILE};
 
 const PIX: usize = TILE * TILE;
 /// Gaussians gathered per batch.
@@ -87,6 +87,8 @@ pub struct BlendInput<'a> {
     /// A pixel stops after a contribution that takes its T below this
     /// ([`super::RenderOptions::t_stop`]; 0 = never, INRIA's own stop only).
     pub t_stop: f32,
+    /// The smallest α that contributes ([`super::RenderOptions::alpha_min`]).
+    pub alpha_min: f32,
 }
 
 /// Contributions a pixel keeps in its own slots of [`Scratch::slots`]; the rest of a longer
@@ -139,6 +141,7 @@ fn row_alpha(
     conic: [f32; 3],
     o: f32,
     pmin: f32,
+    amin: f32,
 ) -> u32 {
     let [ca, cb, cc] = conic;
     // Lane i's bit where it passes, in the same vector loop (an OR of the lanes after it is
@@ -148,7 +151,7 @@ fn row_alpha(
         let dx = mx - (x0 + i) as f32;
         let power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
         let alpha = ALPHA_MAX.min(o * exp_neg(power));
-        let skip = power > 0.0 || power < pmin || alpha < ALPHA_MIN;
+        let skip = power > 0.0 || power < pmin || alpha < amin;
         *a = if skip { 0.0 } else { alpha };
         *bit = if skip { 0 } else { 1 << i };
     }
@@ -188,6 +191,7 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
     let h = TILE.min(input.height - y0);
     let ch = input.channels;
     let images = input.images;
+    let amin = input.alpha_min;
     let mut trans = vec![1.0f32; PIX];
     let mut rgb = [vec![0.0f32; PIX], vec![0.0f32; PIX], vec![0.0f32; PIX]];
     let mut depth_acc = vec![0.0f32; PIX];
@@ -267,8 +271,8 @@ fn blend_tile_impl(input: &BlendInput<'_>, t: usize, list: &[u32]) -> TileOut {
                 let mut pass = 0u32;
                 for (half, lanes) in halves_alpha.iter_mut().enumerate() {
                     if halves[half] {
-                        pass |=
-                            row_alpha(lanes, half * 8, [mx, dy], p.conic, o, pmin) << (half * 8);
+                        pass |= row_alpha(lanes, half * 8, [mx, dy], p.conic, o, pmin, amin)
+                            << (half * 8);
                     }
                 }
                 let alphas = halves_alpha.as_flattened();

@@ -63,6 +63,7 @@ pub fn contrib_unrounded(
         images: false,
         contributions: mode,
         t_stop: opts.t_stop,
+        alpha_min: opts.alpha_min,
         ..Default::default()
     };
     let out = super::render_view(scene, &view.camera, &opts).map_err(|e| match e {

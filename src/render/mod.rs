@@ -92,6 +92,11 @@ pub struct RenderOptions {
     /// below 10⁻⁴). What lies behind is at most `t_stop` of the pixel's mass.
     #[serde(default)]
     pub t_stop: f32,
+    /// The smallest α a Gaussian contributes with at a pixel: INRIA's 1/255
+    /// ([`project::ALPHA_MIN`]), or higher for the contributions cache, where the faint tails
+    /// of Gaussians are left out of the lists and the blend (and each Gaussian's box shrinks).
+    #[serde(default = "alpha_min")]
+    pub alpha_min: f32,
 }
 
 impl Default for RenderOptions {
@@ -104,12 +109,17 @@ impl Default for RenderOptions {
             images: true,
             contributions: ContributionMode::None,
             t_stop: 0.0,
+            alpha_min: project::ALPHA_MIN,
         }
     }
 }
 
 fn yes() -> bool {
     true
+}
+
+fn alpha_min() -> f32 {
+    project::ALPHA_MIN
 }
 
 /// View-independent, activated Gaussian data, reusable across views.
@@ -333,8 +343,17 @@ fn render_view_with(
         view: String::new(),
         why,
     })?;
+    crate::check::range(
+        "alpha_min",
+        options.alpha_min,
+        crate::check::End::Closed(f64::from(project::ALPHA_MIN)),
+        crate::check::End::Open(0.99),
+    )?;
     let t0 = Instant::now();
-    let v = ViewParams::new(camera);
+    let v = ViewParams {
+        alpha_min: options.alpha_min,
+        ..ViewParams::new(camera)
+    };
     let n = scene.len();
     // The Gaussians left after the cell cull, in index order (so that depth ties keep
     // breaking by index in `tile::bin`).
@@ -397,6 +416,7 @@ fn render_view_with(
         images: options.images,
         mode: options.contributions,
         t_stop: options.t_stop,
+        alpha_min: v.alpha_min,
     };
     let tiles: Vec<TileOut> = (0..v.grid_x * v.grid_y)
         .into_par_iter()
@@ -795,6 +815,69 @@ pub(crate) mod tests {
             "only {cut} lists were cut: the test would be empty"
         );
         assert!(unsure < cut / 100, "{unsure} undecided of {cut}");
+    }
+
+    /// A higher `alpha_min` gives, at every pixel, the complete list's Gaussians whose α
+    /// (recovered from the complete list: `α = w/T`, `T` decreasing by each `w`) is at least
+    /// `alpha_min`, blended again on their own: `w' = α·T'`. Judged where the complete
+    /// render never reached INRIA's stop (final T ≥ 0.011 > 10⁻⁴/(1 − 0.99)), and not where an
+    /// α lies within 10⁻⁴ of the threshold.
+    #[test]
+    fn a_higher_alpha_min_keeps_the_contributions_above_it_blended_again() {
+        let scene = random_scene(3_000, 30.0, 37);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(13);
+        let (mut judged, mut dropped, mut unsure) = (0usize, 0usize, 0usize);
+        for k in 0..4 {
+            let cam = random_camera(&mut rng, 0.3);
+            let opts = |alpha_min| RenderOptions {
+                contributions: ContributionMode::All,
+                images: false,
+                alpha_min,
+                ..RenderOptions::default()
+            };
+            let full = render_view(&scene, &cam, &opts(project::ALPHA_MIN)).unwrap();
+            let lf = full.contributions.as_ref().unwrap();
+            for a in [1.0f32 / 64.0, 1.0 / 8.0, 0.3] {
+                let cut = render_view(&scene, &cam, &opts(a)).unwrap();
+                let lc = cut.contributions.as_ref().unwrap();
+                for p in 0..full.alpha.len() {
+                    if 1.0 - f64::from(full.alpha[p]) < 0.011 {
+                        continue;
+                    }
+                    let ((fi, fw), (ci, cw)) = (lf.pixel(p), lc.pixel(p));
+                    let (mut t, mut t_cut) = (1.0f64, 1.0f64);
+                    let (mut want_ids, mut want_w) = (Vec::new(), Vec::new());
+                    let mut near = false;
+                    for (&id, &w) in fi.iter().zip(fw) {
+                        let alpha = f64::from(w) / t;
+                        t -= f64::from(w);
+                        near |= (alpha - f64::from(a)).abs() < 1e-4;
+                        if alpha >= f64::from(a) {
+                            want_ids.push(id);
+                            want_w.push(alpha * t_cut);
+                            t_cut *= 1.0 - alpha;
+                        }
+                    }
+                    if near {
+                        unsure += 1;
+                        continue;
+                    }
+                    judged += 1;
+                    dropped += usize::from(want_ids.len() < fi.len());
+                    assert_eq!(ci, &want_ids[..], "view {k}, pixel {p}, alpha_min {a}");
+                    for (&w, &want) in cw.iter().zip(&want_w) {
+                        assert!((f64::from(w) - want).abs() < 1e-5, "{w} vs {want}");
+                    }
+                    assert!((f64::from(cut.alpha[p]) - (1.0 - t_cut)).abs() < 1e-5);
+                }
+            }
+        }
+        assert!(
+            dropped > 1000,
+            "only {dropped} of {judged} lists lost an entry"
+        );
+        // Large flat blobs give many pixels the same α: a few % fall in the window.
+        assert!(unsure < judged / 20, "{unsure} undecided of {judged}");
     }
 
     #[test]

@@ -17,8 +17,8 @@ pub const NEAR: f64 = 0.2;
 pub const LOW_PASS: f64 = 0.3;
 /// Tile edge in pixels.
 pub const TILE: usize = 16;
-/// Smallest contributing alpha.
-pub const ALPHA_MIN: f32 = 1.0 / 255.0;
+/// Smallest contributing alpha (INRIA's).
+pub const ALPHA_MIN: f32 = crate::cache::INRIA_ALPHA_MIN;
 
 /// The view-independent inputs of the projection, per camera.
 #[derive(Debug, Clone, Copy)]
@@ -36,6 +36,9 @@ pub struct ViewParams {
     pub height: usize,
     pub grid_x: usize,
     pub grid_y: usize,
+    /// The smallest α a Gaussian contributes with ([`ALPHA_MIN`], INRIA's 1/255, unless the
+    /// render asks for a higher one: [`super::RenderOptions::alpha_min`]).
+    pub alpha_min: f32,
 }
 
 impl ViewParams {
@@ -56,6 +59,7 @@ impl ViewParams {
             height,
             grid_x: width.div_ceil(TILE),
             grid_y: height.div_ceil(TILE),
+            alpha_min: ALPHA_MIN,
         }
     }
 }
@@ -146,16 +150,17 @@ pub fn radius_bound(jf_sf: f64) -> f64 {
     (3.0 * (2.0 * l + 0.32).sqrt() + 1.0) * (1.0 + 1e-9) + 1.0
 }
 
-/// Half extents `[ex, ey]` of the ellipse where `α ≥ 1/255` is possible: the blend skips a
-/// pixel whose `power < −ln(255·o) − 1e-3`, i.e. whose `dᵀ·conic·d > q = 2(ln(255·o) + 1e-3)`,
+/// Half extents `[ex, ey]` of the ellipse where `α ≥ α_min` is possible (`ln_ratio` =
+/// `ln(o/α_min)`; INRIA's `α_min` = 1/255): the blend skips a pixel whose `power < −ln_ratio −
+/// 1e-3`, i.e. whose `dᵀ·conic·d > q = 2(ln_ratio + 1e-3)`,
 /// and that ellipse's half extents are `√(q·Σ_xx)`, `√(q·Σ_yy)` (`Σ = (a, b; b, c)`, the dilated
 /// 2D covariance). The margin covers the `f32` rounding of `power` in the blend: its error
 /// is a few ulp of `|a'dx²| + |c'dy²| + 2|b'dx·dy|`, which near the box's edge is at most
 /// `4/(1 − ρ²)` times `dᵀ·conic·d` (`ρ²= b²/(a·c)`), so the relative margin grows with the
 /// correlation; a pixel outside the box cannot pass the blend's test.
 #[inline(always)]
-fn alpha_extent(ln255o: f64, a: f64, c: f64, det: f64) -> [f32; 2] {
-    let q = 2.0 * (ln255o.max(0.0) + 1e-3);
+fn alpha_extent(ln_ratio: f64, a: f64, c: f64, det: f64) -> [f32; 2] {
+    let q = 2.0 * (ln_ratio.max(0.0) + 1e-3);
     let corr = (a * c / det).max(1.0);
     let grow = 1.0 + (1e-4 + 4e-6 * corr).min(1.0);
     [
@@ -219,7 +224,8 @@ pub fn sh_color(coeffs: &[[f32; 3]], degree: u8, d: DVec3) -> [f32; 3] {
 }
 
 /// Projects Gaussian `i`; `None` when INRIA's preprocess culls it (near plane, det = 0,
-/// empty tile rectangle) or it cannot contribute anywhere (opacity < 1/255, not finite).
+/// empty tile rectangle) or it cannot contribute anywhere (opacity < `v.alpha_min`, not
+/// finite).
 pub fn project(
     scene: &PreparedScene,
     i: usize,
@@ -449,12 +455,13 @@ fn finish<const L: usize>(
         opacity *= (det0 / det).max(0.000_025).sqrt();
     }
     let opacity = opacity as f32;
-    if opacity.is_nan() || opacity < ALPHA_MIN {
+    if opacity.is_nan() || opacity < v.alpha_min {
         return None;
     }
-    let ln255o = (255.0 * f64::from(opacity)).ln();
-    let extent = alpha_extent(ln255o, a, c, det);
-    // INRIA's rectangle (3·√λ₁), cut to the tiles the α ≥ 1/255 box reaches: a tile outside
+    // ln(o/α_min): α = o·e^power ≥ α_min where power ≥ −ln(o/α_min).
+    let ln_ratio = (f64::from(opacity) / f64::from(v.alpha_min)).ln();
+    let extent = alpha_extent(ln_ratio, a, c, det);
+    // INRIA's rectangle (3·√λ₁), cut to the tiles the α ≥ α_min box reaches: a tile outside
     // that box gets nothing from this Gaussian, so leaving it out changes no pixel.
     let r = rect(mean, radius, v.grid_x, v.grid_y);
     let r = tight_rect(r, mean, extent);
@@ -478,7 +485,7 @@ fn finish<const L: usize>(
         depth: tz as f32,
         color,
         extent,
-        power_min: (-ln255o - 1e-3) as f32,
+        power_min: (-ln_ratio - 1e-3) as f32,
         rect: r,
         id: i as u32,
     })
@@ -714,6 +721,7 @@ mod tests {
             height,
             grid_x: width.div_ceil(TILE),
             grid_y: height.div_ceil(TILE),
+            alpha_min: ALPHA_MIN,
         };
         let (mut culled, mut kept_nonempty) = (0, 0);
         for _ in 0..20_000 {

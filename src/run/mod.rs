@@ -136,6 +136,10 @@ pub struct RunOptions {
     /// before it existed) = the rasterizer's own stop only.
     #[serde(default)]
     pub t_stop: f32,
+    /// The cache's smallest contributing α (`cache::CacheOptions::alpha_min`); 1/255 in
+    /// run.json files before it existed.
+    #[serde(default = "inria_alpha_min")]
+    pub alpha_min: f32,
     /// Training views are worked at `1/train_scale` of their resolution, from the render and
     /// the raycast to the vote (masks, openings, association, fusion, vote); test views always
     /// at their full resolution. 1 (and in run.json files before it existed) = full.
@@ -180,6 +184,10 @@ fn full_scale() -> u32 {
     1
 }
 
+fn inria_alpha_min() -> f32 {
+    cache::INRIA_ALPHA_MIN
+}
+
 /// How much work a run does for its answer: the presets of `gs4city run --quality`, points of
 /// the speed–error curve in BENCHMARKS.md ("Work knobs") and docs/quality.md.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -189,7 +197,8 @@ pub enum Quality {
     Full,
     /// The default: the cheapest setting within 0.5 points of fine mIoU of `full` on every
     /// scene measured: `full`'s views and resolution, the cache's blend stopped once a pixel's
-    /// transmittance falls below [`DEFAULT_T_STOP`].
+    /// transmittance falls below [`DEFAULT_T_STOP`], contributions from α ≥
+    /// [`DEFAULT_ALPHA_MIN`], lists to 1 − [`DEFAULT_EPSILON`] of a pixel's mass.
     #[default]
     Default,
     /// Less work, for a first look: training views at half resolution and the 3-cover of
@@ -198,8 +207,17 @@ pub enum Quality {
 }
 
 /// The early stop of the default preset's cache (`cache::CacheOptions::t_stop`): the Gaussians
-/// behind the last 10 % of a pixel's transmittance are not listed (BENCHMARKS.md, "Work knobs").
-pub const DEFAULT_T_STOP: f32 = 0.1;
+/// behind the last 20 % of a pixel's transmittance are not listed (BENCHMARKS.md, "Work knobs").
+pub const DEFAULT_T_STOP: f32 = 0.2;
+
+/// The mass share the default preset's lists leave out (`cache::CacheOptions::epsilon`): a
+/// pixel keeps its largest weights up to 90 % of its mass (BENCHMARKS.md, "Work knobs").
+pub const DEFAULT_EPSILON: f32 = 0.1;
+
+/// The smallest contributing α of the default preset's cache (`cache::CacheOptions::alpha_min`):
+/// the faint tails of Gaussians are left out of the lists and the blend (BENCHMARKS.md, "Work
+/// knobs").
+pub const DEFAULT_ALPHA_MIN: f32 = 1.0 / 32.0;
 
 impl std::str::FromStr for Quality {
     type Err = String;
@@ -221,6 +239,7 @@ pub struct Work {
     pub top_k: usize,
     pub epsilon: f32,
     pub t_stop: f32,
+    pub alpha_min: f32,
 }
 
 impl Quality {
@@ -232,9 +251,12 @@ impl Quality {
             top_k: cache::TOP_K,
             epsilon: cache::EPSILON,
             t_stop: cache::T_STOP,
+            alpha_min: cache::INRIA_ALPHA_MIN,
         };
         let default = Work {
+            epsilon: DEFAULT_EPSILON,
             t_stop: DEFAULT_T_STOP,
+            alpha_min: DEFAULT_ALPHA_MIN,
             ..full
         };
         match self {
@@ -260,6 +282,7 @@ impl RunOptions {
             top_k: w.top_k,
             epsilon: w.epsilon,
             t_stop: w.t_stop,
+            alpha_min: w.alpha_min,
             ..self
         }
     }
@@ -274,6 +297,7 @@ impl Default for RunOptions {
             top_k: work.top_k,
             epsilon: work.epsilon,
             t_stop: work.t_stop,
+            alpha_min: work.alpha_min,
             train_scale: work.train_scale,
             views: work.views,
             lift: LiftOptions::default(),
@@ -638,6 +662,7 @@ fn render_step(r: &mut Running, opts: &RunOptions) -> Result<Cache, RunError> {
         top_k: opts.top_k,
         epsilon: opts.epsilon,
         t_stop: opts.t_stop,
+        alpha_min: opts.alpha_min,
     };
     opts.views.validate().map_err(RunError::Refused)?;
     if !(1..=crate::camera::MAX_DOWNSCALE as u32).contains(&opts.train_scale) {

@@ -38,6 +38,7 @@ pub fn label_view(
         images: true,
         contributions: ContributionMode::TopK(1),
         t_stop: 0.0,
+        alpha_min: crate::render::project::ALPHA_MIN,
     };
     let r = render_view(scene, camera, &opts)?;
     let n = r.width * r.height;

@@ -225,6 +225,7 @@ pub fn build(name: &str, skip: impl Fn(usize, usize) -> bool) -> Built {
             top_k: 16,
             epsilon: 0.0,
             t_stop: 0.0,
+            alpha_min: gs4city::cache::INRIA_ALPHA_MIN,
         },
         &dir.join("cache"),
     )
