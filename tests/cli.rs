@@ -293,6 +293,8 @@ fn citymodel_raycast_render_lift_through_the_binary() {
         ("--t-stop", "t_stop", "NaN"),
         ("--epsilon", "epsilon", "1"),
         ("--top-k", "top_k", "3000"),
+        ("--alpha-min", "alpha_min", "0.001"),
+        ("--alpha-min", "alpha_min", "0.99"),
     ] {
         let (ok, log) = gs4city(&[
             "render",

@@ -92,10 +92,11 @@ fn metrics_against_the_analytic_truth_and_every_stage_in_order() {
         serde_json::from_slice(&std::fs::read(dir.join("out/run.json")).unwrap()).unwrap();
     assert_eq!(rec["version"], env!("CARGO_PKG_VERSION"));
     assert_eq!(rec["options"]["top_k"], gs4city::cache::TOP_K);
-    assert_eq!(
-        rec["options"]["epsilon"].as_f64().unwrap() as f32,
-        gs4city::cache::EPSILON
-    );
+    // The default preset's lists (docs/quality.md).
+    let opt = |k: &str| rec["options"][k].as_f64().unwrap() as f32;
+    assert_eq!(opt("epsilon"), 0.1);
+    assert_eq!(opt("t_stop"), 0.2);
+    assert_eq!(opt("alpha_min"), 1.0 / 32.0);
     let lift_outputs = rec["stages"]["lift"]["outputs"].as_array().unwrap();
     assert!(
         lift_outputs
