@@ -90,9 +90,16 @@ pub struct OutOfRange {
     pub hi: End,
 }
 
-/// `a` as an interval end: whole numbers without a fraction (`1`, not `1.0`).
+/// `a` as an interval end: whole numbers without a fraction (`1`, not `1.0`); an end that is
+/// an `f32` widened (an `f32` constant as the bound) in the `f32`'s own shortest form
+/// (`0.003921569`, not `0.003921568859368563`).
 fn end_value(a: f64) -> String {
-    format!("{}", Num(a))
+    let narrow = a as f32;
+    if a.fract() != 0.0 && f64::from(narrow) == a {
+        format!("{}", Num(narrow))
+    } else {
+        format!("{}", Num(a))
+    }
 }
 
 impl fmt::Display for OutOfRange {
@@ -220,6 +227,17 @@ mod tests {
         assert_eq!(
             msg(range("t_stop", 1.1f32, End::Closed(0.0), End::Open(1.0))),
             "t_stop must lie in [0, 1), got 1.1"
+        );
+        // … and so does an end that is an f32 widened (1/255 as f32).
+        let inria = f64::from(1.0f32 / 255.0);
+        assert_eq!(
+            msg(range(
+                "alpha_min",
+                0.001f32,
+                End::Closed(inria),
+                End::Open(0.99)
+            )),
+            "alpha_min must lie in [0.003921569, 0.99), got 0.001"
         );
         assert!(unit("u", f64::NAN).is_err() && unit("u", 1.0).is_ok());
         assert!(non_negative("n", 0.0).is_ok() && non_negative("n", f64::INFINITY).is_err());
