@@ -521,6 +521,16 @@ fn run_plan_merges_into_one_queryable_run_that_agrees_with_the_untiled_run() {
     assert!(ok, "{text}");
     let m = p.join("merged");
     check_merged_against_tiles(&p, &m, &[]);
+    // The merge predicts the test views with the lists the tiles' runs used (the default
+    // preset's, docs/quality.md), not the cache's own defaults (ε 0.05, t_stop 0.02, 1/255).
+    let cached: Value =
+        serde_json::from_str(&std::fs::read_to_string(m.join("render/summary.json")).unwrap())
+            .unwrap();
+    let o = |k: &str| cached["options"][k].as_f64().unwrap() as f32;
+    assert_eq!(
+        (o("epsilon"), o("t_stop"), o("alpha_min")),
+        (0.1, 0.2, 1.0 / 32.0)
+    );
     let summary: Value =
         serde_json::from_str(&std::fs::read_to_string(m.join("summary.json")).unwrap()).unwrap();
     for t in summary["tiles"].as_array().unwrap() {

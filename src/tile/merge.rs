@@ -99,6 +99,19 @@ pub struct MergeSummary {
 
 impl crate::layout::Summary for MergeSummary {}
 
+/// The contribution lists a tile's run used: the cache's keys of its `run.json` options
+/// (`top_k`, `epsilon`, `t_stop`, `alpha_min`; absent keys as in a run.json before they existed).
+fn tile_lists(run: &Path) -> Result<crate::cache::CacheOptions, TileError> {
+    let path = run.join("run.json");
+    let bad = |why: String| TileError::Invalid(format!("{}: {why}", path.display()));
+    let rec: crate::layout::RunRecord =
+        crate::fsutil::read_json(&path).map_err(|e| bad(e.to_string()))?;
+    let lists: crate::cache::CacheOptions =
+        serde_json::from_value(rec.options).map_err(|e| bad(e.to_string()))?;
+    lists.validate().map_err(|e| bad(e.to_string()))?;
+    Ok(lists)
+}
+
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TileError + '_ {
     move |err| TileError::Io {
         path: path.to_path_buf(),
@@ -478,12 +491,13 @@ pub fn merge(plan_dir: &Path, out: &Path, opts: &MergeOptions) -> Result<MergeSu
         let prepared = crate::render::PreparedScene::new(&g)?;
         drop(g);
         let render = partial.join("render");
-        crate::render::cache::build(
-            &prepared,
-            &views,
-            &crate::cache::CacheOptions::default(),
-            &render,
-        )?;
+        // The lists the tiles' runs used, so that the test views are predicted as those runs
+        // predict theirs (the cache's defaults when no tile was merged).
+        let lists = match runs.first() {
+            Some(r) => tile_lists(&run_dir(&Plan::tile_dir(plan_dir, &plan.tiles[r.t])))?,
+            None => crate::cache::CacheOptions::default(),
+        };
+        crate::render::cache::build(&prepared, &views, &lists, &render)?;
         drop(prepared);
         let cache = crate::cache::Cache::open(&render)?;
         for v in &views {
