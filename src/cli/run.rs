@@ -82,30 +82,17 @@ fn run_options(cfg: &Config, a: &RunArgs) -> anyhow::Result<RunOptions> {
     crate::check::non_negative("tau", cfg.raycast.tau)?;
     let lift = super::groups::vote_options(&cfg.vote, &cfg.prior)?;
     let preset = a.quality.work();
-    // The `[cache]` keys the config gives override the preset's lists.
+    // The `[cache]` keys the config gives override the preset's lists, key by key.
+    fn pick<T>(given: bool, file: T, preset: T) -> T {
+        if given { file } else { preset }
+    }
     let given = |key: &str| cfg.cache_keys.iter().any(|k| k == key);
     let file = cfg.cache.options();
     let cache = crate::cache::CacheOptions {
-        top_k: if given("top_k") {
-            file.top_k
-        } else {
-            preset.top_k
-        },
-        epsilon: if given("epsilon") {
-            file.epsilon
-        } else {
-            preset.epsilon
-        },
-        t_stop: if given("t_stop") {
-            file.t_stop
-        } else {
-            preset.t_stop
-        },
-        alpha_min: if given("alpha_min") {
-            file.alpha_min
-        } else {
-            preset.alpha_min
-        },
+        top_k: pick(given("top_k"), file.top_k, preset.top_k),
+        epsilon: pick(given("epsilon"), file.epsilon, preset.epsilon),
+        t_stop: pick(given("t_stop"), file.t_stop, preset.t_stop),
+        alpha_min: pick(given("alpha_min"), file.alpha_min, preset.alpha_min),
     };
     cache.validate()?;
     let train_scale = a.train_scale.unwrap_or(preset.train_scale);

@@ -1,7 +1,8 @@
 //! Front-to-back alpha blending of one 16×16 tile, INRIA's `renderCUDA` per pixel:
 //! `power = −½(a·dx² + c·dy²) − b·dx·dy` (skip if > 0), `α = min(0.99, o·e^power)` (skip if
-//! < 1/255, or a higher `alpha_min` of the contributions cache), stop before adding when `T·(1−α) < 1e-4`. The loop runs Gaussian-outer,
-//! pixel-inner, restricted to the box where `α ≥ 1/255` is possible; each pixel still sees
+//! < 1/255, or a higher `alpha_min` of the contributions cache), stop before adding when
+//! `T·(1−α) < 1e-4`. The loop runs Gaussian-outer, pixel-inner, restricted to the box where
+//! `α ≥ α_min` is possible; each pixel still sees
 //! its Gaussians in the same order, so the result is the per-pixel loop's, up to the last bit
 //! of `e^power` ([`exp_neg`], inlined, within 2 ulp of `expf`). [`blend_tile`] runs under the
 //! widest instruction set the CPU has (`pulp`'s runtime dispatch: AVX2 + FMA where present).

@@ -104,8 +104,7 @@ impl crate::layout::Summary for MergeSummary {}
 fn tile_lists(run: &Path) -> Result<crate::cache::CacheOptions, TileError> {
     let path = run.join("run.json");
     let bad = |why: String| TileError::Invalid(format!("{}: {why}", path.display()));
-    let rec: crate::layout::RunRecord =
-        crate::fsutil::read_json(&path).map_err(|e| bad(e.to_string()))?;
+    let rec: crate::layout::RunRecord = crate::fsutil::read_json(&path)?;
     let lists: crate::cache::CacheOptions =
         serde_json::from_value(rec.options).map_err(|e| bad(e.to_string()))?;
     lists.validate().map_err(|e| bad(e.to_string()))?;
